@@ -1,0 +1,1 @@
+"""vprflow: training-free visual place recognition experiments as a Snakemake workflow."""

@@ -1,0 +1,307 @@
+"""From a validated config to the content-addressed stages of every experiment.
+
+Each stage instance is identified by a key: a short hash of exactly the parameters
+that shape its output, the keys of its inputs and a per-stage format version.
+Outputs live at ``results/cache/<stage>/<key>.zarr``. Two experiments that agree on
+a stage's parameters and inputs get the same key and share the store; changing a
+parameter changes the key of that stage and of everything downstream only.
+
+Bump a stage's entry in :data:`FORMAT_VERSIONS` whenever the code changes what the
+stage writes: Snakemake does not track the library's source, only the key does.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+CACHE = "results/cache"
+
+FORMAT_VERSIONS = {
+    "dataset": 1,
+    "features": 1,
+    "segments": 1,
+    "vocabulary": 1,
+    "pca": 1,
+    "descriptors": 1,
+    "recall": 1,
+}
+
+# Stages computed image by image; with shard_size > 0 they run as shards + a gather.
+PER_IMAGE_STAGES = ("features", "segments", "descriptors")
+
+GLOBAL_AGGREGATORS = ("anyloc_vlad", "snsm", "gem", "average", "max")
+AGGREGATORS = ("segvlad", *GLOBAL_AGGREGATORS)
+
+# Settings that change how a stage runs but not what it computes: kept out of keys.
+EXECUTION_ONLY = ("batch_size",)
+
+
+class PlanError(ValueError):
+    """A config that passes the schema but refers to something that does not exist."""
+
+
+def content_key(record: dict) -> str:
+    """16 hex digits of the SHA-256 of ``record`` as canonical JSON."""
+    text = json.dumps(record, sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
+
+
+def file_digest(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def deep_merge(base: dict, override: dict) -> dict:
+    merged = copy.deepcopy(base)
+    for name, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(name), dict):
+            merged[name] = deep_merge(merged[name], value)
+        else:
+            merged[name] = copy.deepcopy(value)
+    return merged
+
+
+def store_path(stage: str, key: str) -> str:
+    return f"{CACHE}/{stage}/{key}.zarr"
+
+
+@dataclass
+class Stage:
+    """One stage instance: what it computes from which upstream stores."""
+
+    stage: str
+    key: str
+    params: dict  # exactly what was hashed (plus execution-only settings, see run_params)
+    inputs: dict[str, tuple[str, str]]  # input name -> (stage, key)
+    run_params: dict = field(default_factory=dict)  # not hashed: device, batch size
+    dataset: str = ""
+
+    @property
+    def path(self) -> str:
+        return store_path(self.stage, self.key)
+
+    def input_paths(self) -> dict[str, str]:
+        return {name: store_path(*ref) for name, ref in self.inputs.items()}
+
+
+@dataclass
+class MethodRun:
+    """One row of a results table: a method on a dataset."""
+
+    method: str
+    recall_key: str
+    row_params: dict  # flattened parameters for the CSV
+
+
+@dataclass
+class Plan:
+    stages: dict[str, dict[str, Stage]] = field(default_factory=dict)
+    runs: dict[str, list[MethodRun]] = field(default_factory=dict)  # dataset -> rows
+    dataset_keys: dict[str, str] = field(default_factory=dict)
+
+    def add(
+        self,
+        stage: str,
+        params: dict,
+        inputs: dict[str, tuple[str, str]],
+        dataset: str,
+        run_params: dict | None = None,
+    ) -> str:
+        record = {
+            "stage": stage,
+            "version": FORMAT_VERSIONS[stage],
+            "params": params,
+            "inputs": {name: key for name, (_, key) in sorted(inputs.items())},
+        }
+        key = content_key(record)
+        self.stages.setdefault(stage, {})[key] = Stage(
+            stage, key, record, inputs, run_params or {}, dataset
+        )
+        return key
+
+    def get(self, stage: str, key: str) -> Stage:
+        try:
+            return self.stages[stage][key]
+        except KeyError:
+            raise PlanError(
+                f"no {stage} stage with key {key} in the current config "
+                f"(stale target? keys change whenever parameters do)"
+            ) from None
+
+
+def _flatten(prefix: str, value, out: dict) -> None:
+    if isinstance(value, dict):
+        for name in sorted(value):
+            _flatten(f"{prefix}.{name}" if prefix else name, value[name], out)
+    elif isinstance(value, list):
+        out[prefix] = " ".join(str(v) for v in value)
+    else:
+        out[prefix] = value
+
+
+def _hashed(params: dict) -> dict:
+    return {k: v for k, v in params.items() if k not in EXECUTION_ONLY}
+
+
+def _resolution(dataset: dict, profile: dict) -> list[int]:
+    if profile.get("resolution", "dataset") == "dataset":
+        return list(dataset["resolution"])
+    return list(profile["resolution"])
+
+
+def _domain_file(vocabulary: dict, config: dict) -> dict:
+    path = Path(vocabulary["file"])
+    if not path.is_file():
+        raise PlanError(f"vocabulary.file {path} does not exist")
+    return {"file": str(path), "sha256": file_digest(path)}
+
+
+def resolve_method(config: dict, name: str) -> dict:
+    """The method's settings: top-level defaults deep-merged with its overrides."""
+    if name not in config["methods"]:
+        raise PlanError(f"unknown method {name!r}; defined methods: {sorted(config['methods'])}")
+    defaults = {
+        section: config[section]
+        for section in ("features", "segmenter", "vocabulary", "pca", "segvlad", "snsm", "pooling")
+    }
+    return deep_merge(defaults, config["methods"][name])
+
+
+def build_plan(config: dict) -> Plan:
+    """Every stage of every (dataset, method) pair in ``config``; shared stages dedupe."""
+    plan = Plan()
+    execution = {"device": config["device"]}
+    for dataset_name, dataset in sorted(config["datasets"].items()):
+        dataset_params = {
+            "name": dataset_name,
+            **{k: dataset[k] for k in ("path", "reference", "query", "paired", "ground_truth")},
+        }
+        dataset_key = plan.add("dataset", dataset_params, {}, dataset_name)
+        plan.dataset_keys[dataset_name] = dataset_key
+        rows = []
+        for method_name in dataset["methods"]:
+            method = resolve_method(config, method_name)
+            rows.append(
+                _plan_method(
+                    plan, config, dataset_name, dataset, dataset_key, method_name, method, execution
+                )
+            )
+        plan.runs[dataset_name] = rows
+    return plan
+
+
+def _plan_method(plan, config, dataset_name, dataset, dataset_key, method_name, method, execution):
+    aggregator = method["aggregator"]
+    features_name = method["features"]
+    if features_name not in config["backbones"]:
+        raise PlanError(
+            f"method {method_name!r} uses backbone {features_name!r}, which is not defined under "
+            f"backbones: {sorted(config['backbones'])}"
+        )
+    backbone = config["backbones"][features_name]
+    ds = ("dataset", dataset_key)
+    features_params = {**_hashed(backbone), "resolution": _resolution(dataset, backbone)}
+    features_key = plan.add(
+        "features",
+        features_params,
+        {"dataset": ds},
+        dataset_name,
+        {**execution, "batch_size": backbone.get("batch_size", 1)},
+    )
+    fx = ("features", features_key)
+    row = {"aggregator": aggregator, "features": features_name, **_prefixed("features", backbone)}
+    inputs = {"dataset": ds, "features": fx}
+
+    def vocabulary_stage():
+        vocabulary = method["vocabulary"]
+        params = {k: v for k, v in vocabulary.items() if k != "file"}
+        if vocabulary["source"] == "file":
+            params.update(_domain_file(vocabulary, config))
+        row.update(_prefixed("vocabulary", vocabulary))
+        return (
+            "vocabulary",
+            plan.add("vocabulary", params, {"dataset": ds, "features": fx}, dataset_name),
+        )
+
+    if aggregator == "segvlad":
+        segmenter_name = method["segmenter"]
+        if segmenter_name not in config["segmenters"]:
+            raise PlanError(
+                f"method {method_name!r} uses segmenter {segmenter_name!r}, which is not defined "
+                f"under segmenters: {sorted(config['segmenters'])}"
+            )
+        segmenter = config["segmenters"][segmenter_name]
+        segments_params = {
+            **_hashed(segmenter),
+            "resolution": _segment_resolution(dataset, segmenter),
+        }
+        sx = (
+            "segments",
+            plan.add("segments", segments_params, {"dataset": ds}, dataset_name, execution),
+        )
+        vx = vocabulary_stage()
+        segvlad = method["segvlad"]
+        graph = {k: segvlad[k] for k in ("mask_to_patch", "small_graph")}
+        inputs.update(segments=sx, vocabulary=vx)
+        pca = method["pca"]
+        if pca["enabled"]:
+            pca_params = {**{k: v for k, v in pca.items() if k != "enabled"}, **graph}
+            inputs["pca"] = ("pca", plan.add("pca", pca_params, dict(inputs), dataset_name))
+            row.update(_prefixed("pca", pca))
+        else:
+            row["pca.enabled"] = False
+        descriptor_params = {"aggregator": "segvlad", "order": segvlad["order"], **graph}
+        row.update(segmenter=segmenter_name, **_prefixed("segmenter", segmenter))
+        row.update(_prefixed("segvlad", segvlad))
+    elif aggregator == "anyloc_vlad":
+        inputs["vocabulary"] = vocabulary_stage()
+        descriptor_params = {"aggregator": aggregator}
+    elif aggregator == "snsm":
+        descriptor_params = {"aggregator": aggregator, **method["snsm"]}
+        row.update(_prefixed("snsm", method["snsm"]))
+    else:
+        descriptor_params = {"aggregator": aggregator}
+        if aggregator == "gem":
+            descriptor_params["p"] = method["pooling"]["gem_p"]
+            row["pooling.gem_p"] = method["pooling"]["gem_p"]
+    descriptors_key = plan.add("descriptors", descriptor_params, inputs, dataset_name)
+    recall_params = {
+        "recall_at": dataset["recall_at"],
+        "top_k": max(max(dataset["recall_at"]), 20),
+        "top_segments": method["segvlad"]["top_segments"] if aggregator == "segvlad" else None,
+    }
+    if aggregator == "segvlad":
+        row["segvlad.top_segments"] = method["segvlad"]["top_segments"]
+    recall_key = plan.add(
+        "recall",
+        recall_params,
+        {"dataset": ds, "descriptors": ("descriptors", descriptors_key)},
+        dataset_name,
+    )
+    return MethodRun(method_name, recall_key, _flat(row))
+
+
+def _segment_resolution(dataset: dict, segmenter: dict) -> list[int]:
+    if segmenter.get("resolution") not in (None, "dataset"):
+        return list(segmenter["resolution"])
+    width, height = dataset["resolution"]
+    scale = segmenter.get("resolution_scale", 0.5)
+    return [max(1, round(width * scale)), max(1, round(height * scale))]
+
+
+def _prefixed(prefix: str, section: dict) -> dict:
+    return {f"{prefix}.{k}": v for k, v in section.items() if k not in EXECUTION_ONLY}
+
+
+def _flat(row: dict) -> dict:
+    out: dict = {}
+    for name, value in row.items():
+        _flatten(name, value, out)
+    return out

@@ -1,0 +1,190 @@
+"""SegVLAD: VLAD descriptors of segments and their graph neighbourhoods.
+
+Per image: masks ``[S, Hm, Wm]`` at segmentation resolution, patch descriptors
+``[N = h * w, D]`` on the feature grid, VLAD centres ``[K, D]``. Steps (REFERENCE.md
+section 2): masks -> patch membership ``M [S, N]``; centroid Delaunay graph ``A
+[S, S]``; neighbourhood ``(A^k M) > 0``; VLAD of each neighbourhood -> ``[S, K * D]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vprflow.vlad import assign
+
+
+def _source_index(n_out: int, n_in: int) -> np.ndarray:
+    """Nearest-neighbour upsampling map (torch ``interpolate(mode='nearest')``)."""
+    return np.minimum((np.arange(n_out) * n_in) // n_out, n_in - 1)
+
+
+def _patch_of_pixel(n_pixels: int, n_patches: int, patch_size: int, offset: int) -> np.ndarray:
+    """Patch index of each pixel row (or column); -1 for pixels outside the grid."""
+    index = (np.arange(n_pixels) - offset) // patch_size
+    if offset == 0:
+        # Published mapping: uncropped coordinates, the remainder clipped to the last patch.
+        return np.minimum(index, n_patches - 1)
+    return np.where((np.arange(n_pixels) >= offset) & (index < n_patches), index, -1)
+
+
+def _any_per_group(x: np.ndarray, groups: np.ndarray, n_groups: int, axis: int) -> np.ndarray:
+    """Logical OR of ``x`` along ``axis`` within each group label (``-1`` = drop)."""
+    keep = groups >= 0
+    x = np.compress(keep, x, axis=axis)
+    groups = groups[keep]
+    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
+    reduced = np.logical_or.reduceat(x, starts, axis=axis)
+    out_shape = list(x.shape)
+    out_shape[axis] = n_groups
+    out = np.zeros(out_shape, dtype=bool)
+    index = [slice(None)] * x.ndim
+    index[axis] = groups[starts]
+    out[tuple(index)] = reduced
+    return out
+
+
+def mask_patch_membership(
+    masks: np.ndarray,
+    image_size: tuple[int, int],
+    grid: tuple[int, int],
+    patch_size: int,
+    crop_aligned: bool = False,
+) -> np.ndarray:
+    """Which patches each mask touches: bool ``[S, h * w]``.
+
+    ``masks`` ``[S, Hm, Wm]`` are upsampled (nearest) to the feature image
+    ``image_size = (H, W)``; patch ``(i, j)`` belongs to a mask if any of its pixels
+    does. By default pixel rows ``i * p .. i * p + p - 1`` form patch row ``i`` in
+    uncropped coordinates, the leftover rows joining the last patch (the published
+    quirk). ``crop_aligned=True`` instead shifts by the centre-crop offset and ignores
+    pixels outside the crop.
+    """
+    height, width = image_size
+    h, w = grid
+    masks = np.asarray(masks, dtype=bool)
+    upsampled = masks[:, _source_index(height, masks.shape[1])][
+        :, :, _source_index(width, masks.shape[2])
+    ]
+    top = (height - h * patch_size) // 2 if crop_aligned else 0
+    left = (width - w * patch_size) // 2 if crop_aligned else 0
+    rows = _any_per_group(upsampled, _patch_of_pixel(height, h, patch_size, top), h, axis=1)
+    cells = _any_per_group(rows, _patch_of_pixel(width, w, patch_size, left), w, axis=2)
+    return cells.reshape(len(masks), h * w)
+
+
+def segment_centroids(masks: np.ndarray) -> np.ndarray:
+    """Mean ``(x, y)`` pixel position of each mask ``[S, H, W]`` -> ``[S, 2]`` float64.
+
+    An empty mask gets NaN coordinates.
+    """
+    masks = np.asarray(masks, dtype=bool)
+    area = masks.sum(axis=(1, 2)).astype(np.float64)
+    ys = np.arange(masks.shape[1], dtype=np.float64)
+    xs = np.arange(masks.shape[2], dtype=np.float64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        cx = (masks.sum(axis=1) @ xs) / area
+        cy = (masks.sum(axis=2) @ ys) / area
+    return np.stack([cx, cy], axis=1)
+
+
+def segment_adjacency(centroids: np.ndarray, small_graph: str = "published") -> np.ndarray:
+    """Delaunay graph of segment centroids with self loops: bool ``[S, S]``.
+
+    With 3 or fewer segments no triangulation is built; ``small_graph='published'``
+    reproduces the authors' code (every segment linked to segments 0 and 1 only,
+    not necessarily to itself), ``'complete'`` links all of them. Collinear or
+    otherwise degenerate centroids fall back to linking consecutive centroids in
+    sorted order along their line (the 1-D Delaunay graph).
+    """
+    n = len(centroids)
+    adjacency = np.eye(n, dtype=bool)
+    if n <= 3:
+        if small_graph == "published":
+            adjacency[:] = False
+            adjacency[:, : min(n, 2)] = True
+        elif small_graph == "complete":
+            adjacency[:] = True
+        else:
+            raise ValueError(f"unknown small_graph {small_graph!r} (published or complete)")
+        return adjacency
+    points = np.nan_to_num(np.asarray(centroids, dtype=np.float64), nan=-1.0)
+    from scipy.spatial import Delaunay, QhullError
+
+    try:
+        indptr, indices = Delaunay(points).vertex_neighbor_vertices
+    except QhullError:
+        order = np.lexsort((points[:, 1], points[:, 0]))
+        adjacency[order[:-1], order[1:]] = True
+        adjacency[order[1:], order[:-1]] = True
+        return adjacency
+    for v in range(n):
+        adjacency[v, indices[indptr[v] : indptr[v + 1]]] = True
+    return adjacency
+
+
+def neighbourhood(adjacency: np.ndarray, order: int) -> np.ndarray:
+    """Boolean ``order``-th power of ``adjacency``: segments within ``order`` hops.
+
+    ``order = 0`` is the identity (each segment alone).
+    """
+    reach = np.eye(len(adjacency), dtype=bool)
+    step = adjacency.astype(np.float32)
+    for _ in range(order):
+        reach = (reach.astype(np.float32) @ step) > 0
+    return reach
+
+
+def segvlad_descriptors(
+    features: np.ndarray, regions: np.ndarray, centres: np.ndarray, labels: np.ndarray | None = None
+) -> np.ndarray:
+    """VLAD of every region's patches: ``[S, K * D]`` float32.
+
+    ``features`` ``[N, D]``; ``regions`` bool ``[S, N]`` (patches of each segment
+    neighbourhood); ``centres`` ``[K, D]``. Same residuals and normalisation as
+    :func:`vprflow.vlad.vlad`. Patches are grouped by cluster so the work is one
+    ``[S, n_c] @ [n_c, D]`` product per cluster, ``S * N * D`` multiply-adds in all.
+    """
+    features = np.asarray(features, dtype=np.float32)
+    centres = np.asarray(centres, dtype=np.float32)
+    labels = assign(features, centres) if labels is None else labels
+    k, d = centres.shape
+    weights = np.asarray(regions).astype(np.float32)
+    residuals = np.zeros((len(weights), k, d), dtype=np.float32)
+    block_norms = np.zeros((len(weights), k), dtype=np.float32)
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(k + 1))
+    for c in range(k):
+        members = order[bounds[c] : bounds[c + 1]]
+        if len(members) == 0:
+            continue
+        w = weights[:, members]
+        block = w @ features[members]
+        block -= w.sum(axis=1)[:, None] * centres[c]
+        residuals[:, c, :] = block
+        block_norms[:, c] = np.linalg.norm(block, axis=1)
+    # Fused normalisation (one pass over the big array): after intra-normalisation
+    # every non-empty block has unit norm, so the final L2 norm is sqrt(#non-empty).
+    nonzero = block_norms > 1e-12
+    scale = np.where(nonzero, 1.0 / np.maximum(block_norms, 1e-12), 0.0)
+    scale /= np.sqrt(np.maximum(nonzero.sum(axis=1, keepdims=True), 1))
+    residuals *= scale[:, :, None]
+    return residuals.reshape(len(weights), k * d)
+
+
+def image_segvlad(
+    features: np.ndarray,
+    masks: np.ndarray,
+    centres: np.ndarray,
+    image_size: tuple[int, int],
+    patch_size: int,
+    order: int,
+    crop_aligned: bool = False,
+    small_graph: str = "published",
+) -> np.ndarray:
+    """SegVLAD descriptors of one image: ``features [h, w, D]``, ``masks [S, Hm, Wm]``
+    -> ``[S, K * D]``."""
+    h, w, d = features.shape
+    membership = mask_patch_membership(masks, image_size, (h, w), patch_size, crop_aligned)
+    adjacency = segment_adjacency(segment_centroids(masks), small_graph)
+    regions = (neighbourhood(adjacency, order).astype(np.float32) @ membership) > 0
+    return segvlad_descriptors(features.reshape(h * w, d), regions, centres)

@@ -1,0 +1,528 @@
+"""The workflow's stages as plain functions: inputs are store paths, output is a store.
+
+Each function is what one Snakemake rule runs (``workflow/scripts/<stage>.py`` only
+unpacks ``snakemake`` and calls it). ``params`` is the stage's hashed record from
+:mod:`vprflow.plan` (``params["params"]`` holds the stage's own settings); it is
+written into the output store's attributes so every store documents itself.
+
+Per-image stages take ``start``/``stop`` (a shard of the concatenated image list:
+references first, then queries) and write only those images; :func:`gather`
+concatenates shards.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import datasets, stores
+from vprflow.images import read_image, resize_image
+
+log = logging.getLogger("vprflow")
+
+
+# ------------------------------------------------------------------ dataset
+
+
+def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
+    """List and decode every image once (so a corrupt file fails here, by name) and
+    store paths, sizes and ground truth."""
+    spec = params["params"]
+    files = datasets.list_dataset(data_root, name, spec)
+    folder = datasets.dataset_folder(data_root, spec)
+    truth = datasets.ground_truth(files, spec["ground_truth"], folder)
+    paths = files.reference + files.query
+    sizes = np.zeros((len(paths), 2), dtype=np.int64)
+    for i, path in enumerate(tqdm(paths, desc=f"checking {name} images")):
+        sizes[i] = read_image(path).shape[:2]
+    counts = np.array([len(t) for t in truth], dtype=np.int64)
+    with stores.atomic_store(out, {"stage": "dataset", "params": params}) as group:
+        group.attrs.update(
+            name=name,
+            n_reference=len(files.reference),
+            n_query=len(files.query),
+            ground_truth_rule=datasets.ground_truth_rule(spec["ground_truth"]),
+            n_queries_with_positives=int((counts > 0).sum()),
+        )
+        stores.write_array(group, "paths", np.array([str(p.resolve()) for p in paths]))
+        stores.write_array(group, "names", np.array([f"{p.parent.name}/{p.name}" for p in paths]))
+        stores.write_array(group, "image_sizes", sizes)
+        stores.write_array(
+            group, "truth", np.concatenate(truth) if truth else np.zeros(0, np.int64)
+        )
+        stores.write_array(group, "truth_offsets", np.r_[0, np.cumsum(counts)].astype(np.int64))
+    log.info(
+        "dataset %s: %d reference, %d query images", name, len(files.reference), len(files.query)
+    )
+
+
+class Dataset:
+    """Read-side view of a dataset store."""
+
+    def __init__(self, path: str):
+        self.group = stores.open_store(path)
+        self.n_reference = int(self.group.attrs["n_reference"])
+        self.n_query = int(self.group.attrs["n_query"])
+        self.n_images = self.n_reference + self.n_query
+        self.paths = stores.read_strings(self.group, "paths")
+        self.names = stores.read_strings(self.group, "names")
+
+    def truth(self) -> list[np.ndarray]:
+        refs = np.asarray(self.group["truth"][...])
+        offsets = np.asarray(self.group["truth_offsets"][...])
+        return [refs[offsets[q] : offsets[q + 1]] for q in range(self.n_query)]
+
+    def indices(self, which: str) -> np.ndarray:
+        return {
+            "reference": np.arange(self.n_reference),
+            "query": np.arange(self.n_reference, self.n_images),
+            "both": np.arange(self.n_images),
+        }[which]
+
+
+def shard_range(n_images: int, start: int | None, stop: int | None) -> range:
+    start = 0 if start is None else start
+    stop = n_images if stop is None else min(stop, n_images)
+    return range(start, stop)
+
+
+def _stage_attrs(stage: str, params: dict, images: range) -> dict:
+    return {"stage": stage, "params": params, "start": images.start, "stop": images.stop}
+
+
+# ------------------------------------------------------------------ features
+
+
+def compute_features(
+    dataset_path: str,
+    params: dict,
+    out: str,
+    device: str = "auto",
+    batch_size: int = 1,
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
+    """Dense patch descriptors ``features [n, h, w, D]`` of images ``start..stop``."""
+    from vprflow.backbones import load_backbone
+
+    spec = params["params"]
+    dataset = Dataset(dataset_path)
+    images = shard_range(dataset.n_images, start, stop)
+    width, height = spec["resolution"]
+    store_dtype = np.dtype(spec.get("store_dtype", "float16"))
+    backbone = load_backbone(spec, device)
+    with stores.atomic_store(out, _stage_attrs("features", params, images)) as group:
+        array = None
+        batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
+        for batch in tqdm(batches, desc="features", unit="batch"):
+            pixels = np.stack(
+                [resize_image(read_image(dataset.paths[i]), width, height) for i in batch]
+            )
+            grids = backbone.features(pixels)
+            if array is None:
+                h, w, dim = grids.shape[1:]
+                array = group.create_array(
+                    "features",
+                    shape=(len(images), h, w, dim),
+                    chunks=(1, h, w, dim),
+                    dtype=store_dtype,
+                    compressors=stores.COMPRESSOR,
+                )
+                group.attrs.update(
+                    grid=[h, w], dim=dim, patch_size=backbone.patch_size, image_size=[height, width]
+                )
+            array[batch.start - images.start : batch.stop - images.start] = grids.astype(
+                store_dtype
+            )
+
+
+def read_features(group, index: int) -> np.ndarray:
+    """float32 ``[h, w, D]`` of one image of a features store."""
+    return np.asarray(group["features"][index], dtype=np.float32)
+
+
+# ------------------------------------------------------------------ segments
+
+
+def compute_segments(
+    dataset_path: str,
+    params: dict,
+    out: str,
+    device: str = "auto",
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
+    """Bit-packed masks per image at the segmentation resolution (ragged ``masks``)."""
+    from vprflow.segmenters import load_segmenter
+
+    spec = params["params"]
+    dataset = Dataset(dataset_path)
+    images = shard_range(dataset.n_images, start, stop)
+    width, height = spec["resolution"]
+    segmenter = load_segmenter(spec, device)
+    with stores.atomic_store(out, _stage_attrs("segments", params, images)) as group:
+        group.attrs.update(mask_height=height, mask_width=width)
+        writer = stores.RaggedWriter(
+            group, "masks", ((height * width + 7) // 8,), np.uint8, chunk_rows=256
+        )
+        for i in tqdm(images, desc="segments", unit="image"):
+            masks = segmenter.masks(resize_image(read_image(dataset.paths[i]), width, height))
+            if len(masks) == 0:
+                log.warning("%s: the segmenter returned no masks", dataset.paths[i])
+            writer.append(stores.pack_masks(masks))
+        writer.close()
+
+
+def read_masks(group, index: int) -> np.ndarray:
+    packed = stores.read_ragged(group, "masks", index)
+    return stores.unpack_masks(
+        packed, int(group.attrs["mask_height"]), int(group.attrs["mask_width"])
+    )
+
+
+# ------------------------------------------------------------------ vocabulary
+
+
+def load_centres_file(path: str) -> np.ndarray:
+    """Centres ``[K, D]`` from a torch-saved ``c_centers.pt`` or a ``.npy`` file."""
+    if path.endswith(".npy"):
+        return np.load(path, allow_pickle=False).astype(np.float32)
+    from vprflow.published import load_c_centers
+
+    return load_c_centers(path)
+
+
+def fit_vocabulary(dataset_path: str, features_path: str, params: dict, out: str) -> None:
+    """VLAD centres ``[K, D]``: spherical k-means on sampled patch descriptors, or a file."""
+    from vprflow.vlad import fit_spherical_kmeans
+
+    spec = params["params"]
+    if spec["source"] == "file":
+        centres = load_centres_file(spec["file"])
+    else:
+        dataset = Dataset(dataset_path)
+        features = stores.open_store(features_path)
+        images = dataset.indices(spec["fit_on"])
+        h, w = features.attrs["grid"]
+        per_image = h * w
+        total = len(images) * per_image
+        rng = np.random.default_rng(spec["seed"])
+        chosen = np.sort(rng.choice(total, size=min(total, spec["max_descriptors"]), replace=False))
+        owner = chosen // per_image
+        sample = []
+        for i in tqdm(np.unique(owner), desc="vocabulary sample", unit="image"):
+            grid = read_features(features, images[i]).reshape(per_image, -1)
+            sample.append(grid[chosen[owner == i] % per_image])
+        centres = fit_spherical_kmeans(
+            np.concatenate(sample), spec["n_clusters"], spec["n_iter"], spec["seed"]
+        )
+    with stores.atomic_store(out, {"stage": "vocabulary", "params": params}) as group:
+        stores.write_array(group, "centres", centres.astype(np.float32))
+
+
+def read_centres(path: str) -> np.ndarray:
+    return np.asarray(stores.open_store(path)["centres"][...], dtype=np.float32)
+
+
+# ------------------------------------------------------------------ SegVLAD helpers
+
+
+def _segvlad_image(features, segments, centres, index, order, spec) -> np.ndarray:
+    from vprflow.segvlad import image_segvlad
+
+    grid = read_features(features, index)
+    height, width = features.attrs["image_size"]
+    return image_segvlad(
+        grid,
+        read_masks(segments, index),
+        centres,
+        (height, width),
+        int(features.attrs["patch_size"]),
+        order,
+        crop_aligned=spec["mask_to_patch"] == "crop_aligned",
+        small_graph=spec["small_graph"],
+    )
+
+
+# ------------------------------------------------------------------ PCA
+
+
+def fit_pca_stage(
+    dataset_path: str,
+    features_path: str,
+    segments_path: str,
+    vocabulary_path: str,
+    params: dict,
+    out: str,
+) -> None:
+    """PCA fitted on a random sample of reference SegVLAD segment descriptors."""
+    from vprflow.pca import fit_pca
+
+    spec = params["params"]
+    dataset = Dataset(dataset_path)
+    features = stores.open_store(features_path)
+    segments = stores.open_store(segments_path)
+    centres = read_centres(vocabulary_path)
+    offsets = np.asarray(segments["masks_offsets"][...])
+    total = int(offsets[dataset.n_reference])
+    rng = np.random.default_rng(spec["seed"])
+    chosen = np.sort(rng.choice(total, size=min(total, spec["max_samples"]), replace=False))
+    sample = []
+    for i in tqdm(range(dataset.n_reference), desc="pca sample", unit="image"):
+        rows = chosen[(chosen >= offsets[i]) & (chosen < offsets[i + 1])] - offsets[i]
+        if len(rows):
+            sample.append(
+                _segvlad_image(features, segments, centres, i, spec["fit_order"], spec)[rows]
+            )
+    fitted = fit_pca(np.concatenate(sample), spec["dim"], spec["whiten"], spec["seed"])
+    with stores.atomic_store(out, {"stage": "pca", "params": params}) as group:
+        group.attrs.update(whiten=fitted.whiten, n_samples=len(chosen))
+        stores.write_array(group, "mean", fitted.mean)
+        stores.write_array(group, "components", fitted.components)
+        stores.write_array(group, "explained_variance", fitted.explained_variance)
+
+
+def read_pca(path: str):
+    from vprflow.pca import Pca
+
+    group = stores.open_store(path)
+    return Pca(
+        mean=np.asarray(group["mean"][...]),
+        components=np.asarray(group["components"][...]),
+        explained_variance=np.asarray(group["explained_variance"][...]),
+        whiten=bool(group.attrs["whiten"]),
+    )
+
+
+# ------------------------------------------------------------------ descriptors
+
+
+def compute_descriptors(
+    inputs: dict[str, str],
+    params: dict,
+    out: str,
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
+    """Per-image descriptors of one method.
+
+    SegVLAD writes a ragged ``descriptors`` array (one row per segment, offsets per
+    image); every global aggregator writes ``descriptors [n, dim]``.
+    """
+    spec = params["params"]
+    aggregator = spec["aggregator"]
+    dataset = Dataset(inputs["dataset"])
+    features = stores.open_store(inputs["features"])
+    images = shard_range(dataset.n_images, start, stop)
+    attrs = _stage_attrs("descriptors", params, images)
+    if aggregator == "segvlad":
+        segments = stores.open_store(inputs["segments"])
+        centres = read_centres(inputs["vocabulary"])
+        pca = read_pca(inputs["pca"]) if "pca" in inputs else None
+        dim = pca.components.shape[0] if pca else centres.size
+        with stores.atomic_store(out, {**attrs, "kind": "segments"}) as group:
+            writer = stores.RaggedWriter(
+                group, "descriptors", (dim,), np.float32, chunk_rows=max(1, (1 << 22) // (4 * dim))
+            )
+            for i in tqdm(images, desc="segvlad", unit="image"):
+                vectors = _segvlad_image(features, segments, centres, i, spec["order"], spec)
+                writer.append(pca.transform(vectors) if pca else vectors)
+            writer.close()
+        return
+    global_descriptor = _global_aggregator(spec, inputs)
+    with stores.atomic_store(out, {**attrs, "kind": "global"}) as group:
+        array = None
+        for i in tqdm(images, desc=aggregator, unit="image"):
+            vector = global_descriptor(read_features(features, i))
+            if array is None:
+                array = group.create_array(
+                    "descriptors",
+                    shape=(len(images), len(vector)),
+                    chunks=(max(1, (1 << 22) // (4 * len(vector))), len(vector)),
+                    dtype=np.float32,
+                    compressors=stores.COMPRESSOR,
+                )
+            array[i - images.start] = vector
+
+
+def _global_aggregator(spec: dict, inputs: dict[str, str]):
+    """``[h, w, D] -> [dim]`` for the configured global aggregator."""
+    aggregator = spec["aggregator"]
+    if aggregator == "anyloc_vlad":
+        from vprflow.vlad import vlad
+
+        centres = read_centres(inputs["vocabulary"])
+        return lambda grid: vlad(grid.reshape(-1, grid.shape[-1]), centres)
+    if aggregator == "snsm":
+        from vprflow.snsm import snsm_descriptor
+
+        options = {
+            k: spec[k]
+            for k in ("upscale", "window", "neighbourhood", "similarity", "normalization")
+        }
+        return lambda grid: snsm_descriptor(grid, **options)
+    from vprflow import pooling
+
+    if aggregator == "gem":
+        return lambda grid: pooling.gem(grid, p=spec["p"])
+    if aggregator == "average":
+        return pooling.average_pool
+    if aggregator == "max":
+        return pooling.max_pool
+    raise ValueError(f"unknown aggregator {aggregator!r}")
+
+
+# ------------------------------------------------------------------ shards
+
+
+def gather(shard_paths: list[str], params: dict, out: str) -> None:
+    """Concatenate per-image shard stores (in image order) into one store.
+
+    Arrays with an ``<name>_offsets`` partner are ragged: rows are concatenated and
+    offsets shifted; other arrays are concatenated along the image axis.
+    """
+    shards = [stores.open_store(p) for p in shard_paths]
+    first = shards[0]
+    names = sorted(name for name, _ in first.arrays())
+    attrs = {k: v for k, v in first.attrs.items() if k not in ("start", "stop")}
+    attrs["params"] = params
+    attrs["shards"] = len(shards)
+    with stores.atomic_store(out, attrs) as group:
+        for name in names:
+            if name.endswith("_offsets"):
+                continue
+            source = first[name]
+            chunks = source.chunks
+            target = group.create_array(
+                name,
+                shape=(0, *source.shape[1:]),
+                chunks=chunks,
+                dtype=source.dtype,
+                compressors=stores.COMPRESSOR,
+            )
+            for shard in tqdm(shards, desc=f"gather {name}", unit="shard"):
+                if shard[name].shape[0]:
+                    target.append(np.asarray(shard[name][...]), axis=0)
+            if f"{name}_offsets" in names:
+                offsets = [np.zeros(1, dtype=np.int64)]
+                base = 0
+                for shard in shards:
+                    local = np.asarray(shard[f"{name}_offsets"][...])
+                    offsets.append(local[1:] + base)
+                    base += int(local[-1])
+                stores.write_array(group, f"{name}_offsets", np.concatenate(offsets))
+
+
+# ------------------------------------------------------------------ evaluation
+
+
+def evaluate(dataset_path: str, descriptors_path: str, params: dict, out: str) -> None:
+    """Retrieve references for every query, score them and compute Recall@N."""
+    from vprflow.recall import correct_at, recall_at
+    from vprflow.retrieval import (
+        global_ranking,
+        image_of_segment,
+        rank_by_score,
+        search,
+        segment_vote_scores,
+    )
+
+    spec = params["params"]
+    dataset = Dataset(dataset_path)
+    group = stores.open_store(descriptors_path)
+    n_ref, n_query = dataset.n_reference, dataset.n_query
+    top_k = min(spec["top_k"], n_ref)
+    if group.attrs["kind"] == "segments":
+        offsets = np.asarray(group["descriptors_offsets"][...])
+        split = int(offsets[n_ref])
+        vectors = group["descriptors"]
+        reference, query = np.asarray(vectors[:split]), np.asarray(vectors[split:])
+        distances, indices = search(reference, query, spec["top_segments"])
+        owner = image_of_segment(offsets)
+        scores = segment_vote_scores(
+            distances, indices, owner[split:] - n_ref, owner[:split], n_query, n_ref
+        )
+        ranking = rank_by_score(scores)[:, :top_k]
+    else:
+        vectors = np.asarray(group["descriptors"][...])
+        ranking = global_ranking(vectors[:n_ref], vectors[n_ref:], top_k)
+    truth = dataset.truth()
+    ns = [n for n in spec["recall_at"] if n <= n_ref]
+    recalls = recall_at(ranking, truth, ns)
+    with stores.atomic_store(out, {"stage": "recall", "params": params}) as result:
+        result.attrs.update(
+            recall={str(n): v for n, v in recalls.items()},
+            n_queries=int(sum(len(t) > 0 for t in truth)),
+            ground_truth_rule=dataset.group.attrs["ground_truth_rule"],
+        )
+        stores.write_array(result, "ranking", ranking.astype(np.int64))
+        stores.write_array(result, "first_correct", correct_at(ranking, truth))
+    log.info("recall: %s", recalls)
+
+
+def write_report(
+    dataset_name: str,
+    dataset_path: str,
+    runs: list[dict],
+    recall_paths: list[str],
+    csv_out: str,
+    predictions_out: str,
+) -> None:
+    """The results table (one row per method) and per-query top predictions.
+
+    ``runs[i]`` is ``{"method": name, "params": {flattened parameters}}`` for
+    ``recall_paths[i]``. Output is deterministic: fixed column order, no timestamps.
+    """
+    import csv
+
+    dataset = Dataset(dataset_path)
+    results = [stores.open_store(p) for p in recall_paths]
+    recall_columns = sorted({int(n) for r in results for n in r.attrs["recall"]})
+    param_columns = sorted({name for run in runs for name in run["params"]})
+    header = ["dataset", "method", *param_columns, "ground_truth", "n_queries"]
+    header += [f"recall@{n}" for n in recall_columns]
+    Path(csv_out).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(csv_out).with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(header)
+        for run, result in zip(runs, results, strict=True):
+            recall = result.attrs["recall"]
+            writer.writerow(
+                [dataset_name, run["method"]]
+                + [_cell(run["params"].get(name, "")) for name in param_columns]
+                + [result.attrs["ground_truth_rule"], result.attrs["n_queries"]]
+                + [f"{recall[str(n)]:.6f}" if str(n) in recall else "" for n in recall_columns]
+            )
+    tmp.replace(csv_out)
+    tmp = Path(predictions_out).with_suffix(".csv.tmp")
+    truth = dataset.truth()
+    with open(tmp, "w", newline="") as f:
+        writer = csv.writer(f, lineterminator="\n")
+        writer.writerow(
+            ["method", "query", "query_image", "positives", "first_correct_rank", "top"]
+        )
+        for run, result in zip(runs, results, strict=True):
+            ranking = np.asarray(result["ranking"][...])
+            first = np.asarray(result["first_correct"][...])
+            for q in range(dataset.n_query):
+                writer.writerow(
+                    [
+                        run["method"],
+                        q,
+                        dataset.names[dataset.n_reference + q],
+                        " ".join(map(str, truth[q])),
+                        int(first[q]) + 1 if first[q] >= 0 else "",
+                        " ".join(map(str, ranking[q])),
+                    ]
+                )
+    tmp.replace(predictions_out)
+
+
+def _cell(value) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    return str(value)

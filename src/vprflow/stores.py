@@ -1,0 +1,143 @@
+"""Zarr stores written atomically, with ragged (per-image variable length) arrays.
+
+Every stage writes one Zarr group. It is built at ``<out>.tmp`` and renamed onto
+``<out>`` only when complete, so an interrupted job never leaves a store that looks
+finished. Ragged data (a variable number of segments per image) is one concatenated
+array plus an ``offsets`` array of length ``n + 1``: image ``i`` owns rows
+``offsets[i]:offsets[i + 1]``.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import zarr
+import zarr.codecs
+
+COMPRESSOR = zarr.codecs.ZstdCodec(level=3)
+
+
+def temporary_path(path: str | Path) -> Path:
+    path = Path(path)
+    return path.with_name(path.name + ".tmp")
+
+
+@contextmanager
+def atomic_store(path: str | Path, attrs: dict | None = None) -> Iterator[zarr.Group]:
+    """Yield a writable Zarr group that appears at ``path`` only if the block succeeds.
+
+    A leftover ``<path>.tmp`` from an interrupted run is removed first. On an
+    exception the temporary store is deleted and the exception propagates.
+    """
+    path = Path(path)
+    tmp = temporary_path(path)
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    tmp.parent.mkdir(parents=True, exist_ok=True)
+    group = zarr.open_group(str(tmp), mode="w")
+    if attrs:
+        group.attrs.update(attrs)
+    try:
+        yield group
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    if path.exists():
+        # Snakemake may pre-create (or leave) the directory output; it holds no data.
+        shutil.rmtree(path)
+    os.replace(tmp, path)
+
+
+def open_store(path: str | Path) -> zarr.Group:
+    """Open a finished store read-only; a clear error if it is missing."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"store {path} does not exist (has its stage run?)")
+    return zarr.open_group(str(path), mode="r")
+
+
+def write_array(group: zarr.Group, name: str, data: np.ndarray, chunks=None) -> zarr.Array:
+    """Write a whole numpy array (numeric or string) into ``group[name]``."""
+    data = np.asarray(data)
+    if data.dtype.kind in "UOT":
+        # dtype=str is zarr 3's variable-length string type (fixed-width unicode has no
+        # stable v3 spec).
+        strings = group.create_array(name, shape=data.shape, dtype=str, chunks=(max(1, len(data)),))
+        if data.size:
+            strings[...] = data.astype(str)
+        return strings
+    if data.size == 0:
+        # zarr cannot infer chunks from an empty array
+        chunks = chunks or tuple(max(1, s) for s in data.shape)
+    return group.create_array(name, data=data, chunks=chunks or "auto", compressors=COMPRESSOR)
+
+
+def read_strings(group: zarr.Group, name: str) -> list[str]:
+    return [str(s) for s in np.asarray(group[name][...]).tolist()]
+
+
+class RaggedWriter:
+    """Append per-image blocks of rows ``[n_i, *row_shape]`` into one concatenated array.
+
+    Rows are buffered and flushed in whole chunks, so appending many small blocks
+    does not rewrite partial chunks over and over.
+    """
+
+    def __init__(self, group: zarr.Group, name: str, row_shape: tuple, dtype, chunk_rows: int):
+        self.array = group.create_array(
+            name,
+            shape=(0, *row_shape),
+            chunks=(chunk_rows, *row_shape),
+            dtype=dtype,
+            compressors=COMPRESSOR,
+        )
+        self.group = group
+        self.name = name
+        self.chunk_rows = chunk_rows
+        self.buffer: list[np.ndarray] = []
+        self.buffered = 0
+        self.offsets = [0]
+
+    def append(self, rows: np.ndarray) -> None:
+        rows = np.asarray(rows, dtype=self.array.dtype)
+        self.buffer.append(rows)
+        self.buffered += len(rows)
+        self.offsets.append(self.offsets[-1] + len(rows))
+        if self.buffered >= self.chunk_rows:
+            self._flush()
+
+    def _flush(self) -> None:
+        if self.buffered:
+            self.array.append(np.concatenate(self.buffer, axis=0), axis=0)
+            self.buffer, self.buffered = [], 0
+
+    def close(self) -> np.ndarray:
+        """Flush and write ``<name>_offsets``; returns the offsets ``[n + 1]``."""
+        self._flush()
+        offsets = np.asarray(self.offsets, dtype=np.int64)
+        write_array(self.group, f"{self.name}_offsets", offsets)
+        return offsets
+
+
+def read_ragged(group: zarr.Group, name: str, index: int) -> np.ndarray:
+    """Rows of image ``index`` from a ragged array written by :class:`RaggedWriter`."""
+    offsets = group[f"{name}_offsets"]
+    start, stop = (int(v) for v in offsets[index : index + 2])
+    return np.asarray(group[name][start:stop])
+
+
+def pack_masks(masks: np.ndarray) -> np.ndarray:
+    """bool ``[S, H, W]`` -> uint8 ``[S, ceil(H * W / 8)]`` (row-major bits)."""
+    masks = np.asarray(masks, dtype=bool)
+    return np.packbits(masks.reshape(len(masks), -1), axis=1)
+
+
+def unpack_masks(packed: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Inverse of :func:`pack_masks`: uint8 ``[S, B]`` -> bool ``[S, height, width]``."""
+    bits = np.unpackbits(np.asarray(packed, dtype=np.uint8), axis=1, count=height * width)
+    return bits.reshape(len(packed), height, width).astype(bool)

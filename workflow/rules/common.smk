@@ -1,0 +1,102 @@
+# Config validation, the content-addressed plan, and the input functions every rule uses.
+from functools import cache
+from pathlib import Path
+
+from vprflow.config import validate_config
+from vprflow.datasets import ground_truth_files, list_dataset
+from vprflow.plan import CACHE, PlanError, build_plan
+
+
+configfile: "config/config.yaml"
+
+
+CONFIG = validate_config(config, Path(workflow.basedir) / "config" / "schema.yaml")
+PLAN = build_plan(CONFIG)
+SHARDED = "features|segments|descriptors"
+
+
+wildcard_constraints:
+    key="[0-9a-f]{16}",
+    start=r"\d+",
+    stop=r"\d+",
+
+
+def planned(stage, wildcards):
+    return PLAN.get(stage, wildcards.key)
+
+
+def stage_inputs(stage):
+    """Input function: the upstream stores of a stage instance, by name."""
+    return lambda wildcards: planned(stage, wildcards).input_paths()
+
+
+def stage_params(stage):
+    """Params function: the stage's hashed record (what its key is made of)."""
+    return lambda wildcards: planned(stage, wildcards).params
+
+
+def stage_run_params(stage):
+    """Execution settings that do not shape the output (device, batch size)."""
+    return lambda wildcards: planned(stage, wildcards).run_params
+
+
+def dataset_spec(name):
+    if name not in CONFIG["datasets"]:
+        raise PlanError(
+            f"unknown dataset {name!r}; configured: {sorted(CONFIG['datasets'])}"
+        )
+    return CONFIG["datasets"][name]
+
+
+@cache
+def dataset_files(name):
+    return list_dataset(CONFIG["data_root"], name, dataset_spec(name))
+
+
+def dataset_inputs(wildcards):
+    """The dataset stage reads every image and the ground-truth file."""
+    name = planned("dataset", wildcards).dataset
+    files = dataset_files(name)
+    return [
+        *files.reference,
+        *files.query,
+        *ground_truth_files(CONFIG["data_root"], dataset_spec(name)),
+    ]
+
+
+def shard_ranges(name):
+    files = dataset_files(name)
+    n_images = len(files.reference) + len(files.query)
+    size = CONFIG["shard_size"] or n_images
+    return [(start, min(start + size, n_images)) for start in range(0, n_images, size)]
+
+
+def shard_inputs(wildcards):
+    """The shards a per-image stage is gathered from, in image order."""
+    stage = planned(wildcards.stage, wildcards)
+    return [
+        f"{CACHE}/{wildcards.stage}/{wildcards.key}.shards/{start}-{stop}.zarr"
+        for start, stop in shard_ranges(stage.dataset)
+    ]
+
+
+def gather_params(wildcards):
+    return planned(wildcards.stage, wildcards).params
+
+
+def report_inputs(wildcards):
+    spec = dataset_spec(wildcards.dataset)
+    return {
+        "dataset": f"{CACHE}/dataset/{PLAN.dataset_keys[wildcards.dataset]}.zarr",
+        "recalls": [
+            f"{CACHE}/recall/{run.recall_key}.zarr"
+            for run in PLAN.runs[wildcards.dataset]
+        ],
+    }
+
+
+def report_runs(wildcards):
+    return [
+        {"method": run.method, "params": run.row_params}
+        for run in PLAN.runs[wildcards.dataset]
+    ]

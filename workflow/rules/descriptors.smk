@@ -1,0 +1,13 @@
+rule descriptors:
+    input:
+        unpack(stage_inputs("descriptors")),
+    output:
+        temp(directory("results/cache/descriptors/{key}.shards/{start}-{stop}.zarr")),
+    log:
+        "logs/descriptors/{key}.{start}-{stop}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        cfg=stage_params("descriptors"),
+    script:
+        "../scripts/descriptors.py"

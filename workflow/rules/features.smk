@@ -1,0 +1,31 @@
+rule features:
+    input:
+        unpack(stage_inputs("features")),
+    output:
+        temp(directory("results/cache/features/{key}.shards/{start}-{stop}.zarr")),
+    log:
+        "logs/features/{key}.{start}-{stop}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        cfg=stage_params("features"),
+        run=stage_run_params("features"),
+    script:
+        "../scripts/features.py"
+
+
+rule gather:
+    input:
+        shard_inputs,
+    output:
+        directory("results/cache/{stage}/{key}.zarr"),
+    log:
+        "logs/{stage}/{key}.gather.log",
+    conda:
+        "../envs/vprflow.yaml"
+    wildcard_constraints:
+        stage=SHARDED,
+    params:
+        cfg=gather_params,
+    script:
+        "../scripts/gather.py"

@@ -1,0 +1,13 @@
+rule pca:
+    input:
+        unpack(stage_inputs("pca")),
+    output:
+        directory("results/cache/pca/{key}.zarr"),
+    log:
+        "logs/pca/{key}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        cfg=stage_params("pca"),
+    script:
+        "../scripts/pca.py"

@@ -1,0 +1,29 @@
+rule recall:
+    input:
+        unpack(stage_inputs("recall")),
+    output:
+        directory("results/cache/recall/{key}.zarr"),
+    log:
+        "logs/recall/{key}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        cfg=stage_params("recall"),
+    script:
+        "../scripts/recall.py"
+
+
+rule report:
+    input:
+        unpack(report_inputs),
+    output:
+        csv="results/recall_{dataset}.csv",
+        predictions="results/predictions_{dataset}.csv",
+    log:
+        "logs/report/{dataset}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        runs=report_runs,
+    script:
+        "../scripts/report.py"

@@ -1,0 +1,14 @@
+rule segments:
+    input:
+        unpack(stage_inputs("segments")),
+    output:
+        temp(directory("results/cache/segments/{key}.shards/{start}-{stop}.zarr")),
+    log:
+        "logs/segments/{key}.{start}-{stop}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        cfg=stage_params("segments"),
+        run=stage_run_params("segments"),
+    script:
+        "../scripts/segments.py"

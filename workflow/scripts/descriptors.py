@@ -1,0 +1,14 @@
+from vprflow.logs import run_logged
+from vprflow.stages import compute_descriptors
+
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+run_logged(
+    sm.log[0],
+    lambda: compute_descriptors(
+        dict(sm.input.items()),
+        sm.params.cfg,
+        sm.output[0],
+        start=int(sm.wildcards.start),
+        stop=int(sm.wildcards.stop),
+    ),
+)

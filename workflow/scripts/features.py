@@ -1,0 +1,16 @@
+from vprflow.logs import run_logged
+from vprflow.stages import compute_features
+
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+run_logged(
+    sm.log[0],
+    lambda: compute_features(
+        sm.input.dataset,
+        sm.params.cfg,
+        sm.output[0],
+        device=sm.params.run["device"],
+        batch_size=sm.params.run["batch_size"],
+        start=int(sm.wildcards.start),
+        stop=int(sm.wildcards.stop),
+    ),
+)

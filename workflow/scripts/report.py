@@ -1,0 +1,15 @@
+from vprflow.logs import run_logged
+from vprflow.stages import write_report
+
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+run_logged(
+    sm.log[0],
+    lambda: write_report(
+        sm.wildcards.dataset,
+        sm.input.dataset,
+        sm.params.runs,
+        list(sm.input.recalls),
+        sm.output.csv,
+        sm.output.predictions,
+    ),
+)

@@ -1,0 +1,15 @@
+from vprflow.logs import run_logged
+from vprflow.stages import compute_segments
+
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+run_logged(
+    sm.log[0],
+    lambda: compute_segments(
+        sm.input.dataset,
+        sm.params.cfg,
+        sm.output[0],
+        device=sm.params.run["device"],
+        start=int(sm.wildcards.start),
+        stop=int(sm.wildcards.stop),
+    ),
+)

@@ -1,0 +1,8 @@
+from vprflow.logs import run_logged
+from vprflow.stages import fit_vocabulary
+
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+run_logged(
+    sm.log[0],
+    lambda: fit_vocabulary(sm.input.dataset, sm.input.features, sm.params.cfg, sm.output[0]),
+)
