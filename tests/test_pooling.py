@@ -1,0 +1,119 @@
+"""GeM / average / max pooling against direct per-channel loops in float64.
+
+Tolerance: float32 results vs float64 loops, rtol 1e-5 and atol 1e-6 (values are O(1)).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from vprflow.pooling import average_pool, gem, max_pool
+
+
+def tokens(shape=(4, 5, 6), seed=0):
+    return np.random.default_rng(seed).standard_normal(shape).astype(np.float32)
+
+
+def columns(x):
+    """Per-channel lists of token values, via explicit loops."""
+    flat = np.asarray(x, dtype=np.float64).reshape(-1, x.shape[-1])
+    return [[float(flat[i, d]) for i in range(flat.shape[0])] for d in range(flat.shape[1])]
+
+
+def signed_root(value, p):
+    return math.copysign(abs(value) ** (1.0 / p), value)
+
+
+def direct_gem(x, p, eps, negatives):
+    out = []
+    for col in columns(x):
+        if negatives == "signed":
+            mean = sum(math.copysign(abs(v) ** p, v) for v in col) / len(col)
+        elif negatives == "abs":
+            mean = sum(abs(v) ** p for v in col) / len(col)
+        else:
+            mean = sum(max(v, eps) ** p for v in col) / len(col)
+        out.append(signed_root(mean, p))
+    return np.array(out)
+
+
+def unit(v):
+    return v / math.sqrt(sum(float(e) ** 2 for e in v))
+
+
+def check(fast, slow):
+    assert fast.dtype == np.float32 and fast.shape == slow.shape
+    np.testing.assert_allclose(fast, slow, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("negatives", ["signed", "abs", "clamp"])
+@pytest.mark.parametrize("p", [1.0, 2.0, 3.0, 4.5])
+@pytest.mark.parametrize("shape", [(4, 5, 6), (9, 3)])
+def test_gem_matches_direct(negatives, p, shape):
+    x = tokens(shape, seed=int(p * 10))
+    check(gem(x, p=p, negatives=negatives), direct_gem(x, p, 1e-6, negatives))
+    check(
+        gem(x, p=p, negatives=negatives, l2_normalize=True),
+        unit(direct_gem(x, p, 1e-6, negatives)),
+    )
+
+
+def test_gem_signed_equals_published_mean_of_cubes():
+    # Published (default flags): m = mean(x**3); sign(m) * |m|**(1/3).
+    x = tokens((7, 4), seed=3).astype(np.float64)
+    m = (x**3).mean(axis=0)
+    check(gem(x), np.sign(m) * np.abs(m) ** (1 / 3))
+
+
+def test_gem_p1_signed_is_mean_and_clamp_uses_eps():
+    x = tokens((6, 5), seed=4)
+    check(gem(x, p=1.0), x.astype(np.float64).mean(axis=0))
+    negative = -np.ones((3, 2), dtype=np.float32)
+    check(gem(negative, p=3.0, eps=1e-2, negatives="clamp"), np.full(2, 1e-2))
+
+
+def test_gem_large_p_approaches_max_for_positive_tokens():
+    x = np.abs(tokens((50, 8), seed=5)) + 0.1
+    np.testing.assert_allclose(gem(x, p=200.0), x.max(axis=0), rtol=0.03)
+
+
+def test_average_and_max_match_direct():
+    x = tokens((3, 4, 5), seed=6)
+    avg = np.array([sum(col) / len(col) for col in columns(x)])
+    mx = np.array([max(col) for col in columns(x)])
+    check(average_pool(x), avg)
+    check(max_pool(x), mx)
+    check(average_pool(x, l2_normalize=True), unit(avg))
+    check(max_pool(x, l2_normalize=True), unit(mx))
+
+
+def test_flat_and_grid_inputs_agree():
+    x = tokens((4, 5, 6), seed=8)
+    flat = x.reshape(-1, 6)
+    for pool in (gem, average_pool, max_pool):
+        np.testing.assert_array_equal(pool(x), pool(flat))
+
+
+def test_zero_vector_normalisation_is_safe():
+    assert np.all(average_pool(np.zeros((3, 4)), l2_normalize=True) == 0)
+
+
+@pytest.mark.parametrize("p", [0, -1.0, float("nan"), float("inf")])
+def test_gem_rejects_bad_power(p):
+    with pytest.raises(ValueError, match="p must be"):
+        gem(tokens(), p=p)
+
+
+def test_gem_rejects_unknown_negatives_mode():
+    with pytest.raises(ValueError, match="relu"):
+        gem(tokens(), negatives="relu")
+
+
+@pytest.mark.parametrize("shape", [(5,), (2, 3, 4, 5), (0, 4)])
+def test_pooling_rejects_bad_shapes(shape):
+    for pool in (gem, average_pool, max_pool):
+        with pytest.raises(ValueError):
+            pool(np.zeros(shape, dtype=np.float32))
