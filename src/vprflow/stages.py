@@ -386,7 +386,7 @@ def gather(shard_paths: list[str], params: dict, out: str) -> None:
     """
     shards = [stores.open_store(p) for p in shard_paths]
     first = shards[0]
-    names = sorted(name for name, _ in first.arrays())
+    names = [name for name, _ in stores.array_items(first)]
     attrs = {k: v for k, v in first.attrs.items() if k not in ("start", "stop")}
     attrs["params"] = params
     attrs["shards"] = len(shards)
@@ -450,8 +450,8 @@ def evaluate(dataset_path: str, descriptors_path: str, params: dict, out: str) -
         vectors = np.asarray(group["descriptors"][...])
         ranking = global_ranking(vectors[:n_ref], vectors[n_ref:], top_k)
     truth = dataset.truth()
-    ns = [n for n in spec["recall_at"] if n <= n_ref]
-    recalls = recall_at(ranking, truth, ns)
+    # N beyond the number of references is kept: it equals Recall@n_ref.
+    recalls = recall_at(ranking, truth, spec["recall_at"])
     with stores.atomic_store(out, {"stage": "recall", "params": params}) as result:
         result.attrs.update(
             recall={str(n): v for n, v in recalls.items()},

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -59,6 +60,17 @@ def open_store(path: str | Path) -> zarr.Group:
     if not path.exists():
         raise FileNotFoundError(f"store {path} does not exist (has its stage run?)")
     return zarr.open_group(str(path), mode="r")
+
+
+def array_items(group: zarr.Group) -> list[tuple[str, zarr.Array]]:
+    """``(name, array)`` pairs of a group, sorted by name.
+
+    Snakemake drops a ``.snakemake_timestamp`` file into directory outputs; zarr
+    warns about it when listing, which is noise here.
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message=".*snakemake_timestamp")
+        return sorted(group.arrays())
 
 
 def write_array(group: zarr.Group, name: str, data: np.ndarray, chunks=None) -> zarr.Array:
@@ -134,7 +146,8 @@ def read_ragged(group: zarr.Group, name: str, index: int) -> np.ndarray:
 def pack_masks(masks: np.ndarray) -> np.ndarray:
     """bool ``[S, H, W]`` -> uint8 ``[S, ceil(H * W / 8)]`` (row-major bits)."""
     masks = np.asarray(masks, dtype=bool)
-    return np.packbits(masks.reshape(len(masks), -1), axis=1)
+    # Explicit row length: reshape(0, -1) is ambiguous for an image with no masks.
+    return np.packbits(masks.reshape(len(masks), masks.shape[1] * masks.shape[2]), axis=1)
 
 
 def unpack_masks(packed: np.ndarray, height: int, width: int) -> np.ndarray:

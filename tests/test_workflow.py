@@ -1,0 +1,286 @@
+"""The real Snakefile end to end on a synthetic dataset, and what reruns when."""
+
+from __future__ import annotations
+
+import copy
+import csv
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import zarr
+from synthetic import make_dataset
+from workflow_helpers import (
+    SNAKEFILE,
+    scheduled_stages,
+    snakemake,
+    toy_config,
+    write_config,
+)
+
+from vprflow.stores import array_items
+
+pytestmark = pytest.mark.workflow
+TARGET = "results/recall_toy.csv"
+METHODS = ["anyloc_vlad", "segvlad_o0_nopca", "segvlad_o0", "segvlad_nopca", "segvlad"]
+
+
+@pytest.fixture(scope="module")
+def toy_run(tmp_path_factory):
+    """One complete run of the workflow on the toy dataset (shared by the tests below)."""
+    workdir = tmp_path_factory.mktemp("workflow")
+    make_dataset(workdir / "data" / "toy")
+    config = toy_config(workdir / "data")
+    config_path = write_config(workdir, config)
+    snakemake(workdir, config_path, TARGET)
+    return workdir, config
+
+
+def read_rows(path: Path) -> list[dict]:
+    with open(path) as f:
+        return list(csv.DictReader(f))
+
+
+def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
+    workdir, _ = toy_run
+    rows = read_rows(workdir / TARGET)
+    assert [r["method"] for r in rows] == METHODS
+    header = list(rows[0])
+    assert header[:2] == ["dataset", "method"]
+    assert header[-6:] == [
+        "ground_truth",
+        "n_queries",
+        "recall@1",
+        "recall@5",
+        "recall@10",
+        "recall@20",
+    ]
+    for row in rows:
+        assert row["dataset"] == "toy"
+        assert row["ground_truth"] == "vprbench:ground_truth_new.npy"
+        assert row["n_queries"] == "10"
+        recalls = [float(row[f"recall@{n}"]) for n in (1, 5, 10, 20)]
+        assert all(0.0 <= r <= 1.0 for r in recalls)
+        assert recalls == sorted(recalls)
+    by_method = {r["method"]: r for r in rows}
+    assert by_method["segvlad"]["segvlad.order"] == "3"
+    assert by_method["segvlad_o0"]["segvlad.order"] == "0"
+    assert by_method["segvlad_nopca"]["pca.enabled"] == "false"
+    assert by_method["segvlad"]["pca.dim"] == "16"
+    assert by_method["anyloc_vlad"]["segvlad.order"] == ""  # not a parameter of that row
+    # The toy places are distinctive: the classical pipeline must beat chance (3/10) clearly.
+    assert float(by_method["anyloc_vlad"]["recall@1"]) >= 0.6
+    assert float(by_method["segvlad_nopca"]["recall@1"]) >= 0.6
+    predictions = read_rows(workdir / "results" / "predictions_toy.csv")
+    assert len(predictions) == 10 * len(METHODS)
+    assert len(predictions[0]["top"].split()) == 10
+
+
+def test_every_rule_wrote_a_log(toy_run):
+    workdir, _ = toy_run
+    for stage in ("dataset", "features", "segments", "vocabulary", "pca", "descriptors", "recall"):
+        logs = list((workdir / "logs" / stage).glob("*.log"))
+        assert logs, f"no log for {stage}"
+    assert (workdir / "logs" / "report" / "toy.log").exists()
+
+
+def test_stages_are_shared_and_self_describing(toy_run):
+    workdir, _ = toy_run
+    cache = workdir / "results" / "cache"
+    counts = {stage.name: len(list(stage.glob("*.zarr"))) for stage in cache.iterdir()}
+    # Five methods share one features, segments, vocabulary and PCA store.
+    assert counts == {
+        "dataset": 1,
+        "features": 1,
+        "segments": 1,
+        "vocabulary": 1,
+        "pca": 1,
+        "descriptors": 5,
+        "recall": 5,
+    }
+    store = zarr.open_group(str(next((cache / "features").glob("*.zarr"))), mode="r")
+    assert store.attrs["params"]["params"]["backbone"] == "daisy"
+    assert store["features"].shape[:3] == (20, 9, 12)
+    assert not list(cache.glob("*/*.tmp")), "temporary stores left behind"
+
+
+def test_changing_order_rebuilds_only_descriptors_and_recall(toy_run):
+    workdir, config = toy_run
+    changed = copy.deepcopy(config)
+    changed["segvlad"]["order"] = 2
+    path = write_config(workdir, changed, "order2.yaml")
+    assert scheduled_stages(workdir, path, TARGET) == {"descriptors", "recall", "report"}
+
+
+def test_changing_segmenter_rebuilds_segments_pca_descriptors_not_features(toy_run):
+    workdir, config = toy_run
+    changed = copy.deepcopy(config)
+    changed["segmenter"] = "felzenszwalb"
+    path = write_config(workdir, changed, "felzenszwalb.yaml")
+    assert scheduled_stages(workdir, path, TARGET) == {
+        "segments",
+        "pca",
+        "descriptors",
+        "recall",
+        "report",
+    }
+
+
+def test_changing_a_value_and_back_schedules_at_most_the_csv(toy_run):
+    workdir, config = toy_run
+    original = write_config(workdir, config, "original.yaml")
+    changed = copy.deepcopy(config)
+    changed["segvlad"]["order"] = 1
+    snakemake(workdir, write_config(workdir, changed, "order1.yaml"), TARGET)
+    rows = read_rows(workdir / TARGET)
+    assert {r["segvlad.order"] for r in rows if r["method"] in ("segvlad", "segvlad_nopca")} == {
+        "1"
+    }
+    assert scheduled_stages(workdir, original, TARGET) <= {"report"}
+    snakemake(workdir, original, TARGET)
+    assert scheduled_stages(workdir, original, TARGET) == set()
+
+
+def test_same_inputs_give_a_byte_identical_csv_and_sharding_changes_nothing(toy_run, tmp_path):
+    workdir, config = toy_run
+    make_dataset(tmp_path / "data" / "toy")
+    sharded = copy.deepcopy(config)
+    sharded["data_root"] = str(tmp_path / "data")
+    sharded["shard_size"] = 3
+    snakemake(tmp_path, write_config(tmp_path, sharded), TARGET)
+    assert (tmp_path / TARGET).read_bytes() == (workdir / TARGET).read_bytes()
+    assert (tmp_path / "results" / "predictions_toy.csv").read_bytes() == (
+        workdir / "results" / "predictions_toy.csv"
+    ).read_bytes()
+    # Same keys (shard size is an execution setting), same arrays bit for bit.
+    for stage in ("features", "segments", "descriptors"):
+        for twin in sorted((tmp_path / "results" / "cache" / stage).glob("*.zarr")):
+            store = workdir / "results" / "cache" / stage / twin.name
+            a, b = zarr.open_group(str(store), mode="r"), zarr.open_group(str(twin), mode="r")
+            assert b.attrs["shards"] == 7 and a.attrs["shards"] == 1
+            for name, array in array_items(a):
+                np.testing.assert_array_equal(np.asarray(array[...]), np.asarray(b[name][...]))
+
+
+def test_killed_run_leaves_no_complete_looking_store_and_rerun_finishes(tmp_path):
+    make_dataset(tmp_path / "data" / "toy", n_places=40, width=320, height=240)
+    config = toy_config(tmp_path / "data", resolution=[320, 240])
+    path = write_config(tmp_path, config)
+    command = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        "--snakefile",
+        str(SNAKEFILE),
+        "--directory",
+        str(tmp_path),
+        "--configfile",
+        str(path),
+        "--cores",
+        "1",
+        TARGET,
+    ]
+    process = subprocess.Popen(
+        command,
+        cwd=tmp_path,
+        start_new_session=True,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    features = tmp_path / "results" / "cache" / "features"
+    deadline = time.monotonic() + 120
+    partial = []
+    while time.monotonic() < deadline and process.poll() is None:
+        partial = [p for p in features.glob("*.shards/*.zarr.tmp") if (p / "features").exists()]
+        if partial:
+            break
+        time.sleep(0.02)
+    os.killpg(process.pid, signal.SIGKILL)
+    process.wait()
+    assert partial, "the features stage was never caught mid-way"
+    # The interrupted shard exists only under its temporary name.
+    final = partial[0].with_name(partial[0].name.removesuffix(".tmp"))
+    assert not final.exists()
+    assert not (tmp_path / TARGET).exists()
+    snakemake(tmp_path, path, "--unlock")
+    snakemake(tmp_path, path, TARGET)
+    assert len(read_rows(tmp_path / TARGET)) == len(METHODS)
+    assert not list((tmp_path / "results" / "cache").glob("**/*.tmp"))
+
+
+# ------------------------------------------------------------------ bad input
+
+
+def failing_run(workdir: Path, config: dict) -> str:
+    result = snakemake(workdir, write_config(workdir, config), TARGET, check=False)
+    assert result.returncode != 0
+    assert not (workdir / TARGET).exists()
+    assert not list((workdir / "results" / "cache").glob("*/*.zarr")) or all(
+        (p / "zarr.json").exists() for p in (workdir / "results" / "cache").glob("*/*.zarr")
+    )
+    return result.stdout + result.stderr
+
+
+def test_missing_dataset_folder_names_it(tmp_path):
+    text = failing_run(tmp_path, toy_config(tmp_path / "nowhere"))
+    assert "folder" in text and str(tmp_path / "nowhere" / "toy") in text
+
+
+def test_empty_query_folder_names_it(tmp_path):
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    for image in (tmp_path / "data" / "toy" / "query").iterdir():
+        image.unlink()
+    text = failing_run(tmp_path, toy_config(tmp_path / "data"))
+    assert "contains no images" in text and "query" in text
+
+
+def test_corrupt_image_names_the_file_and_leaves_no_dataset_store(tmp_path):
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    bad = tmp_path / "data" / "toy" / "ref" / "0002.png"
+    bad.write_bytes(b"not a png at all")
+    text = failing_run(tmp_path, toy_config(tmp_path / "data"))
+    assert str(bad) in text
+    assert not list((tmp_path / "results" / "cache").glob("dataset/*.zarr"))
+
+
+def test_ground_truth_size_mismatch_is_an_error(tmp_path):
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    from synthetic import write_vprbench_ground_truth
+
+    write_vprbench_ground_truth(tmp_path / "data" / "toy" / "ground_truth_new.npy", 3, 4)
+    text = failing_run(tmp_path, toy_config(tmp_path / "data"))
+    assert "3 ground-truth rows" in text and "4 query images" in text
+
+
+def test_unknown_config_key_is_named(tmp_path):
+    config = toy_config(tmp_path / "data")
+    config["segvlad"]["ordr"] = 2
+    text = failing_run(tmp_path, config)
+    assert "ordr" in text and "segvlad" in text
+
+
+def test_missing_17places_images_say_where_to_put_them(tmp_path):
+    config = toy_config(tmp_path / "data")
+    from workflow_helpers import repo_config
+
+    config["datasets"] = repo_config()["datasets"]
+    result = snakemake(
+        tmp_path, write_config(tmp_path, config), "results/recall_17places.csv", "-n", check=False
+    )
+    text = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert str(tmp_path / "data" / "17places") in text and "VPR-Bench" in text
+
+
+def test_unused_dataset_is_not_touched(tmp_path):
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = toy_config(tmp_path / "data")
+    config["datasets"]["absent"] = copy.deepcopy(config["datasets"]["toy"]) | {"path": "absent"}
+    snakemake(tmp_path, write_config(tmp_path, config), "-n", TARGET)
+    shutil.rmtree(tmp_path / "data")

@@ -1,0 +1,98 @@
+"""Running the real Snakefile in a temporary working directory."""
+
+from __future__ import annotations
+
+import copy
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import yaml
+
+REPO = Path(__file__).resolve().parents[1]
+SNAKEFILE = REPO / "Snakefile"
+
+
+def repo_config() -> dict:
+    return yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+
+
+def toy_config(data_root: Path, **dataset_overrides) -> dict:
+    """The shipped config with one small dataset ``toy`` and small model sizes."""
+    config = copy.deepcopy(repo_config())
+    config["data_root"] = str(data_root)
+    config["datasets"] = {
+        "toy": {
+            "path": "toy",
+            "reference": "ref",
+            "query": "query",
+            "resolution": [96, 72],
+            "ground_truth": {"kind": "vprbench", "file": "ground_truth_new.npy"},
+            "recall_at": [1, 5, 10, 20],
+            "methods": [
+                "anyloc_vlad",
+                "segvlad_o0_nopca",
+                "segvlad_o0",
+                "segvlad_nopca",
+                "segvlad",
+            ],
+            **dataset_overrides,
+        }
+    }
+    config["segmenters"]["slic"]["n_segments"] = 12
+    config["vocabulary"]["n_clusters"] = 4
+    config["vocabulary"]["n_iter"] = 10
+    config["pca"]["dim"] = 16
+    return config
+
+
+def write_config(workdir: Path, config: dict, name: str = "config.yaml") -> Path:
+    path = workdir / name
+    path.write_text(yaml.safe_dump(config, sort_keys=False))
+    return path
+
+
+def snakemake(
+    workdir: Path, config_path: Path, *args: str, check: bool = True
+) -> subprocess.CompletedProcess:
+    command = [
+        sys.executable,
+        "-m",
+        "snakemake",
+        "--snakefile",
+        str(SNAKEFILE),
+        "--directory",
+        str(workdir),
+        "--configfile",
+        str(config_path),
+        "--cores",
+        "2",
+        *args,
+    ]
+    result = subprocess.run(command, capture_output=True, text=True, cwd=workdir)
+    if check and result.returncode != 0:
+        raise AssertionError(
+            f"snakemake {' '.join(args)} failed ({result.returncode}):\n"
+            f"{result.stdout[-3000:]}\n{result.stderr[-5000:]}"
+        )
+    return result
+
+
+def scheduled_outputs(workdir: Path, config_path: Path, target: str) -> list[str]:
+    """Outputs a dry run would (re)build for ``target``."""
+    result = snakemake(workdir, config_path, "-n", target)
+    text = result.stdout + result.stderr
+    if "Nothing to be done" in text:
+        return []
+    return re.findall(r"^\s+output: (.+)$", text, flags=re.MULTILINE)
+
+
+def scheduled_stages(workdir: Path, config_path: Path, target: str) -> set[str]:
+    """Stage names (``results/cache/<stage>/...``, or ``report``) a dry run schedules."""
+    stages = set()
+    for line in scheduled_outputs(workdir, config_path, target):
+        for output in line.split(", "):
+            match = re.match(r"results/cache/([a-z]+)/", output.strip())
+            stages.add(match.group(1) if match else "report")
+    return stages
