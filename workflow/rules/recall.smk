@@ -27,3 +27,8 @@ rule report:
         runs=report_runs,
     script:
         "../scripts/report.py"
+
+
+# Writing two small CSV files is not worth a cluster job.
+localrules:
+    report,

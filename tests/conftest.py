@@ -1,0 +1,25 @@
+"""Shared fixtures: the real datasets under $VPRFLOW_DATA, and the SLURM cluster."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+from slurm_fixtures import slurm_cluster  # noqa: F401  (re-exported fixture)
+
+
+def in_ci() -> bool:
+    return os.environ.get("CI", "").lower() in {"1", "true", "yes"}
+
+
+@pytest.fixture(scope="session")
+def data_root() -> Path:
+    """``$VPRFLOW_DATA``: missing data skips locally and fails under CI=true."""
+    value = os.environ.get("VPRFLOW_DATA")
+    if not value or not Path(value).is_dir():
+        message = f"VPRFLOW_DATA is {value!r}, not a folder with the shared datasets"
+        if in_ci():
+            pytest.fail(message, pytrace=False)
+        pytest.skip(message)
+    return Path(value).resolve()

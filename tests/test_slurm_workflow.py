@@ -1,0 +1,45 @@
+"""The real vprflow workflow through a real local SLURM scheduler, sharded, compared
+with a local run. Needs root and scripts/install_slurm.sh; fails under CI=true
+when SLURM cannot start."""
+
+from __future__ import annotations
+
+import pytest
+from slurm_fixtures import (
+    run_snakemake,
+    slurm_job_info,
+    snakemake_slurm_command,
+    submitted_job_ids,
+)
+from synthetic import make_dataset
+from workflow_helpers import SNAKEFILE, snakemake, toy_config, write_config
+
+pytestmark = pytest.mark.slurm
+TARGET = "results/recall_toy.csv"
+
+
+def test_sharded_workflow_on_slurm_matches_local_run(slurm_cluster, tmp_path):
+    local_dir, cluster_dir = tmp_path / "local", tmp_path / "cluster"
+    for workdir in (local_dir, cluster_dir):
+        make_dataset(workdir / "data" / "toy")
+    config = toy_config(local_dir / "data", methods=["anyloc_vlad", "segvlad"])
+    snakemake(local_dir, write_config(local_dir, config), TARGET)
+
+    config["data_root"] = str(cluster_dir / "data")
+    config["shard_size"] = 10  # 20 images -> 2 shards per per-image stage
+    config_path = write_config(cluster_dir, config)
+    command = snakemake_slurm_command(
+        slurm_cluster, SNAKEFILE, cluster_dir, TARGET, "--configfile", str(config_path)
+    )
+    output, seconds = run_snakemake(command, cwd=cluster_dir)
+
+    job_ids = submitted_job_ids(output)
+    # dataset, 2 feature shards + gather, 2 segment shards + gather, vocabulary, pca,
+    # 2 x (2 descriptor shards + gather), 2 recalls; the report runs locally.
+    assert len(job_ids) == 17, output[-3000:]
+    states = {fields.get("JobState") for fields in slurm_job_info(job_ids).values()}
+    assert states == {"COMPLETED"}
+    logs = list((cluster_dir / ".snakemake" / "slurm_logs").rglob("*.log"))
+    assert {int(p.stem) for p in logs} >= set(job_ids)
+    assert (cluster_dir / TARGET).read_bytes() == (local_dir / TARGET).read_bytes()
+    print(f"SLURM run: {len(job_ids)} jobs in {seconds:.0f} s")
