@@ -1,0 +1,134 @@
+"""PCA against a float64 eigen-decomposition of the covariance written out here.
+
+Data are float32 with well separated variances (eigen-gaps at least ~10% of the
+eigenvalue), so components are well conditioned. Tolerances: explained variance rtol
+1e-4; components (after matching signs) 1e-4 absolute (unit vectors); whitened
+training projections have per-component variance 1 within 1e-3 and cross-covariance
+below 1e-3; L2 norms 1 within 1e-5. Randomised PCA on rank-10 data plus 1e-3 noise vs
+exact SVD: variance rtol 1e-5, components 1e-5 absolute.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vprflow.pca import Pca, _randomized_pca, fit_pca
+
+
+def anisotropic(n, d, seed=0):
+    """Rows with per-axis scales 3.0 .. 0.3 in a random rotation, plus an offset."""
+    rng = np.random.default_rng(seed)
+    rotation = np.linalg.qr(rng.standard_normal((d, d)))[0]
+    scales = np.geomspace(3.0, 0.3, d)
+    x = (rng.standard_normal((n, d)) * scales) @ rotation.T + rng.normal(0, 5, d)
+    return x.astype(np.float32)
+
+
+def direct_pca(x, dim):
+    """Covariance (n - 1 denominator) built with an explicit sum of outer products."""
+    x = np.asarray(x, dtype=np.float64)
+    n, d = x.shape
+    mean = x.sum(axis=0) / n
+    cov = np.zeros((d, d))
+    for row in x:
+        cov += np.outer(row - mean, row - mean)
+    cov /= n - 1
+    values, vectors = np.linalg.eigh(cov)
+    order = np.argsort(values)[::-1][:dim]
+    return mean, vectors[:, order].T, values[order]
+
+
+def match_signs(components, reference):
+    signs = np.sign(np.sum(components * reference, axis=1))
+    assert (signs != 0).all()
+    return components * signs[:, None]
+
+
+@pytest.mark.parametrize(
+    ("n", "d", "dim"),
+    [
+        (400, 12, 5),  # n > d: covariance path
+        (400, 12, 12),
+        (25, 60, 10),  # n < d: Gram-matrix path
+        (25, 60, 24),  # all n - 1 non-trivial axes
+    ],
+)
+def test_fit_pca_matches_covariance_eigendecomposition(n, d, dim):
+    x = anisotropic(n, d, seed=n + d)
+    pca = fit_pca(x, dim, whiten=False)
+    mean, components, variance = direct_pca(x, dim)
+    assert pca.components.shape == (dim, d) and pca.explained_variance.shape == (dim,)
+    np.testing.assert_allclose(pca.mean, mean, rtol=0, atol=1e-4)
+    np.testing.assert_allclose(pca.explained_variance, variance, rtol=1e-4)
+    np.testing.assert_allclose(
+        pca.components, match_signs(components, pca.components), rtol=0, atol=1e-4
+    )
+    # Deterministic sign: the largest-magnitude entry of each axis is positive.
+    pivot = np.abs(pca.components).argmax(axis=1)
+    assert (pca.components[np.arange(dim), pivot] > 0).all()
+
+
+def test_dim_is_capped_at_n_minus_1_and_d():
+    assert fit_pca(anisotropic(10, 40), 100).components.shape == (9, 40)
+    assert fit_pca(anisotropic(50, 6), 100).components.shape == (6, 6)
+    with pytest.raises(ValueError, match="at least 2"):
+        fit_pca(anisotropic(1, 4), 2)
+
+
+@pytest.mark.parametrize(("n", "d", "dim"), [(500, 10, 6), (30, 80, 12)])
+def test_whitening_gives_unit_variance_on_training_data(n, d, dim):
+    x = anisotropic(n, d, seed=3)
+    pca = fit_pca(x, dim, whiten=True)
+    y = pca.transform(x, normalize=False).astype(np.float64)
+    assert y.shape == (n, dim)
+    np.testing.assert_allclose(y.mean(axis=0), 0.0, rtol=0, atol=1e-3)
+    cov = np.cov(y, rowvar=False)
+    np.testing.assert_allclose(np.diag(cov), 1.0, rtol=0, atol=1e-3)
+    np.testing.assert_allclose(cov - np.diag(np.diag(cov)), 0.0, rtol=0, atol=1e-3)
+    # Without whitening the variances are the eigenvalues.
+    plain = fit_pca(x, dim, whiten=False).transform(x, normalize=False).astype(np.float64)
+    np.testing.assert_allclose(plain.var(axis=0, ddof=1), pca.explained_variance, rtol=1e-3)
+
+
+def test_transform_is_direct_projection_then_l2_normalisation():
+    x = anisotropic(200, 16, seed=4)
+    queries = anisotropic(7, 16, seed=5)
+    for whiten in (False, True):
+        pca = fit_pca(x, 8, whiten=whiten)
+        mean, components, variance = direct_pca(x, 8)
+        components = match_signs(components, pca.components)
+        expected = (queries.astype(np.float64) - mean) @ components.T
+        if whiten:
+            expected /= np.sqrt(variance)
+        expected /= np.linalg.norm(expected, axis=1, keepdims=True)
+        out = pca.transform(queries)
+        assert out.dtype == np.float32
+        np.testing.assert_allclose(np.linalg.norm(out, axis=1), 1.0, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(out, expected, rtol=0, atol=1e-4)
+
+
+def test_transform_of_stored_arrays():
+    pca = Pca(
+        mean=np.array([1.0, 1.0], np.float32),
+        components=np.array([[0.0, 1.0], [1.0, 0.0]], np.float32),
+        explained_variance=np.array([4.0, 1.0], np.float32),
+        whiten=True,
+    )
+    out = pca.transform(np.array([[3.0, 5.0]], np.float32), normalize=False)
+    np.testing.assert_allclose(out, [[4.0 / 2.0, 2.0 / 1.0]])
+    np.testing.assert_allclose(pca.transform(np.array([[3.0, 5.0]])), [[2**-0.5, 2**-0.5]])
+
+
+@pytest.mark.parametrize("dim", [5, 10])
+def test_randomized_pca_matches_exact_svd_on_low_rank_data(dim):
+    rng = np.random.default_rng(0)
+    n, d, rank = 300, 200, 10
+    u = np.linalg.qr(rng.standard_normal((n, rank)))[0]
+    v = np.linalg.qr(rng.standard_normal((d, rank)))[0]
+    x = (u * np.linspace(50, 10, rank)) @ v.T + 1e-3 * rng.standard_normal((n, d))
+    centred = (x - x.mean(axis=0)).astype(np.float32)
+    components, variance = _randomized_pca(centred, dim, seed=1)
+    _, singular, vt = np.linalg.svd(centred.astype(np.float64), full_matrices=False)
+    np.testing.assert_allclose(variance, singular[:dim] ** 2 / (n - 1), rtol=1e-5)
+    np.testing.assert_allclose(match_signs(components, vt[:dim]), vt[:dim], rtol=0, atol=1e-5)

@@ -1,0 +1,139 @@
+"""Retrieval and SegVLAD image voting against brute force / direct loops in float64.
+
+Tolerances: faiss squared-L2 distances (float32, computed as |x|^2 + |y|^2 - 2 x.y)
+vs float64 differences, rtol 1e-5 with atol 1e-4 (values up to ~100). Indices are
+compared exactly on data whose consecutive sorted distances differ by more than 2e-3
+(the float32 error is below 1e-4 there).
+Vote scores are float64 throughout: rtol 1e-12.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from vprflow.retrieval import (
+    global_ranking,
+    image_of_segment,
+    rank_by_score,
+    search,
+    segment_vote_scores,
+)
+
+
+def brute_force(database, queries):
+    """All squared L2 distances by explicit loops, float64."""
+    database = np.asarray(database, np.float64)
+    queries = np.asarray(queries, np.float64)
+    out = np.zeros((len(queries), len(database)))
+    for q, query in enumerate(queries):
+        for r, row in enumerate(database):
+            diff = query - row
+            out[q, r] = float(diff @ diff)
+    return out
+
+
+def separated(seed, n_db=60, n_q=15, d=8):
+    rng = np.random.default_rng(seed)
+    database = rng.uniform(-3, 3, (n_db, d)).astype(np.float32)
+    queries = rng.uniform(-3, 3, (n_q, d)).astype(np.float32)
+    return database, queries
+
+
+@pytest.mark.parametrize("seed", [0, 1, 3])
+@pytest.mark.parametrize("k", [1, 5, 20])
+def test_search_matches_brute_force(seed, k):
+    database, queries = separated(seed)
+    full = brute_force(database, queries)
+    order = np.argsort(full, axis=1, kind="stable")[:, :k]
+    expected = np.take_along_axis(full, order, axis=1)
+    # Well separated: no near-ties among the first k + 1 neighbours.
+    gaps = np.diff(np.sort(full, axis=1)[:, : k + 1], axis=1)
+    assert gaps.min() > 2e-3
+    distances, indices = search(database, queries, k)
+    assert distances.shape == indices.shape == (len(queries), k)
+    np.testing.assert_array_equal(indices, order)
+    np.testing.assert_allclose(distances, expected, rtol=1e-5, atol=1e-4)
+    np.testing.assert_array_equal(global_ranking(database, queries, k), order)
+
+
+def test_search_caps_k_at_database_size_and_finds_exact_copies():
+    database, _ = separated(3, n_db=6)
+    distances, indices = search(database, database[::-1], 50)
+    assert indices.shape == (6, 6)
+    np.testing.assert_array_equal(indices[:, 0], np.arange(6)[::-1])
+    np.testing.assert_allclose(distances[:, 0], 0.0, atol=1e-4)
+    assert (indices >= 0).all()
+
+
+def direct_vote(distances, indices, query_image, ref_image, n_query, n_ref):
+    """REFERENCE.md section 2 step 8, one retrieved pair at a time."""
+    similarities = [
+        [2.0 - float(distances[s, j]) for j in range(indices.shape[1])] for s in range(len(indices))
+    ]
+    flat = [v for row in similarities for v in row]
+    low, high = min(flat), max(flat)
+    scores = np.zeros((n_query, n_ref))
+    for s, row in enumerate(similarities):
+        for j, similarity in enumerate(row):
+            weight = (similarity - low) / (high - low)
+            scores[query_image[s], ref_image[indices[s, j]]] += weight
+    return scores
+
+
+def vote_problem(seed, n_query=4, n_ref=6, segments_per_ref=(3, 0, 5, 2, 4, 1), k=5):
+    rng = np.random.default_rng(seed)
+    ref_offsets = np.concatenate([[0], np.cumsum(segments_per_ref)])
+    query_offsets = np.concatenate([[0], np.cumsum(rng.integers(1, 5, n_query))])
+    n_ref_segments, n_query_segments = ref_offsets[-1], query_offsets[-1]
+    indices = np.stack(
+        [rng.choice(n_ref_segments, k, replace=False) for _ in range(n_query_segments)]
+    )
+    distances = np.sort(rng.uniform(0.2, 3.5, (n_query_segments, k)), axis=1).astype(np.float32)
+    return distances, indices, image_of_segment(query_offsets), image_of_segment(ref_offsets)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_segment_vote_scores_match_direct_loop(seed):
+    distances, indices, query_image, ref_image = vote_problem(seed)
+    scores = segment_vote_scores(distances, indices, query_image, ref_image, 4, 6)
+    expected = direct_vote(distances, indices, query_image, ref_image, 4, 6)
+    assert scores.shape == (4, 6) and scores.dtype == np.float64
+    np.testing.assert_allclose(scores, expected, rtol=1e-12, atol=1e-12)
+    # Reference image 1 has no segments: it can never receive a vote.
+    np.testing.assert_array_equal(scores[:, 1], 0.0)
+    # The global best pair weighs 1, the global worst 0: total weight is bounded.
+    assert scores.sum() <= indices.size
+
+
+def test_segment_vote_normalises_with_global_min_and_max():
+    # Two query images with one segment each; min-max over both lists together.
+    distances = np.array([[0.0, 1.0], [2.0, 4.0]], np.float32)  # similarities 2, 1, 0, -2
+    indices = np.array([[0, 1], [1, 0]])
+    scores = segment_vote_scores(distances, indices, np.array([0, 1]), np.array([0, 1]), 2, 2)
+    np.testing.assert_allclose(scores, [[1.0, 0.75], [0.0, 0.5]])
+
+
+def test_segment_vote_with_equal_distances_counts_every_pair_once():
+    distances = np.full((3, 2), 0.5, np.float32)
+    indices = np.array([[0, 1], [1, 2], [2, 0]])
+    scores = segment_vote_scores(distances, indices, np.array([0, 0, 1]), np.array([0, 0, 1]), 2, 2)
+    np.testing.assert_allclose(scores, [[3.0, 1.0], [1.0, 1.0]])
+
+
+def test_rank_by_score_breaks_ties_by_index():
+    rng = np.random.default_rng(0)
+    scores = rng.integers(0, 4, (20, 9)).astype(np.float64)  # many ties
+    ranking = rank_by_score(scores)
+    for q in range(len(scores)):
+        expected = sorted(range(scores.shape[1]), key=lambda r, q=q: (-scores[q, r], r))
+        np.testing.assert_array_equal(ranking[q], expected)
+
+
+@pytest.mark.parametrize(
+    "counts", [[3, 0, 2], [0, 0], [1], [0, 4, 0, 0, 1], []], ids=lambda c: str(c)
+)
+def test_image_of_segment_matches_direct_loop(counts):
+    offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
+    expected = [image for image, count in enumerate(counts) for _ in range(count)]
+    np.testing.assert_array_equal(image_of_segment(offsets), expected)
