@@ -1,0 +1,32 @@
+"""The whole DAG on the real datasets under $VPRFLOW_DATA, with the shipped config."""
+
+from __future__ import annotations
+
+import csv
+
+import pytest
+from workflow_helpers import repo_config, snakemake, write_config
+
+pytestmark = [pytest.mark.workflow, pytest.mark.data]
+
+
+def run_dataset(tmp_path, data_root, dataset: str) -> dict[str, dict]:
+    config = repo_config()
+    config["data_root"] = str(data_root)
+    target = f"results/recall_{dataset}.csv"
+    snakemake(tmp_path, write_config(tmp_path, config), target)
+    with open(tmp_path / target) as f:
+        rows = list(csv.DictReader(f))
+    assert [r["method"] for r in rows] == config["datasets"][dataset]["methods"]
+    return {r["method"]: r for r in rows}
+
+
+def test_corridor_recall_is_well_above_chance(tmp_path, data_root):
+    rows = run_dataset(tmp_path, data_root, "corridor")
+    # 111 references, about 5 positives per query: chance Recall@1 is about 0.045.
+    for method, row in rows.items():
+        assert row["n_queries"] == "111" and row["ground_truth"] == "vprbench:ground_truth_new.npy"
+        assert float(row["recall@1"]) > 0.1, method
+        assert float(row["recall@20"]) > 0.5, method
+    for method in ("anyloc_vlad", "segvlad_nopca", "segvlad_o0_nopca"):
+        assert float(rows[method]["recall@1"]) > 0.5, method
