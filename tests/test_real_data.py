@@ -30,3 +30,19 @@ def test_corridor_recall_is_well_above_chance(tmp_path, data_root):
         assert float(row["recall@20"]) > 0.5, method
     for method in ("anyloc_vlad", "segvlad_nopca", "segvlad_o0_nopca"):
         assert float(rows[method]["recall@1"]) > 0.5, method
+
+
+def test_roadscene_rgb_thermal_methods_beat_chance(tmp_path, data_root):
+    rows = run_dataset(tmp_path, data_root, "roadscene")
+    # 50 pairs, one positive each: chance Recall@1 is 0.02, Recall@10 0.2.
+    for method, row in rows.items():
+        assert row["n_queries"] == "50" and row["ground_truth"] == "pairs"
+        assert float(row["recall@50"]) == 1.0, method
+    for method in ("snsm", "snsm_neg_l2", "anyloc_vlad", "anyloc_vlad_thermal"):
+        assert float(rows[method]["recall@1"]) >= 0.15, method
+        assert float(rows[method]["recall@10"]) >= 0.5, method
+    # The published finding on aligned RGB-thermal pairs: support maps beat plain pooling.
+    pooled = max(float(rows[m]["recall@5"]) for m in ("gem", "average", "max"))
+    assert float(rows["snsm"]["recall@5"]) > pooled
+    assert rows["snsm"]["snsm.neighbourhood"] == "diagonal4"
+    assert rows["anyloc_vlad_thermal"]["vocabulary.fit_on"] == "query"
