@@ -27,20 +27,23 @@ def _patch_of_pixel(n_pixels: int, n_patches: int, patch_size: int, offset: int)
     return np.where((np.arange(n_pixels) >= offset) & (index < n_patches), index, -1)
 
 
-def _any_per_group(x: np.ndarray, groups: np.ndarray, n_groups: int, axis: int) -> np.ndarray:
-    """Logical OR of ``x`` along ``axis`` within each group label (``-1`` = drop)."""
-    keep = groups >= 0
-    x = np.compress(keep, x, axis=axis)
-    groups = groups[keep]
-    starts = np.flatnonzero(np.r_[True, groups[1:] != groups[:-1]])
-    reduced = np.logical_or.reduceat(x, starts, axis=axis)
-    out_shape = list(x.shape)
-    out_shape[axis] = n_groups
-    out = np.zeros(out_shape, dtype=bool)
-    index = [slice(None)] * x.ndim
-    index[axis] = groups[starts]
-    out[tuple(index)] = reduced
-    return out
+def _source_groups(
+    n_pixels: int, n_mask: int, n_patches: int, patch_size: int, offset: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mask rows (or columns) each patch row (column) sees after nearest upsampling.
+
+    Returns ``(sources, starts)``: patch ``i`` sees mask rows
+    ``sources[starts[i]:starts[i + 1]]``. ORing over these few mask rows equals ORing
+    over the patch's pixels of an upsampled mask, without building that mask.
+    """
+    source = _source_index(n_pixels, n_mask)
+    patch = _patch_of_pixel(n_pixels, n_patches, patch_size, offset)
+    keep = patch >= 0
+    pairs = np.unique(patch[keep].astype(np.int64) * n_mask + source[keep])
+    owners, sources = np.divmod(pairs, n_mask)
+    if not np.array_equal(np.unique(owners), np.arange(n_patches)):
+        raise ValueError(f"{n_patches} patches of {patch_size} px do not fit in {n_pixels} px")
+    return sources, np.searchsorted(owners, np.arange(n_patches))
 
 
 def mask_patch_membership(
@@ -62,13 +65,14 @@ def mask_patch_membership(
     height, width = image_size
     h, w = grid
     masks = np.asarray(masks, dtype=bool)
-    upsampled = masks[:, _source_index(height, masks.shape[1])][
-        :, :, _source_index(width, masks.shape[2])
-    ]
+    if len(masks) == 0:
+        return np.zeros((0, h * w), dtype=bool)
     top = (height - h * patch_size) // 2 if crop_aligned else 0
     left = (width - w * patch_size) // 2 if crop_aligned else 0
-    rows = _any_per_group(upsampled, _patch_of_pixel(height, h, patch_size, top), h, axis=1)
-    cells = _any_per_group(rows, _patch_of_pixel(width, w, patch_size, left), w, axis=2)
+    rows, row_starts = _source_groups(height, masks.shape[1], h, patch_size, top)
+    cols, col_starts = _source_groups(width, masks.shape[2], w, patch_size, left)
+    cells = np.logical_or.reduceat(masks[:, rows], row_starts, axis=1)
+    cells = np.logical_or.reduceat(cells[:, :, cols], col_starts, axis=2)
     return cells.reshape(len(masks), h * w)
 
 
