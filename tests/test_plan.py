@@ -1,0 +1,175 @@
+"""The plan: which parameters reach which stage keys, and what experiments share."""
+
+from __future__ import annotations
+
+import copy
+
+import pytest
+import yaml
+from workflow_helpers import REPO
+
+from vprflow.config import ConfigError, validate_config
+from vprflow.plan import PlanError, build_plan, content_key
+
+SCHEMA = REPO / "config" / "schema.yaml"
+
+
+@pytest.fixture
+def config() -> dict:
+    return validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()), SCHEMA)
+
+
+def keys_of(config: dict, dataset: str = "corridor", method: str = "segvlad") -> dict[str, str]:
+    """Stage -> key along one method's chain."""
+    plan = build_plan(config)
+    run = next(r for r in plan.runs[dataset] if r.method == method)
+    keys = {"recall": run.recall_key}
+    frontier = [("recall", run.recall_key)]
+    while frontier:
+        stage, key = frontier.pop()
+        for upstream, upstream_key in plan.get(stage, key).inputs.values():
+            keys[upstream] = upstream_key
+            frontier.append((upstream, upstream_key))
+    return keys
+
+
+def changed_stages(before: dict, after: dict, method: str = "segvlad") -> set[str]:
+    a, b = keys_of(before, method=method), keys_of(after, method=method)
+    assert a.keys() == b.keys()
+    return {stage for stage in a if a[stage] != b[stage]}
+
+
+def test_keys_are_deterministic_and_order_independent():
+    assert content_key({"a": 1, "b": [1, 2]}) == content_key({"b": [1, 2], "a": 1})
+    assert content_key({"a": 1}) != content_key({"a": 2})
+    assert len(content_key({})) == 16
+
+
+def test_shipped_methods_share_features_segments_vocabulary_and_pca(config):
+    plan = build_plan(config)
+    corridor = [
+        s for stages in plan.stages.values() for s in stages.values() if s.dataset == "corridor"
+    ]
+    count = {}
+    for stage in corridor:
+        count[stage.stage] = count.get(stage.stage, 0) + 1
+    assert count == {
+        "dataset": 1,
+        "features": 1,
+        "segments": 1,
+        "vocabulary": 1,
+        "pca": 1,
+        "descriptors": 5,
+        "recall": 5,
+    }
+
+
+def test_order_reaches_only_descriptors_and_recall(config):
+    changed = copy.deepcopy(config)
+    changed["segvlad"]["order"] = 2
+    assert changed_stages(config, changed) == {"descriptors", "recall"}
+
+
+def test_segmenter_reaches_segments_pca_descriptors_recall(config):
+    changed = copy.deepcopy(config)
+    changed["segmenters"]["slic"]["n_segments"] = 60
+    assert changed_stages(config, changed) == {"segments", "pca", "descriptors", "recall"}
+
+
+def test_backbone_reaches_everything_but_the_dataset(config):
+    changed = copy.deepcopy(config)
+    changed["backbones"]["daisy"]["radius"] = 10
+    assert changed_stages(config, changed) == {
+        "features",
+        "vocabulary",
+        "pca",
+        "descriptors",
+        "recall",
+    }
+
+
+def test_execution_settings_are_not_in_keys(config):
+    changed = copy.deepcopy(config)
+    changed["backbones"]["daisy"]["batch_size"] = 8
+    changed["device"] = "cpu"
+    changed["shard_size"] = 16
+    changed["data_root"] = "/somewhere/else"
+    assert changed_stages(config, changed) == set()
+
+
+def test_recall_at_reaches_only_recall(config):
+    changed = copy.deepcopy(config)
+    changed["datasets"]["corridor"]["recall_at"] = [1, 2, 3]
+    assert changed_stages(config, changed) == {"recall"}
+
+
+def test_snsm_parameters_reach_only_its_descriptors(config):
+    changed = copy.deepcopy(config)
+    changed["snsm"]["upscale"] = 5
+    a = keys_of(config, "roadscene", "snsm")
+    b = keys_of(changed, "roadscene", "snsm")
+    assert {s for s in a if a[s] != b[s]} == {"descriptors", "recall"}
+    # and SegVLAD on the same dataset shares its features
+    assert keys_of(config, "roadscene", "segvlad")["features"] == a["features"]
+
+
+def test_vocabulary_file_is_keyed_by_its_content(config, tmp_path):
+    import numpy as np
+
+    centres = tmp_path / "centres.npy"
+    np.save(centres, np.eye(4, dtype=np.float32))
+    with_file = copy.deepcopy(config)
+    with_file["vocabulary"] = {"source": "file", "file": str(centres)}
+    first = keys_of(with_file)["vocabulary"]
+    np.save(centres, 2 * np.eye(4, dtype=np.float32))
+    assert keys_of(with_file)["vocabulary"] != first
+
+
+def test_missing_vocabulary_file_is_named(config, tmp_path):
+    config["vocabulary"] = {"source": "file", "file": str(tmp_path / "nope.pt")}
+    with pytest.raises(PlanError, match="nope.pt"):
+        build_plan(config)
+
+
+def test_unknown_method_backbone_and_segmenter_are_named(config):
+    broken = copy.deepcopy(config)
+    broken["datasets"]["corridor"]["methods"] = ["segvald"]
+    with pytest.raises(PlanError, match="segvald"):
+        build_plan(broken)
+    broken = copy.deepcopy(config)
+    broken["methods"]["segvlad"]["features"] = "dinov3"
+    with pytest.raises(PlanError, match="dinov3"):
+        build_plan(broken)
+    broken = copy.deepcopy(config)
+    broken["segmenter"] = "watershed"
+    with pytest.raises(PlanError, match="watershed"):
+        build_plan(broken)
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "named"),
+    [
+        (("segvlad", "ordr"), 3, "ordr"),
+        (("datasets", "corridor", "resolutoin"), [1, 2], "resolutoin"),
+        (("pca", "dim"), "many", "pca.dim"),
+        (("segvlad", "order"), 9, "segvlad.order"),
+        (("device",), "tpu", "device"),
+    ],
+)
+def test_schema_errors_name_the_key(config, path, value, named):
+    broken = copy.deepcopy(config)
+    target = broken
+    for part in path[:-1]:
+        target = target[part]
+    target[path[-1]] = value
+    with pytest.raises(ConfigError, match=named.replace(".", r"\.")):
+        validate_config(broken, SCHEMA)
+
+
+def test_csv_row_lists_the_parameters_that_shaped_it(config):
+    plan = build_plan(config)
+    rows = {r.method: r.row_params for r in plan.runs["corridor"]}
+    assert rows["segvlad"]["segvlad.order"] == 3 and rows["segvlad_o0"]["segvlad.order"] == 0
+    assert "segvlad.order" not in rows["anyloc_vlad"]
+    assert "pca.dim" not in rows["segvlad_nopca"] and rows["segvlad_nopca"]["pca.enabled"] is False
+    assert rows["anyloc_vlad"]["features.backbone"] == "daisy"
