@@ -1,0 +1,217 @@
+"""Per-image time and peak memory of ``vprflow.vit`` backbones (random weights).
+
+Each case runs in its own child process so that its peak RSS (``ru_maxrss``) is its
+own: the child builds the architecture with random weights, saves it to a temporary
+directory, loads it through ``load_vit`` (the production path), runs one warm-up batch
+and then ``--repeats`` timed batches; the best time per image is reported.
+
+Columns: ``load s`` (load_vit incl. reading weights), ``ms/img`` (best of repeats,
+batch size 1 unless ``--batch``), ``base MiB`` (RSS after imports, before the model),
+``peak MiB`` (process high-water mark), ``grid`` (h x w x D of the output).
+
+Usage: python benchmarks/bench_backbones.py [--repeats N] [--batch B] [--giant]
+           [--cases name,name]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+
+CASES = {
+    # name: (architecture, image H x W, load_vit params)
+    "tiny-dinov2": (
+        "tiny-dinov2",
+        (480, 640),
+        {"backbone": "dinov2", "layer": 1, "facet": "value"},
+    ),
+    "tiny-dino": (
+        "tiny-dino",
+        (224, 224),
+        {"backbone": "dino", "facet": "token", "final_norm": True},
+    ),
+    "dinov2-vits14": (
+        "dinov2-vits14",
+        (480, 640),
+        {"backbone": "dinov2", "layer": 11, "facet": "value"},
+    ),
+    "dinov2-vits14-bf16": (
+        "dinov2-vits14",
+        (480, 640),
+        {"backbone": "dinov2", "layer": 11, "facet": "value", "dtype": "bfloat16"},
+    ),
+    "dino-vitb8": (
+        "dino-vitb8",
+        (224, 224),
+        {"backbone": "dino", "facet": "token", "final_norm": True},
+    ),
+    "dino-vitb8-bf16": (
+        "dino-vitb8",
+        (224, 224),
+        {"backbone": "dino", "facet": "token", "final_norm": True, "dtype": "bfloat16"},
+    ),
+    # Opt-in (--giant): the AnyLoc / SegVLAD backbone, ~4.4 GiB of float32 weights.
+    "dinov2-vitg14": (
+        "dinov2-vitg14",
+        (480, 640),
+        {"backbone": "dinov2", "layer": 31, "facet": "value"},
+    ),
+}
+DEFAULT_CASES = [name for name in CASES if name != "dinov2-vitg14"]
+
+
+def build(architecture: str):
+    """A randomly initialised transformers model of the named architecture."""
+    from transformers import Dinov2Config, Dinov2Model, ViTConfig, ViTModel
+
+    if architecture == "tiny-dinov2":
+        config = Dinov2Config(
+            hidden_size=32, num_hidden_layers=3, num_attention_heads=2, mlp_ratio=2, image_size=56
+        )
+        return Dinov2Model(config)
+    if architecture == "tiny-dino":
+        config = ViTConfig(
+            hidden_size=32,
+            num_hidden_layers=2,
+            num_attention_heads=2,
+            intermediate_size=64,
+            patch_size=8,
+            image_size=224,
+        )
+        return ViTModel(config, add_pooling_layer=False)
+    if architecture == "dinov2-vits14":
+        config = Dinov2Config(
+            hidden_size=384, num_hidden_layers=12, num_attention_heads=6, image_size=518
+        )
+        return Dinov2Model(config)
+    if architecture == "dinov2-vitg14":
+        config = Dinov2Config(
+            hidden_size=1536,
+            num_hidden_layers=40,
+            num_attention_heads=24,
+            use_swiglu_ffn=True,
+            image_size=518,
+        )
+        return Dinov2Model(config)
+    if architecture == "dino-vitb8":
+        config = ViTConfig(
+            hidden_size=768,
+            num_hidden_layers=12,
+            num_attention_heads=12,
+            intermediate_size=3072,
+            patch_size=8,
+            image_size=224,
+        )
+        return ViTModel(config, add_pooling_layer=False)
+    raise ValueError(f"unknown architecture {architecture!r}")
+
+
+def peak_mib() -> float:
+    # Linux reports ru_maxrss in KiB (macOS in bytes; this script targets Linux).
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+
+def save_case(architecture: str, directory: str) -> None:
+    """Child process: build random weights and save them (kept out of the measured child)."""
+    import torch
+
+    torch.manual_seed(0)
+    build(architecture).save_pretrained(directory)
+
+
+def run_case(name: str, directory: str, repeats: int, batch: int) -> dict:
+    """Child process: load through ``load_vit`` and time ``features``."""
+    import numpy as np
+    import torch
+    import transformers  # noqa: F401  (imported before measuring the baseline RSS)
+
+    from vprflow.vit import load_vit
+
+    _, (height, width), params = CASES[name]
+    images = np.random.default_rng(0).random((batch, height, width, 3), dtype=np.float32)
+    base = peak_mib()
+    start = time.perf_counter()
+    backbone = load_vit({**params, "model": directory}, "cpu")
+    load = time.perf_counter() - start
+    features = backbone.features(images)  # warm-up
+    best = float("inf")
+    for _ in range(repeats):
+        start = time.perf_counter()
+        backbone.features(images)
+        best = min(best, time.perf_counter() - start)
+    return {
+        "name": name,
+        "dtype": params.get("dtype", "float32"),
+        "input": f"{height}x{width}",
+        "grid": "x".join(map(str, features.shape[1:])),
+        "layer": backbone.layer,
+        "facet": backbone.facet,
+        "load_s": load,
+        "ms_per_image": 1000 * best / batch,
+        "base_mib": base,
+        "peak_mib": peak_mib(),
+        "threads": torch.get_num_threads(),
+    }
+
+
+def child(args: list[str]) -> subprocess.CompletedProcess:
+    return subprocess.run(
+        [sys.executable, __file__, *args], check=True, capture_output=True, text=True
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeats", type=int, default=3, help="timed batches (best kept)")
+    parser.add_argument("--batch", type=int, default=1, help="images per batch")
+    parser.add_argument("--giant", action="store_true", help="also DINOv2 ViT-G/14 (slow)")
+    parser.add_argument("--cases", help=f"comma-separated subset of {', '.join(CASES)}")
+    parser.add_argument("--save", nargs=2, metavar=("ARCH", "DIR"), help=argparse.SUPPRESS)
+    parser.add_argument("--run", nargs=2, metavar=("CASE", "DIR"), help=argparse.SUPPRESS)
+    args = parser.parse_args()
+
+    if args.save:
+        save_case(*args.save)
+        return
+    if args.run:
+        print(json.dumps(run_case(args.run[0], args.run[1], args.repeats, args.batch)))
+        return
+
+    names = args.cases.split(",") if args.cases else DEFAULT_CASES
+    if args.giant and "dinov2-vitg14" not in names:
+        names.append("dinov2-vitg14")
+    header = (
+        f"{'case':<20} {'dtype':<9} {'input':>8} {'grid hxwxD':>12} {'layer':>5} {'facet':>6}"
+        f" {'load s':>7} {'ms/img':>9} {'base MiB':>9} {'peak MiB':>9}"
+    )
+    print(f"batch {args.batch}, best of {args.repeats}, CPU, random weights")
+    print(header)
+    print("-" * len(header))
+    with tempfile.TemporaryDirectory() as root:
+        saved: dict[str, str] = {}
+        for name in names:
+            architecture = CASES[name][0]
+            if architecture not in saved:
+                saved[architecture] = f"{root}/{architecture}"
+                child(["--save", architecture, saved[architecture]])
+            run = child(
+                ["--run", name, saved[architecture], "--repeats", str(args.repeats),
+                 "--batch", str(args.batch)]
+            )  # fmt: skip
+            row = json.loads(run.stdout.strip().splitlines()[-1])
+            print(
+                f"{row['name']:<20} {row['dtype']:<9} {row['input']:>8} {row['grid']:>12}"
+                f" {row['layer']:>5} {row['facet']:>6} {row['load_s']:>7.2f}"
+                f" {row['ms_per_image']:>9.1f} {row['base_mib']:>9.0f} {row['peak_mib']:>9.0f}",
+                flush=True,
+            )
+        print(f"torch threads: {row['threads']}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,79 @@
+"""Choosing the torch device and floating-point precision for model inference.
+
+Config values are plain strings so they can sit in YAML and in cache keys:
+
+- device: ``"auto"`` (CUDA, else Apple MPS, else CPU), ``"cpu"``, ``"cuda"``,
+  ``"cuda:<index>"`` or ``"mps"``.
+- dtype: ``"float32"``, ``"bfloat16"`` or ``"float16"``.
+
+float16 on the CPU is refused rather than silently replaced by another precision: the
+dtype is part of the workflow's cache key, so a quiet fallback would store float32
+features under a float16 key. bfloat16 is the reduced precision that runs on CPUs.
+"""
+
+from __future__ import annotations
+
+import torch
+
+DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+
+
+def _mps_available() -> bool:
+    backend = getattr(torch.backends, "mps", None)
+    return bool(backend is not None and backend.is_available())
+
+
+def resolve_device(name: str) -> torch.device:
+    """Turn a config device string into a :class:`torch.device`.
+
+    ``"auto"`` picks CUDA when available, then MPS, then CPU. Asking for ``"cuda"``
+    (or ``"mps"``) on a machine without it raises ``RuntimeError`` instead of
+    falling back, so a GPU job never runs on the CPU unnoticed.
+    """
+    text = str(name).strip().lower()
+    if text == "auto":
+        if torch.cuda.is_available():
+            return torch.device("cuda")
+        if _mps_available():
+            return torch.device("mps")
+        return torch.device("cpu")
+    if text == "cpu":
+        return torch.device("cpu")
+    if text == "cuda" or text.startswith("cuda:"):
+        if not torch.cuda.is_available():
+            raise RuntimeError(
+                f"device {name!r} requested but CUDA is not available in this torch build "
+                f"(torch {torch.__version__}); use device 'cpu' or 'auto', or install a "
+                "CUDA-enabled torch"
+            )
+        device = torch.device(text)
+        if device.index is not None and device.index >= torch.cuda.device_count():
+            raise RuntimeError(
+                f"device {name!r} requested but only {torch.cuda.device_count()} CUDA "
+                "device(s) are visible"
+            )
+        return device
+    if text == "mps":
+        if not _mps_available():
+            raise RuntimeError(f"device {name!r} requested but Apple MPS is not available")
+        return torch.device("mps")
+    raise ValueError(f"unknown device {name!r}; expected 'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'")
+
+
+def resolve_dtype(name: str, device: torch.device | str) -> torch.dtype:
+    """Turn a config dtype string into a :class:`torch.dtype` usable on ``device``.
+
+    Raises ``ValueError`` for unknown names and for ``"float16"`` on the CPU (see the
+    module docstring for why this is an error, not a fallback).
+    """
+    text = str(name).strip().lower()
+    if text not in DTYPES:
+        raise ValueError(f"unknown dtype {name!r}; expected one of {sorted(DTYPES)}")
+    device_type = torch.device(device).type
+    if text == "float16" and device_type == "cpu":
+        raise ValueError(
+            "dtype 'float16' is not supported on the CPU (slow, and not silently replaced "
+            "because the dtype is part of the cache key); use 'bfloat16' or 'float32' on "
+            "the CPU, or run on a GPU"
+        )
+    return DTYPES[text]

@@ -1,0 +1,238 @@
+"""Dense patch features from DINOv2 / DINO (v1) vision transformers via transformers.
+
+``load_vit(params, device)`` returns a :class:`VitBackbone` whose ``features`` maps a
+float image batch ``[B, H, W, 3]`` in ``[0, 1]`` to patch descriptors ``[B, h, w, D]``:
+
+1. centre-crop H, W down to multiples of the patch size (same offsets as torchvision's
+   ``CenterCrop``, which AnyLoc uses: ``round((H - h*p) / 2)``);
+2. ImageNet mean/std normalisation;
+3. forward pass up to block ``layer`` (blocks after it are dropped from the loaded
+   model, so DINOv2-G at layer 31 runs 32 of its 40 blocks);
+4. a forward hook takes the facet: ``query`` / ``key`` / ``value`` are the outputs of
+   the block's attention q / k / v projections, which transformers applies to the
+   block's normed input ``norm1(hidden)`` (the three thirds of the original ``qkv``
+   Linear); ``token`` is the block's output hidden state, optionally followed by the
+   model's final LayerNorm (``final_norm``, what SNSM uses on DINO's last block);
+5. prefix tokens (CLS and any register tokens) are dropped: the patch tokens are the
+   last ``h*w`` tokens of the sequence;
+6. optional per-patch L2 normalisation over channels (``normalize``).
+
+Position embeddings are interpolated for any input size: DINOv2 models always do it,
+``ViTModel`` (DINO v1) is called with ``interpolate_pos_encoding=True``.
+"""
+
+from __future__ import annotations
+
+import inspect
+
+import numpy as np
+import torch
+from torch import nn
+
+from .devices import resolve_device, resolve_dtype
+from .models import resolve_model_source
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+DEFAULT_MODELS = {"dinov2": "facebook/dinov2-giant", "dino": "facebook/dino-vitb8"}
+# AnyLoc / SegVLAD use block 31 (0-based) of DINOv2 ViT-G/14's 40 blocks.
+DEFAULT_DINOV2_LAYER = 31
+MODEL_TYPES = {"dinov2": ("dinov2", "dinov2_with_registers"), "dino": ("vit",)}
+FACETS = ("query", "key", "value", "token")
+# Submodule names of the q/k/v projections: transformers >= 5 ("q_proj") and the
+# older layout ("attention.attention.query") that transformers 4.x builds.
+_FACET_LINEARS = {
+    "query": ("q_proj", "query"),
+    "key": ("k_proj", "key"),
+    "value": ("v_proj", "value"),
+}
+_BLOCK_LISTS = ("encoder.layer", "layers", "encoder.layers")
+
+
+def center_crop_box(height: int, width: int, patch: int) -> tuple[int, int, int, int]:
+    """``(top, left, crop_height, crop_width)`` of the patch-multiple centre crop.
+
+    Offsets round like torchvision's ``CenterCrop`` (Python ``round``: half to even).
+    Raises ``ValueError`` when the image is smaller than one patch.
+    """
+    crop_h, crop_w = (height // patch) * patch, (width // patch) * patch
+    if crop_h == 0 or crop_w == 0:
+        raise ValueError(f"image {height}x{width} is smaller than one {patch}x{patch} patch")
+    return int(round((height - crop_h) / 2.0)), int(round((width - crop_w) / 2.0)), crop_h, crop_w
+
+
+def _find_blocks(model: nn.Module) -> tuple[nn.Module, str, nn.ModuleList]:
+    """``(parent, attribute, blocks)`` of the transformer block list."""
+    for dotted in _BLOCK_LISTS:
+        parent_path, _, attribute = dotted.rpartition(".")
+        try:
+            parent = model.get_submodule(parent_path) if parent_path else model
+        except AttributeError:
+            continue
+        blocks = getattr(parent, attribute, None)
+        if isinstance(blocks, nn.ModuleList) and len(blocks) > 0:
+            return parent, attribute, blocks
+    raise ValueError(f"{type(model).__name__}: cannot find its transformer block list")
+
+
+def _find_projection(block: nn.Module, facet: str) -> nn.Linear:
+    """The Linear of ``block``'s attention that produces the ``facet`` third of qkv."""
+    names = _FACET_LINEARS[facet]
+    for name, module in block.named_modules():
+        leaf = name.rpartition(".")[2]
+        if leaf in names and "attention" in name and isinstance(module, nn.Linear):
+            return module
+    raise ValueError(f"{type(block).__name__}: no attention projection {names} for {facet!r}")
+
+
+def _resolve_layer(layer: int | None, backbone: str, n_blocks: int) -> int:
+    if layer is None:
+        layer = DEFAULT_DINOV2_LAYER if backbone == "dinov2" else n_blocks - 1
+    index = int(layer) + n_blocks if int(layer) < 0 else int(layer)
+    if not 0 <= index < n_blocks:
+        raise ValueError(
+            f"layer {layer} is out of range for a model with {n_blocks} blocks "
+            f"(0..{n_blocks - 1}, or negative from the end); set the `layer` parameter"
+        )
+    return index
+
+
+class VitBackbone:
+    """A loaded ViT tapped at one block and facet; see the module docstring.
+
+    Attributes: ``patch_size`` (pixels per patch side), ``layer`` (0-based block),
+    ``facet``, ``dim`` (descriptor length D), ``device``, ``dtype``.
+    """
+
+    def __init__(
+        self,
+        model: nn.Module,
+        *,
+        layer: int,
+        facet: str,
+        normalize: bool,
+        final_norm: bool,
+        device: torch.device,
+        dtype: torch.dtype,
+    ):
+        parent, attribute, blocks = _find_blocks(model)
+        # Blocks after `layer` never influence the tapped output: drop them to save
+        # time and memory (this model object is private to the backbone).
+        setattr(parent, attribute, nn.ModuleList(list(blocks)[: layer + 1]))
+        block = blocks[layer]
+        self.model = model.eval().requires_grad_(False)
+        self.tap = block if facet == "token" else _find_projection(block, facet)
+        self.norm = None
+        if final_norm:
+            self.norm = getattr(model, "layernorm", None)
+            if not isinstance(self.norm, nn.LayerNorm):
+                raise ValueError(f"{type(model).__name__} has no final `layernorm`")
+        patch = model.config.patch_size
+        self.patch_size = int(patch[0] if isinstance(patch, list | tuple) else patch)
+        self.layer, self.facet, self.normalize = layer, facet, normalize
+        self.dim = int(self.tap.out_features if facet != "token" else model.config.hidden_size)
+        self.device, self.dtype = device, dtype
+        accepts = inspect.signature(model.forward).parameters
+        # ViTModel only interpolates position embeddings when asked; DINOv2 always does
+        # and must not receive the keyword (its **kwargs reach the attention kernels).
+        self._forward_kwargs = (
+            {"interpolate_pos_encoding": True} if "interpolate_pos_encoding" in accepts else {}
+        )
+        self._mean = torch.tensor(IMAGENET_MEAN, device=device).view(1, 3, 1, 1)
+        self._std = torch.tensor(IMAGENET_STD, device=device).view(1, 3, 1, 1)
+
+    def features(self, batch: np.ndarray) -> np.ndarray:
+        """float32 ``[B, H, W, 3]`` in ``[0, 1]`` -> float32 ``[B, H//p, W//p, D]``."""
+        images = np.asarray(batch, dtype=np.float32)
+        if images.ndim != 4 or images.shape[3] != 3:
+            raise ValueError(f"expected a batch [B, H, W, 3], got shape {images.shape}")
+        count, height, width, _ = images.shape
+        top, left, crop_h, crop_w = center_crop_box(height, width, self.patch_size)
+        images = np.ascontiguousarray(images[:, top : top + crop_h, left : left + crop_w])
+        grid_h, grid_w = crop_h // self.patch_size, crop_w // self.patch_size
+
+        captured: list[torch.Tensor] = []
+
+        def grab(_module, _inputs, output):
+            captured.append(output[0] if isinstance(output, tuple) else output)
+
+        handle = self.tap.register_forward_hook(grab)
+        try:
+            with torch.inference_mode():
+                pixels = torch.from_numpy(images).to(self.device).permute(0, 3, 1, 2)
+                pixels = ((pixels - self._mean) / self._std).to(self.dtype)
+                self.model(pixel_values=pixels, **self._forward_kwargs)
+                tokens = captured[-1]
+                if self.norm is not None:
+                    tokens = self.norm(tokens)
+                # Prefix tokens (CLS, registers) come first; patches are the tail.
+                patches = tokens[:, -grid_h * grid_w :, :].float()
+                patches = patches.reshape(count, grid_h, grid_w, -1)
+                if self.normalize:
+                    patches = nn.functional.normalize(patches, dim=-1)
+                return patches.cpu().numpy()
+        finally:
+            handle.remove()
+
+
+def load_vit(params: dict, device: str = "auto") -> VitBackbone:
+    """Load a DINOv2 (``Dinov2Model``) or DINO (``ViTModel``) backbone.
+
+    ``params`` keys (others are ignored; ``batch_size`` is the caller's business):
+    ``backbone`` ``"dinov2"`` | ``"dino"``; ``model`` hub id or local directory
+    (defaults ``facebook/dinov2-giant`` / ``facebook/dino-vitb8``); ``cache_dir``;
+    ``layer`` 0-based block, negative counts from the end (default 31 for dinov2,
+    the last block for dino); ``facet`` ``"query"|"key"|"value"|"token"`` (default
+    ``"value"``); ``normalize`` per-patch L2 over channels (default ``True``);
+    ``final_norm`` final LayerNorm on the token facet (default ``False``); ``dtype``
+    ``"float32"|"bfloat16"|"float16"`` (default ``"float32"``).
+    Raises :class:`vprflow.models.ModelNotFoundError` when the weights are unavailable.
+    """
+    from transformers import AutoConfig, AutoModel
+
+    backbone = str(params.get("backbone", "dinov2")).lower()
+    if backbone not in MODEL_TYPES:
+        raise ValueError(
+            f"unknown ViT backbone {backbone!r}; expected one of {sorted(MODEL_TYPES)}"
+        )
+    facet = str(params.get("facet", "value")).lower()
+    if facet not in FACETS:
+        raise ValueError(f"unknown facet {facet!r}; expected one of {FACETS}")
+    final_norm = bool(params.get("final_norm", False))
+    if final_norm and facet != "token":
+        raise ValueError(f"final_norm applies to the 'token' facet only, not {facet!r}")
+    torch_device = resolve_device(device)
+    dtype = resolve_dtype(params.get("dtype", "float32"), torch_device)
+
+    model_name = params.get("model") or DEFAULT_MODELS[backbone]
+    source = resolve_model_source(str(model_name), params.get("cache_dir"))
+    config = AutoConfig.from_pretrained(source)
+    if config.model_type not in MODEL_TYPES[backbone]:
+        raise ValueError(
+            f"model {model_name!r} is a {config.model_type!r} model, but backbone "
+            f"{backbone!r} expects {MODEL_TYPES[backbone]}"
+        )
+    # DINO checkpoints carry no pooler; skipping it avoids a spurious random init.
+    extra = {"add_pooling_layer": False} if config.model_type == "vit" else {}
+    model, info = AutoModel.from_pretrained(source, dtype=dtype, output_loading_info=True, **extra)
+    # A checkpoint whose names the installed transformers cannot map would otherwise be
+    # filled with random weights, and the features would be silently meaningless.
+    missing = sorted(info.get("missing_keys") or [])
+    if missing:
+        raise ValueError(
+            f"model {model_name!r} ({source}): the checkpoint lacks {len(missing)} weights "
+            f"of the {type(model).__name__} architecture, e.g. {missing[:3]}; it does not "
+            "match this transformers version or model type"
+        )
+    model = model.to(torch_device)
+    _, _, blocks = _find_blocks(model)
+    layer = _resolve_layer(params.get("layer"), backbone, len(blocks))
+    return VitBackbone(
+        model,
+        layer=layer,
+        facet=facet,
+        normalize=bool(params.get("normalize", True)),
+        final_norm=final_norm,
+        device=torch_device,
+        dtype=dtype,
+    )

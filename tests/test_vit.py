@@ -1,0 +1,317 @@
+"""DINOv2 / DINO feature extraction, checked against hand computations on tiny models.
+
+The models are randomly initialised transformers models saved to a temporary directory
+(no pretrained weights exist on the test machines). All parameters, LayerNorms and
+biases included, are re-drawn with a large spread so that a wrong norm, a swapped
+facet or a missing bias shows up as a large error.
+"""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+import torch
+from transformers import (
+    AutoModel,
+    Dinov2Config,
+    Dinov2Model,
+    Dinov2WithRegistersConfig,
+    Dinov2WithRegistersModel,
+    ViTConfig,
+    ViTModel,
+)
+
+from vprflow.vit import center_crop_box, load_vit
+
+HIDDEN = 32
+# Written out here, not imported, so a wrong constant in the module is caught.
+MEAN = np.array([0.485, 0.456, 0.406], np.float32)
+STD = np.array([0.229, 0.224, 0.225], np.float32)
+
+
+def _randomise(model: torch.nn.Module, seed: int) -> torch.nn.Module:
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        for parameter in model.parameters():
+            noise = torch.randn(parameter.shape, generator=generator) * 0.3
+            parameter.copy_(noise + (1.0 if parameter.ndim == 1 else 0.0) * 0.5)
+    return model
+
+
+@pytest.fixture(scope="module")
+def dinov2_dir(tmp_path_factory):
+    config = Dinov2Config(
+        hidden_size=HIDDEN,
+        num_hidden_layers=3,
+        num_attention_heads=2,
+        mlp_ratio=2,
+        patch_size=14,
+        image_size=56,
+    )
+    path = tmp_path_factory.mktemp("dinov2")
+    _randomise(Dinov2Model(config), 0).save_pretrained(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def dino_dir(tmp_path_factory):
+    config = ViTConfig(
+        hidden_size=HIDDEN,
+        num_hidden_layers=2,
+        num_attention_heads=2,
+        intermediate_size=64,
+        patch_size=8,
+        image_size=32,
+    )
+    path = tmp_path_factory.mktemp("dino")
+    _randomise(ViTModel(config, add_pooling_layer=False), 1).save_pretrained(path)
+    return path
+
+
+@pytest.fixture(scope="module")
+def registers_dir(tmp_path_factory):
+    config = Dinov2WithRegistersConfig(
+        hidden_size=HIDDEN,
+        num_hidden_layers=2,
+        num_attention_heads=2,
+        mlp_ratio=2,
+        patch_size=14,
+        image_size=56,
+        num_register_tokens=4,
+    )
+    path = tmp_path_factory.mktemp("registers")
+    _randomise(Dinov2WithRegistersModel(config), 2).save_pretrained(path)
+    return path
+
+
+def _images(count: int, height: int, width: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).random((count, height, width, 3), dtype=np.float32)
+
+
+def _reference_hidden_states(model_dir, images: np.ndarray, patch: int) -> tuple:
+    """Hidden states of the untruncated model, with preprocessing done independently."""
+    height, width = images.shape[1:3]
+    crop_h, crop_w = height // patch * patch, width // patch * patch
+    top, left = round((height - crop_h) / 2), round((width - crop_w) / 2)  # torchvision's rule
+    crop = images[:, top : top + crop_h, left : left + crop_w]
+    pixels = (crop - MEAN) / STD
+    model = AutoModel.from_pretrained(model_dir).eval()
+    kwargs = {"interpolate_pos_encoding": True} if isinstance(model, ViTModel) else {}
+    with torch.no_grad():
+        output = model(
+            pixel_values=torch.from_numpy(pixels).permute(0, 3, 1, 2),
+            output_hidden_states=True,
+            **kwargs,
+        )
+    grid = (crop_h // patch, crop_w // patch)
+    return model, output, grid
+
+
+def _assert_close(actual: np.ndarray, expected: np.ndarray, rtol: float = 1e-5) -> None:
+    scale = float(np.abs(expected).max())
+    error = float(np.abs(actual.astype(np.float64) - expected).max())
+    assert error <= rtol * scale, f"max error {error:.3g} vs scale {scale:.3g}"
+
+
+def test_center_crop_box_matches_torchvision_rounding():
+    assert center_crop_box(480, 640, 14) == (2, 5, 476, 630)
+    assert center_crop_box(224, 224, 8) == (0, 0, 224, 224)
+    # 60 - 56 = 4 -> 2; 101 - 98 = 3 -> round(1.5) = 2 (half to even, like torchvision)
+    assert center_crop_box(60, 101, 14) == (2, 2, 56, 98)
+    with pytest.raises(ValueError, match="smaller than one"):
+        center_crop_box(10, 100, 14)
+
+
+def test_dinov2_shapes_and_centre_crop(dinov2_dir):
+    backbone = load_vit(
+        {"backbone": "dinov2", "model": str(dinov2_dir), "layer": 1, "facet": "value"}, "cpu"
+    )
+    assert backbone.patch_size == 14
+    images = _images(2, 60, 101)
+    features = backbone.features(images)
+    assert features.shape == (2, 4, 7, HIDDEN)
+    assert features.dtype == np.float32
+    # Centre crop: the pre-cropped region gives identical features, a shifted one does not.
+    same = backbone.features(images[:, 2:58, 2:100])
+    np.testing.assert_array_equal(features, same)
+    shifted = backbone.features(images[:, 0:56, 0:98])
+    assert np.abs(features - shifted).max() > 1e-3
+
+
+def test_blocks_after_layer_are_dropped(dinov2_dir):
+    backbone = load_vit({"backbone": "dinov2", "model": str(dinov2_dir), "layer": 0}, "cpu")
+    assert len(backbone.model.encoder.layer) == 1
+
+
+@pytest.mark.parametrize("facet", ["query", "key", "value"])
+@pytest.mark.parametrize("kind", ["dinov2", "dino"])
+def test_qkv_facets_match_hand_computation(kind, facet, dinov2_dir, dino_dir):
+    model_dir, patch, layer = (dinov2_dir, 14, -2) if kind == "dinov2" else (dino_dir, 8, 0)
+    params = {"backbone": kind, "model": str(model_dir), "layer": layer, "facet": facet}
+    params["normalize"] = False
+    images = _images(2, 45, 71, seed=3)
+    features = load_vit(params, "cpu").features(images)
+
+    model, output, (grid_h, grid_w) = _reference_hidden_states(model_dir, images, patch)
+    index = layer % model.config.num_hidden_layers
+    state = {k: v.double().numpy() for k, v in model.state_dict().items()}
+    if kind == "dinov2":
+        prefix, norm = f"encoder.layer.{index}.", "norm1"
+    else:
+        prefix, norm = f"layers.{index}.", "layernorm_before"
+    proj = {"query": "q_proj", "key": "k_proj", "value": "v_proj"}[facet]
+    hidden = output.hidden_states[index].double().numpy()  # input of block `index`
+    mean = hidden.mean(-1, keepdims=True)
+    var = hidden.var(-1, keepdims=True)
+    normed = (hidden - mean) / np.sqrt(var + model.config.layer_norm_eps)
+    normed = normed * state[prefix + norm + ".weight"] + state[prefix + norm + ".bias"]
+    weight = state[f"{prefix}attention.{proj}.weight"]
+    bias = state[f"{prefix}attention.{proj}.bias"]
+    expected = normed @ weight.T + bias
+    expected = expected[:, 1:].reshape(2, grid_h, grid_w, -1)
+    assert features.shape == expected.shape
+    _assert_close(features, expected)
+
+
+def test_token_facet_is_block_output(dinov2_dir):
+    params = {"backbone": "dinov2", "model": str(dinov2_dir), "layer": 1, "facet": "token"}
+    images = _images(1, 56, 84, seed=4)
+    features = load_vit({**params, "normalize": False}, "cpu").features(images)
+    _, output, (grid_h, grid_w) = _reference_hidden_states(dinov2_dir, images, 14)
+    expected = output.hidden_states[2][:, 1:].double().numpy().reshape(1, grid_h, grid_w, -1)
+    _assert_close(features, expected)
+
+
+def test_dino_final_norm_and_non_square_input(dino_dir):
+    params = {"backbone": "dino", "model": str(dino_dir), "facet": "token", "normalize": False}
+    images = _images(2, 43, 75, seed=5)  # not the 32x32 the config was built for
+    plain = load_vit(params, "cpu").features(images)
+    normed = load_vit({**params, "final_norm": True}, "cpu").features(images)
+    assert normed.shape == (2, 5, 9, HIDDEN)
+    _, output, _ = _reference_hidden_states(dino_dir, images, 8)
+    # The default layer for dino is the last block; with final_norm it is the model output.
+    last = output.last_hidden_state[:, 1:].double().numpy().reshape(2, 5, 9, -1)
+    _assert_close(normed, last)
+    assert np.abs(plain - last).max() > 1e-2
+
+
+def test_register_tokens_are_dropped(registers_dir):
+    params = {"backbone": "dinov2", "model": str(registers_dir), "layer": 0, "facet": "token"}
+    images = _images(1, 42, 70, seed=6)
+    features = load_vit({**params, "normalize": False}, "cpu").features(images)
+    assert features.shape == (1, 3, 5, HIDDEN)
+    _, output, _ = _reference_hidden_states(registers_dir, images, 14)
+    assert output.hidden_states[1].shape[1] == 1 + 4 + 15
+    expected = output.hidden_states[1][:, 5:].double().numpy().reshape(1, 3, 5, -1)
+    _assert_close(features, expected)
+
+
+def test_normalize_gives_unit_patch_norms(dinov2_dir):
+    params = {"backbone": "dinov2", "model": str(dinov2_dir), "layer": 2}
+    images = _images(2, 56, 56, seed=7)
+    raw = load_vit({**params, "normalize": False}, "cpu").features(images)
+    unit = load_vit({**params, "normalize": True}, "cpu").features(images)
+    norms = np.linalg.norm(unit, axis=-1)
+    np.testing.assert_allclose(norms, 1.0, atol=1e-5)
+    assert np.abs(np.linalg.norm(raw, axis=-1) - 1.0).max() > 0.1
+    np.testing.assert_allclose(unit, raw / np.linalg.norm(raw, axis=-1, keepdims=True), atol=1e-6)
+
+
+@pytest.mark.parametrize("kind", ["dinov2", "dino"])
+def test_bfloat16_on_cpu_runs_and_stays_close(kind, dinov2_dir, dino_dir):
+    model_dir = dinov2_dir if kind == "dinov2" else dino_dir
+    params = {"backbone": kind, "model": str(model_dir), "layer": -1, "facet": "value"}
+    images = _images(1, 50, 60, seed=8)
+    full = load_vit(params, "cpu").features(images)
+    half = load_vit({**params, "dtype": "bfloat16"}, "cpu")
+    assert half.model.dtype == torch.bfloat16
+    reduced = half.features(images)
+    assert reduced.dtype == np.float32 and reduced.shape == full.shape
+    cosine = (full * reduced).sum(-1)  # both unit-normalised
+    assert cosine.min() > 0.95
+
+
+def test_float16_on_cpu_is_refused(dinov2_dir):
+    with pytest.raises(ValueError, match="bfloat16"):
+        load_vit({"backbone": "dinov2", "model": str(dinov2_dir), "dtype": "float16"}, "cpu")
+
+
+def test_parameter_errors(dinov2_dir, dino_dir):
+    base = {"backbone": "dinov2", "model": str(dinov2_dir)}
+    with pytest.raises(ValueError, match="layer 31"):  # the ViT-G default on a 3-block model
+        load_vit(base, "cpu")
+    with pytest.raises(ValueError, match="out of range"):
+        load_vit({**base, "layer": -4}, "cpu")
+    with pytest.raises(ValueError, match="facet"):
+        load_vit({**base, "layer": 0, "facet": "attn"}, "cpu")
+    with pytest.raises(ValueError, match="final_norm"):
+        load_vit({**base, "layer": 0, "facet": "value", "final_norm": True}, "cpu")
+    with pytest.raises(ValueError, match="'vit'"):
+        load_vit({"backbone": "dinov2", "model": str(dino_dir), "layer": 0}, "cpu")
+    with pytest.raises(ValueError, match="backbone"):
+        load_vit({"backbone": "resnet", "model": str(dino_dir)}, "cpu")
+    backbone = load_vit({**base, "layer": 0}, "cpu")
+    with pytest.raises(ValueError, match=r"\[B, H, W, 3\]"):
+        backbone.features(np.zeros((56, 56, 3), np.float32))
+    with pytest.raises(ValueError, match="smaller than one"):
+        backbone.features(np.zeros((1, 13, 56, 3), np.float32))
+
+
+# transformers >= 5 renamed the attention / MLP weights; checkpoints on the hub (e.g.
+# facebook/dinov2-giant, facebook/dino-vitb8) still use the old names. (new, old) pairs:
+_LEGACY_NAMES = {
+    "dinov2": [
+        (".attention.q_proj.", ".attention.attention.query."),
+        (".attention.k_proj.", ".attention.attention.key."),
+        (".attention.v_proj.", ".attention.attention.value."),
+        (".attention.o_proj.", ".attention.output.dense."),
+    ],
+    "dino": [
+        ("layers.", "encoder.layer."),
+        (".attention.q_proj.", ".attention.attention.query."),
+        (".attention.k_proj.", ".attention.attention.key."),
+        (".attention.v_proj.", ".attention.attention.value."),
+        (".attention.o_proj.", ".attention.output.dense."),
+        (".mlp.fc1.", ".intermediate.dense."),
+        (".mlp.fc2.", ".output.dense."),
+    ],
+}
+
+
+def _write_legacy_checkpoint(source, target, kind: str, drop: str | None = None) -> None:
+    from safetensors.torch import load_file, save_file
+
+    target.mkdir()
+    shutil.copy(source / "config.json", target / "config.json")
+    renamed = {}
+    for name, tensor in load_file(source / "model.safetensors").items():
+        for new, old in _LEGACY_NAMES[kind]:
+            name = old + name[len(new) :] if name.startswith(new) else name.replace(new, old)
+        renamed[name] = tensor
+    assert any("attention.attention.query" in name for name in renamed)
+    if drop is not None:
+        del renamed[drop]
+    save_file(renamed, target / "model.safetensors", metadata={"format": "pt"})
+
+
+@pytest.mark.parametrize("kind", ["dinov2", "dino"])
+def test_legacy_hub_checkpoint_names_load_the_same_weights(kind, dinov2_dir, dino_dir, tmp_path):
+    model_dir = dinov2_dir if kind == "dinov2" else dino_dir
+    legacy = tmp_path / "legacy"
+    _write_legacy_checkpoint(model_dir, legacy, kind)
+    params = {"backbone": kind, "layer": 0, "facet": "value", "normalize": False}
+    images = _images(1, 56, 56, seed=9)
+    expected = load_vit({**params, "model": str(model_dir)}, "cpu").features(images)
+    actual = load_vit({**params, "model": str(legacy)}, "cpu").features(images)
+    np.testing.assert_array_equal(actual, expected)
+
+
+def test_checkpoint_missing_weights_is_an_error(dinov2_dir, tmp_path):
+    broken = tmp_path / "broken"
+    _write_legacy_checkpoint(
+        dinov2_dir, broken, "dinov2", drop="encoder.layer.0.attention.attention.value.weight"
+    )
+    with pytest.raises(ValueError, match="lacks 1 weights"):
+        load_vit({"backbone": "dinov2", "model": str(broken), "layer": 0}, "cpu")
