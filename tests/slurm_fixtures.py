@@ -122,8 +122,9 @@ def fit_profile_to_cluster(
             fitted = _cap(name, value, cluster)
             if fitted is not None:
                 set_items.append(f"{rule}:{name}={_format_value(fitted)}")
-    if set_items:
-        args += ["--set-resources", *set_items]
+    # The workflow's model stages request a GPU themselves; this cluster has none.
+    set_items += [f"{rule}:gpu=0" for rule in ("features", "segments")]
+    args += ["--set-resources", *set_items]
     return args
 
 

@@ -173,3 +173,39 @@ def test_csv_row_lists_the_parameters_that_shaped_it(config):
     assert "segvlad.order" not in rows["anyloc_vlad"]
     assert "pca.dim" not in rows["segvlad_nopca"] and rows["segvlad_nopca"]["pca.enabled"] is False
     assert rows["anyloc_vlad"]["features.backbone"] == "daisy"
+
+
+def test_dataset_defaults_sit_between_top_level_and_method(config):
+    plan = build_plan(config)
+    features = {s.dataset: s.params["params"] for s in plan.stages["features"].values()}
+    assert features["17places"]["backbone"] == "dinov2" and features["17places"]["layer"] == 31
+    assert features["17places"]["weights"] == "hf:facebook/dinov2-giant"
+    assert features["corridor"]["backbone"] == "daisy"
+    segments = {s.dataset: s.params["params"] for s in plan.stages["segments"].values()}
+    assert (
+        segments["17places"]["segmenter"] == "sam" and segments["corridor"]["segmenter"] == "slic"
+    )
+    # A method's own setting beats the dataset's default.
+    config["methods"]["segvlad"]["features"] = "daisy"
+    assert (
+        keys_of(config, "17places", "segvlad")["features"]
+        != keys_of(config, "17places", "anyloc_vlad")["features"]
+    )
+
+
+def test_local_model_weights_are_in_the_key(config, tmp_path):
+    model = tmp_path / "model"
+    model.mkdir()
+    (model / "config.json").write_text("{}")
+    (model / "model.safetensors").write_bytes(b"weights v1")
+    config["backbones"]["dinov2_vitg14"]["model"] = str(model)
+    memo: dict = {}
+    first = build_plan(config, memo)
+    (model / "model.safetensors").write_bytes(b"weights v2 (changed)")
+    second = build_plan(config, memo)
+    keys = [
+        {s.key for s in p.stages["features"].values() if s.dataset == "17places"}
+        for p in (first, second)
+    ]
+    assert keys[0] != keys[1]
+    assert len(memo) == 2  # one content hash per version of the weights

@@ -163,19 +163,67 @@ def _domain_file(vocabulary: dict, config: dict) -> dict:
     return {"file": str(path), "sha256": file_digest(path)}
 
 
-def resolve_method(config: dict, name: str) -> dict:
-    """The method's settings: top-level defaults deep-merged with its overrides."""
+METHOD_SECTIONS = ("features", "segmenter", "vocabulary", "pca", "segvlad", "snsm", "pooling")
+
+# Model a backbone or segmenter entry uses when it names none.
+DEFAULT_MODELS = {
+    "dinov2": "facebook/dinov2-giant",
+    "dino": "facebook/dino-vitb8",
+    "sam": "facebook/sam-vit-huge",
+}
+
+
+def resolve_method(config: dict, name: str, dataset: dict | None = None) -> dict:
+    """A method's settings: top-level defaults, then the dataset's ``defaults``, then
+    the method's own overrides (later wins, dictionaries merge key by key)."""
     if name not in config["methods"]:
         raise PlanError(f"unknown method {name!r}; defined methods: {sorted(config['methods'])}")
-    defaults = {
-        section: config[section]
-        for section in ("features", "segmenter", "vocabulary", "pca", "segvlad", "snsm", "pooling")
-    }
-    return deep_merge(defaults, config["methods"][name])
+    settings = {section: config[section] for section in METHOD_SECTIONS}
+    settings = deep_merge(settings, (dataset or {}).get("defaults", {}))
+    return deep_merge(settings, config["methods"][name])
 
 
-def build_plan(config: dict) -> Plan:
-    """Every stage of every (dataset, method) pair in ``config``; shared stages dedupe."""
+def source_fingerprint(entry: dict, memo: dict) -> dict:
+    """What identifies the weights or file a backbone/segmenter entry reads.
+
+    Hub ids stand for themselves; local model directories and imported HDF5 files are
+    hashed by content (memoised by path, size and modification time, because a
+    ViT-G checkpoint takes seconds to hash and the plan is built on every run).
+    """
+    kind = entry.get("backbone", entry.get("segmenter"))
+    if kind == "import":
+        return {"file_sha256": _memoised(entry["file"], memo, file_digest)}
+    if kind in DEFAULT_MODELS:
+        from vprflow.models import is_local_model, weights_fingerprint
+
+        model = entry.get("model", DEFAULT_MODELS[kind])
+        if not is_local_model(model):
+            return {"model": model, "weights": f"hf:{model}"}
+        return {"model": model, "weights": _memoised(model, memo, weights_fingerprint)}
+    return {}
+
+
+def _memoised(path: str, memo: dict, digest) -> str:
+    target = Path(path)
+    if not target.exists():
+        raise PlanError(f"{path} does not exist")
+    files = sorted(target.iterdir()) if target.is_dir() else [target]
+    stamp = "|".join(
+        f"{f.name}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files if f.is_file()
+    )
+    memo_key = f"{target.resolve()}|{stamp}"
+    if memo_key not in memo:
+        memo[memo_key] = digest(str(target))
+    return memo[memo_key]
+
+
+def build_plan(config: dict, memo: dict | None = None) -> Plan:
+    """Every stage of every (dataset, method) pair in ``config``; shared stages dedupe.
+
+    ``memo`` caches content hashes of local model weights and imported files across
+    runs (see :func:`source_fingerprint`); pass a dict loaded from disk to reuse it.
+    """
+    memo = {} if memo is None else memo
     plan = Plan()
     execution = {"device": config["device"]}
     for dataset_name, dataset in sorted(config["datasets"].items()):
@@ -187,17 +235,27 @@ def build_plan(config: dict) -> Plan:
         plan.dataset_keys[dataset_name] = dataset_key
         rows = []
         for method_name in dataset["methods"]:
-            method = resolve_method(config, method_name)
+            method = resolve_method(config, method_name, dataset)
             rows.append(
                 _plan_method(
-                    plan, config, dataset_name, dataset, dataset_key, method_name, method, execution
+                    plan,
+                    config,
+                    dataset_name,
+                    dataset,
+                    dataset_key,
+                    method_name,
+                    method,
+                    execution,
+                    memo,
                 )
             )
         plan.runs[dataset_name] = rows
     return plan
 
 
-def _plan_method(plan, config, dataset_name, dataset, dataset_key, method_name, method, execution):
+def _plan_method(
+    plan, config, dataset_name, dataset, dataset_key, method_name, method, execution, memo
+):
     aggregator = method["aggregator"]
     features_name = method["features"]
     if features_name not in config["backbones"]:
@@ -207,7 +265,11 @@ def _plan_method(plan, config, dataset_name, dataset, dataset_key, method_name, 
         )
     backbone = config["backbones"][features_name]
     ds = ("dataset", dataset_key)
-    features_params = {**_hashed(backbone), "resolution": _resolution(dataset, backbone)}
+    features_params = {
+        **_hashed(backbone),
+        **source_fingerprint(backbone, memo),
+        "resolution": _resolution(dataset, backbone),
+    }
     features_key = plan.add(
         "features",
         features_params,
@@ -240,6 +302,7 @@ def _plan_method(plan, config, dataset_name, dataset, dataset_key, method_name, 
         segmenter = config["segmenters"][segmenter_name]
         segments_params = {
             **_hashed(segmenter),
+            **source_fingerprint(segmenter, memo),
             "resolution": _segment_resolution(dataset, segmenter),
         }
         sx = (

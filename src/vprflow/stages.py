@@ -106,22 +106,17 @@ def compute_features(
     stop: int | None = None,
 ) -> None:
     """Dense patch descriptors ``features [n, h, w, D]`` of images ``start..stop``."""
-    from vprflow.backbones import load_backbone
-
     spec = params["params"]
     dataset = Dataset(dataset_path)
     images = shard_range(dataset.n_images, start, stop)
     width, height = spec["resolution"]
     store_dtype = np.dtype(spec.get("store_dtype", "float16"))
-    backbone = load_backbone(spec, device)
+    extract, patch_size = _feature_extractor(spec, device, width, height)
     with stores.atomic_store(out, _stage_attrs("features", params, images)) as group:
         array = None
         batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
         for batch in tqdm(batches, desc="features", unit="batch"):
-            pixels = np.stack(
-                [resize_image(read_image(dataset.paths[i]), width, height) for i in batch]
-            )
-            grids = backbone.features(pixels)
+            grids = extract([dataset.paths[i] for i in batch])
             if array is None:
                 h, w, dim = grids.shape[1:]
                 array = group.create_array(
@@ -132,11 +127,41 @@ def compute_features(
                     compressors=stores.COMPRESSOR,
                 )
                 group.attrs.update(
-                    grid=[h, w], dim=dim, patch_size=backbone.patch_size, image_size=[height, width]
+                    grid=[h, w], dim=dim, patch_size=patch_size, image_size=[height, width]
                 )
-            array[batch.start - images.start : batch.stop - images.start] = grids.astype(
-                store_dtype
-            )
+            elif grids.shape[1:] != array.shape[1:]:
+                raise ValueError(
+                    f"{dataset.paths[batch.start]}: feature grid {grids.shape[1:]} differs from "
+                    f"the first image's {array.shape[1:]}"
+                )
+            start_row = batch.start - images.start
+            array[start_row : start_row + len(batch)] = grids.astype(store_dtype)
+
+
+def _feature_extractor(spec: dict, device: str, width: int, height: int):
+    """``(paths -> float32 [B, h, w, D], patch size)`` for the configured backbone.
+
+    ``backbone: import`` reads the authors' published HDF5 features instead of
+    running a model (``<image file name>/ift_dino``).
+    """
+    if spec["backbone"] == "import":
+        from vprflow.backbones import l2_normalize
+        from vprflow.published import read_features_h5
+
+        def read(paths):
+            grids = np.stack([read_features_h5(spec["file"], Path(p).name) for p in paths])
+            return l2_normalize(grids) if spec.get("normalize", True) else grids
+
+        return read, spec.get("patch_size", 14)
+    from vprflow.backbones import load_backbone
+
+    backbone = load_backbone(spec, device)
+
+    def run(paths):
+        pixels = np.stack([resize_image(read_image(p), width, height) for p in paths])
+        return backbone.features(pixels)
+
+    return run, backbone.patch_size
 
 
 def read_features(group, index: int) -> np.ndarray:
@@ -156,24 +181,46 @@ def compute_segments(
     stop: int | None = None,
 ) -> None:
     """Bit-packed masks per image at the segmentation resolution (ragged ``masks``)."""
-    from vprflow.segmenters import load_segmenter
-
     spec = params["params"]
     dataset = Dataset(dataset_path)
     images = shard_range(dataset.n_images, start, stop)
-    width, height = spec["resolution"]
-    segmenter = load_segmenter(spec, device)
+    segment = _mask_source(spec, device)
     with stores.atomic_store(out, _stage_attrs("segments", params, images)) as group:
-        group.attrs.update(mask_height=height, mask_width=width)
-        writer = stores.RaggedWriter(
-            group, "masks", ((height * width + 7) // 8,), np.uint8, chunk_rows=256
-        )
+        writer, shape = None, None
         for i in tqdm(images, desc="segments", unit="image"):
-            masks = segmenter.masks(resize_image(read_image(dataset.paths[i]), width, height))
+            masks = segment(dataset.paths[i])
+            if shape is None:
+                shape = masks.shape[1:]
+                group.attrs.update(mask_height=shape[0], mask_width=shape[1])
+                writer = stores.RaggedWriter(
+                    group, "masks", ((shape[0] * shape[1] + 7) // 8,), np.uint8, chunk_rows=256
+                )
+            elif masks.shape[1:] != shape:
+                raise ValueError(
+                    f"{dataset.paths[i]}: masks of size {masks.shape[1:]} differ from the "
+                    f"first image's {shape}"
+                )
             if len(masks) == 0:
                 log.warning("%s: the segmenter returned no masks", dataset.paths[i])
             writer.append(stores.pack_masks(masks))
         writer.close()
+
+
+def _mask_source(spec: dict, device: str):
+    """``path -> bool [S, Hm, Wm]`` for the configured segmenter.
+
+    ``segmenter: import`` reads the authors' published HDF5 masks
+    (``<image file name>/masks/<j>/segmentation``) at their own resolution.
+    """
+    if spec["segmenter"] == "import":
+        from vprflow.published import read_masks_h5
+
+        return lambda path: read_masks_h5(spec["file"], Path(path).name)
+    from vprflow.segmenters import load_segmenter
+
+    segmenter = load_segmenter(spec, device)
+    width, height = spec["resolution"]
+    return lambda path: segmenter.masks(resize_image(read_image(path), width, height))
 
 
 def read_masks(group, index: int) -> np.ndarray:

@@ -1,4 +1,5 @@
 # Config validation, the content-addressed plan, and the input functions every rule uses.
+import json
 from functools import cache
 from pathlib import Path
 
@@ -11,7 +12,16 @@ configfile: "config/config.yaml"
 
 
 CONFIG = validate_config(config, Path(workflow.basedir) / "config" / "schema.yaml")
-PLAN = build_plan(CONFIG)
+# Content hashes of local model weights / imported files, memoised between runs.
+FINGERPRINTS = Path(CACHE) / "fingerprints.json"
+_memo = json.loads(FINGERPRINTS.read_text()) if FINGERPRINTS.exists() else {}
+_memo_size = len(_memo)
+PLAN = build_plan(CONFIG, _memo)
+if len(_memo) != _memo_size:
+    FINGERPRINTS.parent.mkdir(parents=True, exist_ok=True)
+    FINGERPRINTS.write_text(json.dumps(_memo, indent=1, sort_keys=True))
+# Backbones and segmenters that run a neural network (and so want a GPU).
+MODEL_KINDS = {"dinov2", "dino", "sam"}
 SHARDED = "features|segments|descriptors"
 
 
@@ -38,6 +48,20 @@ def stage_params(stage):
 def stage_run_params(stage):
     """Execution settings that do not shape the output (device, batch size)."""
     return lambda wildcards: planned(stage, wildcards).run_params
+
+
+def gpu_request(stage):
+    """Resource function: 1 GPU for stages that run a model, unless device is cpu.
+
+    The SLURM executor turns it into `--gpus=1`; a cluster profile may override it.
+    """
+
+    def request(wildcards):
+        params = planned(stage, wildcards).params["params"]
+        kind = params.get("backbone", params.get("segmenter"))
+        return int(kind in MODEL_KINDS and CONFIG["device"] != "cpu")
+
+    return request
 
 
 def dataset_spec(name):

@@ -7,6 +7,8 @@ rule features:
         "logs/features/{key}.{start}-{stop}.log",
     conda:
         "../envs/vprflow.yaml"
+    resources:
+        gpu=gpu_request("features"),
     params:
         cfg=stage_params("features"),
         run=stage_run_params("features"),
@@ -21,10 +23,10 @@ rule gather:
         directory("results/cache/{stage}/{key}.zarr"),
     log:
         "logs/{stage}/{key}.gather.log",
-    conda:
-        "../envs/vprflow.yaml"
     wildcard_constraints:
         stage=SHARDED,
+    conda:
+        "../envs/vprflow.yaml"
     params:
         cfg=gather_params,
     script:

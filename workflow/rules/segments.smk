@@ -7,6 +7,8 @@ rule segments:
         "logs/segments/{key}.{start}-{stop}.log",
     conda:
         "../envs/vprflow.yaml"
+    resources:
+        gpu=gpu_request("segments"),
     params:
         cfg=stage_params("segments"),
         run=stage_run_params("segments"),
