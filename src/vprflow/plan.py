@@ -253,17 +253,21 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
     return plan
 
 
+def _named_entry(config: dict, section: str, name: str, method_name: str) -> dict:
+    if name not in config[section]:
+        raise PlanError(
+            f"method {method_name!r} uses {name!r}, which is not defined under {section}: "
+            f"{sorted(config[section])}"
+        )
+    return config[section][name]
+
+
 def _plan_method(
     plan, config, dataset_name, dataset, dataset_key, method_name, method, execution, memo
 ):
     aggregator = method["aggregator"]
     features_name = method["features"]
-    if features_name not in config["backbones"]:
-        raise PlanError(
-            f"method {method_name!r} uses backbone {features_name!r}, which is not defined under "
-            f"backbones: {sorted(config['backbones'])}"
-        )
-    backbone = config["backbones"][features_name]
+    backbone = _named_entry(config, "backbones", features_name, method_name)
     ds = ("dataset", dataset_key)
     features_params = {
         **_hashed(backbone),
@@ -294,12 +298,7 @@ def _plan_method(
 
     if aggregator == "segvlad":
         segmenter_name = method["segmenter"]
-        if segmenter_name not in config["segmenters"]:
-            raise PlanError(
-                f"method {method_name!r} uses segmenter {segmenter_name!r}, which is not defined "
-                f"under segmenters: {sorted(config['segmenters'])}"
-            )
-        segmenter = config["segmenters"][segmenter_name]
+        segmenter = _named_entry(config, "segmenters", segmenter_name, method_name)
         segments_params = {
             **_hashed(segmenter),
             **source_fingerprint(segmenter, memo),
