@@ -5,6 +5,8 @@ rule descriptors:
         temp(directory("results/cache/descriptors/{key}.shards/{start}-{stop}.zarr")),
     log:
         "logs/descriptors/{key}.{start}-{stop}.log",
+    benchmark:
+        "logs/descriptors/{key}.{start}-{stop}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
     params:

@@ -5,6 +5,8 @@ rule features:
         temp(directory("results/cache/features/{key}.shards/{start}-{stop}.zarr")),
     log:
         "logs/features/{key}.{start}-{stop}.log",
+    benchmark:
+        "logs/features/{key}.{start}-{stop}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
     resources:

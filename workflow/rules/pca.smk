@@ -5,6 +5,8 @@ rule pca:
         directory("results/cache/pca/{key}.zarr"),
     log:
         "logs/pca/{key}.log",
+    benchmark:
+        "logs/pca/{key}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
     params:

@@ -5,6 +5,8 @@ rule recall:
         directory("results/cache/recall/{key}.zarr"),
     log:
         "logs/recall/{key}.log",
+    benchmark:
+        "logs/recall/{key}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
     params:

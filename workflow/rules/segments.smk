@@ -5,6 +5,8 @@ rule segments:
         temp(directory("results/cache/segments/{key}.shards/{start}-{stop}.zarr")),
     log:
         "logs/segments/{key}.{start}-{stop}.log",
+    benchmark:
+        "logs/segments/{key}.{start}-{stop}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
     resources:

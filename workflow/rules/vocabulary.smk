@@ -5,6 +5,8 @@ rule vocabulary:
         directory("results/cache/vocabulary/{key}.zarr"),
     log:
         "logs/vocabulary/{key}.log",
+    benchmark:
+        "logs/vocabulary/{key}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
     params:
