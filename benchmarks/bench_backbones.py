@@ -22,6 +22,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 CASES = {
     # name: (architecture, image H x W, load_vit params)
@@ -65,50 +66,46 @@ CASES = {
 DEFAULT_CASES = [name for name in CASES if name != "dinov2-vitg14"]
 
 
+# name: keyword arguments of ``tiny_vit`` in tests/tiny_models.py (which makes real-size
+# architectures too); weights keep the transformers initialisation, seeded with 0.
+ARCHITECTURES = {
+    "tiny-dinov2": {"kind": "dinov2", "image_size": 56},
+    "tiny-dino": {"kind": "dino"},
+    "dinov2-vits14": {
+        "kind": "dinov2",
+        "hidden_size": 384,
+        "num_layers": 12,
+        "num_heads": 6,
+        "mlp_ratio": 4,
+        "image_size": 518,
+    },
+    "dinov2-vitg14": {
+        "kind": "dinov2",
+        "hidden_size": 1536,
+        "num_layers": 40,
+        "num_heads": 24,
+        "mlp_ratio": 4,
+        "image_size": 518,
+        "use_swiglu_ffn": True,
+    },
+    "dino-vitb8": {
+        "kind": "dino",
+        "hidden_size": 768,
+        "num_layers": 12,
+        "num_heads": 12,
+        "mlp_ratio": 4,
+    },
+}
+
+
 def build(architecture: str):
     """A randomly initialised transformers model of the named architecture."""
-    from transformers import Dinov2Config, Dinov2Model, ViTConfig, ViTModel
+    if architecture not in ARCHITECTURES:
+        raise ValueError(f"unknown architecture {architecture!r}")
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+    from tiny_models import tiny_vit
 
-    if architecture == "tiny-dinov2":
-        config = Dinov2Config(
-            hidden_size=32, num_hidden_layers=3, num_attention_heads=2, mlp_ratio=2, image_size=56
-        )
-        return Dinov2Model(config)
-    if architecture == "tiny-dino":
-        config = ViTConfig(
-            hidden_size=32,
-            num_hidden_layers=2,
-            num_attention_heads=2,
-            intermediate_size=64,
-            patch_size=8,
-            image_size=224,
-        )
-        return ViTModel(config, add_pooling_layer=False)
-    if architecture == "dinov2-vits14":
-        config = Dinov2Config(
-            hidden_size=384, num_hidden_layers=12, num_attention_heads=6, image_size=518
-        )
-        return Dinov2Model(config)
-    if architecture == "dinov2-vitg14":
-        config = Dinov2Config(
-            hidden_size=1536,
-            num_hidden_layers=40,
-            num_attention_heads=24,
-            use_swiglu_ffn=True,
-            image_size=518,
-        )
-        return Dinov2Model(config)
-    if architecture == "dino-vitb8":
-        config = ViTConfig(
-            hidden_size=768,
-            num_hidden_layers=12,
-            num_attention_heads=12,
-            intermediate_size=3072,
-            patch_size=8,
-            image_size=224,
-        )
-        return ViTModel(config, add_pooling_layer=False)
-    raise ValueError(f"unknown architecture {architecture!r}")
+    return tiny_vit(**ARCHITECTURES[architecture], seed=0, scale=None)
 
 
 def peak_mib() -> float:
@@ -118,9 +115,6 @@ def peak_mib() -> float:
 
 def save_case(architecture: str, directory: str) -> None:
     """Child process: build random weights and save them (kept out of the measured child)."""
-    import torch
-
-    torch.manual_seed(0)
     build(architecture).save_pretrained(directory)
 
 

@@ -6,7 +6,7 @@ import shutil
 
 import pytest
 import torch
-from transformers import ViTConfig, ViTModel
+from tiny_models import save_tiny_dino
 
 from vprflow.devices import resolve_device, resolve_dtype
 from vprflow.models import ModelNotFoundError, resolve_model_source, weights_fingerprint
@@ -17,18 +17,15 @@ MISSING_ID = "vprflow-tests/no-such-model"
 
 @pytest.fixture(scope="module")
 def tiny_dir(tmp_path_factory):
-    config = ViTConfig(
+    # transformers' own (seeded) initialisation: only the weight bytes matter here
+    return save_tiny_dino(
+        tmp_path_factory.mktemp("tiny"),
         hidden_size=16,
-        num_hidden_layers=1,
-        num_attention_heads=2,
-        intermediate_size=32,
-        patch_size=8,
+        num_layers=1,
         image_size=16,
+        seed=0,
+        scale=None,
     )
-    path = tmp_path_factory.mktemp("tiny")
-    torch.manual_seed(0)
-    ViTModel(config, add_pooling_layer=False).save_pretrained(path)
-    return path
 
 
 @pytest.fixture

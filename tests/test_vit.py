@@ -13,15 +13,8 @@ import shutil
 import numpy as np
 import pytest
 import torch
-from transformers import (
-    AutoModel,
-    Dinov2Config,
-    Dinov2Model,
-    Dinov2WithRegistersConfig,
-    Dinov2WithRegistersModel,
-    ViTConfig,
-    ViTModel,
-)
+from tiny_models import save_tiny_dino, save_tiny_dinov2
+from transformers import AutoModel, ViTModel
 
 from vprflow.vit import center_crop_box, load_vit
 
@@ -31,59 +24,35 @@ MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 STD = np.array([0.229, 0.224, 0.225], np.float32)
 
 
-def _randomise(model: torch.nn.Module, seed: int) -> torch.nn.Module:
-    generator = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for parameter in model.parameters():
-            noise = torch.randn(parameter.shape, generator=generator) * 0.3
-            parameter.copy_(noise + (1.0 if parameter.ndim == 1 else 0.0) * 0.5)
-    return model
+# Every parameter, LayerNorms and biases included, re-drawn with a large spread.
+SPREAD = {"scale": 0.3, "skip_norms": False, "bias_offset": 0.5}
 
 
 @pytest.fixture(scope="module")
 def dinov2_dir(tmp_path_factory):
-    config = Dinov2Config(
-        hidden_size=HIDDEN,
-        num_hidden_layers=3,
-        num_attention_heads=2,
-        mlp_ratio=2,
-        patch_size=14,
-        image_size=56,
+    return save_tiny_dinov2(
+        tmp_path_factory.mktemp("dinov2"), hidden_size=HIDDEN, image_size=56, seed=0, **SPREAD
     )
-    path = tmp_path_factory.mktemp("dinov2")
-    _randomise(Dinov2Model(config), 0).save_pretrained(path)
-    return path
 
 
 @pytest.fixture(scope="module")
 def dino_dir(tmp_path_factory):
-    config = ViTConfig(
-        hidden_size=HIDDEN,
-        num_hidden_layers=2,
-        num_attention_heads=2,
-        intermediate_size=64,
-        patch_size=8,
-        image_size=32,
+    return save_tiny_dino(
+        tmp_path_factory.mktemp("dino"), hidden_size=HIDDEN, image_size=32, seed=1, **SPREAD
     )
-    path = tmp_path_factory.mktemp("dino")
-    _randomise(ViTModel(config, add_pooling_layer=False), 1).save_pretrained(path)
-    return path
 
 
 @pytest.fixture(scope="module")
 def registers_dir(tmp_path_factory):
-    config = Dinov2WithRegistersConfig(
+    return save_tiny_dinov2(
+        tmp_path_factory.mktemp("registers"),
         hidden_size=HIDDEN,
-        num_hidden_layers=2,
-        num_attention_heads=2,
-        mlp_ratio=2,
-        patch_size=14,
+        num_layers=2,
         image_size=56,
-        num_register_tokens=4,
+        registers=4,
+        seed=2,
+        **SPREAD,
     )
-    path = tmp_path_factory.mktemp("registers")
-    _randomise(Dinov2WithRegistersModel(config), 2).save_pretrained(path)
-    return path
 
 
 def _images(count: int, height: int, width: int, seed: int = 0) -> np.ndarray:

@@ -1,75 +1,164 @@
 """Tiny randomly initialised DINOv2, DINO and SAM checkpoints, saved like real ones.
 
 No weights can be downloaded here; these exercise the real loaders end to end.
+``tiny_vit`` (DINOv2, DINOv2 with registers, DINO) and ``tiny_sam`` return the model;
+the ``save_tiny_*`` wrappers save it to ``path`` and return the path. Every size is a
+keyword, so ``tiny_vit`` also makes the real-size architectures that
+``benchmarks/bench_backbones.py`` times.
+
+Weights: ``scale=None`` keeps the transformers initialisation (seeded with
+``torch.manual_seed(seed)``); otherwise every parameter is re-drawn from
+``N(0, scale**2)`` with its own generator, skipping LayerNorms (``skip_norms``) and
+adding ``bias_offset`` to 1-D parameters (biases and norm weights).
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from functools import partial
 from pathlib import Path
+from typing import Any
 
 import torch
-from transformers import Dinov2Config, Dinov2Model, SamConfig, SamModel, ViTConfig, ViTModel
+from transformers import (
+    Dinov2Config,
+    Dinov2Model,
+    Dinov2WithRegistersConfig,
+    Dinov2WithRegistersModel,
+    SamConfig,
+    SamModel,
+    ViTConfig,
+    ViTModel,
+)
 
 
-def _randomise(model: torch.nn.Module, seed: int, scale: float = 1.0) -> torch.nn.Module:
+def _randomise(
+    model: torch.nn.Module,
+    seed: int,
+    scale: float = 1.0,
+    *,
+    skip_norms: bool = True,
+    bias_offset: float = 0.0,
+) -> torch.nn.Module:
     generator = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for name, parameter in model.named_parameters():
-            if "norm" in name:  # LayerNorms near identity keep activations finite
+            if skip_norms and "norm" in name:  # LayerNorms near identity keep activations finite
                 continue
-            parameter.copy_(torch.randn(parameter.shape, generator=generator) * scale)
+            noise = torch.randn(parameter.shape, generator=generator) * scale
+            if parameter.ndim == 1 and bias_offset:
+                noise = noise + bias_offset
+            parameter.copy_(noise)
     return model.eval()
 
 
-def save_tiny_dinov2(path: Path, seed: int = 0) -> Path:
-    config = Dinov2Config(
-        hidden_size=32, num_hidden_layers=3, num_attention_heads=2, mlp_ratio=2, patch_size=14
+def _initialise(
+    build: Callable[[], torch.nn.Module], seed: int, scale: float | None, **randomise: Any
+) -> torch.nn.Module:
+    """``build()`` with transformers' seeded initialisation or re-drawn weights."""
+    if scale is None:
+        torch.manual_seed(seed)
+        return build().eval()
+    return _randomise(build(), seed, scale, **randomise)
+
+
+# kind: (layers, patch side) of the tiny default
+_TINY_VIT = {"dinov2": (3, 14), "dino": (2, 8)}
+
+
+def tiny_vit(
+    kind: str = "dinov2",
+    *,
+    hidden_size: int = 32,
+    num_layers: int | None = None,
+    num_heads: int = 2,
+    mlp_ratio: int = 2,
+    patch_size: int | None = None,
+    image_size: int = 224,
+    registers: int = 0,
+    seed: int = 0,
+    scale: float | None = 0.2,
+    skip_norms: bool = True,
+    bias_offset: float = 0.0,
+    **config: Any,
+) -> torch.nn.Module:
+    """A ``kind="dinov2"`` model (DINOv2-with-registers if ``registers > 0``) or a
+    ``kind="dino"`` one (a ViT without pooler, MLP ``mlp_ratio * hidden_size`` wide).
+
+    ``num_layers`` and ``patch_size`` default to 3 and 14 (DINOv2) or 2 and 8 (DINO);
+    ``config`` holds further config keys (e.g. ``use_swiglu_ffn``).
+    """
+    layers, patch = _TINY_VIT[kind]
+    if registers and kind != "dinov2":
+        raise ValueError(f"register tokens need kind='dinov2', not {kind!r}")
+    config.update(
+        hidden_size=hidden_size,
+        num_hidden_layers=num_layers or layers,
+        num_attention_heads=num_heads,
+        patch_size=patch_size or patch,
+        image_size=image_size,
     )
-    _randomise(Dinov2Model(config), seed, 0.2).save_pretrained(path)
-    return path
+    if kind == "dino":
+        vit = ViTConfig(intermediate_size=mlp_ratio * hidden_size, **config)
+        build = partial(ViTModel, vit, add_pooling_layer=False)
+    elif registers:
+        vit = Dinov2WithRegistersConfig(
+            mlp_ratio=mlp_ratio, num_register_tokens=registers, **config
+        )
+        build = partial(Dinov2WithRegistersModel, vit)
+    else:
+        build = partial(Dinov2Model, Dinov2Config(mlp_ratio=mlp_ratio, **config))
+    return _initialise(build, seed, scale, skip_norms=skip_norms, bias_offset=bias_offset)
 
 
-def save_tiny_dino(path: Path, seed: int = 0) -> Path:
-    config = ViTConfig(
-        hidden_size=32,
-        num_hidden_layers=2,
-        num_attention_heads=2,
-        intermediate_size=64,
-        patch_size=8,
-        image_size=224,
-    )
-    _randomise(ViTModel(config, add_pooling_layer=False), seed, 0.2).save_pretrained(path)
-    return path
-
-
-def save_tiny_sam(path: Path, seed: int = 0, model_size: int = 64) -> Path:
-    hidden = 32
+def tiny_sam(
+    *,
+    hidden_size: int = 32,
+    model_size: int = 64,
+    seed: int = 0,
+    scale: float | None = 1.0,
+) -> SamModel:
+    """A SAM model whose input side is ``model_size`` (1024 for real checkpoints)."""
     config = SamConfig(
         vision_config={
-            "hidden_size": hidden,
-            "output_channels": hidden,
+            "hidden_size": hidden_size,
+            "output_channels": hidden_size,
             "num_hidden_layers": 2,
             "num_attention_heads": 2,
             "image_size": model_size,
             "patch_size": 16,
             "window_size": 4,
             "global_attn_indexes": [1],
-            "num_pos_feats": hidden // 2,
+            "num_pos_feats": hidden_size // 2,
             "mlp_dim": 64,
         },
         prompt_encoder_config={
-            "hidden_size": hidden,
+            "hidden_size": hidden_size,
             "image_size": model_size,
             "patch_size": 16,
             "mask_input_channels": 8,
         },
         mask_decoder_config={
-            "hidden_size": hidden,
+            "hidden_size": hidden_size,
             "mlp_dim": 64,
             "num_hidden_layers": 2,
             "num_attention_heads": 2,
             "iou_head_hidden_dim": 32,
         },
     )
-    _randomise(SamModel(config), seed).save_pretrained(path)
+    return _initialise(partial(SamModel, config), seed, scale)
+
+
+def save_tiny_dinov2(path: Path, **kwargs: Any) -> Path:
+    tiny_vit("dinov2", **kwargs).save_pretrained(path)
+    return path
+
+
+def save_tiny_dino(path: Path, **kwargs: Any) -> Path:
+    tiny_vit("dino", **kwargs).save_pretrained(path)
+    return path
+
+
+def save_tiny_sam(path: Path, **kwargs: Any) -> Path:
+    tiny_sam(**kwargs).save_pretrained(path)
     return path
