@@ -39,9 +39,14 @@ def fit_spherical_kmeans(
 
 def assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
     """Hard assignment ``argmax_c x . normalize(C_c)`` -> labels ``[N]`` (int64)."""
+    import torch
+
     if len(x) == 0:
         return np.zeros(0, dtype=np.int64)
-    return np.argmax(x @ l2_normalize(centres).T, axis=1).astype(np.int64)
+    scores = torch.from_numpy(np.asarray(x, dtype=np.float32)) @ torch.from_numpy(
+        np.ascontiguousarray(l2_normalize(np.asarray(centres, dtype=np.float32)).T)
+    )
+    return scores.argmax(dim=1).numpy().astype(np.int64)
 
 
 def normalize_vlad(residual_sums: np.ndarray) -> np.ndarray:

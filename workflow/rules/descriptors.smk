@@ -9,6 +9,7 @@ rule descriptors:
         "logs/descriptors/{key}.{start}-{stop}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
+    threads: 2
     params:
         cfg=stage_params("descriptors"),
     script:

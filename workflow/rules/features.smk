@@ -9,6 +9,7 @@ rule features:
         "logs/features/{key}.{start}-{stop}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
+    threads: 4
     resources:
         gpu=gpu_request("features"),
     params:

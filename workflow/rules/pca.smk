@@ -9,6 +9,7 @@ rule pca:
         "logs/pca/{key}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
+    threads: 2
     params:
         cfg=stage_params("pca"),
     script:

@@ -9,6 +9,7 @@ rule recall:
         "logs/recall/{key}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
+    threads: 2
     params:
         cfg=stage_params("recall"),
     script:

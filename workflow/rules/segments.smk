@@ -9,6 +9,7 @@ rule segments:
         "logs/segments/{key}.{start}-{stop}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
+    threads: 4
     resources:
         gpu=gpu_request("segments"),
     params:

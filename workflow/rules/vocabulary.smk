@@ -9,6 +9,7 @@ rule vocabulary:
         "logs/vocabulary/{key}.benchmark.tsv"
     conda:
         "../envs/vprflow.yaml"
+    threads: 2
     params:
         cfg=stage_params("vocabulary"),
     script:

@@ -1,8 +1,8 @@
-from vprflow.logs import run_logged
+from vprflow.runner import run_stage
 from vprflow.stages import compute_features
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
-run_logged(
+run_stage(
     sm.log[0],
     lambda: compute_features(
         sm.input.dataset,
@@ -13,4 +13,5 @@ run_logged(
         start=int(sm.wildcards.start),
         stop=int(sm.wildcards.stop),
     ),
+    sm.threads,
 )

@@ -1,8 +1,8 @@
-from vprflow.logs import run_logged
+from vprflow.runner import run_stage
 from vprflow.stages import fit_pca_stage
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
-run_logged(
+run_stage(
     sm.log[0],
     lambda: fit_pca_stage(
         sm.input.dataset,
@@ -12,4 +12,5 @@ run_logged(
         sm.params.cfg,
         sm.output[0],
     ),
+    sm.threads,
 )

@@ -1,8 +1,9 @@
-from vprflow.logs import run_logged
+from vprflow.runner import run_stage
 from vprflow.stages import evaluate
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
-run_logged(
+run_stage(
     sm.log[0],
     lambda: evaluate(sm.input.dataset, sm.input.descriptors, sm.params.cfg, sm.output[0]),
+    sm.threads,
 )

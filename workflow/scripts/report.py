@@ -1,8 +1,8 @@
-from vprflow.logs import run_logged
+from vprflow.runner import run_stage
 from vprflow.stages import write_report
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
-run_logged(
+run_stage(
     sm.log[0],
     lambda: write_report(
         sm.wildcards.dataset,
@@ -12,4 +12,5 @@ run_logged(
         sm.output.csv,
         sm.output.predictions,
     ),
+    sm.threads,
 )

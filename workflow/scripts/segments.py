@@ -1,8 +1,8 @@
-from vprflow.logs import run_logged
+from vprflow.runner import run_stage
 from vprflow.stages import compute_segments
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
-run_logged(
+run_stage(
     sm.log[0],
     lambda: compute_segments(
         sm.input.dataset,
@@ -12,4 +12,5 @@ run_logged(
         start=int(sm.wildcards.start),
         stop=int(sm.wildcards.stop),
     ),
+    sm.threads,
 )

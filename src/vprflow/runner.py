@@ -1,4 +1,10 @@
-"""Send a stage's progress bars, log messages and traceback to its Snakemake log file."""
+"""How a workflow script runs a stage: logging to its log file, and a thread budget.
+
+Progress bars, log messages and any traceback go to the rule's log file. Numeric
+libraries (BLAS via numpy, torch, faiss) are held to the rule's ``threads``: two
+jobs on two cores that each start a full BLAS thread pool oversubscribe the CPU,
+which slows small matrix products by an order of magnitude.
+"""
 
 from __future__ import annotations
 
@@ -9,13 +15,24 @@ import traceback
 from collections.abc import Callable
 
 
-def run_logged(log_path: str, function: Callable[[], None]) -> None:
-    """Run ``function`` with stderr and the ``vprflow`` logger writing to ``log_path``.
+def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> None:
+    """Run ``function`` with stderr and the ``vprflow`` logger writing to ``log_path``
+    and at most ``threads`` threads in BLAS, torch and faiss.
 
     A failure is written to the log (with traceback) and re-raised, so Snakemake
     reports it and the log says why.
     """
-    with open(log_path, "w") as log_file, contextlib.redirect_stderr(log_file):
+    import faiss
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    torch.set_num_threads(threads)
+    faiss.omp_set_num_threads(threads)
+    with (
+        open(log_path, "w") as log_file,
+        contextlib.redirect_stderr(log_file),
+        threadpool_limits(limits=threads),
+    ):
         handler = logging.StreamHandler(log_file)
         handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
         logger = logging.getLogger("vprflow")
