@@ -132,3 +132,14 @@ def test_randomized_pca_matches_exact_svd_on_low_rank_data(dim):
     _, singular, vt = np.linalg.svd(centred.astype(np.float64), full_matrices=False)
     np.testing.assert_allclose(variance, singular[:dim] ** 2 / (n - 1), rtol=1e-5)
     np.testing.assert_allclose(match_signs(components, vt[:dim]), vt[:dim], rtol=0, atol=1e-5)
+
+
+def test_randomized_pca_centres_implicitly():
+    rng = np.random.default_rng(3)
+    low_rank = rng.standard_normal((300, 6)) @ rng.standard_normal((6, 80))
+    x = (low_rank + 5.0 + 1e-3 * rng.standard_normal((300, 80))).astype(np.float32)
+    mean = x.mean(axis=0)
+    implicit, var_implicit = _randomized_pca(x, 6, seed=1, mean=mean)
+    explicit, var_explicit = _randomized_pca(x - mean, 6, seed=1)
+    np.testing.assert_allclose(var_implicit, var_explicit, rtol=1e-4)
+    np.testing.assert_allclose(np.abs(implicit @ explicit.T), np.eye(6), atol=1e-4)

@@ -50,9 +50,8 @@ def fit_pca(x: np.ndarray, dim: int, whiten: bool = True, seed: int = 0) -> Pca:
         raise ValueError(f"PCA needs at least 2 descriptors, got {n}")
     dim = min(dim, n - 1, d_in)
     mean = x.mean(axis=0, dtype=np.float64)
-    centred = x - mean.astype(np.float32)
     if min(n, d_in) <= 8192:
-        c64 = centred.astype(np.float64)
+        c64 = x.astype(np.float64) - mean
         if d_in <= n:
             values, vectors = np.linalg.eigh(c64.T @ c64)
             top = np.argsort(values)[::-1][:dim]
@@ -65,7 +64,7 @@ def fit_pca(x: np.ndarray, dim: int, whiten: bool = True, seed: int = 0) -> Pca:
             components = (vectors[:, top].T @ c64) / np.sqrt(np.maximum(values, 1e-300))[:, None]
             variance = values / (n - 1)
     else:
-        components, variance = _randomized_pca(centred, dim, seed)
+        components, variance = _randomized_pca(x, dim, seed, mean=mean.astype(np.float32))
     return Pca(
         mean=mean.astype(np.float32),
         components=_sign_fix(components).astype(np.float32),
@@ -75,17 +74,35 @@ def fit_pca(x: np.ndarray, dim: int, whiten: bool = True, seed: int = 0) -> Pca:
 
 
 def _randomized_pca(
-    centred: np.ndarray, dim: int, seed: int, n_iter: int = 4, oversample: int = 16
+    x: np.ndarray,
+    dim: int,
+    seed: int,
+    n_iter: int = 4,
+    oversample: int = 16,
+    mean: np.ndarray | None = None,
 ):
-    """Halko et al. randomised SVD of a centred ``[N, D]`` float32 matrix."""
-    n = len(centred)
+    """Halko et al. randomised SVD of ``x - mean`` (``[N, D]`` float32).
+
+    The centred matrix is never formed: ``(x - 1 m^T) B = x B - 1 (m^T B)`` and
+    ``(x - 1 m^T)^T Q = x^T Q - m (1^T Q)``, so memory stays at one copy of ``x``
+    (10 GB for 50,000 SegVLAD descriptors of DINOv2-G).
+    """
+    n = len(x)
+    mean = np.zeros(x.shape[1], dtype=np.float32) if mean is None else mean
+
+    def times(right):  # (x - 1 m^T) @ right
+        return x @ right - mean @ right
+
+    def transposed_times(left):  # (x - 1 m^T)^T @ left
+        return x.T @ left - np.outer(mean, left.sum(axis=0))
+
     rng = np.random.default_rng(seed)
-    width = min(dim + oversample, min(centred.shape))
-    basis = centred @ rng.standard_normal((centred.shape[1], width)).astype(np.float32)
+    width = min(dim + oversample, min(x.shape))
+    basis = times(rng.standard_normal((x.shape[1], width)).astype(np.float32))
     for _ in range(n_iter):
         basis, _ = np.linalg.qr(basis)
-        basis, _ = np.linalg.qr(centred @ (centred.T @ basis))
+        basis, _ = np.linalg.qr(times(transposed_times(basis)))
     basis, _ = np.linalg.qr(basis)
-    small = (basis.T @ centred).astype(np.float64)  # [width, D]
+    small = transposed_times(basis).T.astype(np.float64)  # [width, D]
     _, singular, vt = np.linalg.svd(small, full_matrices=False)
     return vt[:dim], singular[:dim] ** 2 / (n - 1)

@@ -317,14 +317,20 @@ def fit_pca_stage(
     total = int(offsets[dataset.n_reference])
     rng = np.random.default_rng(spec["seed"])
     chosen = np.sort(rng.choice(total, size=min(total, spec["max_samples"]), replace=False))
-    sample = []
+    # Filled in place: for DINOv2-G this is 50,000 x 49,152 floats (10 GB), one copy only.
+    sample = None
+    filled = 0
     for i in tqdm(range(dataset.n_reference), desc="pca sample", unit="image"):
         rows = chosen[(chosen >= offsets[i]) & (chosen < offsets[i + 1])] - offsets[i]
         if len(rows):
-            sample.append(
-                _segvlad_image(features, segments, centres, i, spec["fit_order"], spec)[rows]
-            )
-    fitted = fit_pca(np.concatenate(sample), spec["dim"], spec["whiten"], spec["seed"])
+            vectors = _segvlad_image(features, segments, centres, i, spec["fit_order"], spec)
+            if sample is None:
+                sample = np.empty((len(chosen), vectors.shape[1]), dtype=np.float32)
+            sample[filled : filled + len(rows)] = vectors[rows]
+            filled += len(rows)
+    if sample is None:
+        raise ValueError(f"{segments_path}: the reference images have no segments to fit PCA on")
+    fitted = fit_pca(sample, spec["dim"], spec["whiten"], spec["seed"])
     with stores.atomic_store(out, {"stage": "pca", "params": params}) as group:
         group.attrs.update(whiten=fitted.whiten, n_samples=len(chosen))
         stores.write_array(group, "mean", fitted.mean)
