@@ -12,10 +12,9 @@ import textwrap
 from pathlib import Path
 
 import pytest
-from slurm_fixtures import (  # noqa: F401  (slurm_cluster is a fixture)
+from slurm_fixtures import (
     REPO,
     run_snakemake,
-    slurm_cluster,
     slurm_job_info,
     snakemake_slurm_command,
     submitted_job_ids,
@@ -88,7 +87,7 @@ def _write_workflow(directory: Path) -> Path:
     return snakefile
 
 
-def test_toy_workflow_through_sbatch_matches_local_run(slurm_cluster, tmp_path):  # noqa: F811
+def test_toy_workflow_through_sbatch_matches_local_run(slurm_cluster, tmp_path):
     local_dir, slurm_dir = tmp_path / "local", tmp_path / "slurm"
 
     # reference: plain local run with the repository's local profile

@@ -1,0 +1,406 @@
+"""Segment Anything automatic mask generation, checked against an independent reference.
+
+The model is a tiny randomly initialised ``SamModel`` saved to a temporary directory (no
+pretrained weights exist on the test machines). Its parameters are re-drawn with a large
+spread: the default initialisation gives logits of ~1e-5, which would make every mask
+the whole image. The reference pipeline below follows the original
+``SamAutomaticMaskGenerator`` step by step (``F.interpolate`` upscaling, per-candidate
+filters, a pure-Python float64 NMS), so it shares no code with ``vprflow.sam`` beyond
+the image embedding, which has its own test.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+import torch.nn.functional as F
+from PIL import Image
+from scipy import ndimage
+from tiny_models import tiny_sam
+from transformers import SamModel
+
+from vprflow.sam import (
+    PIXEL_MEAN,
+    PIXEL_STD,
+    SAM_DEFAULTS,
+    LogitUpscaler,
+    box_nms,
+    masks_to_boxes,
+    point_grid,
+    preprocess_image,
+    preprocess_shape,
+    remove_small_regions,
+    stability_score,
+)
+
+MODEL_SIZE = 128  # the tiny model's input side (1024 for real checkpoints)
+HIDDEN = 32
+SIDE = 12  # points per side in the pipeline tests: 144 points, 432 candidates
+
+
+@pytest.fixture(scope="module")
+def sam_model(tmp_path_factory):
+    pytest.importorskip("vprflow.models", reason="vprflow.models not written yet")
+    # Weights re-drawn from N(0, 1), LayerNorms kept near identity.
+    model = tiny_sam(hidden_size=HIDDEN, model_size=MODEL_SIZE, seed=0, scale=1.0)
+    path = tmp_path_factory.mktemp("sam")
+    model.save_pretrained(path)
+    return path, model
+
+
+def _image(height: int = 48, width: int = 80, seed: int = 0) -> np.ndarray:
+    """A non-square float image with a few flat regions plus noise."""
+    rng = np.random.default_rng(seed)
+    image = np.full((height, width, 3), 0.2, dtype=np.float32)
+    image[5 : height // 2, 8 : width // 3] = (0.9, 0.1, 0.1)
+    image[height // 3 :, width // 2 :] = (0.1, 0.8, 0.3)
+    image += rng.normal(0, 0.05, image.shape).astype(np.float32)
+    return np.clip(image, 0, 1)
+
+
+def _load(path, **params):
+    from vprflow.sam import load_sam
+
+    return load_sam({"model": str(path), "points_per_side": SIDE, **params}, device="cpu")
+
+
+# ------------------------------------------------------------------ reference pipeline
+
+
+def reference_nms(boxes: np.ndarray, scores: np.ndarray, threshold: float) -> list[int]:
+    """O(n^2) greedy NMS in float64 Python, torchvision semantics (0/0 IoU never suppresses)."""
+    order = sorted(range(len(scores)), key=lambda i: (-float(scores[i]), i))
+    kept: list[int] = []
+    for i in order:
+        x0, y0, x1, y1 = (float(v) for v in boxes[i])
+        suppressed = False
+        for k in kept:
+            a0, b0, a1, b1 = (float(v) for v in boxes[k])
+            inter = max(0.0, min(x1, a1) - max(x0, a0)) * max(0.0, min(y1, b1) - max(y0, b0))
+            union = (x1 - x0) * (y1 - y0) + (a1 - a0) * (b1 - b0) - inter
+            if union != 0 and inter / union > threshold:
+                suppressed = True
+                break
+        if not suppressed:
+            kept.append(i)
+    return kept
+
+
+def reference_candidates(model: SamModel, image: np.ndarray, side: int):
+    """All candidates of the original algorithm -> (logits [N, H, W], iou [N]) float64-ish.
+
+    Candidate ``i`` comes from point ``i // 3``, multimask output ``i % 3``.
+    """
+    height, width = image.shape[:2]
+    new_h, new_w = preprocess_shape(height, width, MODEL_SIZE)
+    pixels, _ = preprocess_image(image, MODEL_SIZE)
+    with torch.no_grad():
+        embedding = model.get_image_embeddings(pixels)
+        logits, ious = [], []
+        for i in range(side):
+            for j in range(side):
+                x = (j + 0.5) / side * width * (new_w / width)
+                y = (i + 0.5) / side * height * (new_h / height)
+                out = model(
+                    image_embeddings=embedding,
+                    input_points=torch.tensor([[[[x, y]]]], dtype=torch.float32),
+                    input_labels=torch.ones((1, 1, 1), dtype=torch.int64),
+                    multimask_output=True,
+                )
+                low = out.pred_masks[0, 0]  # [3, h, w]
+                up = F.interpolate(
+                    low[None], (MODEL_SIZE, MODEL_SIZE), mode="bilinear", align_corners=False
+                )
+                up = F.interpolate(
+                    up[..., :new_h, :new_w], (height, width), mode="bilinear", align_corners=False
+                )
+                logits.append(up[0])
+                ious.append(out.iou_scores[0, 0])
+    return torch.cat(logits).double(), torch.cat(ious).double()
+
+
+def reference_generate(logits, ious, iou_thresh, stab_thresh, nms_thresh, offset=1.0):
+    """Reference filters + NMS -> kept candidate indices, in output order."""
+    ok = []
+    for i in range(len(ious)):
+        inter = int((logits[i] > offset).sum())
+        union = int((logits[i] > -offset).sum())
+        stab = inter / union if union else math.nan
+        binary = logits[i] > 0
+        if iou_thresh > 0 and not float(ious[i]) > iou_thresh:
+            continue
+        if stab_thresh > 0 and not stab >= stab_thresh:
+            continue
+        if not bool(binary.any()):
+            continue
+        ok.append(i)
+    boxes = []
+    for i in ok:
+        rows = np.flatnonzero((logits[i] > 0).any(1).numpy())
+        cols = np.flatnonzero((logits[i] > 0).any(0).numpy())
+        boxes.append([cols[0], rows[0], cols[-1], rows[-1]])
+    kept = reference_nms(np.array(boxes, dtype=np.float64), ious[ok].numpy(), nms_thresh)
+    return [ok[k] for k in kept]
+
+
+@pytest.fixture(scope="module")
+def reference(sam_model):
+    _, model = sam_model
+    image = _image()
+    logits, ious = reference_candidates(model, image, SIDE)
+    return image, logits, ious
+
+
+# ---------------------------------------------------------------------------- pipeline
+
+
+def test_defaults_are_the_original_library_defaults():
+    assert SAM_DEFAULTS["points_per_side"] == 32
+    assert SAM_DEFAULTS["points_per_batch"] == 64
+    assert SAM_DEFAULTS["pred_iou_thresh"] == 0.88
+    assert SAM_DEFAULTS["stability_score_thresh"] == 0.95
+    assert SAM_DEFAULTS["stability_score_offset"] == 1.0
+    assert SAM_DEFAULTS["box_nms_thresh"] == 0.7
+    assert SAM_DEFAULTS["min_mask_region_area"] == 0
+    assert SAM_DEFAULTS["model"] == "facebook/sam-vit-huge"
+
+
+def test_masks_shape_dtype_and_nonempty_with_zero_thresholds(sam_model):
+    path, _ = sam_model
+    segmenter = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.0)
+    for height, width in [(48, 80), (70, 30)]:
+        masks = segmenter.masks(_image(height, width))
+        assert masks.dtype == bool
+        assert masks.ndim == 3 and masks.shape[1:] == (height, width)
+        assert masks.shape[0] > 1
+        assert masks.reshape(len(masks), -1).any(1).all()  # no empty segment
+        assert not masks.all(), "every mask is the whole image: logits degenerate"
+
+
+def test_generate_matches_reference_pipeline(sam_model, reference):
+    path, _ = sam_model
+    image, logits, ious = reference
+    stab = np.array(
+        [float((m > 1).sum()) / max(float((m > -1).sum()), 1.0) for m in logits], dtype=np.float64
+    )
+    # Thresholds from the data so that each filter removes some candidates but not all.
+    # A threshold <= 0 disables its filter, so pick a positive one.
+    iou_thresh = float(np.quantile(ious.numpy()[ious.numpy() > 0], 0.3))
+    stab_thresh = float(np.quantile(stab, 0.3))
+    before_nms = reference_generate(logits, ious, iou_thresh, stab_thresh, 1.0)
+    assert len(before_nms) < len(ious), "filters do not bite"
+    # Random weights give image-wide boxes, so NMS bites hard: 1.0 keeps everything
+    # (checks the filters and the output order), 0.99 keeps ~14, 0.7 keeps ~2.
+    for nms_thresh in (1.0, 0.99, 0.7):
+        expected = reference_generate(logits, ious, iou_thresh, stab_thresh, nms_thresh)
+        assert len(expected) >= 2
+        assert nms_thresh == 1.0 or len(expected) < len(before_nms), "NMS does not bite"
+
+        segmenter = _load(
+            path,
+            pred_iou_thresh=iou_thresh,
+            stability_score_thresh=stab_thresh,
+            box_nms_thresh=nms_thresh,
+            points_per_batch=25,  # not a divisor of 144: exercises the ragged last batch
+        )
+        result = segmenter.generate(image)
+        assert result.candidate.tolist() == expected
+        np.testing.assert_allclose(result.iou_preds, ious[expected].numpy(), rtol=1e-5, atol=1e-5)
+        assert (result.iou_preds > iou_thresh).all()
+        assert (result.stability_scores >= stab_thresh).all()
+        np.testing.assert_allclose(result.stability_scores, stab[expected], atol=1e-3)
+        reference_masks = (logits[expected] > 0).numpy()
+        disagreement = (result.masks != reference_masks).mean()
+        assert disagreement < 1e-3  # only logits within float rounding of 0 may differ
+        # Output order is descending predicted IoU.
+        assert (np.diff(result.iou_preds) <= 0).all()
+        # Points are the grid points of the candidates, in image pixels.
+        point = result.candidate // 3
+        np.testing.assert_allclose(result.points[:, 0], (point % SIDE + 0.5) / SIDE * 80, atol=1e-4)
+        np.testing.assert_allclose(
+            result.points[:, 1], (point // SIDE + 0.5) / SIDE * 48, atol=1e-4
+        )
+
+
+def test_stricter_thresholds_give_a_subset(sam_model, reference):
+    path, _ = sam_model
+    image, _, ious = reference
+    loose = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.0, box_nms_thresh=1.0)
+    strict = _load(
+        path,
+        pred_iou_thresh=float(np.median(ious.numpy()[ious.numpy() > 0])),
+        stability_score_thresh=0.5,
+        box_nms_thresh=1.0,
+    )
+    loose_ids = set(loose.generate(image).candidate.tolist())
+    strict_ids = set(strict.generate(image).candidate.tolist())
+    assert strict_ids and strict_ids < loose_ids
+
+
+def test_generation_is_deterministic(sam_model):
+    path, _ = sam_model
+    segmenter = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.5)
+    first, second = segmenter.masks(_image()), segmenter.masks(_image())
+    assert first.shape == second.shape and (first == second).all()
+
+
+def test_min_mask_region_area_removes_small_islands_and_holes(sam_model):
+    path, _ = sam_model
+    area = 30
+    raw = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.0).masks(_image())
+    cleaned = _load(
+        path, pred_iou_thresh=0.0, stability_score_thresh=0.0, min_mask_region_area=area
+    ).masks(_image())
+    assert len(cleaned) > 0
+    eight = np.ones((3, 3), dtype=bool)
+
+    def small_parts(mask):
+        islands = np.bincount(ndimage.label(mask, structure=eight)[0].ravel())[1:]
+        holes = np.bincount(ndimage.label(~mask, structure=eight)[0].ravel())[1:]
+        return (len(islands) > 1 and (islands < area).any()) or (holes < area).any()
+
+    assert any(small_parts(m) for m in raw), "test image has nothing to clean"
+    assert not any(small_parts(m) for m in cleaned)
+
+
+def test_bfloat16_runs_on_cpu(sam_model):
+    path, _ = sam_model
+    masks = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.0, dtype="bfloat16").masks(
+        _image()
+    )
+    assert masks.shape[1:] == (48, 80) and masks.dtype == bool and len(masks) > 0
+
+
+def test_missing_model_error_names_the_model(tmp_path, monkeypatch):
+    models = pytest.importorskip("vprflow.models", reason="vprflow.models not written yet")
+    from vprflow.sam import load_sam
+
+    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
+    missing = tmp_path / "no-such-sam"
+    with pytest.raises(models.ModelNotFoundError, match="no-such-sam"):
+        load_sam({"model": str(missing)}, device="cpu")
+    with pytest.raises(models.ModelNotFoundError, match="nobody/sam-vit-missing"):
+        load_sam({"model": "nobody/sam-vit-missing", "cache_dir": str(tmp_path)}, device="cpu")
+
+
+# ------------------------------------------------------------------------------ pieces
+
+
+def test_point_grid_is_row_major_cell_centres():
+    grid = point_grid(4)
+    assert grid.shape == (16, 2)
+    centres = [0.125, 0.375, 0.625, 0.875]
+    expected = [(x, y) for y in centres for x in centres]  # x varies fastest
+    np.testing.assert_allclose(grid, expected)
+
+
+def test_preprocess_resizes_longest_side_normalises_and_pads():
+    assert preprocess_shape(240, 320, 1024) == (768, 1024)
+    assert preprocess_shape(320, 240, 1024) == (1024, 768)
+    assert preprocess_shape(100, 333, 1024) == (308, 1024)  # 307.5 rounds up
+    image = _image(30, 50)
+    pixels, (new_h, new_w) = preprocess_image(image, 64)
+    assert pixels.shape == (1, 3, 64, 64) and (new_h, new_w) == (38, 64)
+    resized = Image.fromarray(np.rint(image * 255).astype(np.uint8)).resize(
+        (64, 38), Image.BILINEAR
+    )
+    expected = (np.asarray(resized, dtype=np.float32) - PIXEL_MEAN) / PIXEL_STD
+    np.testing.assert_allclose(pixels[0].permute(1, 2, 0).numpy()[:38], expected, atol=1e-5)
+    assert (pixels[0, :, 38:, :] == 0).all()
+
+
+@pytest.mark.parametrize(
+    ("height", "width", "model_size", "low"),
+    [(48, 80, 128, 32), (70, 30, 128, 32), (240, 320, 1024, 256), (1100, 700, 1024, 256)],
+)
+def test_upscaler_equals_interpolate_crop_interpolate(height, width, model_size, low):
+    generator = torch.Generator().manual_seed(height)
+    logits = torch.randn((5, low, low), generator=generator) * 10
+    new_h, new_w = preprocess_shape(height, width, model_size)
+    expected = F.interpolate(
+        logits[None], (model_size, model_size), mode="bilinear", align_corners=False
+    )
+    expected = F.interpolate(
+        expected[..., :new_h, :new_w], (height, width), mode="bilinear", align_corners=False
+    )[0]
+    upscale = LogitUpscaler((low, low), model_size, (new_h, new_w), (height, width), "cpu")
+    out = upscale(logits)
+    assert out.shape == (5, height, width)
+    torch.testing.assert_close(out, expected, atol=2e-3, rtol=1e-4)
+
+
+def test_stability_score_matches_direct_formula():
+    rng = np.random.default_rng(3)
+    logits = rng.normal(0, 2, (6, 9, 11)).astype(np.float32)
+    logits[5] = -5.0  # nothing above t - offset: 0/0
+    for threshold, offset in [(0.0, 1.0), (0.5, 0.25), (-1.0, 2.0)]:
+        got = stability_score(torch.from_numpy(logits), threshold, offset).numpy()
+        for i, mask in enumerate(logits):
+            high = sum(v > threshold + offset for v in mask.ravel())
+            low = sum(v > threshold - offset for v in mask.ravel())
+            if low == 0:
+                assert math.isnan(got[i])
+            else:
+                assert got[i] == pytest.approx(high / low, rel=1e-6)
+
+
+def test_masks_to_boxes_inclusive_corners_and_empty():
+    masks = torch.zeros((3, 7, 9), dtype=torch.bool)
+    masks[0, 2:5, 1:8] = True
+    masks[1, 6, 0] = True
+    boxes = masks_to_boxes(masks)
+    assert boxes.tolist() == [[1, 2, 7, 4], [0, 6, 0, 6], [0, 0, 0, 0]]
+    assert boxes.dtype == torch.float32
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("threshold", [0.0, 0.3, 0.5, 0.7, 0.95])
+def test_box_nms_matches_python_reference(seed, threshold):
+    rng = np.random.default_rng(seed)
+    n = 60
+    if seed % 2:  # integer boxes as from masks, with repeated scores and degenerate boxes
+        corners = rng.integers(0, 30, (n, 2, 2))
+        scores = rng.integers(0, 5, n).astype(np.float32)
+    else:
+        corners = rng.uniform(0, 50, (n, 2, 2))
+        scores = rng.uniform(0, 1, n).astype(np.float32)
+    boxes = np.concatenate([corners.min(1), corners.max(1)], axis=1)
+    boxes = boxes[:, [0, 1, 2, 3]]
+    keep = box_nms(torch.from_numpy(boxes).float(), torch.from_numpy(scores), threshold)
+    assert keep.dtype == torch.long
+    expected = reference_nms(boxes.astype(np.float32).astype(np.float64), scores, threshold)
+    assert keep.tolist() == expected
+    assert 0 < len(expected) < n or threshold >= 0.95
+
+
+def test_box_nms_empty_input():
+    keep = box_nms(torch.zeros((0, 4)), torch.zeros(0), 0.5)
+    assert keep.shape == (0,) and keep.dtype == torch.long
+
+
+def test_remove_small_regions_holes_and_islands():
+    mask = np.zeros((12, 12), dtype=bool)
+    mask[1:9, 1:9] = True
+    mask[4, 4] = False  # 1-pixel hole
+    mask[10, 10] = True  # 1-pixel island
+    filled, changed = remove_small_regions(mask, 3, "holes")
+    assert changed and filled[4, 4] and filled[10, 10] and filled.sum() == mask.sum() + 1
+    cleaned, changed = remove_small_regions(filled, 3, "islands")
+    assert changed and not cleaned[10, 10] and cleaned.sum() == 64
+    same, changed = remove_small_regions(cleaned, 3, "islands")
+    assert not changed and (same == cleaned).all()
+    # Every island small: the largest survives.
+    dots = np.zeros((8, 8), dtype=bool)
+    dots[0, 0] = True
+    dots[5:7, 5] = True
+    kept, changed = remove_small_regions(dots, 10, "islands")
+    assert changed and kept.sum() == 2 and kept[5, 5] and kept[6, 5]
+    # 8-connectivity, as OpenCV in the original: a diagonal chain is one region.
+    chain = np.zeros((6, 6), dtype=bool)
+    chain[[1, 2, 3], [1, 2, 3]] = True
+    chain[5, 5] = True
+    kept, changed = remove_small_regions(chain, 3, "islands")
+    assert changed and kept.sum() == 3 and not kept[5, 5]
