@@ -8,7 +8,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -17,9 +16,9 @@ import pytest
 import zarr
 from synthetic import make_dataset
 from workflow_helpers import (
-    SNAKEFILE,
     scheduled_stages,
     snakemake,
+    snakemake_command,
     toy_config,
     write_config,
 )
@@ -172,20 +171,7 @@ def test_killed_run_leaves_no_complete_looking_store_and_rerun_finishes(tmp_path
     make_dataset(tmp_path / "data" / "toy", n_places=40, width=320, height=240)
     config = toy_config(tmp_path / "data", resolution=[320, 240])
     path = write_config(tmp_path, config)
-    command = [
-        sys.executable,
-        "-m",
-        "snakemake",
-        "--snakefile",
-        str(SNAKEFILE),
-        "--directory",
-        str(tmp_path),
-        "--configfile",
-        str(path),
-        "--cores",
-        "1",
-        TARGET,
-    ]
+    command = snakemake_command(tmp_path, path, TARGET, cores=1)
     process = subprocess.Popen(
         command,
         cwd=tmp_path,

@@ -53,10 +53,8 @@ def write_config(workdir: Path, config: dict, name: str = "config.yaml") -> Path
     return path
 
 
-def snakemake(
-    workdir: Path, config_path: Path, *args: str, check: bool = True
-) -> subprocess.CompletedProcess:
-    command = [
+def snakemake_command(workdir: Path, config_path: Path, *args: str, cores: int = 2) -> list[str]:
+    return [
         sys.executable,
         "-m",
         "snakemake",
@@ -67,9 +65,15 @@ def snakemake(
         "--configfile",
         str(config_path),
         "--cores",
-        "2",
+        str(cores),
         *args,
     ]
+
+
+def snakemake(
+    workdir: Path, config_path: Path, *args: str, check: bool = True
+) -> subprocess.CompletedProcess:
+    command = snakemake_command(workdir, config_path, *args)
     result = subprocess.run(command, capture_output=True, text=True, cwd=workdir)
     if check and result.returncode != 0:
         raise AssertionError(
