@@ -43,8 +43,9 @@ def direct_upsample(mask, height, width):
 def direct_membership(masks, image_size, grid, patch, crop_aligned=False):
     height, width = image_size
     h, w = grid
-    top = (height - h * patch) // 2 if crop_aligned else 0
-    left = (width - w * patch) // 2 if crop_aligned else 0
+    # the backbone's centre crop: offsets rounded half to even, like torchvision
+    top = int(round((height - h * patch) / 2)) if crop_aligned else 0
+    left = int(round((width - w * patch) / 2)) if crop_aligned else 0
     out = np.zeros((len(masks), h * w), dtype=bool)
     for s, mask in enumerate(masks):
         up = direct_upsample(mask, height, width)
@@ -144,7 +145,7 @@ SIZES = [
     ((6, 8), (28, 42), 7),  # divisible by the patch, upsampled by non-integer factors
     ((12, 16), (24, 32), 8),  # divisible, exact factor 2
     ((7, 9), (31, 45), 7),  # not divisible: leftover rows and columns
-    ((10, 13), (33, 50), 6),  # not divisible, odd leftovers (crop offsets 1 and 1)
+    ((10, 13), (33, 50), 6),  # not divisible, odd leftovers (crop offsets 2 and 1)
     ((20, 20), (20, 20), 3),  # same size (no upsampling), 2 leftover pixels
     ((5, 5), (17, 23), 5),
 ]

@@ -16,7 +16,8 @@ import torch
 from tiny_models import save_tiny_dino, save_tiny_dinov2
 from transformers import AutoModel, ViTModel
 
-from vprflow.vit import center_crop_box, load_vit
+from vprflow.backbones import center_crop_box
+from vprflow.vit import load_vit
 
 HIDDEN = 32
 # Written out here, not imported, so a wrong constant in the module is caught.

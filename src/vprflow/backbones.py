@@ -22,10 +22,18 @@ class Backbone(Protocol):
     def features(self, batch: np.ndarray) -> np.ndarray: ...
 
 
-def centre_crop_offsets(height: int, width: int, patch_size: int) -> tuple[int, int, int, int]:
-    """``(top, left, h, w)``: the crop to whole patches, centred, and its patch grid."""
-    h, w = height // patch_size, width // patch_size
-    return (height - h * patch_size) // 2, (width - w * patch_size) // 2, h, w
+def center_crop_box(height: int, width: int, patch: int) -> tuple[int, int, int, int]:
+    """``(top, left, crop_height, crop_width)`` of the patch-multiple centre crop.
+
+    Offsets round like torchvision's ``CenterCrop`` (Python ``round``: half to even),
+    which the published pipelines used. Every backbone crops with this, and SegVLAD's
+    ``crop_aligned`` mask mapping shifts by the same offsets.
+    Raises ``ValueError`` when the image is smaller than one patch.
+    """
+    crop_h, crop_w = (height // patch) * patch, (width // patch) * patch
+    if crop_h == 0 or crop_w == 0:
+        raise ValueError(f"image {height}x{width} is smaller than one {patch}x{patch} patch")
+    return int(round((height - crop_h) / 2.0)), int(round((width - crop_w) / 2.0)), crop_h, crop_w
 
 
 def l2_normalize(x: np.ndarray, axis: int = -1, eps: float = 1e-12) -> np.ndarray:
@@ -66,8 +74,9 @@ class DaisyBackbone:
         from skimage.feature import daisy
 
         p, r = self.patch_size, self.radius
-        top, left, h, w = centre_crop_offsets(image.shape[0], image.shape[1], p)
-        grey = rgb2gray(image[top : top + h * p, left : left + w * p])
+        top, left, crop_h, crop_w = center_crop_box(image.shape[0], image.shape[1], p)
+        h, w = crop_h // p, crop_w // p
+        grey = rgb2gray(image[top : top + crop_h, left : left + crop_w])
         # skimage samples at radius + k * step of its input; this padding puts sample
         # (i, j) at the centre of patch (i, j). The extra `p` after keeps the last row.
         before = r - p // 2

@@ -22,19 +22,13 @@ CACHE = "results/cache"
 
 FORMAT_VERSIONS = {
     "dataset": 1,
-    "features": 1,
+    "features": 2,  # 2: crop offsets round like torchvision
     "segments": 1,
     "vocabulary": 1,
     "pca": 1,
-    "descriptors": 1,
+    "descriptors": 2,  # 2: crop_aligned uses the backbone's crop offsets
     "recall": 1,
 }
-
-# Stages computed image by image; with shard_size > 0 they run as shards + a gather.
-PER_IMAGE_STAGES = ("features", "segments", "descriptors")
-
-GLOBAL_AGGREGATORS = ("anyloc_vlad", "snsm", "gem", "average", "max")
-AGGREGATORS = ("segvlad", *GLOBAL_AGGREGATORS)
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
 EXECUTION_ONLY = ("batch_size",)
@@ -154,13 +148,6 @@ def _resolution(dataset: dict, profile: dict) -> list[int]:
     if profile.get("resolution", "dataset") == "dataset":
         return list(dataset["resolution"])
     return list(profile["resolution"])
-
-
-def _domain_file(vocabulary: dict, config: dict) -> dict:
-    path = Path(vocabulary["file"])
-    if not path.is_file():
-        raise PlanError(f"vocabulary.file {path} does not exist")
-    return {"file": str(path), "sha256": file_digest(path)}
 
 
 METHOD_SECTIONS = ("features", "segmenter", "vocabulary", "pca", "segvlad", "snsm", "pooling")
@@ -289,7 +276,9 @@ def _plan_method(
         vocabulary = method["vocabulary"]
         params = {k: v for k, v in vocabulary.items() if k != "file"}
         if vocabulary["source"] == "file":
-            params.update(_domain_file(vocabulary, config))
+            params.update(
+                file=vocabulary["file"], sha256=_memoised(vocabulary["file"], memo, file_digest)
+            )
         row.update(_prefixed("vocabulary", vocabulary))
         return (
             "vocabulary",

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 from torch import nn
 
+from .backbones import center_crop_box
 from .devices import resolve_device, resolve_dtype
 from .models import resolve_model_source
 
@@ -47,18 +48,6 @@ _FACET_LINEARS = {
     "value": ("v_proj", "value"),
 }
 _BLOCK_LISTS = ("encoder.layer", "layers", "encoder.layers")
-
-
-def center_crop_box(height: int, width: int, patch: int) -> tuple[int, int, int, int]:
-    """``(top, left, crop_height, crop_width)`` of the patch-multiple centre crop.
-
-    Offsets round like torchvision's ``CenterCrop`` (Python ``round``: half to even).
-    Raises ``ValueError`` when the image is smaller than one patch.
-    """
-    crop_h, crop_w = (height // patch) * patch, (width // patch) * patch
-    if crop_h == 0 or crop_w == 0:
-        raise ValueError(f"image {height}x{width} is smaller than one {patch}x{patch} patch")
-    return int(round((height - crop_h) / 2.0)), int(round((width - crop_w) / 2.0)), crop_h, crop_w
 
 
 def _find_blocks(model: nn.Module) -> tuple[nn.Module, str, nn.ModuleList]:

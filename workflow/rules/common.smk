@@ -109,7 +109,7 @@ def gather_params(wildcards):
 
 
 def report_inputs(wildcards):
-    spec = dataset_spec(wildcards.dataset)
+    dataset_spec(wildcards.dataset)  # an unknown dataset fails here, by name
     return {
         "dataset": f"{CACHE}/dataset/{PLAN.dataset_keys[wildcards.dataset]}.zarr",
         "recalls": [
