@@ -26,9 +26,8 @@ from vprflow.segvlad import (
     neighbourhood,
     segment_adjacency,
     segment_centroids,
-    segvlad_descriptors,
 )
-from vprflow.vlad import assign, vlad
+from vprflow.vlad import assign, vlad, vlad_per_region
 
 
 def best_of(function, repeats: int) -> float:
@@ -107,11 +106,11 @@ def bench(name, grid, dim, n_segments, mask_size, patch, repeats, rng, daisy_ima
             ),
         )
     )
-    fast = segvlad_descriptors(features, regions, centres)
+    fast = vlad_per_region(features, regions, centres)
     rows.append(
         (
             "segvlad descriptors",
-            best_of(lambda: segvlad_descriptors(features, regions, centres), repeats),
+            best_of(lambda: vlad_per_region(features, regions, centres), repeats),
         )
     )
     start = time.perf_counter()

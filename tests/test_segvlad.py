@@ -21,8 +21,8 @@ from vprflow.segvlad import (
     neighbourhood,
     segment_adjacency,
     segment_centroids,
-    segvlad_descriptors,
 )
+from vprflow.vlad import vlad_per_region
 
 ATOL = 1e-5
 
@@ -288,7 +288,7 @@ def test_segvlad_descriptors_match_per_segment_direct_vlad(seed):
     features, regions, centres = descriptor_problem(seed)
     labels, margin = direct_assign(features, centres)
     assert margin > 1e-4
-    out = segvlad_descriptors(features, regions, centres)
+    out = vlad_per_region(features, regions, centres)
     assert out.shape == (len(regions), centres.size) and out.dtype == np.float32
     expected = direct_segvlad(features, regions, centres, labels)
     np.testing.assert_allclose(out, expected, rtol=0, atol=ATOL)
@@ -299,7 +299,7 @@ def test_segvlad_descriptors_match_per_segment_direct_vlad(seed):
 def test_segvlad_descriptors_with_given_labels_and_empty_clusters():
     features, regions, centres = descriptor_problem(7, k=6)
     labels = np.random.default_rng(0).integers(0, 4, len(features))  # clusters 4, 5 unused
-    out = segvlad_descriptors(features, regions, centres, labels)
+    out = vlad_per_region(features, regions, centres, labels)
     np.testing.assert_allclose(
         out, direct_segvlad(features, regions, centres, labels), rtol=0, atol=ATOL
     )
@@ -311,7 +311,7 @@ def test_whole_image_region_equals_anyloc_vlad():
     from vprflow.vlad import vlad
 
     features, regions, centres = descriptor_problem(3)
-    whole = segvlad_descriptors(features, regions[1:2], centres)[0]
+    whole = vlad_per_region(features, regions[1:2], centres)[0]
     np.testing.assert_allclose(whole, vlad(features, centres), rtol=0, atol=ATOL)
 
 

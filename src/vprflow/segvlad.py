@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vprflow.vlad import assign
+from vprflow.vlad import vlad_per_region
 
 
 def _source_index(n_out: int, n_in: int) -> np.ndarray:
@@ -139,49 +139,6 @@ def neighbourhood(adjacency: np.ndarray, order: int) -> np.ndarray:
     return reach
 
 
-def segvlad_descriptors(
-    features: np.ndarray,
-    regions: np.ndarray,
-    centres: np.ndarray,
-    labels: np.ndarray | None = None,
-) -> np.ndarray:
-    """VLAD of every region's patches: ``[S, K * D]`` float32.
-
-    ``features`` ``[N, D]``; ``regions`` bool ``[S, N]`` (patches of each segment
-    neighbourhood); ``centres`` ``[K, D]``. Same residuals and normalisation as
-    :func:`vprflow.vlad.vlad`. Patches are sorted by cluster and their centre is
-    subtracted first, so cluster ``c``'s residual sums are one product
-    ``regions[:, P_c] @ (x[P_c] - C_c)``: ``S * N * D`` multiply-adds in all (the
-    minimum), in torch, which multiplies these small, thin matrices fastest here.
-    """
-    import torch
-
-    features = np.asarray(features, dtype=np.float32)
-    centres = np.asarray(centres, dtype=np.float32)
-    labels = assign(features, centres) if labels is None else np.asarray(labels)
-    k, d = centres.shape
-    n_regions = len(regions)
-    order = np.argsort(labels, kind="stable")
-    bounds = np.searchsorted(labels[order], np.arange(k + 1))
-    residuals = torch.from_numpy(features[order] - centres[labels[order]])
-    weights = torch.from_numpy(np.asarray(regions)[:, order].astype(np.float32))
-    sums = torch.zeros((k, n_regions, d))
-    for c in range(k):
-        a, b = int(bounds[c]), int(bounds[c + 1])
-        if b > a:
-            torch.mm(weights[:, a:b], residuals[a:b], out=sums[c])
-    # Fused normalisation: after intra-normalisation every non-empty block has unit
-    # norm, so the final L2 norm is sqrt(#non-empty blocks); one scaling pass does both
-    # and writes the [S, K, D] layout.
-    norms = torch.linalg.vector_norm(sums, dim=2)
-    nonzero = norms > 1e-12
-    scale = torch.where(nonzero, 1.0 / norms.clamp_min(1e-12), torch.zeros(()))
-    scale /= nonzero.sum(dim=0, keepdim=True).clamp_min(1).sqrt()
-    out = torch.empty((n_regions, k, d))
-    torch.mul(sums.transpose(0, 1), scale.T.unsqueeze(2), out=out)
-    return out.reshape(n_regions, k * d).numpy()
-
-
 def image_segvlad(
     features: np.ndarray,
     masks: np.ndarray,
@@ -198,4 +155,4 @@ def image_segvlad(
     membership = mask_patch_membership(masks, image_size, (h, w), patch_size, crop_aligned)
     adjacency = segment_adjacency(segment_centroids(masks), small_graph)
     regions = (neighbourhood(adjacency, order).astype(np.float32) @ membership) > 0
-    return segvlad_descriptors(features.reshape(h * w, d), regions, centres)
+    return vlad_per_region(features.reshape(h * w, d), regions, centres)

@@ -49,27 +49,52 @@ def assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return scores.argmax(dim=1).numpy().astype(np.int64)
 
 
-def normalize_vlad(residual_sums: np.ndarray) -> np.ndarray:
-    """Intra-normalise each cluster block, flatten, then L2-normalise.
+def vlad_per_region(
+    features: np.ndarray,
+    regions: np.ndarray,
+    centres: np.ndarray,
+    labels: np.ndarray | None = None,
+) -> np.ndarray:
+    """VLAD of the patches of every region: ``[S, K * D]`` float32.
 
-    ``residual_sums`` ``[..., K, D]`` -> ``[..., K * D]``. Empty clusters stay zero.
+    ``features`` ``[N, D]``; ``regions`` bool ``[S, N]`` (for SegVLAD, the patches of
+    each segment neighbourhood); ``centres`` ``[K, D]``. Residuals to the
+    un-normalised centres, per-cluster sums, intra-normalisation, flatten, L2.
+    Patches are sorted by cluster and their centre is subtracted first, so cluster
+    ``c``'s residual sums are one product ``regions[:, P_c] @ (x[P_c] - C_c)``:
+    ``S * N * D`` multiply-adds in all (the minimum), in torch, which multiplies
+    these small, thin matrices fastest here.
     """
-    intra = l2_normalize(residual_sums, axis=-1)
-    flat = intra.reshape(*intra.shape[:-2], -1)
-    return l2_normalize(flat, axis=-1)
+    import torch
+
+    features = np.asarray(features, dtype=np.float32)
+    centres = np.asarray(centres, dtype=np.float32)
+    labels = assign(features, centres) if labels is None else np.asarray(labels)
+    k, d = centres.shape
+    n_regions = len(regions)
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(k + 1))
+    residuals = torch.from_numpy(features[order] - centres[labels[order]])
+    weights = torch.from_numpy(np.asarray(regions)[:, order].astype(np.float32))
+    sums = torch.zeros((k, n_regions, d))
+    for c in range(k):
+        a, b = int(bounds[c]), int(bounds[c + 1])
+        if b > a:
+            torch.mm(weights[:, a:b], residuals[a:b], out=sums[c])
+    # Fused normalisation: after intra-normalisation every non-empty block has unit
+    # norm, so the final L2 norm is sqrt(#non-empty blocks); one scaling pass does both
+    # and writes the [S, K, D] layout.
+    norms = torch.linalg.vector_norm(sums, dim=2)
+    nonzero = norms > 1e-12
+    scale = torch.where(nonzero, 1.0 / norms.clamp_min(1e-12), torch.zeros(()))
+    scale /= nonzero.sum(dim=0, keepdim=True).clamp_min(1).sqrt()
+    out = torch.empty((n_regions, k, d))
+    torch.mul(sums.transpose(0, 1), scale.T.unsqueeze(2), out=out)
+    return out.reshape(n_regions, k * d).numpy()
 
 
 def vlad(x: np.ndarray, centres: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
-    """AnyLoc VLAD of descriptors ``x`` ``[N, D]`` -> ``[K * D]`` float32.
-
-    Residuals are taken to the un-normalised centres, as published.
-    """
+    """AnyLoc VLAD of descriptors ``x`` ``[N, D]`` -> ``[K * D]`` float32: the one
+    region that holds every patch."""
     x = np.asarray(x, dtype=np.float32)
-    centres = np.asarray(centres, dtype=np.float32)
-    labels = assign(x, centres) if labels is None else labels
-    k = len(centres)
-    one_hot = np.zeros((k, len(x)), dtype=np.float32)
-    one_hot[labels, np.arange(len(x))] = 1.0
-    sums = one_hot @ x
-    counts = one_hot.sum(axis=1)
-    return normalize_vlad(sums - counts[:, None] * centres)
+    return vlad_per_region(x, np.ones((1, len(x)), dtype=bool), centres, labels)[0]
