@@ -149,19 +149,66 @@ def clustered(seed=0, k=4, d=16, per_cluster=100, noise=0.2):
     return x.astype(np.float32), directions, labels
 
 
-def test_kmeans_centres_are_unit_norm_and_deterministic():
+@pytest.mark.parametrize("centres", ["unit", "mean"])
+def test_kmeans_centres_are_deterministic_and_scale_free(centres):
     x, _, _ = clustered(seed=1, k=5)
     # Not normalised on input: fit_spherical_kmeans normalises itself.
     scaled = x * np.random.default_rng(0).uniform(0.5, 3.0, (len(x), 1)).astype(np.float32)
-    a = fit_spherical_kmeans(scaled, n_clusters=5, n_iter=20, seed=7)
-    b = fit_spherical_kmeans(scaled, n_clusters=5, n_iter=20, seed=7)
+    a = fit_spherical_kmeans(scaled, n_clusters=5, n_iter=20, seed=7, centres=centres)
+    b = fit_spherical_kmeans(scaled, n_clusters=5, n_iter=20, seed=7, centres=centres)
     assert a.shape == (5, x.shape[1]) and a.dtype == np.float32
-    np.testing.assert_allclose(np.linalg.norm(a, axis=1), 1.0, rtol=0, atol=1e-6)
     np.testing.assert_array_equal(a, b)
+    norms = np.linalg.norm(a, axis=1)
+    if centres == "unit":
+        np.testing.assert_allclose(norms, 1.0, rtol=0, atol=1e-6)
+    else:
+        # Means of unit vectors spread around a direction are shorter than 1.
+        assert (norms < 0.999).all() and (norms > 0.5).all()
     # The input scale does not matter (spherical k-means sees directions only).
     np.testing.assert_allclose(
-        fit_spherical_kmeans(x, n_clusters=5, n_iter=20, seed=7), a, rtol=0, atol=1e-5
+        fit_spherical_kmeans(x, n_clusters=5, n_iter=20, seed=7, centres=centres),
+        a,
+        rtol=0,
+        atol=1e-5,
     )
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_mean_centres_are_the_plain_means_of_their_members(seed):
+    """AnyLoc's cosine k-means: a centre is the mean of the unit descriptors assigned to
+    it by cosine, not re-normalised. Checked against float64 means of the members under
+    the returned centres' own assignment (a converged k-means is its own fixed point),
+    tolerance 1e-5 (float32 centres of unit vectors)."""
+    x, directions, _ = clustered(seed=seed, noise=0.6)
+    scaled = x * np.random.default_rng(seed).uniform(0.5, 3.0, (len(x), 1)).astype(np.float32)
+    centres = fit_spherical_kmeans(scaled, n_clusters=len(directions), seed=seed, centres="mean")
+    unit = fit_spherical_kmeans(scaled, n_clusters=len(directions), seed=seed, centres="unit")
+    x64 = x.astype(np.float64)
+    x64 /= np.linalg.norm(x64, axis=1, keepdims=True)
+    normalised = centres / np.linalg.norm(centres, axis=1, keepdims=True)
+    labels = np.argmax(x64 @ normalised.T, axis=1)
+    for c in range(len(centres)):
+        np.testing.assert_allclose(centres[c], x64[labels == c].mean(axis=0), rtol=0, atol=1e-5)
+    # Same directions as the unit centres; norms well below 1 at this spread.
+    np.testing.assert_allclose(normalised, unit, rtol=0, atol=1e-5)
+    assert np.linalg.norm(centres, axis=1).max() < 0.95
+
+
+def test_vlad_with_mean_centres_differs_from_unit_centres():
+    """The residuals see the centre norms: VLAD with the plain-mean vocabulary is not
+    VLAD with the normalised one (why the published default matters)."""
+    x, directions, _ = clustered(seed=4, noise=0.6)
+    mean = fit_spherical_kmeans(x, n_clusters=len(directions), seed=0, centres="mean")
+    unit = fit_spherical_kmeans(x, n_clusters=len(directions), seed=0, centres="unit")
+    a, b = vlad(x[:50], mean), vlad(x[:50], unit)
+    np.testing.assert_allclose(a, direct_vlad(x[:50], mean), rtol=1e-4, atol=1e-5)
+    assert float(a @ b) < 0.99
+
+
+def test_kmeans_rejects_an_unknown_centres_mode():
+    x, _, _ = clustered(seed=1, k=5)
+    with pytest.raises(ValueError, match="'median'"):
+        fit_spherical_kmeans(x, n_clusters=5, centres="median")
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
@@ -169,7 +216,7 @@ def test_kmeans_recovers_separated_clusters(seed):
     # k-means from a random initialisation can stop in a local minimum; with this
     # noise level faiss escapes it for these (fixed, hence deterministic) seeds.
     x, directions, truth = clustered(seed=seed)
-    centres = fit_spherical_kmeans(x, n_clusters=len(directions), seed=seed)
+    centres = fit_spherical_kmeans(x, n_clusters=len(directions), seed=seed, centres="unit")
     cosine = centres @ directions.T
     match = cosine.argmax(axis=1)
     assert sorted(match.tolist()) == list(range(len(directions)))  # one centre per cluster

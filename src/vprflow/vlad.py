@@ -10,17 +10,29 @@ import numpy as np
 
 from vprflow.backbones import l2_normalize
 
+CENTRES = ("mean", "unit")
+
 
 def fit_spherical_kmeans(
-    x: np.ndarray, n_clusters: int = 32, n_iter: int = 100, seed: int = 0
+    x: np.ndarray, n_clusters: int = 32, n_iter: int = 100, seed: int = 0, centres: str = "mean"
 ) -> np.ndarray:
-    """Spherical (cosine) k-means with faiss; returns unit-norm centres ``[K, D]``.
+    """Spherical (cosine) k-means with faiss -> centres ``[K, D]`` float32.
 
     ``x`` is L2-normalised first. faiss's own subsampling is disabled: the caller
     decides how many descriptors to use.
+
+    ``centres="mean"`` (default, as AnyLoc's cosine k-means): each centre is the plain
+    mean of the unit descriptors assigned to it (by cosine to the faiss centroids), NOT
+    re-normalised, so its norm is below 1 and shrinks with the cluster's spread (the
+    published 17places ``c_centers.pt`` has norms 0.36-0.99). VLAD assigns with the
+    normalised centres and takes residuals to these un-normalised ones, so the norms
+    matter. A cluster that receives no descriptor keeps its unit faiss centroid.
+    ``centres="unit"``: the unit-norm faiss centroids.
     """
     import faiss
 
+    if centres not in CENTRES:
+        raise ValueError(f"unknown vocabulary centres {centres!r}; expected one of {CENTRES}")
     x = np.ascontiguousarray(l2_normalize(np.asarray(x, dtype=np.float32)))
     if len(x) < n_clusters:
         raise ValueError(f"k-means needs at least {n_clusters} descriptors, got {len(x)}")
@@ -34,7 +46,26 @@ def fit_spherical_kmeans(
         verbose=False,
     )
     kmeans.train(x)
-    return l2_normalize(kmeans.centroids.astype(np.float32))
+    unit = l2_normalize(kmeans.centroids.astype(np.float32))
+    if centres == "unit":
+        return unit
+    return cluster_means(x, assign(x, unit), unit)
+
+
+def cluster_means(x: np.ndarray, labels: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Mean of the rows of ``x`` ``[N, D]`` per label ``[N]`` -> ``[K, D]`` float32
+    (summed in float64); a label with no rows takes its row of ``fallback`` ``[K, D]``."""
+    k = len(fallback)
+    sums = np.zeros((k, x.shape[1]), dtype=np.float64)
+    for start in range(0, len(x), 16384):  # one-hot products, float64 a chunk at a time
+        chunk = slice(start, start + 16384)
+        one_hot = labels[chunk, None] == np.arange(k)
+        sums += one_hot.T.astype(np.float64) @ np.asarray(x[chunk], dtype=np.float64)
+    counts = np.bincount(labels, minlength=k)
+    means = np.array(fallback, dtype=np.float64)
+    filled = counts > 0
+    means[filled] = sums[filled] / counts[filled, None]
+    return means.astype(np.float32)
 
 
 def assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
