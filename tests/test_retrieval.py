@@ -4,7 +4,9 @@ Tolerances: faiss squared-L2 distances (float32, computed as |x|^2 + |y|^2 - 2 x
 vs float64 differences, rtol 1e-5 with atol 1e-4 (values up to ~100). Indices are
 compared exactly on data whose consecutive sorted distances differ by more than 2e-3
 (the float32 error is below 1e-4 there).
-Vote scores are float64 throughout: rtol 1e-12.
+Vote weights are float32 as in the published code (its min-max normalisation runs on
+faiss's float32 output), the direct loops compute them the same way; sums are float64:
+rtol 1e-12.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from vprflow.retrieval import (
     rank_by_score,
     search,
     segment_vote_scores,
+    vote_ranking,
 )
 
 
@@ -68,17 +71,39 @@ def test_search_caps_k_at_database_size_and_finds_exact_copies():
 
 def direct_vote(distances, indices, query_image, ref_image, n_query, n_ref):
     """REFERENCE.md section 2 step 8, one retrieved pair at a time."""
-    similarities = [
-        [2.0 - float(distances[s, j]) for j in range(indices.shape[1])] for s in range(len(indices))
-    ]
+    weights = direct_weights(distances)
+    scores = np.zeros((n_query, n_ref))
+    for s in range(len(indices)):
+        for j in range(indices.shape[1]):
+            scores[query_image[s], ref_image[indices[s, j]]] += weights[s][j]
+    return scores
+
+
+def direct_weights(distances):
+    """Min-max normalised similarities 2 - d, each step in float32 (published)."""
+    two = np.float32(2.0)
+    similarities = [[two - np.float32(d) for d in row] for row in distances]
     flat = [v for row in similarities for v in row]
     low, high = min(flat), max(flat)
-    scores = np.zeros((n_query, n_ref))
-    for s, row in enumerate(similarities):
-        for j, similarity in enumerate(row):
-            weight = (similarity - low) / (high - low)
-            scores[query_image[s], ref_image[indices[s, j]]] += weight
-    return scores
+    return [[float((v - low) / (high - low)) for v in row] for row in similarities]
+
+
+def published_ranking(distances, indices, query_image, ref_image, n_query, top):
+    """The published ``max_seg_topk_wt_borda_Im`` with plain dicts: per query image,
+    read its segments' lists rank by rank, add each normalised similarity to the
+    retrieved segment's image, sort by score (Python's stable sort keeps first-seen
+    order among equal scores)."""
+    weights = direct_weights(distances)
+    rankings = []
+    for q in range(n_query):
+        segments = [s for s in range(len(indices)) if query_image[s] == q]
+        scores = {}
+        for rank in range(indices.shape[1]):
+            for s in segments:
+                image = int(ref_image[indices[s, rank]])
+                scores[image] = scores.get(image, 0.0) + weights[s][rank]
+        rankings.append(sorted(scores, key=lambda image: scores[image], reverse=True)[:top])
+    return rankings
 
 
 def vote_problem(seed, n_query=4, n_ref=6, segments_per_ref=(3, 0, 5, 2, 4, 1), k=5):
@@ -137,3 +162,49 @@ def test_image_of_segment_matches_direct_loop(counts):
     offsets = np.concatenate([[0], np.cumsum(counts)]).astype(np.int64)
     expected = [image for image, count in enumerate(counts) for _ in range(count)]
     np.testing.assert_array_equal(image_of_segment(offsets), expected)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3, 4])
+@pytest.mark.parametrize("quantised", [False, True], ids=["distinct", "ties"])
+def test_vote_ranking_matches_the_published_loop(seed, quantised):
+    distances, indices, query_image, ref_image = vote_problem(seed, n_ref=6, k=3)
+    if quantised:
+        # Few distinct distances, so many images tie on score: the order among them
+        # is decided by first appearance alone.
+        distances = np.round(distances * 2) / 2
+    top = 6
+    ranking = vote_ranking(distances, indices, query_image, ref_image, 4, 6, top)
+    expected = published_ranking(distances, indices, query_image, ref_image, 4, top)
+    assert ranking.shape == (4, top) and ranking.dtype == np.int64
+    for q in range(4):
+        row = ranking[q]
+        assert row[: len(expected[q])].tolist() == expected[q]
+        # Only voted images are ranked: the rest of the row is padding.
+        assert (row[len(expected[q]) :] == -1).all()
+    # Reference image 1 has no segments, so no query can rank it.
+    assert not (ranking == 1).any()
+
+
+def test_vote_ranking_breaks_ties_by_first_appearance_not_index():
+    # One query image with two segments; every distance equal, so every vote weighs 1.
+    # Rank 0 retrieves images 3 and 2, rank 1 images 0 and 2: image 2 gets two votes,
+    # then 3 (seen first) before 0.
+    distances = np.zeros((2, 2), np.float32)
+    indices = np.array([[3, 0], [2, 2]])
+    ranking = vote_ranking(distances, indices, np.array([0, 0]), np.arange(4), 1, 4, 4)
+    assert ranking.tolist() == [[2, 3, 0, -1]]
+    full = vote_ranking(distances, indices, np.array([0, 0]), np.arange(4), 1, 4, 4, "all_images")
+    assert full.tolist() == [[2, 0, 3, 1]]
+
+
+def test_vote_ranking_all_images_is_rank_by_score():
+    distances, indices, query_image, ref_image = vote_problem(3)
+    scores = segment_vote_scores(distances, indices, query_image, ref_image, 4, 6)
+    ranking = vote_ranking(distances, indices, query_image, ref_image, 4, 6, 5, "all_images")
+    np.testing.assert_array_equal(ranking, rank_by_score(scores)[:, :5])
+
+
+def test_vote_ranking_rejects_an_unknown_mode():
+    distances, indices, query_image, ref_image = vote_problem(0)
+    with pytest.raises(ValueError, match="'borda'"):
+        vote_ranking(distances, indices, query_image, ref_image, 4, 6, 5, "borda")

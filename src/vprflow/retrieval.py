@@ -30,6 +30,9 @@ def global_ranking(reference: np.ndarray, query: np.ndarray, top: int) -> np.nda
     return indices
 
 
+VOTE_RANKINGS = ("published", "all_images")
+
+
 def segment_vote_scores(
     distances: np.ndarray,
     indices: np.ndarray,
@@ -42,19 +45,84 @@ def segment_vote_scores(
 
     ``distances``/``indices`` ``[Sq, k]``: each query segment's nearest reference
     segments (squared L2). Similarity ``2 - d`` is min-max normalised with the global
-    min and max over all lists; the score of reference image ``r`` for query image
-    ``q`` is the sum of normalised similarities of every (segment of ``q``, retrieved
-    segment of ``r``) pair. Returns ``[n_query, n_ref]`` float64.
+    min and max over all lists (in float32, as the published code does it on faiss's
+    float32 output); the score of reference image ``r`` for query image ``q`` is the
+    sum of normalised similarities of every (segment of ``q``, retrieved segment of
+    ``r``) pair, accumulated in float64 in the published order (rank by rank, query
+    segments in order within a rank) so that exact ties come out as published.
+    Returns ``[n_query, n_ref]`` float64.
     """
-    similarity = 2.0 - distances.astype(np.float64)
-    low, high = similarity.min(initial=np.inf), similarity.max(initial=-np.inf)
-    span = high - low
-    weights = (similarity - low) / span if span > 0 else np.ones_like(similarity)
+    weights = _vote_weights(distances)
     scores = np.zeros((n_query, n_ref), dtype=np.float64)
-    rows = np.repeat(query_image_of_segment, indices.shape[1])
-    cols = ref_image_of_segment[indices.reshape(-1)]
-    np.add.at(scores, (rows, cols), weights.reshape(-1))
+    rows, cols, order = _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment)
+    np.add.at(scores, (rows[order], cols[order]), weights.reshape(-1)[order])
     return scores
+
+
+def _vote_weights(distances: np.ndarray) -> np.ndarray:
+    similarity = np.float32(2.0) - np.asarray(distances, dtype=np.float32)
+    if similarity.size == 0:
+        return similarity.astype(np.float64)
+    low, high = similarity.min(), similarity.max()
+    span = high - low
+    if span > 0:
+        return ((similarity - low) / span).astype(np.float64)
+    return np.ones_like(similarity, dtype=np.float64)
+
+
+def _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment):
+    """Every (query image, reference image) vote as flat arrays ``[Sq * k]`` plus the
+    permutation that reads them query image by query image, rank by rank, query
+    segments in order within a rank."""
+    n_segments, k = indices.shape
+    rows = np.repeat(np.asarray(query_image_of_segment), k)
+    cols = np.asarray(ref_image_of_segment)[indices.reshape(-1)]
+    rank = np.tile(np.arange(k), n_segments)
+    segment = np.repeat(np.arange(n_segments), k)
+    return rows, cols, np.lexsort((segment, rank, rows))
+
+
+def vote_ranking(
+    distances: np.ndarray,
+    indices: np.ndarray,
+    query_image_of_segment: np.ndarray,
+    ref_image_of_segment: np.ndarray,
+    n_query: int,
+    n_ref: int,
+    top: int,
+    mode: str = "published",
+) -> np.ndarray:
+    """Reference images per query image by voted score: ``[n_query, top]`` int64.
+
+    ``mode="published"`` (SegVLAD's ``max_seg_topk_wt_borda_Im``): only images that
+    received at least one vote are ranked; equal scores keep the order in which the
+    images first appear when the retrieved lists are read rank by rank (all query
+    segments' first neighbours, then their second, ...). A query with fewer than
+    ``top`` voted images has its row padded with ``-1`` (never a positive, so a missing
+    rank counts as a miss). ``mode="all_images"``: every reference image is ranked,
+    ties (unvoted images included, score 0) by increasing index.
+    """
+    if mode not in VOTE_RANKINGS:
+        raise ValueError(f"unknown vote ranking {mode!r}; expected one of {VOTE_RANKINGS}")
+    scores = segment_vote_scores(
+        distances, indices, query_image_of_segment, ref_image_of_segment, n_query, n_ref
+    )
+    top = min(top, n_ref)
+    if mode == "all_images":
+        return rank_by_score(scores)[:, :top].astype(np.int64)
+    rows, cols, order = _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment)
+    first_seen = np.full((n_query, n_ref), np.iinfo(np.int64).max, dtype=np.int64)
+    # Position of each vote in its query's rank-major reading; the minimum per image is
+    # where it first appears.
+    position = np.empty(len(order), dtype=np.int64)
+    position[order] = np.arange(len(order))
+    np.minimum.at(first_seen, (rows, cols), position)
+    ranking = np.full((n_query, top), -1, dtype=np.int64)
+    for q in range(n_query):
+        voted = np.flatnonzero(first_seen[q] != np.iinfo(np.int64).max)
+        best = voted[np.lexsort((first_seen[q, voted], -scores[q, voted]))][:top]
+        ranking[q, : len(best)] = best
+    return ranking
 
 
 def image_of_segment(offsets: np.ndarray) -> np.ndarray:
