@@ -15,6 +15,7 @@ import math
 import os
 import pickle
 import shlex
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -87,13 +88,30 @@ def test_vprbench_out_of_range_references(tmp_path):
 
 def test_vprbench_bad_query_index_and_missing_file(tmp_path):
     path = write_vprbench(tmp_path / "gt.npy", [(0, [0]), (5, [1])])
-    with pytest.raises(DatasetError, match="query index 5 outside"):
+    with pytest.raises(DatasetError, match="row 1 has query index 5, outside"):
         vprbench_ground_truth(path, 2, 2)
     with pytest.raises(DatasetError, match="does not exist"):
         vprbench_ground_truth(tmp_path / "missing.npy", 2, 2)
     (tmp_path / "junk.npy").write_bytes(b"not a numpy file at all")
     with pytest.raises(DatasetError, match="junk.npy"):
         vprbench_ground_truth(tmp_path / "junk.npy", 2, 2)
+
+
+def test_vprbench_duplicate_query_rows_are_rejected_with_rows_and_gaps(tmp_path):
+    # Query 0 twice, query 9 absent: today's "last row wins" would lose query 0's
+    # first positives and silently evaluate 9 queries.
+    rows = [(q, [q]) for q in range(9)] + [(0, [5])]
+    path = write_vprbench(tmp_path / "gt.npy", rows)
+    with pytest.raises(DatasetError, match=r"query 0 in rows \[0, 9\].*no row: \[9\]"):
+        vprbench_ground_truth(path, 10, 10)
+
+
+def test_ground_truth_without_any_positive_names_the_file(tmp_path):
+    write_vprbench(tmp_path / "gt.npy", [(0, []), (1, [7])])
+    files = DatasetFiles(reference=[Path("a.jpg"), Path("b.jpg")], query=[Path("c"), Path("d")])
+    spec = {"kind": "vprbench", "file": "gt.npy", "drop_out_of_range": True}
+    with pytest.raises(DatasetError, match=r"gt\.npy: no query has a positive"):
+        ground_truth(files, spec, tmp_path)
 
 
 def test_plain_numeric_npy_loads_without_pickle(tmp_path):

@@ -151,11 +151,25 @@ def vprbench_ground_truth(
         raise DatasetError(
             f"{path} has {len(table)} ground-truth rows but the dataset has {n_query} query images"
         )
+    query_indices = [int(q) for q in table[:, 0]]
+    outside = [(row, q) for row, q in enumerate(query_indices) if not 0 <= q < n_query]
+    if outside:
+        row, q = outside[0]
+        raise DatasetError(f"{path}: row {row} has query index {q}, outside 0..{n_query - 1}")
+    rows_of: dict[int, list[int]] = {}
+    for row, q in enumerate(query_indices):
+        rows_of.setdefault(q, []).append(row)
+    repeated = {q: rows for q, rows in rows_of.items() if len(rows) > 1}
+    if repeated:
+        listing = "; ".join(f"query {q} in rows {rows}" for q, rows in sorted(repeated.items())[:5])
+        missing = sorted(set(range(n_query)) - set(rows_of))
+        raise DatasetError(
+            f"{path}: {len(repeated)} query index(es) appear in more than one row ({listing}); "
+            f"queries with no row: {missing[:10]}. Each query must have exactly one row."
+        )
     truth: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * n_query
     for query_index, refs in table:
         q = int(query_index)
-        if not 0 <= q < n_query:
-            raise DatasetError(f"{path}: query index {q} outside 0..{n_query - 1}")
         refs = np.asarray(refs, dtype=np.int64).reshape(-1)
         bad = refs[(refs < 0) | (refs >= n_ref)]
         if len(bad) and not drop_out_of_range:
@@ -214,16 +228,24 @@ def ground_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarr
     n_query, n_ref = len(files.query), len(files.reference)
     kind = spec["kind"]
     if kind == "vprbench":
-        return vprbench_ground_truth(
+        truth = vprbench_ground_truth(
             folder / spec["file"], n_query, n_ref, spec.get("drop_out_of_range", False)
         )
-    if kind == "frame_window":
-        return frame_window_ground_truth(n_query, n_ref, int(spec["radius"]))
-    if kind == "utm":
-        return utm_ground_truth(files.reference, files.query, float(spec.get("radius", 25.0)))
-    if kind == "pairs":
-        return pairs_ground_truth(n_query, n_ref)
-    raise DatasetError(f"unknown ground-truth kind {kind!r}")
+    elif kind == "frame_window":
+        truth = frame_window_ground_truth(n_query, n_ref, int(spec["radius"]))
+    elif kind == "utm":
+        truth = utm_ground_truth(files.reference, files.query, float(spec.get("radius", 25.0)))
+    elif kind == "pairs":
+        truth = pairs_ground_truth(n_query, n_ref)
+    else:
+        raise DatasetError(f"unknown ground-truth kind {kind!r}")
+    if not any(len(t) for t in truth):
+        source = folder / spec["file"] if kind == "vprbench" else f"{folder} ({kind})"
+        raise DatasetError(
+            f"ground truth {ground_truth_rule(spec)} from {source}: no query has a positive "
+            f"among the {n_ref} references, so recall is undefined; check the file or rule"
+        )
+    return truth
 
 
 def ground_truth_rule(spec: dict) -> str:
