@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from vprflow import stores
 from vprflow.stores import (
     RaggedWriter,
     atomic_store,
@@ -106,3 +107,28 @@ def test_packed_masks_survive_a_store(tmp_path):
         write_array(group, "masks", pack_masks(masks))
     stored = open_store(tmp_path / "m.zarr")["masks"][...]
     np.testing.assert_array_equal(unpack_masks(stored, 11, 7), masks)
+
+
+@pytest.mark.parametrize("bad", [np.nan, np.inf, -np.inf])
+def test_non_finite_values_are_refused_and_nothing_is_stored(tmp_path, bad):
+    out = tmp_path / "pca.zarr"
+    data = np.ones((4, 3), np.float32)
+    data[2, 1] = bad
+    with pytest.raises(stores.NonFiniteError, match=r"stage 'pca': array 'components'.*rows \[2\]"):
+        with stores.atomic_store(out, {"stage": "pca"}) as group:
+            stores.write_array(group, "components", data)
+    assert not out.exists() and not stores.temporary_path(out).exists()
+
+
+def test_ragged_writer_refuses_non_finite_rows_naming_the_row(tmp_path):
+    with pytest.raises(stores.NonFiniteError, match=r"stage 'descriptors'.*rows \[3\]"):
+        with stores.atomic_store(tmp_path / "d.zarr", {"stage": "descriptors"}) as group:
+            writer = stores.RaggedWriter(group, "descriptors", (2,), np.float32, chunk_rows=4)
+            writer.append(np.zeros((3, 2)))
+            writer.append(np.array([[np.nan, 0.0]]))
+
+
+def test_float16_overflow_is_named(tmp_path):
+    with pytest.raises(stores.NonFiniteError, match="store_dtype: float32"):
+        with stores.atomic_store(tmp_path / "f.zarr", {"stage": "features"}) as group:
+            stores.check_finite(group, "features", np.array([1e5], np.float32).astype(np.float16))

@@ -73,9 +73,35 @@ def array_items(group: zarr.Group) -> list[tuple[str, zarr.Array]]:
         return sorted(group.arrays())
 
 
-def write_array(group: zarr.Group, name: str, data: np.ndarray, chunks=None) -> zarr.Array:
-    """Write a whole numpy array (numeric or string) into ``group[name]``."""
+class NonFiniteError(ValueError):
+    """A stage was about to store NaN or infinity; the message names stage and array."""
+
+
+def check_finite(group: zarr.Group, name: str, data: np.ndarray, first_row: int = 0) -> None:
+    """Refuse to store NaN/inf: no stage has a legitimate use for them, and a NaN
+    descriptor would still be retrieved and counted in a believable table."""
     data = np.asarray(data)
+    if data.dtype.kind not in "fc" or data.size == 0:
+        return
+    finite = np.isfinite(data)
+    if finite.all():
+        return
+    bad_rows = np.unique(np.nonzero(~finite)[0]) + first_row if data.ndim else np.array([0])
+    stage = group.attrs.get("stage", "?")
+    hint = ""
+    if data.dtype == np.float16:
+        hint = " (float16 overflows beyond 65504: set the backbone's store_dtype: float32)"
+    raise NonFiniteError(
+        f"stage '{stage}': array '{name}' would hold {int((~finite).sum())} NaN/inf values "
+        f"(rows {bad_rows[:5].tolist()}){hint}; nothing was written"
+    )
+
+
+def write_array(group: zarr.Group, name: str, data: np.ndarray, chunks=None) -> zarr.Array:
+    """Write a whole numpy array (numeric or string) into ``group[name]``; NaN/inf is
+    an error (:class:`NonFiniteError`)."""
+    data = np.asarray(data)
+    check_finite(group, name, data)
     if data.dtype.kind in "UOT":
         # dtype=str is zarr 3's variable-length string type (fixed-width unicode has no
         # stable v3 spec).
@@ -117,6 +143,7 @@ class RaggedWriter:
 
     def append(self, rows: np.ndarray) -> None:
         rows = np.asarray(rows, dtype=self.array.dtype)
+        check_finite(self.group, self.name, rows, first_row=self.offsets[-1])
         self.buffer.append(rows)
         self.buffered += len(rows)
         self.offsets.append(self.offsets[-1] + len(rows))
