@@ -3,6 +3,20 @@
 Every stage sees images as float32 arrays ``[H, W, 3]`` in ``[0, 1]``: grayscale
 (thermal) images are repeated to three channels, 16-bit images are scaled by 65535,
 alpha channels are dropped.
+
+``resize_image`` resizes in one of two ways (``RESIZE_METHODS``):
+
+- ``"linear"`` (default): OpenCV's ``cv2.resize(..., interpolation=cv2.INTER_LINEAR)``,
+  which the published pipelines use for both the DINOv2 and the SAM input. Output pixel
+  ``d`` samples the input at ``s = (d + 0.5) * in / out - 0.5`` with two-tap (bilinear)
+  weights and no antialiasing, so shrinking by more than 2x skips input pixels. Borders
+  follow OpenCV: ``s < 0`` takes pixel 0, ``floor(s) >= in - 1`` takes the last pixel
+  (the same as clamping ``s`` to ``[0, in - 1]``), for enlarging and shrinking alike.
+  Computed in float (source positions in float64), so it equals OpenCV's float-image
+  result; OpenCV on 8-bit images rounds its weights to 11-bit fixed point and is
+  within one grey level of it.
+- ``"antialias"``: PIL's bilinear filter, which widens its support when shrinking
+  (antialiasing); what vprflow used before it matched the published code.
 """
 
 from __future__ import annotations
@@ -60,13 +74,59 @@ def read_image(path: str | Path) -> np.ndarray:
     return np.ascontiguousarray(pixels)
 
 
-def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """Resize a float image ``[H, W, C]`` to ``[height, width, C]`` with antialiased bilinear.
+RESIZE_METHODS = ("linear", "antialias")
 
-    Uses PIL's float mode per channel, so 16-bit inputs keep their precision.
+
+def resize_image(image: np.ndarray, width: int, height: int, method: str = "linear") -> np.ndarray:
+    """Resize a float image ``[H, W, C]`` to float32 ``[height, width, C]`` in ``[0, 1]``.
+
+    ``method`` is ``"linear"`` (OpenCV ``INTER_LINEAR``, the default) or ``"antialias"``
+    (PIL bilinear); see the module docstring. Both keep the precision of 16-bit inputs.
     """
+    if method not in RESIZE_METHODS:
+        raise ValueError(f"unknown resize method {method!r}; expected one of {RESIZE_METHODS}")
+    if image.ndim != 3:
+        raise ValueError(f"expected an image [H, W, C], got shape {image.shape}")
+    if width < 1 or height < 1:
+        raise ValueError(f"cannot resize to {width}x{height}: both sides must be >= 1")
     if image.shape[0] == height and image.shape[1] == width:
         return image.astype(np.float32, copy=False)
+    if method == "linear":
+        resized = _resize_linear(np.asarray(image, dtype=np.float32), width, height)
+    else:
+        resized = _resize_antialias(image, width, height)
+    return np.clip(resized, 0.0, 1.0).astype(np.float32, copy=False)
+
+
+def _linear_taps(size_in: int, size_out: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """OpenCV INTER_LINEAR along one axis: ``(low, high, weight_high)`` per output index."""
+    position = (np.arange(size_out, dtype=np.float64) + 0.5) * (size_in / size_out) - 0.5
+    low = np.floor(position)
+    weight = position - low
+    low = low.astype(np.intp)
+    # OpenCV's border rule: before the first pixel centre take pixel 0, from the last
+    # pixel centre on take the last pixel (one tap, weight 1).
+    weight[low < 0] = 0.0
+    low[low < 0] = 0
+    last = low >= size_in - 1
+    weight[last] = 0.0
+    low[last] = size_in - 1
+    high = np.minimum(low + 1, size_in - 1)
+    return low, high, weight.astype(np.float32)
+
+
+def _resize_linear(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Separable two-tap interpolation: rows first, then columns."""
+    low, high, weight = _linear_taps(image.shape[0], height)
+    weight = weight[:, None, None]
+    rows = image[low] * (1.0 - weight) + image[high] * weight
+    low, high, weight = _linear_taps(image.shape[1], width)
+    weight = weight[None, :, None]
+    return rows[:, low] * (1.0 - weight) + rows[:, high] * weight
+
+
+def _resize_antialias(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """PIL bilinear in float mode, one channel at a time."""
     channels = [
         np.asarray(
             Image.fromarray(np.ascontiguousarray(image[:, :, c], dtype=np.float32)).resize(
@@ -75,7 +135,7 @@ def resize_image(image: np.ndarray, width: int, height: int) -> np.ndarray:
         )
         for c in range(image.shape[2])
     ]
-    return np.clip(np.stack(channels, axis=2), 0.0, 1.0).astype(np.float32)
+    return np.stack(channels, axis=2)
 
 
 def list_images(folder: str | Path) -> list[Path]:
