@@ -4,10 +4,15 @@ The models are randomly initialised transformers models saved to a temporary dir
 (no pretrained weights exist on the test machines). All parameters, LayerNorms and
 biases included, are re-drawn with a large spread so that a wrong norm, a swapped
 facet or a missing bias shows up as a large error.
+
+The reference forward passes use position embeddings computed here, in float64, from
+the rules of the original repositories (``_reference_pos_embed``), unless a test asks
+for transformers' own interpolation.
 """
 
 from __future__ import annotations
 
+import math
 import shutil
 
 import numpy as np
@@ -60,14 +65,88 @@ def _images(count: int, height: int, width: int, seed: int = 0) -> np.ndarray:
     return np.random.default_rng(seed).random((count, height, width, 3), dtype=np.float32)
 
 
-def _reference_hidden_states(model_dir, images: np.ndarray, patch: int) -> tuple:
-    """Hidden states of the untruncated model, with preprocessing done independently."""
+def _cubic(distance: float, a: float) -> float:
+    """Keys' cubic convolution kernel with parameter ``a``."""
+    x = abs(distance)
+    if x <= 1:
+        return ((a + 2) * x - (a + 3)) * x * x + 1
+    if x < 2:
+        return ((a * x - 5 * a) * x + 8 * a) * x - 4 * a
+    return 0.0
+
+
+def _bicubic_matrix(size_in: int, size_out: int, scale: float) -> np.ndarray:
+    """``[size_out, size_in]`` weights of torch's bicubic (``a = -0.75``, no antialias):
+    output ``d`` samples ``s = (d + 0.5) / scale - 0.5`` from taps ``floor(s) - 1 ..
+    floor(s) + 2``, indices clamped to the grid."""
+    weights = np.zeros((size_out, size_in))
+    for d in range(size_out):
+        source = (d + 0.5) / scale - 0.5
+        base = math.floor(source)
+        for k in range(-1, 3):
+            index = min(max(base + k, 0), size_in - 1)
+            weights[d, index] += _cubic(source - (base + k), -0.75)
+    return weights
+
+
+def _antialias_bicubic_matrix(size_in: int, size_out: int) -> np.ndarray:
+    """``[size_out, size_in]`` weights of antialiased bicubic (PIL's filter, ``a = -0.5``):
+    the kernel is stretched by the shrink factor, cut at the grid's edges and renormalised."""
+    ratio = size_in / size_out
+    stretch = max(ratio, 1.0)
+    weights = np.zeros((size_out, size_in))
+    for d in range(size_out):
+        centre = (d + 0.5) * ratio  # continuous coordinates, pixel j spans [j, j + 1)
+        row = np.array([_cubic((j + 0.5 - centre) / stretch, -0.5) for j in range(size_in)])
+        weights[d] = row / row.sum()
+    return weights
+
+
+def _reference_pos_embed(stored: np.ndarray, rows: int, cols: int, rule: str) -> np.ndarray:
+    """Position embeddings ``[1, 1 + rows * cols, D]`` for a ``rows x cols`` patch grid from
+    the stored ``[1, 1 + M * M, D]``, float64.
+
+    ``rule``: ``"original"`` (DINO / DINOv2: scale factor ``(n + 0.1) / M`` per axis),
+    ``"transformers"`` (scale ``n / M``, i.e. ``size=(rows, cols)``) or ``"registers"``
+    (the original DINOv2 ``*_reg`` models: antialiased, ``size=(rows, cols)``).
+    """
+    side = math.isqrt(stored.shape[1] - 1)
+    if (rows, cols) == (side, side):
+        return stored
+    grid = stored[0, 1:].reshape(side, side, -1)
+    if rule == "registers":
+        row_weights = _antialias_bicubic_matrix(side, rows)
+        col_weights = _antialias_bicubic_matrix(side, cols)
+    else:
+        offset = {"original": 0.1, "transformers": 0.0}[rule]
+        row_weights = _bicubic_matrix(side, rows, (rows + offset) / side)
+        col_weights = _bicubic_matrix(side, cols, (cols + offset) / side)
+    patches = np.einsum("ri,ijd,cj->rcd", row_weights, grid, col_weights)
+    return np.concatenate([stored[:, :1], patches.reshape(1, rows * cols, -1)], axis=1)
+
+
+def _reference_hidden_states(
+    model_dir, images: np.ndarray, patch: int, interpolation: str = "original"
+) -> tuple:
+    """Hidden states of the untruncated model, with preprocessing done independently.
+
+    ``interpolation="original"`` feeds the model position embeddings from
+    :func:`_reference_pos_embed` (the original repositories' rule for its model type);
+    ``"transformers"`` leaves the model as transformers builds it.
+    """
     height, width = images.shape[1:3]
     crop_h, crop_w = height // patch * patch, width // patch * patch
     top, left = round((height - crop_h) / 2), round((width - crop_w) / 2)  # torchvision's rule
     crop = images[:, top : top + crop_h, left : left + crop_w]
     pixels = (crop - MEAN) / STD
     model = AutoModel.from_pretrained(model_dir).eval()
+    if interpolation == "original":
+        registers = model.config.model_type == "dinov2_with_registers"
+        stored = model.embeddings.position_embeddings.detach().double().numpy()
+        rule = "registers" if registers else "original"
+        pos = _reference_pos_embed(stored, crop_h // patch, crop_w // patch, rule)
+        pos = torch.from_numpy(pos).float()
+        model.embeddings.interpolate_pos_encoding = lambda embeddings, height, width: pos
     kwargs = {"interpolate_pos_encoding": True} if isinstance(model, ViTModel) else {}
     with torch.no_grad():
         output = model(
@@ -222,11 +301,109 @@ def test_parameter_errors(dinov2_dir, dino_dir):
         load_vit({"backbone": "dinov2", "model": str(dino_dir), "layer": 0}, "cpu")
     with pytest.raises(ValueError, match="backbone"):
         load_vit({"backbone": "resnet", "model": str(dino_dir)}, "cpu")
+    with pytest.raises(ValueError, match="pos_embed_interpolation 'bilinear'"):
+        load_vit({**base, "layer": 0, "pos_embed_interpolation": "bilinear"}, "cpu")
     backbone = load_vit({**base, "layer": 0}, "cpu")
     with pytest.raises(ValueError, match=r"\[B, H, W, 3\]"):
         backbone.features(np.zeros((56, 56, 3), np.float32))
     with pytest.raises(ValueError, match="smaller than one"):
         backbone.features(np.zeros((1, 13, 56, 3), np.float32))
+
+
+# ------------------------------------------------- position-embedding interpolation
+
+# (model fixture, patch side, blocks); both tiny models store a 4 x 4 grid (M = 4).
+_KINDS = {"dinov2": ("dinov2_dir", 14, 3), "dino": ("dino_dir", 8, 2)}
+
+
+def _model_dir(kind: str, request) -> object:
+    return request.getfixturevalue(_KINDS[kind][0])
+
+
+def _interpolated(backbone, rows: int, cols: int) -> torch.Tensor:
+    """The backbone model's position embeddings for a ``rows x cols`` patch input."""
+    patch = backbone.patch_size
+    tokens = torch.zeros(1, 1 + rows * cols, HIDDEN)
+    with torch.no_grad():
+        return backbone.model.embeddings.interpolate_pos_encoding(
+            tokens, rows * patch, cols * patch
+        )
+
+
+@pytest.mark.parametrize("grid", [(5, 7), (7, 5), (3, 5), (2, 9), (6, 6)])
+@pytest.mark.parametrize("kind", ["dinov2", "dino"])
+def test_original_pos_embed_interpolation_matches_formula(kind, grid, request):
+    params = {"backbone": kind, "model": str(_model_dir(kind, request)), "layer": 0}
+    backbone = load_vit(params, "cpu")
+    assert backbone.pos_embed_interpolation == "original"
+    stored = backbone.model.embeddings.position_embeddings.detach().double().numpy()
+    actual = _interpolated(backbone, *grid).numpy()
+    expected = _reference_pos_embed(stored, *grid, "original")
+    assert actual.shape == expected.shape == (1, 1 + grid[0] * grid[1], HIDDEN)
+    _assert_close(actual, expected)  # float32 interpolation against float64: rtol 1e-5
+    # The 0.1 offset moves the samples: transformers' rule is far outside that tolerance.
+    other = _reference_pos_embed(stored, *grid, "transformers")
+    assert np.abs(other - expected).max() > 1e-3 * np.abs(expected).max()
+    transformers_rule = load_vit({**params, "pos_embed_interpolation": "transformers"}, "cpu")
+    _assert_close(_interpolated(transformers_rule, *grid).numpy(), other)
+
+
+@pytest.mark.parametrize("interpolation", ["original", "transformers"])
+@pytest.mark.parametrize("kind", ["dinov2", "dino"])
+def test_square_input_with_stored_grid_uses_stored_embeddings(kind, interpolation, request):
+    model_dir = str(_model_dir(kind, request))
+    params = {"backbone": kind, "model": model_dir, "layer": 0}
+    backbone = load_vit({**params, "pos_embed_interpolation": interpolation}, "cpu")
+    assert _interpolated(backbone, 4, 4) is backbone.model.embeddings.position_embeddings
+    patch = backbone.patch_size
+    images = _images(1, 4 * patch, 4 * patch, seed=11)
+    model = AutoModel.from_pretrained(model_dir).eval()  # unpatched, the stored grid as is
+    kwargs = {"interpolate_pos_encoding": True} if isinstance(model, ViTModel) else {}
+    with torch.no_grad():
+        output = model(
+            pixel_values=torch.from_numpy((images - MEAN) / STD).permute(0, 3, 1, 2),
+            output_hidden_states=True,
+            **kwargs,
+        )
+    features = load_vit({**params, "facet": "token", "normalize": False}, "cpu").features(images)
+    expected = output.hidden_states[1][:, 1:].double().numpy().reshape(1, 4, 4, -1)
+    _assert_close(features, expected)
+
+
+@pytest.mark.parametrize("kind", ["dinov2", "dino"])
+def test_pos_embed_interpolation_options_give_their_forward_passes(kind, request):
+    """ "original" features equal a forward pass with the reference embeddings,
+    "transformers" features equal the unmodified transformers model, and they differ."""
+    model_dir = _model_dir(kind, request)
+    _, patch, blocks = _KINDS[kind]
+    params = {"backbone": kind, "model": str(model_dir), "layer": -1, "facet": "token"}
+    params["normalize"] = False
+    images = _images(2, 5 * patch + 3, 7 * patch + 2, seed=12)  # 5 x 7 patches after the crop
+    features = {}
+    for interpolation in ("original", "transformers"):
+        backbone = load_vit({**params, "pos_embed_interpolation": interpolation}, "cpu")
+        features[interpolation] = backbone.features(images)
+        _, output, grid = _reference_hidden_states(model_dir, images, patch, interpolation)
+        assert grid == (5, 7)
+        expected = output.hidden_states[blocks][:, 1:].double().numpy().reshape(2, 5, 7, -1)
+        _assert_close(features[interpolation], expected)  # rtol 1e-5 of the largest value
+    difference = np.abs(features["original"] - features["transformers"]).max()
+    assert difference > 1e-3 * np.abs(features["transformers"]).max()
+
+
+def test_registers_models_keep_transformers_interpolation(registers_dir):
+    # The original DINOv2 *_reg models interpolate antialiased to the output size, as
+    # transformers' Dinov2WithRegistersEmbeddings does: "original" keeps that method.
+    params = {"backbone": "dinov2", "model": str(registers_dir), "layer": 0, "facet": "token"}
+    images = _images(1, 42, 98, seed=13)  # 3 x 7 patches
+    original = load_vit(params, "cpu")
+    assert "interpolate_pos_encoding" not in vars(original.model.embeddings)
+    stored = original.model.embeddings.position_embeddings.detach().double().numpy()
+    for grid in ((3, 7), (5, 6), (6, 6)):
+        expected = _reference_pos_embed(stored, *grid, "registers")
+        _assert_close(_interpolated(original, *grid).numpy(), expected)
+    plain = load_vit({**params, "pos_embed_interpolation": "transformers"}, "cpu")
+    np.testing.assert_array_equal(original.features(images), plain.features(images))
 
 
 # transformers >= 5 renamed the attention / MLP weights; checkpoints on the hub (e.g.

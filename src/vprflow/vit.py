@@ -18,12 +18,29 @@ float image batch ``[B, H, W, 3]`` in ``[0, 1]`` to patch descriptors ``[B, h, w
 6. optional per-patch L2 normalisation over channels (``normalize``).
 
 Position embeddings are interpolated for any input size: DINOv2 models always do it,
-``ViTModel`` (DINO v1) is called with ``interpolate_pos_encoding=True``.
+``ViTModel`` (DINO v1) is called with ``interpolate_pos_encoding=True``. The rule is
+chosen by ``pos_embed_interpolation`` (``POS_EMBED_INTERPOLATIONS``):
+
+- ``"original"`` (default): as the original facebookresearch/dinov2 and dino code does
+  it. The stored ``M x M`` grid of patch position embeddings (``M = sqrt(N)``) is
+  resized bicubically (``align_corners=False``, no antialiasing, in float32) with
+  ``scale_factor = ((rows + 0.1) / M, (cols + 0.1) / M)``, where ``rows`` x ``cols`` is
+  the input's patch grid (the original code calls the input's height ``w``, but the row
+  factor does come from the height), and flattened row by row. Output
+  position ``r`` therefore samples the grid at ``(r + 0.5) * M / (rows + 0.1) - 0.5``,
+  not at ``(r + 0.5) * M / rows - 0.5``. With ``N`` patches and a square input the
+  stored embeddings are used unchanged. The loaded model's embeddings module gets this
+  as its ``interpolate_pos_encoding`` (on that instance only). DINOv2 with registers is
+  left as transformers builds it: the original ``*_reg`` models interpolate to the
+  output size with antialiasing (no 0.1 offset), which is what transformers does.
+- ``"transformers"``: transformers' own method, bicubic to ``size=(rows, cols)``.
 """
 
 from __future__ import annotations
 
 import inspect
+import math
+import types
 
 import numpy as np
 import torch
@@ -48,6 +65,10 @@ _FACET_LINEARS = {
     "value": ("v_proj", "value"),
 }
 _BLOCK_LISTS = ("encoder.layer", "layers", "encoder.layers")
+POS_EMBED_INTERPOLATIONS = ("original", "transformers")
+# Model types whose transformers interpolation differs from the original repositories'
+# (and gets replaced under "original"); "dinov2_with_registers" already matches.
+_ORIGINAL_INTERPOLATION = {"dinov2": True, "vit": True, "dinov2_with_registers": False}
 
 
 def _find_blocks(model: nn.Module) -> tuple[nn.Module, str, nn.ModuleList]:
@@ -74,6 +95,75 @@ def _find_projection(block: nn.Module, facet: str) -> nn.Linear:
     raise ValueError(f"{type(block).__name__}: no attention projection {names} for {facet!r}")
 
 
+def _check_pos_embed_interpolation(value: str) -> str:
+    value = str(value).lower()
+    if value not in POS_EMBED_INTERPOLATIONS:
+        raise ValueError(
+            f"unknown pos_embed_interpolation {value!r}; expected one of {POS_EMBED_INTERPOLATIONS}"
+        )
+    return value
+
+
+def _original_interpolate_pos_encoding(
+    self: nn.Module, embeddings: torch.Tensor, height: int, width: int
+) -> torch.Tensor:
+    """Position embeddings for ``embeddings`` (CLS + patch tokens) of a ``height`` x
+    ``width`` pixel input, interpolated like the original DINO / DINOv2 code (see the
+    module docstring). Bound to a transformers embeddings module, whose
+    ``interpolate_pos_encoding(embeddings, height, width)`` it replaces."""
+    stored = self.position_embeddings
+    num_patches = embeddings.shape[1] - 1
+    num_positions = stored.shape[1] - 1
+    if num_patches == num_positions and height == width:
+        return stored
+    side = math.isqrt(num_positions)
+    if side * side != num_positions:
+        raise ValueError(f"{num_positions} patch position embeddings do not form a square grid")
+    patch = self.patch_embeddings.patch_size
+    patch_h, patch_w = patch if isinstance(patch, list | tuple) else (patch, patch)
+    rows, cols = height // patch_h, width // patch_w
+    dim = stored.shape[-1]
+    grid = stored[:, 1:].float().reshape(1, side, side, dim).permute(0, 3, 1, 2)
+    grid = nn.functional.interpolate(
+        grid,
+        scale_factor=((rows + 0.1) / side, (cols + 0.1) / side),
+        mode="bicubic",
+        align_corners=False,
+        antialias=False,
+        recompute_scale_factor=False,
+    )
+    if tuple(grid.shape[-2:]) != (rows, cols):
+        raise RuntimeError(f"interpolated a {tuple(grid.shape[-2:])} grid for {(rows, cols)}")
+    patches = grid.permute(0, 2, 3, 1).reshape(1, rows * cols, dim)
+    return torch.cat((stored[:, :1].float(), patches), dim=1).to(embeddings.dtype)
+
+
+def _set_pos_embed_interpolation(model: nn.Module, interpolation: str) -> None:
+    """Give ``model``'s embeddings the original interpolation if asked and needed."""
+    if interpolation == "transformers":
+        return
+    model_type = getattr(model.config, "model_type", None)
+    if model_type not in _ORIGINAL_INTERPOLATION:
+        raise ValueError(
+            f"pos_embed_interpolation 'original' is not implemented for {model_type!r} "
+            f"models (only {sorted(_ORIGINAL_INTERPOLATION)}); use 'transformers'"
+        )
+    if not _ORIGINAL_INTERPOLATION[model_type]:
+        return
+    embeddings = getattr(model, "embeddings", None)
+    if not all(
+        hasattr(embeddings, name)
+        for name in ("position_embeddings", "patch_embeddings", "interpolate_pos_encoding")
+    ):
+        raise ValueError(
+            f"{type(model).__name__}: its embeddings lack position_embeddings, "
+            "patch_embeddings or interpolate_pos_encoding; cannot replace the interpolation"
+        )
+    embeddings.interpolate_pos_encoding = types.MethodType(
+        _original_interpolate_pos_encoding, embeddings
+    )
+
+
 def _resolve_layer(layer: int | None, backbone: str, n_blocks: int) -> int:
     if layer is None:
         layer = DEFAULT_DINOV2_LAYER if backbone == "dinov2" else n_blocks - 1
@@ -90,7 +180,9 @@ class VitBackbone:
     """A loaded ViT tapped at one block and facet; see the module docstring.
 
     Attributes: ``patch_size`` (pixels per patch side), ``layer`` (0-based block),
-    ``facet``, ``dim`` (descriptor length D), ``device``, ``dtype``.
+    ``facet``, ``dim`` (descriptor length D), ``device``, ``dtype``,
+    ``pos_embed_interpolation``. ``"original"`` replaces the interpolation method of
+    ``model``'s embeddings module in place.
     """
 
     def __init__(
@@ -103,7 +195,10 @@ class VitBackbone:
         final_norm: bool,
         device: torch.device,
         dtype: torch.dtype,
+        pos_embed_interpolation: str = "original",
     ):
+        self.pos_embed_interpolation = _check_pos_embed_interpolation(pos_embed_interpolation)
+        _set_pos_embed_interpolation(model, self.pos_embed_interpolation)
         parent, attribute, blocks = _find_blocks(model)
         # Blocks after `layer` never influence the tapped output: drop them to save
         # time and memory (this model object is private to the backbone).
@@ -174,7 +269,9 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
     the last block for dino); ``facet`` ``"query"|"key"|"value"|"token"`` (default
     ``"value"``); ``normalize`` per-patch L2 over channels (default ``True``);
     ``final_norm`` final LayerNorm on the token facet (default ``False``); ``dtype``
-    ``"float32"|"bfloat16"|"float16"`` (default ``"float32"``).
+    ``"float32"|"bfloat16"|"float16"`` (default ``"float32"``);
+    ``pos_embed_interpolation`` ``"original"|"transformers"`` (default ``"original"``,
+    see the module docstring).
     Raises :class:`vprflow.models.ModelNotFoundError` when the weights are unavailable.
     """
     from transformers import AutoConfig, AutoModel
@@ -190,6 +287,9 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
     final_norm = bool(params.get("final_norm", False))
     if final_norm and facet != "token":
         raise ValueError(f"final_norm applies to the 'token' facet only, not {facet!r}")
+    interpolation = _check_pos_embed_interpolation(
+        params.get("pos_embed_interpolation", "original")
+    )
     torch_device = resolve_device(device)
     dtype = resolve_dtype(params.get("dtype", "float32"), torch_device)
 
@@ -224,4 +324,5 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
         final_norm=final_norm,
         device=torch_device,
         dtype=dtype,
+        pos_embed_interpolation=interpolation,
     )
