@@ -459,16 +459,21 @@ def test_upscaler_equals_interpolate_crop_interpolate(height, width, model_size,
     generator = torch.Generator().manual_seed(height)
     logits = torch.randn((5, low, low), generator=generator) * 10
     new_h, new_w = preprocess_shape(height, width, model_size)
+    # The reference runs in float64: float32 F.interpolate computes source coordinates in
+    # float32 and is itself off by up to 6e-4 at 1024 pixels, a deterministic error that
+    # left a float32 comparison only 4x headroom.
     expected = F.interpolate(
-        logits[None], (model_size, model_size), mode="bilinear", align_corners=False
+        logits.double()[None], (model_size, model_size), mode="bilinear", align_corners=False
     )
     expected = F.interpolate(
         expected[..., :new_h, :new_w], (height, width), mode="bilinear", align_corners=False
     )[0]
     upscale = LogitUpscaler((low, low), model_size, (new_h, new_w), (height, width), "cpu")
     out = upscale(logits)
-    assert out.shape == (5, height, width)
-    torch.testing.assert_close(out, expected, atol=2e-3, rtol=1e-4)
+    assert out.shape == (5, height, width) and out.dtype == torch.float32
+    # float32 matrices and matmuls on logits up to ~40 in size: measured within 5e-6 of
+    # float64 (about one float32 ulp at 40, 3.8e-6); 1e-4 leaves 20x for other kernels.
+    torch.testing.assert_close(out.double(), expected, atol=1e-4, rtol=0)
 
 
 def test_stability_score_matches_direct_formula():
