@@ -158,7 +158,14 @@ def _reference_hidden_states(
     return model, output, grid
 
 
-def _assert_close(actual: np.ndarray, expected: np.ndarray, rtol: float = 1e-5) -> None:
+# float32 features of these models are within 5e-7 of a float64 run, relative to the
+# largest entry (measured for every layer and both kinds, normalised or not), so two float32
+# runs with different kernels, threads or weight buffers differ by at most ~1e-6: 1e-5
+# leaves 10x. The same bound serves float32 vs float64 hand computations below.
+FLOAT32_RTOL = 1e-5
+
+
+def _assert_close(actual: np.ndarray, expected: np.ndarray, rtol: float = FLOAT32_RTOL) -> None:
     scale = float(np.abs(expected).max())
     error = float(np.abs(actual.astype(np.float64) - expected).max())
     assert error <= rtol * scale, f"max error {error:.3g} vs scale {scale:.3g}"
@@ -182,9 +189,10 @@ def test_dinov2_shapes_and_centre_crop(dinov2_dir):
     features = backbone.features(images)
     assert features.shape == (2, 4, 7, HIDDEN)
     assert features.dtype == np.float32
-    # Centre crop: the pre-cropped region gives identical features, a shifted one does not.
+    # Centre crop: the pre-cropped region gives the same features, a shifted one does not.
+    # (Same pixels, same model: equal up to float32 kernel rounding, see FLOAT32_RTOL.)
     same = backbone.features(images[:, 2:58, 2:100])
-    np.testing.assert_array_equal(features, same)
+    _assert_close(same, features.astype(np.float64), rtol=FLOAT32_RTOL)
     shifted = backbone.features(images[:, 0:56, 0:98])
     assert np.abs(features - shifted).max() > 1e-3
 
@@ -265,7 +273,10 @@ def test_normalize_gives_unit_patch_norms(dinov2_dir):
     norms = np.linalg.norm(unit, axis=-1)
     np.testing.assert_allclose(norms, 1.0, atol=1e-5)
     assert np.abs(np.linalg.norm(raw, axis=-1) - 1.0).max() > 0.1
-    np.testing.assert_allclose(unit, raw / np.linalg.norm(raw, axis=-1, keepdims=True), atol=1e-6)
+    # raw and unit come from two model runs: equal only up to FLOAT32_RTOL (unit vectors).
+    np.testing.assert_allclose(
+        unit, raw / np.linalg.norm(raw, axis=-1, keepdims=True), atol=FLOAT32_RTOL
+    )
 
 
 @pytest.mark.parametrize("kind", ["dinov2", "dino"])
@@ -450,9 +461,16 @@ def test_legacy_hub_checkpoint_names_load_the_same_weights(kind, dinov2_dir, din
     _write_legacy_checkpoint(model_dir, legacy, kind)
     params = {"backbone": kind, "layer": 0, "facet": "value", "normalize": False}
     images = _images(1, 56, 56, seed=9)
-    expected = load_vit({**params, "model": str(model_dir)}, "cpu").features(images)
-    actual = load_vit({**params, "model": str(legacy)}, "cpu").features(images)
-    np.testing.assert_array_equal(actual, expected)
+    reference = load_vit({**params, "model": str(model_dir)}, "cpu")
+    loaded = load_vit({**params, "model": str(legacy)}, "cpu")
+    # The same weights, bit for bit; features equal up to float32 kernel rounding (the
+    # weights sit in other buffers, which may pick other BLAS code paths).
+    expected_state = reference.model.state_dict()
+    assert loaded.model.state_dict().keys() == expected_state.keys()
+    for name, tensor in loaded.model.state_dict().items():
+        assert torch.equal(tensor, expected_state[name]), name
+    expected = reference.features(images)
+    _assert_close(loaded.features(images), expected.astype(np.float64))
 
 
 def test_checkpoint_missing_weights_is_an_error(dinov2_dir, tmp_path):
