@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vprflow.pca import Pca, _randomized_pca, fit_pca
+from vprflow.pca import Pca, _randomized_pca, exact_pca_bytes, fit_pca
 
 
 def anisotropic(n, d, seed=0):
@@ -147,3 +147,114 @@ def test_randomized_pca_centres_implicitly():
     explicit, var_explicit = _randomized_pca(x - mean, 6, seed=1)
     np.testing.assert_allclose(var_implicit, var_explicit, rtol=1e-4)
     np.testing.assert_allclose(np.abs(implicit @ explicit.T), np.eye(6), atol=1e-4)
+
+
+# ------------------------------------------------- the exact solver at any size
+
+
+def decaying(n, d, seed, power=1.0):
+    """Rows with singular values decaying as a power law (like VLAD descriptors), in a
+    random rotation, plus an offset; distinct singular values (gaps >= ~1%)."""
+    rng = np.random.default_rng(seed)
+    rank = min(n, d)
+    u = np.linalg.qr(rng.standard_normal((n, rank)))[0]
+    v = np.linalg.qr(rng.standard_normal((d, rank)))[0]
+    singular = 100.0 * np.arange(1, rank + 1) ** -power
+    return ((u * singular) @ v.T + rng.normal(0, 1, d)).astype(np.float32)
+
+
+def svd_reference(x, dim):
+    """float64 SVD of the centred data: axes [dim, D] and variances S^2 / (n - 1)."""
+    x = np.asarray(x, dtype=np.float64)
+    centred = x - x.mean(axis=0)
+    _, singular, vt = np.linalg.svd(centred, full_matrices=False)
+    return vt[:dim], singular[:dim] ** 2 / (len(x) - 1)
+
+
+def max_principal_sine(components, axes):
+    """Largest principal-angle sine between span(components) and span(axes) (rows):
+    the spectral norm of the part of the (row-normalised) components outside the
+    reference subspace. Computed directly, not as sqrt(1 - cos^2), which loses half
+    the digits."""
+    ours = np.asarray(components, np.float64)
+    ours /= np.linalg.norm(ours, axis=1, keepdims=True)
+    outside = ours - (ours @ axes.T) @ axes
+    return float(np.linalg.norm(outside, ord=2))
+
+
+def whitened_gram_on_probes(components, variance, probes):
+    """``(P W^T)(P W^T)^T`` with ``W = components / sqrt(variance)``: the inner
+    products whitened retrieval sees, on probe vectors (invariant to signs and to
+    rotations inside equal-variance subspaces)."""
+    projected = probes @ (np.asarray(components, np.float64).T / np.sqrt(variance))
+    return projected @ projected.T
+
+
+@pytest.mark.parametrize(
+    ("n", "d", "dim"),
+    [
+        (600, 40, 30),  # covariance side
+        (60, 500, 50),  # Gram side
+        (300, 9000, 120),  # above the old 8192 switch to the randomised SVD: still exact
+    ],
+)
+def test_exact_solver_matches_float64_svd(n, d, dim):
+    """Tolerances: the input is float32 and the solver works in float64, so variances
+    agree to rtol 1e-6; principal-angle sines below 1e-5 (gaps between consecutive
+    singular values are >= 1%, so axes are well conditioned); the whitened Gram on 8
+    probes within 1e-6 of its largest entry."""
+    x = decaying(n, d, seed=n + d)
+    pca = fit_pca(x, dim, whiten=True)
+    axes, variance = svd_reference(x, dim)
+    assert pca.dim == dim
+    np.testing.assert_allclose(pca.explained_variance, variance, rtol=1e-6)
+    assert max_principal_sine(pca.components, axes) < 1e-5
+    # Axis by axis too (after matching signs), including the last one.
+    np.testing.assert_allclose(match_signs(axes, pca.components), pca.components, atol=1e-5)
+    probes = np.random.default_rng(0).standard_normal((8, d))
+    ours = whitened_gram_on_probes(pca.components, pca.explained_variance, probes)
+    reference = whitened_gram_on_probes(axes, variance, probes)
+    np.testing.assert_allclose(ours, reference, rtol=0, atol=1e-6 * np.abs(reference).max())
+
+
+@pytest.mark.parametrize(
+    ("n", "d", "rank", "dim"),
+    [
+        (50, 200, 49, 100),  # 50 samples: at most 49 directions of variance
+        (100, 40, 10, 30),  # samples in a 10-dimensional affine subspace
+        (30, 900, 10, 1024),  # Gram side, rank 10, asked for far more
+    ],
+)
+@pytest.mark.parametrize("solver", ["exact", "randomized"])
+def test_dim_is_capped_at_the_numerical_rank(n, d, rank, dim, solver):
+    rng = np.random.default_rng(rank)
+    basis = np.linalg.qr(rng.standard_normal((d, rank)))[0].T  # [rank, D]
+    x = (rng.standard_normal((n, rank)) * np.linspace(3, 1, rank)) @ basis + rng.normal(0, 4, d)
+    pca = fit_pca(x.astype(np.float32), dim, whiten=True, solver=solver)
+    assert pca.dim == min(rank, n - 1)
+    assert np.isfinite(pca.components).all() and (pca.explained_variance > 0).all()
+    y = pca.transform(x, normalize=False).astype(np.float64)
+    assert np.isfinite(y).all()
+    # Whitening of the kept axes is exact on the training data: unit variance each.
+    np.testing.assert_allclose(y.var(axis=0, ddof=1), 1.0, rtol=1e-3)
+    assert np.isfinite(pca.transform(rng.standard_normal((5, d)))).all()
+
+
+def test_identical_samples_cannot_be_fitted():
+    with pytest.raises(ValueError, match="all identical"):
+        fit_pca(np.ones((5, 3), np.float32), 2)
+
+
+def test_unknown_solver_is_named():
+    with pytest.raises(ValueError, match="'arpack'"):
+        fit_pca(anisotropic(20, 4), 2, solver="arpack")
+
+
+def test_exact_memory_estimate_counts_the_smaller_square():
+    # 17places shapes: 20,000 samples of 49,152 dims -> the 20,000^2 Gram matrix.
+    assert exact_pca_bytes(20000, 49152, 1024) == 8 * (
+        20000**2 + 2048 * 49152 + 20000 * 1024 + 1024 * 49152
+    )
+    assert exact_pca_bytes(49152, 20000, 1024) == exact_pca_bytes(20000, 49152, 1024) - 8 * (
+        1024 * 49152 - 1024 * 20000
+    )
