@@ -252,6 +252,20 @@ def test_list_dataset_missing_and_empty_folders(tmp_path):
         list_dataset(tmp_path, "toy", spec)
 
 
+def test_broken_link_or_folder_with_an_image_name_is_an_error_naming_it(tmp_path):
+    # Skipping it would shift every later reference index against the ground truth.
+    touch_images(tmp_path / "ds/ref", ["1.jpg", "3.jpg"])
+    touch_images(tmp_path / "ds/query", ["1.jpg"])
+    (tmp_path / "ds/ref/2.jpg").symlink_to(tmp_path / "gone.jpg")
+    with pytest.raises(ImageReadError, match=r"ref/2\.jpg") as error:
+        list_dataset(tmp_path, "toy", SPEC)
+    assert "broken link" in str(error.value)
+    (tmp_path / "ds/ref/2.jpg").unlink()
+    (tmp_path / "ds/ref/2.jpg").mkdir()
+    with pytest.raises(ImageReadError, match=r"ref/2\.jpg"):
+        list_dataset(tmp_path, "toy", SPEC)
+
+
 def test_paired_dataset_names_unpaired_files(tmp_path):
     spec = dict(SPEC, reference="vi", query="ir", paired=True)
     touch_images(tmp_path / "ds/vi", ["a.png", "b.png", "c.png"])
@@ -276,6 +290,21 @@ def test_read_8bit_rgb(tmp_path):
     image = read_image(tmp_path / "rgb.png")
     assert image.shape == (5, 7, 3) and image.dtype == np.float32
     np.testing.assert_allclose(image, pixels / 255.0, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize(("low", "high"), [(0.0, 255.0), (-0.5, 0.5)])
+def test_float_image_outside_unit_range_is_refused_naming_file_and_range(tmp_path, low, high):
+    # A 0-255 float TIFF used to be clipped to [0, 1]: 98% white, no error.
+    pixels = np.linspace(low, high, 20, dtype=np.float32).reshape(4, 5)
+    Image.fromarray(pixels, "F").save(tmp_path / "float.tif")
+    with pytest.raises(ImageReadError, match=rf"float\.tif.*\[{low:g}, {high:g}\]"):
+        read_image(tmp_path / "float.tif")
+
+
+def test_float_image_in_unit_range_is_read_as_is(tmp_path):
+    pixels = np.random.default_rng(3).uniform(0, 1, (4, 5)).astype(np.float32)
+    Image.fromarray(pixels, "F").save(tmp_path / "float.tif")
+    np.testing.assert_array_equal(read_image(tmp_path / "float.tif")[:, :, 1], pixels)
 
 
 def test_read_grayscale_is_repeated(tmp_path):

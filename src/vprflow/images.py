@@ -21,6 +21,7 @@ alpha channels are dropped.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -42,7 +43,16 @@ def _to_float(array: np.ndarray, path: Path) -> np.ndarray:
     if array.dtype == bool:
         return array.astype(np.float32)
     if np.issubdtype(array.dtype, np.floating):
-        return np.clip(array.astype(np.float32), 0.0, 1.0)
+        # A float image has no declared range; guessing one per image (0-1, 0-255,
+        # 0-65535) would scale two images of one dataset differently. Only [0, 1] is read.
+        low, high = float(np.nanmin(array)), float(np.nanmax(array))
+        if not (0.0 <= low and high <= 1.0):
+            raise ImageReadError(
+                f"{path}: floating-point image with values in [{low:g}, {high:g}]; only "
+                "float images in [0, 1] are read. Convert it to 8- or 16-bit integers, or "
+                "scale it to [0, 1]"
+            )
+        return array.astype(np.float32)
     raise ImageReadError(f"{path}: unsupported pixel type {array.dtype}")
 
 
@@ -139,10 +149,22 @@ def _resize_antialias(image: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def list_images(folder: str | Path) -> list[Path]:
-    """Image files directly inside ``folder``, natural order (``2.jpg`` before ``10.jpg``)."""
+    """Image files directly inside ``folder``, natural order (``2.jpg`` before ``10.jpg``).
+
+    An entry with an image suffix that is not a readable file (a broken symbolic link,
+    a folder named ``x.jpg``) is an error naming it: skipping it would shift every later
+    index against the ground truth.
+    """
     folder = Path(folder)
-    files = [p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES]
-    return sorted(files, key=lambda p: natural_key(p.name))
+    candidates = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+    unreadable = [p for p in candidates if not p.is_file() or not os.access(p, os.R_OK)]
+    if unreadable:
+        names = ", ".join(str(p) for p in sorted(unreadable)[:5])
+        raise ImageReadError(
+            f"{len(unreadable)} entr{'y' if len(unreadable) == 1 else 'ies'} in {folder} "
+            f"look like images but are not readable files (broken link? folder?): {names}"
+        )
+    return sorted(candidates, key=lambda p: natural_key(p.name))
 
 
 def natural_key(name: str) -> tuple:
