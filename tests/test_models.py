@@ -137,3 +137,37 @@ def test_resolve_dtype():
     with pytest.raises(ValueError, match="unknown dtype"):
         resolve_dtype("int8", cpu)
     assert resolve_dtype("float16", torch.device("cuda")) == torch.float16
+
+
+@pytest.mark.parametrize("damage", ["random", "truncated"])
+def test_corrupt_safetensors_names_the_directory_and_the_remedy(tiny_dir, tmp_path, damage):
+    from vprflow.models import ModelLoadError
+
+    broken = tmp_path / "broken"
+    shutil.copytree(tiny_dir, broken)
+    weights = broken / "model.safetensors"
+    data = weights.read_bytes()
+    weights.write_bytes(
+        torch.randint(0, 256, (len(data),), dtype=torch.uint8).numpy().tobytes()
+        if damage == "random"
+        else data[: len(data) // 2]
+    )
+    with pytest.raises(ModelLoadError) as error:
+        load_vit({"backbone": "dino", "model": str(broken)}, "cpu")
+    text = str(error.value)
+    assert str(broken) in text and "huggingface-cli download" in text
+
+
+def test_a_pickled_bin_checkpoint_is_refused_with_the_remedy(tiny_dir, tmp_path):
+    from vprflow.models import ModelLoadError
+
+    class Payload:
+        def __reduce__(self):
+            return (print, ("executed",))
+
+    pickled = tmp_path / "pickled"
+    pickled.mkdir()
+    shutil.copy(tiny_dir / "config.json", pickled / "config.json")
+    torch.save({"weights": Payload()}, pickled / "pytorch_model.bin")
+    with pytest.raises(ModelLoadError, match=r"pickled.*refused"):
+        load_vit({"backbone": "dino", "model": str(pickled)}, "cpu")

@@ -30,7 +30,7 @@ class ModelNotFoundError(FileNotFoundError):
     """A model that is neither a usable local directory nor obtainable from the hub."""
 
 
-def _not_found(model: str, reason: str, cache_dir: str | None) -> ModelNotFoundError:
+def model_not_found(model: str, reason: str, cache_dir: str | None) -> ModelNotFoundError:
     hub_id = model if _HUB_ID.match(model) else "<hub-id>"
     cache = f"cache_dir {cache_dir!r}" if cache_dir else "the default Hugging Face cache"
     return ModelNotFoundError(
@@ -68,13 +68,13 @@ def is_local_model(model: str) -> bool:
 def _check_local(model: str, cache_dir: str | None) -> str:
     path = Path(model).expanduser()
     if not path.exists():
-        raise _not_found(model, f"local directory {str(path)!r} does not exist", cache_dir)
+        raise model_not_found(model, f"local directory {str(path)!r} does not exist", cache_dir)
     if not path.is_dir():
-        raise _not_found(model, f"{str(path)!r} is not a directory", cache_dir)
+        raise model_not_found(model, f"{str(path)!r} is not a directory", cache_dir)
     if not (path / "config.json").is_file():
-        raise _not_found(model, f"directory {str(path)!r} has no config.json", cache_dir)
+        raise model_not_found(model, f"directory {str(path)!r} has no config.json", cache_dir)
     if not _weight_files(path):
-        raise _not_found(
+        raise model_not_found(
             model, f"directory {str(path)!r} has no *.safetensors or *.bin weights", cache_dir
         )
     return str(path.resolve())
@@ -105,7 +105,7 @@ def resolve_model_source(model: str, cache_dir: str | None = None) -> str:
     """
     model = str(model).strip()
     if not model:
-        raise _not_found(model, "empty model name", cache_dir)
+        raise model_not_found(model, "empty model name", cache_dir)
     if is_local_model(model):
         return _check_local(model, cache_dir)
 
@@ -122,12 +122,33 @@ def resolve_model_source(model: str, cache_dir: str | None = None) -> str:
         else:
             lines = str(error).strip().splitlines() or [""]
             reason = f"hub download failed ({type(error).__name__}: {lines[0]})"
-        raise _not_found(model, reason, cache_dir) from error
+        raise model_not_found(model, reason, cache_dir) from error
     if not (snapshot / "config.json").is_file() or not _weight_files(snapshot):
-        raise _not_found(
+        raise model_not_found(
             model, f"the cached snapshot {str(snapshot)!r} lacks config.json or weights", cache_dir
         )
     return str(snapshot)
+
+
+class ModelLoadError(ValueError):
+    """Model files that exist but cannot be loaded; the message names the directory."""
+
+
+def load_pretrained(load, source: str, model: str, **kwargs):
+    """``load(source, **kwargs)`` (a transformers ``from_pretrained``), with any failure
+    (corrupt or truncated safetensors, a refused ``*.bin`` pickle, a wrong architecture)
+    turned into a :class:`ModelLoadError` that names the directory and the remedy."""
+    try:
+        return load(source, **kwargs)
+    except Exception as error:  # loaders raise many unrelated types for a bad file
+        first = (str(error).strip().splitlines() or [""])[0][:300]
+        raise ModelLoadError(
+            f"model {model!r}: cannot load the files in {source} ({type(error).__name__}: "
+            f"{first}). They are corrupt, truncated, of another architecture, or *.bin "
+            "pickles that are refused (only plain tensors are read). Download the model "
+            "again (`huggingface-cli download <hub-id> --local-dir DIR`, safetensors "
+            "preferred) or set the config key `model` to an intact directory."
+        ) from error
 
 
 def _hash_file(digest, path: Path, chunk: int = 1 << 22) -> None:

@@ -443,12 +443,12 @@ def load_sam(params: dict, device: str = "auto") -> SamSegmenter:
     from transformers import SamModel
 
     from vprflow.devices import resolve_device, resolve_dtype
-    from vprflow.models import resolve_model_source
+    from vprflow.models import load_pretrained, resolve_model_source
 
     merged = sam_params(params)
     torch_device = resolve_device(device)
     dtype = resolve_dtype(merged["dtype"], torch_device)
     source = resolve_model_source(str(merged["model"]), merged["cache_dir"])
-    model = SamModel.from_pretrained(source)
+    model = load_pretrained(SamModel.from_pretrained, source, str(merged["model"]))
     model = model.to(device=torch_device, dtype=dtype).eval()
     return SamSegmenter(model, merged, torch_device, dtype)

@@ -48,7 +48,7 @@ from torch import nn
 
 from .backbones import center_crop_box
 from .devices import resolve_device, resolve_dtype
-from .models import resolve_model_source
+from .models import load_pretrained, resolve_model_source
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
@@ -303,7 +303,14 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
         )
     # DINO checkpoints carry no pooler; skipping it avoids a spurious random init.
     extra = {"add_pooling_layer": False} if config.model_type == "vit" else {}
-    model, info = AutoModel.from_pretrained(source, dtype=dtype, output_loading_info=True, **extra)
+    model, info = load_pretrained(
+        AutoModel.from_pretrained,
+        source,
+        str(model_name),
+        dtype=dtype,
+        output_loading_info=True,
+        **extra,
+    )
     # A checkpoint whose names the installed transformers cannot map would otherwise be
     # filled with random weights, and the features would be silently meaningless.
     missing = sorted(info.get("missing_keys") or [])
