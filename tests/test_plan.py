@@ -58,16 +58,65 @@ def test_shipped_methods_share_features_segments_vocabulary_and_pca(config):
         "features": 1,
         "segments": 1,
         "vocabulary": 1,
-        "pca": 1,
+        "pca": 2,  # one per neighbourhood order with PCA (segvlad_o0 and segvlad)
         "descriptors": 5,
         "recall": 5,
     }
 
 
-def test_order_reaches_only_descriptors_and_recall(config):
+def test_order_refits_pca_but_never_features_segments_or_vocabulary(config):
+    # Published: one PCA per neighbourhood order, fitted at the method's own order.
     changed = copy.deepcopy(config)
     changed["segvlad"]["order"] = 2
-    assert changed_stages(config, changed) == {"descriptors", "recall"}
+    assert changed_stages(config, changed) == {"pca", "descriptors", "recall"}
+    assert (
+        build_plan(changed).get("pca", keys_of(changed)["pca"]).params["params"]["fit_order"] == 2
+    )
+
+
+def test_fixed_fit_order_keeps_pca_when_the_order_changes(config):
+    fixed = copy.deepcopy(config)
+    fixed["pca"]["fit_order"] = 3
+    changed = copy.deepcopy(fixed)
+    changed["segvlad"]["order"] = 2
+    assert changed_stages(fixed, changed) == {"descriptors", "recall"}
+    # fit_order 3 is what `method` resolves to at the default order 3: same PCA store.
+    assert keys_of(fixed)["pca"] == keys_of(config)["pca"]
+
+
+@pytest.mark.parametrize(
+    ("section", "name", "value", "reaches"),
+    [
+        ("vocabulary", "centres", "unit", {"vocabulary", "pca", "descriptors", "recall"}),
+        ("vlad", "normalize_descriptors", False, {"pca", "descriptors", "recall"}),
+        ("pca", "solver", "randomized", {"pca", "descriptors", "recall"}),
+        ("segvlad", "vote_ranking", "all_images", {"recall"}),
+    ],
+)
+def test_published_default_options_reach_their_stages(config, section, name, value, reaches):
+    changed = copy.deepcopy(config)
+    changed[section][name] = value
+    assert changed_stages(config, changed) == reaches
+
+
+def test_pooling_normalization_reaches_only_pooling_descriptors(config):
+    changed = copy.deepcopy(config)
+    changed["pooling"]["normalization"] = "none"
+    a, b = keys_of(config, "roadscene", "gem"), keys_of(changed, "roadscene", "gem")
+    assert {stage for stage in a if a[stage] != b[stage]} == {"descriptors", "recall"}
+    assert keys_of(config, "roadscene", "snsm") == keys_of(changed, "roadscene", "snsm")
+
+
+def test_omitted_method_sections_take_the_schema_defaults(config):
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    for section in ("vocabulary", "vlad", "pca", "segvlad", "snsm", "pooling"):
+        del raw[section]
+    for entry in raw["backbones"].values():
+        entry.pop("resize", None)
+    filled = validate_config(raw, SCHEMA)
+    for section in ("vocabulary", "vlad", "pca", "segvlad", "snsm", "pooling"):
+        assert filled[section] == config[section], section
+    assert filled["backbones"]["daisy"]["resize"] == "linear"
 
 
 def test_segmenter_reaches_segments_pca_descriptors_recall(config):
@@ -209,3 +258,39 @@ def test_local_model_weights_are_in_the_key(config, tmp_path):
     ]
     assert keys[0] != keys[1]
     assert len(memo) == 2  # one content hash per version of the weights
+
+
+def test_missing_local_model_names_the_config_key_and_both_remedies(config, tmp_path):
+    missing = tmp_path / "no-such-dinov2"
+    config["backbones"]["dinov2_vitg14"]["model"] = str(missing)
+    with pytest.raises(PlanError) as error:
+        build_plan(config)
+    text = str(error.value)
+    assert "backbones.dinov2_vitg14.model" in text and str(missing) in text
+    assert "huggingface-cli download" in text and "local directory" in text
+
+
+def test_ground_truth_kinds_require_their_keys(config):
+    for kind, key in (("frame_window", "radius"), ("vprbench", "file")):
+        broken = copy.deepcopy(config)
+        broken["datasets"]["corridor"]["ground_truth"] = {"kind": kind}
+        with pytest.raises(ConfigError, match=f"datasets.corridor.ground_truth.*'{key}'"):
+            validate_config(broken, SCHEMA)
+
+
+def test_resolution_below_one_patch_names_the_config_key(config):
+    config["datasets"]["corridor"]["resolution"] = [4, 3]
+    with pytest.raises(PlanError, match=r"datasets.corridor.resolution = \[4, 3\].*8-pixel"):
+        build_plan(config)
+
+
+def test_corrupt_fingerprints_cache_is_named_ignored_and_rewritten_atomically(tmp_path):
+    from vprflow.plan import load_fingerprints, save_fingerprints
+
+    path = tmp_path / "fingerprints.json"
+    path.write_text('{"half": "writ')
+    with pytest.warns(UserWarning, match=r"fingerprints\.json is unreadable.*rebuilt"):
+        assert load_fingerprints(path) == {}
+    save_fingerprints({"a": "b"}, path)
+    assert load_fingerprints(path) == {"a": "b"}
+    assert [p.name for p in tmp_path.iterdir()] == ["fingerprints.json"]  # no temporary left

@@ -118,3 +118,58 @@ def test_pooling_rejects_bad_shapes(shape):
     for pool in (gem, average_pool, max_pool):
         with pytest.raises(ValueError):
             pool(np.zeros(shape, dtype=np.float32))
+
+
+# ------------------------------------------------- as the descriptors stage runs them
+
+
+def direct_channel_normalised(x):
+    """Each channel divided by (its L2 norm over all tokens + 1e-10), float64 loops."""
+    flat = np.asarray(x, dtype=np.float64).reshape(-1, x.shape[-1])
+    out = flat.copy()
+    for d in range(flat.shape[1]):
+        out[:, d] /= math.sqrt(sum(v * v for v in flat[:, d])) + 1e-10
+    return out
+
+
+@pytest.mark.parametrize("aggregator", ["gem", "average", "max"])
+def test_stage_pools_channel_normalised_tokens_by_default(aggregator):
+    """The SNSM authors' GeM / average / max baselines pool tokens normalised per
+    channel over the image (``normalize_tensor``), not the stored features."""
+    from vprflow.stages import global_aggregator
+
+    grid = tokens((4, 5, 6), seed=3) * 7.0
+    spec = {"aggregator": aggregator, "p": 3.0, "normalization": "channel"}
+    pooled = global_aggregator(spec, {})(grid)
+    normalised = direct_channel_normalised(grid)
+    expected = {
+        "gem": lambda: direct_gem(normalised, 3.0, 1e-6, "signed"),
+        "average": lambda: np.array([sum(c) / len(c) for c in columns(normalised)]),
+        "max": lambda: np.array([max(c) for c in columns(normalised)]),
+    }[aggregator]()
+    np.testing.assert_allclose(pooled, expected, rtol=1e-5, atol=1e-6)
+    raw = global_aggregator({**spec, "normalization": "none"}, {})(grid)
+    assert not np.allclose(raw, pooled, rtol=1e-3)
+
+
+def test_stage_vlad_normalises_each_patch_first(tmp_path):
+    """AnyLoc's VLAD (``norm_descs=True``) L2-normalises every patch before assignment
+    and residuals; float32 vs float64 loops, rtol 1e-4 / atol 1e-5."""
+    from test_vlad import direct_vlad
+
+    from vprflow import stores
+    from vprflow.stages import global_aggregator
+
+    rng = np.random.default_rng(5)
+    grid = (rng.standard_normal((3, 4, 8)) * rng.uniform(0.2, 5.0, (3, 4, 1))).astype(np.float32)
+    centres = rng.standard_normal((3, 8)).astype(np.float32)
+    path = str(tmp_path / "vocabulary.zarr")
+    with stores.atomic_store(path, {"stage": "vocabulary"}) as group:
+        stores.write_array(group, "centres", centres)
+    spec = {"aggregator": "anyloc_vlad", "normalize_descriptors": True}
+    vector = global_aggregator(spec, {"vocabulary": path})(grid)
+    raw = global_aggregator({**spec, "normalize_descriptors": False}, {"vocabulary": path})(grid)
+    flat = grid.reshape(-1, 8).astype(np.float64)
+    unit = flat / np.linalg.norm(flat, axis=1, keepdims=True)
+    np.testing.assert_allclose(vector, direct_vlad(unit, centres), rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(raw, direct_vlad(flat, centres), rtol=1e-4, atol=1e-5)

@@ -103,3 +103,18 @@ def test_c_centers_errors(tmp_path):
     torch.save(NotATensor(), tmp_path / "pickle.pt")
     with pytest.raises(PublishedDataError, match=r"pickle\.pt.*weights_only"):
         load_c_centers(tmp_path / "pickle.pt")
+
+
+def test_pickled_npy_vocabulary_is_refused_naming_the_file(tmp_path):
+    from vprflow.stages import load_centres_file
+
+    table = np.empty(2, dtype=object)
+    table[0], table[1] = [1.0, 2.0], [3.0, 4.0]
+    np.save(tmp_path / "centres.npy", table, allow_pickle=True)
+    with pytest.raises(ValueError, match=r"vocabulary.file .*centres\.npy.*np\.save"):
+        load_centres_file(str(tmp_path / "centres.npy"))
+    np.save(tmp_path / "flat.npy", np.arange(6.0))
+    with pytest.raises(ValueError, match=r"flat\.npy: expected numeric centres \[K, D\]"):
+        load_centres_file(str(tmp_path / "flat.npy"))
+    np.save(tmp_path / "ok.npy", np.ones((3, 4)))
+    assert load_centres_file(str(tmp_path / "ok.npy")).dtype == np.float32

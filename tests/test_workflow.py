@@ -52,9 +52,11 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     assert [r["method"] for r in rows] == METHODS
     header = list(rows[0])
     assert header[:2] == ["dataset", "method"]
-    assert header[-6:] == [
+    assert header[-8:] == [
+        "descriptor_dim",
         "ground_truth",
         "n_queries",
+        "n_short_rankings",
         "recall@1",
         "recall@5",
         "recall@10",
@@ -64,6 +66,9 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
         assert row["dataset"] == "toy"
         assert row["ground_truth"] == "vprbench:ground_truth_new.npy"
         assert row["n_queries"] == "10"
+        # Global methods rank every reference; SegVLAD only the voted ones.
+        assert row["n_short_rankings"] == "0" or row["aggregator"] == "segvlad"
+        assert 0 <= int(row["n_short_rankings"]) <= 10
         recalls = [float(row[f"recall@{n}"]) for n in (1, 5, 10, 20)]
         assert all(0.0 <= r <= 1.0 for r in recalls)
         assert recalls == sorted(recalls)
@@ -72,6 +77,10 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     assert by_method["segvlad_o0"]["segvlad.order"] == "0"
     assert by_method["segvlad_nopca"]["pca.enabled"] == "false"
     assert by_method["segvlad"]["pca.dim"] == "16"
+    # At most the asked 16: PCA is capped at its sample's numerical rank (order-3
+    # neighbourhoods of 10 small images repeat themselves).
+    assert 1 <= int(by_method["segvlad"]["descriptor_dim"]) <= 16
+    assert by_method["segvlad_nopca"]["descriptor_dim"] == str(4 * 208)  # K x daisy D
     assert by_method["anyloc_vlad"]["segvlad.order"] == ""  # not a parameter of that row
     # The toy places are distinctive: the classical pipeline must beat chance (3/10) clearly.
     assert float(by_method["anyloc_vlad"]["recall@1"]) >= 0.6
@@ -92,14 +101,15 @@ def test_every_rule_wrote_a_log(toy_run):
 def test_stages_are_shared_and_self_describing(toy_run):
     workdir, _ = toy_run
     cache = workdir / "results" / "cache"
-    counts = {stage.name: len(list(stage.glob("*.zarr"))) for stage in cache.iterdir()}
-    # Five methods share one features, segments, vocabulary and PCA store.
+    counts = {s.name: len(list(s.glob("*.zarr"))) for s in cache.iterdir() if s.is_dir()}
+    # Five methods share one features, segments and vocabulary store; PCA is fitted once
+    # per neighbourhood order that uses it (orders 0 and 3), as published.
     assert counts == {
         "dataset": 1,
         "features": 1,
         "segments": 1,
         "vocabulary": 1,
-        "pca": 1,
+        "pca": 2,
         "descriptors": 5,
         "recall": 5,
     }
@@ -109,11 +119,14 @@ def test_stages_are_shared_and_self_describing(toy_run):
     assert not list(cache.glob("*/*.tmp")), "temporary stores left behind"
 
 
-def test_changing_order_rebuilds_only_descriptors_and_recall(toy_run):
+def test_changing_order_rebuilds_pca_descriptors_and_recall_only(toy_run):
     workdir, config = toy_run
     changed = copy.deepcopy(config)
     changed["segvlad"]["order"] = 2
     path = write_config(workdir, changed, "order2.yaml")
+    assert scheduled_stages(workdir, path, TARGET) == {"pca", "descriptors", "recall", "report"}
+    changed["pca"]["fit_order"] = 3  # a fixed fit order keeps the order-3 PCA
+    path = write_config(workdir, changed, "order2_fit3.yaml")
     assert scheduled_stages(workdir, path, TARGET) == {"descriptors", "recall", "report"}
 
 
@@ -270,3 +283,67 @@ def test_unused_dataset_is_not_touched(tmp_path):
     config["datasets"]["absent"] = copy.deepcopy(config["datasets"]["toy"]) | {"path": "absent"}
     snakemake(tmp_path, write_config(tmp_path, config), "-n", TARGET)
     shutil.rmtree(tmp_path / "data")
+
+
+def test_a_failing_method_withdraws_the_previous_table(tmp_path):
+    """A good run, then a method that fails: the old table must not stay looking current."""
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = toy_config(tmp_path / "data")
+    config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
+    snakemake(tmp_path, write_config(tmp_path, config), TARGET)
+    assert (tmp_path / TARGET).exists()
+    # 10,000 clusters from 8 images' patches: the vocabulary stage fails.
+    config["methods"]["broken"] = {"aggregator": "anyloc_vlad", "vocabulary": {"n_clusters": 10000}}
+    config["datasets"]["toy"]["methods"] = ["anyloc_vlad", "broken"]
+    result = snakemake(tmp_path, write_config(tmp_path, config), TARGET, check=False)
+    assert result.returncode != 0
+    assert "vocabulary.n_clusters = 10000" in result.stdout + result.stderr
+    assert not (tmp_path / TARGET).exists()
+    assert not (tmp_path / "results" / "predictions_toy.csv").exists()
+    assert (tmp_path / (TARGET + ".stale")).exists()
+
+
+def test_moved_data_reruns_nothing_and_a_replaced_image_reruns_everything(tmp_path):
+    """The dataset key covers the images' contents, not their location."""
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = toy_config("data")  # relative to the working directory
+    config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
+    relative = write_config(tmp_path, config, "relative.yaml")
+    snakemake(tmp_path, relative, TARGET)
+    absolute = write_config(tmp_path, config | {"data_root": str(tmp_path / "data")}, "abs.yaml")
+    assert scheduled_stages(tmp_path, absolute, TARGET) == set()
+    snakemake(tmp_path, absolute, TARGET)  # a real run through the other path: nothing to do
+    assert scheduled_stages(tmp_path, relative, TARGET) == set()
+    (tmp_path / "data").rename(tmp_path / "moved")
+    moved = write_config(tmp_path, config | {"data_root": "moved"}, "moved.yaml")
+    assert scheduled_stages(tmp_path, moved, TARGET) == set()
+    # A different image with an older modification time (as `cp -p` or `tar` leave it).
+    ref = sorted((tmp_path / "moved" / "toy" / "ref").iterdir())
+    before = ref[0].stat()
+    shutil.copyfile(ref[1], ref[0])
+    os.utime(ref[0], ns=(before.st_atime_ns, before.st_mtime_ns - 10**9))
+    assert scheduled_stages(tmp_path, moved, TARGET) == {
+        "dataset",
+        "features",
+        "vocabulary",
+        "descriptors",
+        "recall",
+        "report",
+    }
+
+
+def test_pca_beyond_the_sample_rank_is_capped_and_reported(tmp_path):
+    """1024 components from a few dozen segment descriptors used to whiten zero-variance
+    axes by 1/sqrt(1e-300): inf in the PCA store, NaN descriptors, a believable table."""
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = toy_config(tmp_path / "data")
+    config["pca"]["dim"] = 1024
+    config["datasets"]["toy"]["methods"] = ["segvlad"]
+    snakemake(tmp_path, write_config(tmp_path, config), TARGET)
+    (row,) = read_rows(tmp_path / TARGET)
+    pca = zarr.open_group(str(next((tmp_path / "results/cache/pca").glob("*.zarr"))), mode="r")
+    n_samples = int(pca.attrs["n_samples"])
+    assert row["pca.dim"] == "1024" and pca.attrs["requested_dim"] == 1024
+    assert int(row["descriptor_dim"]) == int(pca.attrs["dim"]) < n_samples < 1024
+    assert np.isfinite(np.asarray(pca["explained_variance"][...])).all()
+    assert "capped" in "".join(p.read_text() for p in (tmp_path / "logs/pca").glob("*.log"))

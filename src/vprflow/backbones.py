@@ -32,7 +32,10 @@ def center_crop_box(height: int, width: int, patch: int) -> tuple[int, int, int,
     """
     crop_h, crop_w = (height // patch) * patch, (width // patch) * patch
     if crop_h == 0 or crop_w == 0:
-        raise ValueError(f"image {height}x{width} is smaller than one {patch}x{patch} patch")
+        raise ValueError(
+            f"input size {width}x{height} (width x height) is smaller than one {patch}x{patch} "
+            "patch: raise the dataset's `resolution` (or the backbone entry's)"
+        )
     return int(round((height - crop_h) / 2.0)), int(round((width - crop_w) / 2.0)), crop_h, crop_w
 
 

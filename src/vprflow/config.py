@@ -1,4 +1,12 @@
-"""Config validation: JSON schema (``config/schema.yaml``) plus defaults."""
+"""Config validation: JSON schema (``config/schema.yaml``) plus its defaults.
+
+The schema is the one place that states a setting's default: :func:`validate_config`
+fills every ``default`` it declares for top-level settings, the method sections
+(``vocabulary``, ``vlad``, ``pca``, ``segvlad``, ``snsm``, ``pooling``), each
+dataset and each backbone and segmenter entry. Method overrides and a dataset's
+``defaults`` stay partial on purpose: they are merged over the filled top-level
+sections (see :func:`vprflow.plan.resolve_method`).
+"""
 
 from __future__ import annotations
 
@@ -7,13 +15,12 @@ from pathlib import Path
 
 import yaml
 
+# Top-level sections that every method inherits and that may be omitted entirely.
+METHOD_DEFAULT_SECTIONS = ("vocabulary", "vlad", "pca", "segvlad", "snsm", "pooling")
+
 
 class ConfigError(ValueError):
     """Invalid configuration; the message names the key at fault."""
-
-
-DATASET_DEFAULTS = {"paired": False, "recall_at": [1, 5, 10, 20]}
-TOP_LEVEL_DEFAULTS = {"device": "auto", "shard_size": 0}
 
 
 def validate_config(config: dict, schema_path: str | Path) -> dict:
@@ -35,12 +42,23 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
             lines.append(f"  config key '{where}': {error.message}")
         raise ConfigError("invalid configuration:\n" + "\n".join(lines))
     config = copy.deepcopy(config)
-    for name, value in TOP_LEVEL_DEFAULTS.items():
-        config.setdefault(name, value)
+    _fill_defaults(config, schema)
+    for section in METHOD_DEFAULT_SECTIONS:
+        config[section] = config.get(section) or {}
+        _fill_defaults(config[section], schema["definitions"][section])
     for dataset in config["datasets"].values():
-        for name, value in DATASET_DEFAULTS.items():
-            dataset.setdefault(name, copy.deepcopy(value))
+        _fill_defaults(dataset, schema["definitions"]["dataset"])
+    for entries, definition in (("backbones", "backbone"), ("segmenters", "segmenter")):
+        for entry in config[entries].values():
+            _fill_defaults(entry, schema["definitions"][definition])
     return config
+
+
+def _fill_defaults(instance: dict, schema: dict) -> None:
+    """Set every property of ``schema`` that declares a ``default`` and is missing."""
+    for name, prop in schema.get("properties", {}).items():
+        if "default" in prop and name not in instance:
+            instance[name] = copy.deepcopy(prop["default"])
 
 
 def load_config(path: str | Path, schema_path: str | Path) -> dict:

@@ -15,19 +15,23 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
 CACHE = "results/cache"
+# Per-dataset tables written by the report rule.
+RECALL_CSV = "results/recall_{dataset}.csv"
+PREDICTIONS_CSV = "results/predictions_{dataset}.csv"
 
 FORMAT_VERSIONS = {
-    "dataset": 1,
-    "features": 2,  # 2: crop offsets round like torchvision
-    "segments": 1,
-    "vocabulary": 1,
-    "pca": 1,
-    "descriptors": 2,  # 2: crop_aligned uses the backbone's crop offsets
-    "recall": 1,
+    "dataset": 2,  # 2: paths relative to data_root, contents in the key
+    "features": 3,  # 2: crop offsets round like torchvision; 3: published resize, pos-embed
+    "segments": 2,  # 2: published (OpenCV INTER_LINEAR) resize
+    "vocabulary": 2,  # 2: `centres` (plain cluster means by default)
+    "pca": 2,  # 2: exact solver by default, capped at the numerical rank
+    "descriptors": 3,  # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm
+    "recall": 2,  # 2: published vote ranking (voted images only, first-appearance ties)
 }
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
@@ -60,6 +64,40 @@ def deep_merge(base: dict, override: dict) -> dict:
         else:
             merged[name] = copy.deepcopy(value)
     return merged
+
+
+FINGERPRINTS = f"{CACHE}/fingerprints.json"
+
+
+def load_fingerprints(path: str | Path = FINGERPRINTS) -> dict:
+    """The memo of content hashes (see :func:`_memoised`). It is only a cache: an
+    unreadable one is reported, ignored and rebuilt (hashing everything once more)."""
+    path = Path(path)
+    if not path.exists():
+        return {}
+    try:
+        memo = json.loads(path.read_text())
+        if not isinstance(memo, dict) or not all(isinstance(v, str) for v in memo.values()):
+            raise ValueError("not a JSON object of strings")
+        return memo
+    except (OSError, ValueError) as error:
+        import warnings
+
+        warnings.warn(
+            f"{path} is unreadable ({error}); it only caches content hashes, so it is "
+            "ignored and rebuilt (delete it to silence this)",
+            stacklevel=2,
+        )
+        return {}
+
+
+def save_fingerprints(memo: dict, path: str | Path = FINGERPRINTS) -> None:
+    """Write the memo atomically, so a concurrent or killed run never leaves half a file."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
+    tmp.write_text(json.dumps(memo, indent=1, sort_keys=True))
+    os.replace(tmp, path)
 
 
 def store_path(stage: str, key: str) -> str:
@@ -130,6 +168,33 @@ class Plan:
             ) from None
 
 
+def stale_reports(plan: Plan) -> list[Path]:
+    """Results tables on disk that do not describe the current config: one of the
+    dataset's recall stores is missing or newer than the table."""
+    stale = []
+    for dataset, runs in plan.runs.items():
+        tables = [Path(t.format(dataset=dataset)) for t in (RECALL_CSV, PREDICTIONS_CSV)]
+        for table in tables:
+            if not table.exists():
+                continue
+            built = table.stat().st_mtime
+            recalls = [Path(store_path("recall", run.recall_key)) for run in runs]
+            if any(not r.exists() or r.stat().st_mtime > built for r in recalls):
+                stale.append(table)
+    return stale
+
+
+def withdraw_stale_reports(plan: Plan) -> list[Path]:
+    """Rename every stale table to ``<name>.stale`` so that a failed run never leaves a
+    table that looks current; returns the new paths."""
+    moved = []
+    for table in stale_reports(plan):
+        target = table.with_name(table.name + ".stale")
+        table.replace(target)
+        moved.append(target)
+    return moved
+
+
 def _flatten(prefix: str, value, out: dict) -> None:
     if isinstance(value, dict):
         for name in sorted(value):
@@ -150,7 +215,16 @@ def _resolution(dataset: dict, profile: dict) -> list[int]:
     return list(profile["resolution"])
 
 
-METHOD_SECTIONS = ("features", "segmenter", "vocabulary", "pca", "segvlad", "snsm", "pooling")
+METHOD_SECTIONS = (
+    "features",
+    "segmenter",
+    "vocabulary",
+    "vlad",
+    "pca",
+    "segvlad",
+    "snsm",
+    "pooling",
+)
 
 # Model a backbone or segmenter entry uses when it names none.
 DEFAULT_MODELS = {
@@ -170,33 +244,76 @@ def resolve_method(config: dict, name: str, dataset: dict | None = None) -> dict
     return deep_merge(settings, config["methods"][name])
 
 
-def source_fingerprint(entry: dict, memo: dict) -> dict:
+def source_fingerprint(entry: dict, memo: dict, where: str = "") -> dict:
     """What identifies the weights or file a backbone/segmenter entry reads.
 
     Hub ids stand for themselves; local model directories and imported HDF5 files are
     hashed by content (memoised by path, size and modification time, because a
     ViT-G checkpoint takes seconds to hash and the plan is built on every run).
+    ``where`` is the entry's config key (``backbones.<name>``), named in errors.
     """
     kind = entry.get("backbone", entry.get("segmenter"))
     if kind == "import":
-        return {"file_sha256": _memoised(entry["file"], memo, file_digest)}
+        return {"file_sha256": _memoised(entry["file"], memo, file_digest, f"{where}.file")}
     if kind in DEFAULT_MODELS:
         from vprflow.models import is_local_model, weights_fingerprint
 
         model = entry.get("model", DEFAULT_MODELS[kind])
         if not is_local_model(model):
             return {"model": model, "weights": f"hf:{model}"}
-        return {"model": model, "weights": _memoised(model, memo, weights_fingerprint)}
+        if not Path(model).expanduser().exists():
+            from vprflow.models import model_not_found
+
+            raise PlanError(
+                f"config key {where}.model: "
+                + str(model_not_found(model, f"local directory {model!r} does not exist", None))
+            )
+        weights = _memoised(model, memo, weights_fingerprint, f"{where}.model")
+        return {"model": model, "weights": weights}
     return {}
 
 
-def _memoised(path: str, memo: dict, digest) -> str:
+def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str | None:
+    """SHA-256 over every image's and the ground-truth file's name and content hash, or
+    ``None`` while the dataset cannot be listed (its stage then fails, naming why).
+
+    Each file's hash is memoised by path, size, mtime and ctime, so re-planning reads no
+    image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
+    ``rsync -a`` or ``tar`` (which restore an older mtime).
+    """
+    from vprflow.datasets import DatasetError, ground_truth_files, list_dataset
+    from vprflow.images import ImageReadError
+
+    try:
+        files = list_dataset(data_root, name, spec)
+    except (DatasetError, ImageReadError):
+        return None
+    digest = hashlib.sha256()
+    for role, paths in (("reference", files.reference), ("query", files.query)):
+        for path in paths:
+            where = f"datasets.{name}.{role}"
+            digest.update(
+                f"{role}/{path.name}:{_memoised(path, memo, file_digest, where)}\n".encode()
+            )
+    for path in ground_truth_files(data_root, spec):
+        if path.exists():
+            where = f"datasets.{name}.ground_truth.file"
+            digest.update(
+                f"truth/{path.name}:{_memoised(path, memo, file_digest, where)}\n".encode()
+            )
+    return digest.hexdigest()[:32]
+
+
+def _memoised(path: str | Path, memo: dict, digest, where: str) -> str:
     target = Path(path)
     if not target.exists():
-        raise PlanError(f"{path} does not exist")
+        raise PlanError(f"config key {where}: {path} does not exist")
     files = sorted(target.iterdir()) if target.is_dir() else [target]
     stamp = "|".join(
-        f"{f.name}:{f.stat().st_size}:{f.stat().st_mtime_ns}" for f in files if f.is_file()
+        f"{f.name}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}"
+        for f in files
+        if f.is_file()
+        for st in (f.stat(),)
     )
     memo_key = f"{target.resolve()}|{stamp}"
     if memo_key not in memo:
@@ -217,6 +334,9 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
         dataset_params = {
             "name": dataset_name,
             **{k: dataset[k] for k in ("path", "reference", "query", "paired", "ground_truth")},
+            # What the images and ground truth hold, not where they are: replaced images
+            # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
+            "contents": dataset_contents(config["data_root"], dataset_name, dataset, memo),
         }
         dataset_key = plan.add("dataset", dataset_params, {}, dataset_name)
         plan.dataset_keys[dataset_name] = dataset_key
@@ -258,9 +378,20 @@ def _plan_method(
     ds = ("dataset", dataset_key)
     features_params = {
         **_hashed(backbone),
-        **source_fingerprint(backbone, memo),
+        **source_fingerprint(backbone, memo, f"backbones.{features_name}"),
         "resolution": _resolution(dataset, backbone),
     }
+    patch = backbone.get("patch_size")
+    if patch and min(features_params["resolution"]) < patch:
+        where = (
+            f"datasets.{dataset_name}.resolution"
+            if backbone.get("resolution", "dataset") == "dataset"
+            else f"backbones.{features_name}.resolution"
+        )
+        raise PlanError(
+            f"config key {where} = {features_params['resolution']} is smaller than one "
+            f"{patch}-pixel patch of backbone {features_name!r}"
+        )
     features_key = plan.add(
         "features",
         features_params,
@@ -277,7 +408,8 @@ def _plan_method(
         params = {k: v for k, v in vocabulary.items() if k != "file"}
         if vocabulary["source"] == "file":
             params.update(
-                file=vocabulary["file"], sha256=_memoised(vocabulary["file"], memo, file_digest)
+                file=vocabulary["file"],
+                sha256=_memoised(vocabulary["file"], memo, file_digest, "vocabulary.file"),
             )
         row.update(_prefixed("vocabulary", vocabulary))
         return (
@@ -290,7 +422,7 @@ def _plan_method(
         segmenter = _named_entry(config, "segmenters", segmenter_name, method_name)
         segments_params = {
             **_hashed(segmenter),
-            **source_fingerprint(segmenter, memo),
+            **source_fingerprint(segmenter, memo, f"segmenters.{segmenter_name}"),
             "resolution": _segment_resolution(dataset, segmenter),
         }
         sx = (
@@ -299,37 +431,46 @@ def _plan_method(
         )
         vx = vocabulary_stage()
         segvlad = method["segvlad"]
+        # What turns features and masks into segment VLAD vectors, at any order.
         graph = {k: segvlad[k] for k in ("mask_to_patch", "small_graph")}
+        graph.update(method["vlad"])
         inputs.update(segments=sx, vocabulary=vx)
         pca = method["pca"]
         if pca["enabled"]:
             pca_params = {**{k: v for k, v in pca.items() if k != "enabled"}, **graph}
+            # Published: a PCA per neighbourhood order, fitted at the method's own order.
+            if pca["fit_order"] == "method":
+                pca_params["fit_order"] = segvlad["order"]
             inputs["pca"] = ("pca", plan.add("pca", pca_params, dict(inputs), dataset_name))
             row.update(_prefixed("pca", pca))
         else:
             row["pca.enabled"] = False
+        row.update(_prefixed("vlad", method["vlad"]))
         descriptor_params = {"aggregator": "segvlad", "order": segvlad["order"], **graph}
         row.update(segmenter=segmenter_name, **_prefixed("segmenter", segmenter))
         row.update(_prefixed("segvlad", segvlad))
     elif aggregator == "anyloc_vlad":
         inputs["vocabulary"] = vocabulary_stage()
-        descriptor_params = {"aggregator": aggregator}
+        descriptor_params = {"aggregator": aggregator, **method["vlad"]}
+        row.update(_prefixed("vlad", method["vlad"]))
     elif aggregator == "snsm":
         descriptor_params = {"aggregator": aggregator, **method["snsm"]}
         row.update(_prefixed("snsm", method["snsm"]))
     else:
-        descriptor_params = {"aggregator": aggregator}
+        pooling = method["pooling"]
+        descriptor_params = {"aggregator": aggregator, "normalization": pooling["normalization"]}
+        row["pooling.normalization"] = pooling["normalization"]
         if aggregator == "gem":
-            descriptor_params["p"] = method["pooling"]["gem_p"]
-            row["pooling.gem_p"] = method["pooling"]["gem_p"]
+            descriptor_params["p"] = pooling["gem_p"]
+            row["pooling.gem_p"] = pooling["gem_p"]
     descriptors_key = plan.add("descriptors", descriptor_params, inputs, dataset_name)
+    is_segvlad = aggregator == "segvlad"
     recall_params = {
         "recall_at": dataset["recall_at"],
         "top_k": max(max(dataset["recall_at"]), 20),
-        "top_segments": method["segvlad"]["top_segments"] if aggregator == "segvlad" else None,
+        "top_segments": method["segvlad"]["top_segments"] if is_segvlad else None,
+        "vote_ranking": method["segvlad"]["vote_ranking"] if is_segvlad else None,
     }
-    if aggregator == "segvlad":
-        row["segvlad.top_segments"] = method["segvlad"]["top_segments"]
     recall_key = plan.add(
         "recall",
         recall_params,

@@ -29,7 +29,8 @@ log = logging.getLogger("vprflow")
 
 def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
     """List and decode every image once (so a corrupt file fails here, by name) and
-    store paths, sizes and ground truth."""
+    store paths (relative to ``data_root``, so the data folder may move), sizes and
+    ground truth. The absolute folder read is logged and kept in the attributes."""
     spec = params["params"]
     files = datasets.list_dataset(data_root, name, spec)
     folder = datasets.dataset_folder(data_root, spec)
@@ -42,12 +43,15 @@ def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
     with stores.atomic_store(out, {"stage": "dataset", "params": params}) as group:
         group.attrs.update(
             name=name,
+            data_root_at_build=str(Path(data_root).resolve()),
             n_reference=len(files.reference),
             n_query=len(files.query),
             ground_truth_rule=datasets.ground_truth_rule(spec["ground_truth"]),
             n_queries_with_positives=int((counts > 0).sum()),
         )
-        stores.write_array(group, "paths", np.array([str(p.resolve()) for p in paths]))
+        stores.write_array(
+            group, "paths", np.array([p.relative_to(data_root).as_posix() for p in paths])
+        )
         stores.write_array(group, "names", np.array([f"{p.parent.name}/{p.name}" for p in paths]))
         stores.write_array(group, "image_sizes", sizes)
         stores.write_array(
@@ -55,19 +59,26 @@ def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
         )
         stores.write_array(group, "truth_offsets", np.r_[0, np.cumsum(counts)].astype(np.int64))
     log.info(
-        "dataset %s: %d reference, %d query images", name, len(files.reference), len(files.query)
+        "dataset %s: %d reference, %d query images read from %s",
+        name,
+        len(files.reference),
+        len(files.query),
+        folder.resolve(),
     )
 
 
 class Dataset:
-    """Read-side view of a dataset store."""
+    """Read-side view of a dataset store. ``paths`` are the image files under
+    ``data_root`` (relative to it when none is given)."""
 
-    def __init__(self, path: str):
+    def __init__(self, path: str, data_root: str | None = None):
         self.group = stores.open_store(path)
         self.n_reference = int(self.group.attrs["n_reference"])
         self.n_query = int(self.group.attrs["n_query"])
         self.n_images = self.n_reference + self.n_query
-        self.paths = stores.read_strings(self.group, "paths")
+        relative = stores.read_strings(self.group, "paths")
+        root = Path(data_root) if data_root is not None else None
+        self.paths = [str(root / p) if root else p for p in relative]
         self.names = stores.read_strings(self.group, "names")
 
     def truth(self) -> list[np.ndarray]:
@@ -81,6 +92,23 @@ class Dataset:
             "query": np.arange(self.n_reference, self.n_images),
             "both": np.arange(self.n_images),
         }[which]
+
+
+def resolved_sources(spec: dict) -> dict[str, str]:
+    """The model directory or file a stage reads, as absolute paths (hub ids as they
+    are), for its log and attributes: a ``..`` or absolute path outside ``data_root``
+    is allowed, but never invisible."""
+    from vprflow.models import is_local_model
+
+    sources = {}
+    for name in ("model", "file"):
+        value = spec.get(name)
+        if value:
+            local = name == "file" or is_local_model(str(value))
+            sources[name] = str(Path(value).expanduser().resolve()) if local else str(value)
+    for name, value in sources.items():
+        log.info("reads %s %s", name, value)
+    return sources
 
 
 def shard_range(n_images: int, start: int | None, stop: int | None) -> range:
@@ -100,6 +128,7 @@ def compute_features(
     dataset_path: str,
     params: dict,
     out: str,
+    data_root: str,
     device: str = "auto",
     batch_size: int = 1,
     start: int | None = None,
@@ -107,12 +136,14 @@ def compute_features(
 ) -> None:
     """Dense patch descriptors ``features [n, h, w, D]`` of images ``start..stop``."""
     spec = params["params"]
-    dataset = Dataset(dataset_path)
+    dataset = Dataset(dataset_path, data_root)
+    log.info("reading images under %s", Path(data_root).resolve())
     images = shard_range(dataset.n_images, start, stop)
     width, height = spec["resolution"]
     store_dtype = np.dtype(spec.get("store_dtype", "float16"))
     extract, patch_size = _feature_extractor(spec, device, width, height)
-    with stores.atomic_store(out, _stage_attrs("features", params, images)) as group:
+    attrs = {**_stage_attrs("features", params, images), "sources": resolved_sources(spec)}
+    with stores.atomic_store(out, attrs) as group:
         array = None
         batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
         for batch in tqdm(batches, desc="features", unit="batch"):
@@ -135,7 +166,9 @@ def compute_features(
                     f"the first image's {array.shape[1:]}"
                 )
             start_row = batch.start - images.start
-            array[start_row : start_row + len(batch)] = grids.astype(store_dtype)
+            stored = grids.astype(store_dtype)
+            stores.check_finite(group, f"features of {dataset.paths[batch.start]}", stored)
+            array[start_row : start_row + len(batch)] = stored
 
 
 def _feature_extractor(spec: dict, device: str, width: int, height: int):
@@ -158,7 +191,9 @@ def _feature_extractor(spec: dict, device: str, width: int, height: int):
     backbone = load_backbone(spec, device)
 
     def run(paths):
-        pixels = np.stack([resize_image(read_image(p), width, height) for p in paths])
+        pixels = np.stack(
+            [resize_image(read_image(p), width, height, spec["resize"]) for p in paths]
+        )
         return backbone.features(pixels)
 
     return run, backbone.patch_size
@@ -176,16 +211,19 @@ def compute_segments(
     dataset_path: str,
     params: dict,
     out: str,
+    data_root: str,
     device: str = "auto",
     start: int | None = None,
     stop: int | None = None,
 ) -> None:
     """Bit-packed masks per image at the segmentation resolution (ragged ``masks``)."""
     spec = params["params"]
-    dataset = Dataset(dataset_path)
+    dataset = Dataset(dataset_path, data_root)
+    log.info("reading images under %s", Path(data_root).resolve())
     images = shard_range(dataset.n_images, start, stop)
     segment = _mask_source(spec, device)
-    with stores.atomic_store(out, _stage_attrs("segments", params, images)) as group:
+    attrs = {**_stage_attrs("segments", params, images), "sources": resolved_sources(spec)}
+    with stores.atomic_store(out, attrs) as group:
         writer, shape = None, None
         for i in tqdm(images, desc="segments", unit="image"):
             masks = segment(dataset.paths[i])
@@ -220,7 +258,9 @@ def _mask_source(spec: dict, device: str):
 
     segmenter = load_segmenter(spec, device)
     width, height = spec["resolution"]
-    return lambda path: segmenter.masks(resize_image(read_image(path), width, height))
+    return lambda path: segmenter.masks(
+        resize_image(read_image(path), width, height, spec["resize"])
+    )
 
 
 def read_masks(group, index: int) -> np.ndarray:
@@ -234,9 +274,22 @@ def read_masks(group, index: int) -> np.ndarray:
 
 
 def load_centres_file(path: str) -> np.ndarray:
-    """Centres ``[K, D]`` from a torch-saved ``c_centers.pt`` or a ``.npy`` file."""
+    """Centres ``[K, D]`` from a torch-saved ``c_centers.pt`` or a ``.npy`` file
+    (plain numbers only: a pickled object array is refused, naming the file)."""
     if path.endswith(".npy"):
-        return np.load(path, allow_pickle=False).astype(np.float32)
+        try:
+            centres = np.load(path, allow_pickle=False)
+        except ValueError as error:
+            raise ValueError(
+                f"vocabulary.file {path}: cannot load it without unpickling ({error}); save "
+                "the centres as a plain float array: np.save(path, centres.astype('float32'))"
+            ) from error
+        if centres.ndim != 2 or centres.dtype.kind not in "fiu":
+            raise ValueError(
+                f"vocabulary.file {path}: expected numeric centres [K, D], found "
+                f"{centres.dtype} {centres.shape}"
+            )
+        return centres.astype(np.float32)
     from vprflow.published import load_c_centers
 
     return load_c_centers(path)
@@ -249,6 +302,12 @@ def fit_vocabulary(dataset_path: str, features_path: str, params: dict, out: str
     spec = params["params"]
     if spec["source"] == "file":
         centres = load_centres_file(spec["file"])
+        dim = int(stores.open_store(features_path).attrs["dim"])
+        if centres.shape[1] != dim:
+            raise ValueError(
+                f"vocabulary.file {spec['file']}: centres have {centres.shape[1]} dimensions "
+                f"but the features have {dim}; the file belongs to another backbone or layer"
+            )
     else:
         dataset = Dataset(dataset_path)
         features = stores.open_store(features_path)
@@ -263,10 +322,23 @@ def fit_vocabulary(dataset_path: str, features_path: str, params: dict, out: str
         for i in tqdm(np.unique(owner), desc="vocabulary sample", unit="image"):
             grid = read_features(features, images[i]).reshape(per_image, -1)
             sample.append(grid[chosen[owner == i] % per_image])
+        sample = np.concatenate(sample)
+        if len(sample) < spec["n_clusters"]:
+            raise ValueError(
+                f"config key vocabulary.n_clusters = {spec['n_clusters']} is more than the "
+                f"{len(sample)} patch descriptors of the {spec['fit_on']} images "
+                f"({len(images)} images x {per_image} patches, max_descriptors "
+                f"{spec['max_descriptors']}): lower n_clusters"
+            )
         centres = fit_spherical_kmeans(
-            np.concatenate(sample), spec["n_clusters"], spec["n_iter"], spec["seed"]
+            sample,
+            spec["n_clusters"],
+            spec["n_iter"],
+            spec["seed"],
+            centres=spec["centres"],
         )
-    with stores.atomic_store(out, {"stage": "vocabulary", "params": params}) as group:
+    attrs = {"stage": "vocabulary", "params": params, "sources": resolved_sources(spec)}
+    with stores.atomic_store(out, attrs) as group:
         stores.write_array(group, "centres", centres.astype(np.float32))
 
 
@@ -277,10 +349,18 @@ def read_centres(path: str) -> np.ndarray:
 # ------------------------------------------------------------------ SegVLAD helpers
 
 
+def _vlad_input(grid: np.ndarray, spec: dict) -> np.ndarray:
+    """Patches as VLAD sees them: L2-normalised per patch unless the method says not
+    (AnyLoc's VLAD ``norm_descs=True``; stored float16 features are only nearly unit)."""
+    from vprflow.backbones import l2_normalize
+
+    return l2_normalize(grid) if spec["normalize_descriptors"] else grid
+
+
 def _segvlad_image(features, segments, centres, index, order, spec) -> np.ndarray:
     from vprflow.segvlad import image_segvlad
 
-    grid = read_features(features, index)
+    grid = _vlad_input(read_features(features, index), spec)
     height, width = features.attrs["image_size"]
     return image_segvlad(
         grid,
@@ -330,9 +410,12 @@ def fit_pca_stage(
             filled += len(rows)
     if sample is None:
         raise ValueError(f"{segments_path}: the reference images have no segments to fit PCA on")
-    fitted = fit_pca(sample, spec["dim"], spec["whiten"], spec["seed"])
+    fitted = fit_pca(sample, spec["dim"], spec["whiten"], spec["seed"], solver=spec["solver"])
     with stores.atomic_store(out, {"stage": "pca", "params": params}) as group:
-        group.attrs.update(whiten=fitted.whiten, n_samples=len(chosen))
+        # `dim` is the effective dimension: capped at the sample's numerical rank.
+        group.attrs.update(
+            whiten=fitted.whiten, n_samples=len(chosen), dim=fitted.dim, requested_dim=spec["dim"]
+        )
         stores.write_array(group, "mean", fitted.mean)
         stores.write_array(group, "components", fitted.components)
         stores.write_array(group, "explained_variance", fitted.explained_variance)
@@ -375,8 +458,8 @@ def compute_descriptors(
         segments = stores.open_store(inputs["segments"])
         centres = read_centres(inputs["vocabulary"])
         pca = read_pca(inputs["pca"]) if "pca" in inputs else None
-        dim = pca.components.shape[0] if pca else centres.size
-        with stores.atomic_store(out, {**attrs, "kind": "segments"}) as group:
+        dim = pca.dim if pca else centres.size
+        with stores.atomic_store(out, {**attrs, "kind": "segments", "dim": dim}) as group:
             writer = stores.RaggedWriter(
                 group, "descriptors", (dim,), np.float32, chunk_rows=max(1, (1 << 22) // (4 * dim))
             )
@@ -385,7 +468,7 @@ def compute_descriptors(
                 writer.append(pca.transform(vectors) if pca else vectors)
             writer.close()
         return
-    global_descriptor = _global_aggregator(spec, inputs)
+    global_descriptor = global_aggregator(spec, inputs)
     with stores.atomic_store(out, {**attrs, "kind": "global"}) as group:
         array = None
         for i in tqdm(images, desc=aggregator, unit="image"):
@@ -398,17 +481,19 @@ def compute_descriptors(
                     dtype=np.float32,
                     compressors=stores.COMPRESSOR,
                 )
+                group.attrs["dim"] = len(vector)
+            stores.check_finite(group, f"descriptors of {dataset.paths[i]}", vector)
             array[i - images.start] = vector
 
 
-def _global_aggregator(spec: dict, inputs: dict[str, str]):
+def global_aggregator(spec: dict, inputs: dict[str, str]):
     """``[h, w, D] -> [dim]`` for the configured global aggregator."""
     aggregator = spec["aggregator"]
     if aggregator == "anyloc_vlad":
         from vprflow.vlad import vlad
 
         centres = read_centres(inputs["vocabulary"])
-        return lambda grid: vlad(grid.reshape(-1, grid.shape[-1]), centres)
+        return lambda grid: vlad(_vlad_input(grid, spec).reshape(-1, grid.shape[-1]), centres)
     if aggregator == "snsm":
         from vprflow.snsm import snsm_descriptor
 
@@ -418,14 +503,17 @@ def _global_aggregator(spec: dict, inputs: dict[str, str]):
         }
         return lambda grid: snsm_descriptor(grid, **options)
     from vprflow import pooling
+    from vprflow.snsm import normalize_tokens
 
-    if aggregator == "gem":
-        return lambda grid: pooling.gem(grid, p=spec["p"])
-    if aggregator == "average":
-        return pooling.average_pool
-    if aggregator == "max":
-        return pooling.max_pool
-    raise ValueError(f"unknown aggregator {aggregator!r}")
+    pool = {
+        "gem": lambda tokens: pooling.gem(tokens, p=spec["p"]),
+        "average": pooling.average_pool,
+        "max": pooling.max_pool,
+    }.get(aggregator)
+    if pool is None:
+        raise ValueError(f"unknown aggregator {aggregator!r}")
+    # The SNSM authors pool tokens normalised like SNSM's own input (per channel).
+    return lambda grid: pool(normalize_tokens(grid, spec["normalization"]))
 
 
 # ------------------------------------------------------------------ shards
@@ -478,9 +566,8 @@ def evaluate(dataset_path: str, descriptors_path: str, params: dict, out: str) -
     from vprflow.retrieval import (
         global_ranking,
         image_of_segment,
-        rank_by_score,
         search,
-        segment_vote_scores,
+        vote_ranking,
     )
 
     spec = params["params"]
@@ -495,20 +582,32 @@ def evaluate(dataset_path: str, descriptors_path: str, params: dict, out: str) -
         reference, query = np.asarray(vectors[:split]), np.asarray(vectors[split:])
         distances, indices = search(reference, query, spec["top_segments"])
         owner = image_of_segment(offsets)
-        scores = segment_vote_scores(
-            distances, indices, owner[split:] - n_ref, owner[:split], n_query, n_ref
+        ranking = vote_ranking(
+            distances,
+            indices,
+            owner[split:] - n_ref,
+            owner[:split],
+            n_query,
+            n_ref,
+            top_k,
+            spec["vote_ranking"],
         )
-        ranking = rank_by_score(scores)[:, :top_k]
     else:
         vectors = np.asarray(group["descriptors"][...])
         ranking = global_ranking(vectors[:n_ref], vectors[n_ref:], top_k)
     truth = dataset.truth()
     # N beyond the number of references is kept: it equals Recall@n_ref.
     recalls = recall_at(ranking, truth, spec["recall_at"])
+    evaluated = np.array([len(t) > 0 for t in truth], dtype=bool)
+    ranked = (ranking >= 0).sum(axis=1)
     with stores.atomic_store(out, {"stage": "recall", "params": params}) as result:
         result.attrs.update(
             recall={str(n): v for n, v in recalls.items()},
-            n_queries=int(sum(len(t) > 0 for t in truth)),
+            n_queries=int(evaluated.sum()),
+            descriptor_dim=int(group.attrs["dim"]),
+            # Queries ranking fewer references than the largest N (or than all of them):
+            # SegVLAD ranks only voted images, and a missing rank counts as a miss.
+            n_short_rankings=int((evaluated & (ranked < min(max(spec["recall_at"]), n_ref))).sum()),
             ground_truth_rule=dataset.group.attrs["ground_truth_rule"],
         )
         stores.write_array(result, "ranking", ranking.astype(np.int64))
@@ -535,7 +634,8 @@ def write_report(
     results = [stores.open_store(p) for p in recall_paths]
     recall_columns = sorted({int(n) for r in results for n in r.attrs["recall"]})
     param_columns = sorted({name for run in runs for name in run["params"]})
-    header = ["dataset", "method", *param_columns, "ground_truth", "n_queries"]
+    header = ["dataset", "method", *param_columns, "descriptor_dim", "ground_truth"]
+    header += ["n_queries", "n_short_rankings"]
     header += [f"recall@{n}" for n in recall_columns]
     Path(csv_out).parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(csv_out).with_suffix(".csv.tmp")
@@ -547,7 +647,8 @@ def write_report(
             writer.writerow(
                 [dataset_name, run["method"]]
                 + [_cell(run["params"].get(name, "")) for name in param_columns]
-                + [result.attrs["ground_truth_rule"], result.attrs["n_queries"]]
+                + [result.attrs["descriptor_dim"], result.attrs["ground_truth_rule"]]
+                + [result.attrs["n_queries"], result.attrs["n_short_rankings"]]
                 + [f"{recall[str(n)]:.6f}" if str(n) in recall else "" for n in recall_columns]
             )
     tmp.replace(csv_out)
@@ -569,7 +670,7 @@ def write_report(
                         dataset.names[dataset.n_reference + q],
                         " ".join(map(str, truth[q])),
                         int(first[q]) + 1 if first[q] >= 0 else "",
-                        " ".join(map(str, ranking[q])),
+                        " ".join(map(str, ranking[q][ranking[q] >= 0])),
                     ]
                 )
     tmp.replace(predictions_out)

@@ -1,25 +1,31 @@
 # Config validation, the content-addressed plan, and the input functions every rule uses.
-import json
 from functools import cache
 from pathlib import Path
 
 from vprflow.config import validate_config
-from vprflow.datasets import ground_truth_files, list_dataset
-from vprflow.plan import CACHE, PlanError, build_plan
+from vprflow.datasets import list_dataset
+from vprflow.plan import (
+    CACHE,
+    PREDICTIONS_CSV,
+    RECALL_CSV,
+    PlanError,
+    build_plan,
+    load_fingerprints,
+    save_fingerprints,
+    withdraw_stale_reports,
+)
 
 
 configfile: "config/config.yaml"
 
 
 CONFIG = validate_config(config, Path(workflow.basedir) / "config" / "schema.yaml")
-# Content hashes of local model weights / imported files, memoised between runs.
-FINGERPRINTS = Path(CACHE) / "fingerprints.json"
-_memo = json.loads(FINGERPRINTS.read_text()) if FINGERPRINTS.exists() else {}
+# Content hashes of images, local model weights and imported files, memoised between runs.
+_memo = load_fingerprints()
 _memo_size = len(_memo)
 PLAN = build_plan(CONFIG, _memo)
 if len(_memo) != _memo_size:
-    FINGERPRINTS.parent.mkdir(parents=True, exist_ok=True)
-    FINGERPRINTS.write_text(json.dumps(_memo, indent=1, sort_keys=True))
+    save_fingerprints(_memo)
 # Backbones and segmenters that run a neural network (and so want a GPU).
 MODEL_KINDS = {"dinov2", "dino", "sam"}
 SHARDED = "features|segments|descriptors"
@@ -77,15 +83,11 @@ def dataset_files(name):
     return list_dataset(CONFIG["data_root"], name, dataset_spec(name))
 
 
-def dataset_inputs(wildcards):
-    """The dataset stage reads every image and the ground-truth file."""
-    name = planned("dataset", wildcards).dataset
-    files = dataset_files(name)
-    return [
-        *files.reference,
-        *files.query,
-        *ground_truth_files(CONFIG["data_root"], dataset_spec(name)),
-    ]
+def data_root_param(wildcards, output):
+    """Where the images are read from. A params function that takes `output` is not a
+    rerun trigger for Snakemake: moving the data folder changes no key, so it must
+    rebuild nothing (a dataset's key covers its contents)."""
+    return CONFIG["data_root"]
 
 
 def shard_ranges(name):

@@ -1,6 +1,6 @@
+# No file inputs: the key covers the images' and ground truth's contents (see
+# vprflow.plan.dataset_contents), and their location must not trigger a rerun.
 rule dataset:
-    input:
-        dataset_inputs,
     output:
         directory("results/cache/dataset/{key}.zarr"),
     log:
@@ -10,6 +10,6 @@ rule dataset:
     params:
         cfg=stage_params("dataset"),
         name=lambda wildcards: planned("dataset", wildcards).dataset,
-        data_root=CONFIG["data_root"],
+        data_root=data_root_param,
     script:
         "../scripts/dataset.py"

@@ -15,6 +15,7 @@ rule features:
     params:
         cfg=stage_params("features"),
         run=stage_run_params("features"),
+        data_root=data_root_param,
     script:
         "../scripts/features.py"
 

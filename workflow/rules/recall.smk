@@ -20,8 +20,8 @@ rule report:
     input:
         unpack(report_inputs),
     output:
-        csv="results/recall_{dataset}.csv",
-        predictions="results/predictions_{dataset}.csv",
+        csv=RECALL_CSV,
+        predictions=PREDICTIONS_CSV,
     log:
         "logs/report/{dataset}.log",
     conda:
@@ -35,3 +35,10 @@ rule report:
 # Writing two small CSV files is not worth a cluster job.
 localrules:
     report,
+
+
+# A failed run must not leave a results table that looks current (e.g. one method of
+# several failed): tables older than their recall stores are renamed to *.stale.
+onerror:
+    for table in withdraw_stale_reports(PLAN):
+        print(f"vprflow: {table} is out of date after the failure (renamed)")

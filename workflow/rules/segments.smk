@@ -15,5 +15,6 @@ rule segments:
     params:
         cfg=stage_params("segments"),
         run=stage_run_params("segments"),
+        data_root=data_root_param,
     script:
         "../scripts/segments.py"

@@ -8,6 +8,7 @@ run_stage(
         sm.input.dataset,
         sm.params.cfg,
         sm.output[0],
+        data_root=sm.params.data_root,
         device=sm.params.run["device"],
         start=int(sm.wildcards.start),
         stop=int(sm.wildcards.stop),
