@@ -52,10 +52,14 @@ def segment_vote_scores(
     segments in order within a rank) so that exact ties come out as published.
     Returns ``[n_query, n_ref]`` float64.
     """
-    weights = _vote_weights(distances)
+    votes = _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment)
+    return _add_votes(distances, votes, n_query, n_ref)
+
+
+def _add_votes(distances, votes, n_query: int, n_ref: int) -> np.ndarray:
+    rows, cols, order = votes
     scores = np.zeros((n_query, n_ref), dtype=np.float64)
-    rows, cols, order = _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment)
-    np.add.at(scores, (rows[order], cols[order]), weights.reshape(-1)[order])
+    np.add.at(scores, (rows[order], cols[order]), _vote_weights(distances).reshape(-1)[order])
     return scores
 
 
@@ -104,13 +108,12 @@ def vote_ranking(
     """
     if mode not in VOTE_RANKINGS:
         raise ValueError(f"unknown vote ranking {mode!r}; expected one of {VOTE_RANKINGS}")
-    scores = segment_vote_scores(
-        distances, indices, query_image_of_segment, ref_image_of_segment, n_query, n_ref
-    )
+    votes = _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment)
+    scores = _add_votes(distances, votes, n_query, n_ref)
     top = min(top, n_ref)
     if mode == "all_images":
         return rank_by_score(scores)[:, :top].astype(np.int64)
-    rows, cols, order = _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment)
+    rows, cols, order = votes
     first_seen = np.full((n_query, n_ref), np.iinfo(np.int64).max, dtype=np.int64)
     # Position of each vote in its query's rank-major reading; the minimum per image is
     # where it first appears.
