@@ -37,7 +37,12 @@ def test_roadscene_rgb_thermal_methods_beat_chance(tmp_path, data_root):
     # 50 pairs, one positive each: chance Recall@1 is 0.02, Recall@10 0.2.
     for method, row in rows.items():
         assert row["n_queries"] == "50" and row["ground_truth"] == "pairs"
-        assert float(row["recall@50"]) == 1.0, method
+        # Every reference is ranked, so @50 finds every pair, unless the method ranks
+        # only some images (SegVLAD's published voting) and says so.
+        if row["n_short_rankings"] == "0":
+            assert float(row["recall@50"]) == 1.0, method
+        else:
+            assert row["aggregator"] == "segvlad", method
     for method in ("snsm", "snsm_neg_l2", "anyloc_vlad", "anyloc_vlad_thermal"):
         assert float(rows[method]["recall@1"]) >= 0.15, method
         assert float(rows[method]["recall@10"]) >= 0.5, method
