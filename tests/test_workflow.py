@@ -47,7 +47,7 @@ def read_rows(path: Path) -> list[dict]:
 
 
 def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
-    workdir, _ = toy_run
+    workdir, config = toy_run
     rows = read_rows(workdir / TARGET)
     assert [r["method"] for r in rows] == METHODS
     header = list(rows[0])
@@ -80,7 +80,10 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     # At most the asked 16: PCA is capped at its sample's numerical rank (order-3
     # neighbourhoods of 10 small images repeat themselves).
     assert 1 <= int(by_method["segvlad"]["descriptor_dim"]) <= 16
-    assert by_method["segvlad_nopca"]["descriptor_dim"] == str(4 * 208)  # K x daisy D
+    daisy = config["backbones"]["daisy"]
+    daisy_dim = (daisy["rings"] * daisy["histograms"] + 1) * daisy["orientations"]
+    n_clusters = config["vocabulary"]["n_clusters"]
+    assert by_method["segvlad_nopca"]["descriptor_dim"] == str(n_clusters * daisy_dim)
     assert by_method["anyloc_vlad"]["segvlad.order"] == ""  # not a parameter of that row
     # The toy places are distinctive: the classical pipeline must beat chance (3/10) clearly.
     assert float(by_method["anyloc_vlad"]["recall@1"]) >= 0.6
