@@ -17,7 +17,8 @@ import time
 
 import numpy as np
 
-from vprflow.backbones import DaisyBackbone, l2_normalize
+from vprflow.arrays import l2_normalize
+from vprflow.backbones import DaisyBackbone
 from vprflow.pca import fit_pca
 from vprflow.retrieval import search, segment_vote_scores
 from vprflow.segmenters import SlicSegmenter

@@ -21,7 +21,7 @@ import torch
 from tiny_models import save_tiny_dino, save_tiny_dinov2
 from transformers import AutoModel, ViTModel
 
-from vprflow.backbones import center_crop_box
+from vprflow.arrays import center_crop_box
 from vprflow.vit import load_vit
 
 HIDDEN = 32

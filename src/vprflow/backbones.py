@@ -15,32 +15,13 @@ from typing import Protocol
 
 import numpy as np
 
+from vprflow.arrays import center_crop_box, l2_normalize
+
 
 class Backbone(Protocol):
     patch_size: int
 
     def features(self, batch: np.ndarray) -> np.ndarray: ...
-
-
-def center_crop_box(height: int, width: int, patch: int) -> tuple[int, int, int, int]:
-    """``(top, left, crop_height, crop_width)`` of the patch-multiple centre crop.
-
-    Offsets round like torchvision's ``CenterCrop`` (Python ``round``: half to even),
-    which the published pipelines used. Every backbone crops with this, and SegVLAD's
-    ``crop_aligned`` mask mapping shifts by the same offsets.
-    Raises ``ValueError`` when the image is smaller than one patch.
-    """
-    crop_h, crop_w = (height // patch) * patch, (width // patch) * patch
-    if crop_h == 0 or crop_w == 0:
-        raise ValueError(
-            f"input size {width}x{height} (width x height) is smaller than one {patch}x{patch} "
-            "patch: raise the dataset's `resolution` (or the backbone entry's)"
-        )
-    return int(round((height - crop_h) / 2.0)), int(round((width - crop_w) / 2.0)), crop_h, crop_w
-
-
-def l2_normalize(x: np.ndarray, axis: int = -1, eps: float = 1e-12) -> np.ndarray:
-    return x / np.maximum(np.linalg.norm(x, axis=axis, keepdims=True), eps)
 
 
 class DaisyBackbone:

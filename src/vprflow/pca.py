@@ -24,7 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from vprflow.backbones import l2_normalize
+from vprflow.arrays import l2_normalize
 
 log = logging.getLogger("vprflow")
 

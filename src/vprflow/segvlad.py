@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vprflow.arrays import center_offset
 from vprflow.vlad import vlad_per_region
 
 
@@ -67,9 +68,9 @@ def mask_patch_membership(
     masks = np.asarray(masks, dtype=bool)
     if len(masks) == 0:
         return np.zeros((0, h * w), dtype=bool)
-    # The grid's centre crop, rounded like backbones.center_crop_box.
-    top = int(round((height - h * patch_size) / 2)) if crop_aligned else 0
-    left = int(round((width - w * patch_size) / 2)) if crop_aligned else 0
+    # The grid's own centre crop (the backbone's, when the grid covers the image).
+    top = center_offset(height, h * patch_size) if crop_aligned else 0
+    left = center_offset(width, w * patch_size) if crop_aligned else 0
     rows, row_starts = _source_groups(height, masks.shape[1], h, patch_size, top)
     cols, col_starts = _source_groups(width, masks.shape[2], w, patch_size, left)
     cells = np.logical_or.reduceat(masks[:, rows], row_starts, axis=1)

@@ -178,7 +178,7 @@ def _feature_extractor(spec: dict, device: str, width: int, height: int):
     running a model (``<image file name>/ift_dino``).
     """
     if spec["backbone"] == "import":
-        from vprflow.backbones import l2_normalize
+        from vprflow.arrays import l2_normalize
         from vprflow.published import read_features_h5
 
         def read(paths):
@@ -352,7 +352,7 @@ def read_centres(path: str) -> np.ndarray:
 def _vlad_input(grid: np.ndarray, spec: dict) -> np.ndarray:
     """Patches as VLAD sees them: L2-normalised per patch unless the method says not
     (AnyLoc's VLAD ``norm_descs=True``; stored float16 features are only nearly unit)."""
-    from vprflow.backbones import l2_normalize
+    from vprflow.arrays import l2_normalize
 
     return l2_normalize(grid) if spec["normalize_descriptors"] else grid
 

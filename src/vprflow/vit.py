@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from .backbones import center_crop_box
+from .arrays import center_crop_box
 from .devices import resolve_device, resolve_dtype
 from .models import load_pretrained, resolve_model_source
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from vprflow.backbones import l2_normalize
+from vprflow.arrays import l2_normalize
 
 CENTRES = ("mean", "unit")
 
