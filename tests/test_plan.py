@@ -11,7 +11,7 @@ from workflow_helpers import REPO
 from vprflow.config import ConfigError, validate_config
 from vprflow.plan import PlanError, build_plan, content_key
 
-SCHEMA = REPO / "config" / "schema.yaml"
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 
 @pytest.fixture

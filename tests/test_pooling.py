@@ -132,15 +132,31 @@ def direct_channel_normalised(x):
     return out
 
 
+def features_store(tmp_path, grid: np.ndarray) -> str:
+    """A features store holding one image's float32 grid ``[h, w, D]``."""
+    from vprflow import stores
+
+    path = str(tmp_path / "features.zarr")
+    with stores.atomic_store(path, {"stage": "features"}) as group:
+        stores.write_array(group, "features", grid[None].astype(np.float32))
+    return path
+
+
+def image_descriptor(spec: dict, inputs: dict) -> np.ndarray:
+    """Image 0's descriptor through the aggregator's registry entry."""
+    from vprflow.registry import aggregator
+
+    return aggregator(spec["aggregator"]).descriptor_function(spec, inputs)(0)
+
+
 @pytest.mark.parametrize("aggregator", ["gem", "average", "max"])
-def test_stage_pools_channel_normalised_tokens_by_default(aggregator):
+def test_stage_pools_channel_normalised_tokens_by_default(aggregator, tmp_path):
     """The SNSM authors' GeM / average / max baselines pool tokens normalised per
     channel over the image (``normalize_tensor``), not the stored features."""
-    from vprflow.stages import global_aggregator
-
-    grid = tokens((4, 5, 6), seed=3) * 7.0
+    grid = (tokens((4, 5, 6), seed=3) * 7.0).astype(np.float32)
+    inputs = {"features": features_store(tmp_path, grid)}
     spec = {"aggregator": aggregator, "p": 3.0, "normalization": "channel"}
-    pooled = global_aggregator(spec, {})(grid)
+    pooled = image_descriptor(spec, inputs)
     normalised = direct_channel_normalised(grid)
     expected = {
         "gem": lambda: direct_gem(normalised, 3.0, 1e-6, "signed"),
@@ -148,7 +164,7 @@ def test_stage_pools_channel_normalised_tokens_by_default(aggregator):
         "max": lambda: np.array([max(c) for c in columns(normalised)]),
     }[aggregator]()
     np.testing.assert_allclose(pooled, expected, rtol=1e-5, atol=1e-6)
-    raw = global_aggregator({**spec, "normalization": "none"}, {})(grid)
+    raw = image_descriptor({**spec, "normalization": "none"}, inputs)
     assert not np.allclose(raw, pooled, rtol=1e-3)
 
 
@@ -158,7 +174,6 @@ def test_stage_vlad_normalises_each_patch_first(tmp_path):
     from test_vlad import direct_vlad
 
     from vprflow import stores
-    from vprflow.stages import global_aggregator
 
     rng = np.random.default_rng(5)
     grid = (rng.standard_normal((3, 4, 8)) * rng.uniform(0.2, 5.0, (3, 4, 1))).astype(np.float32)
@@ -167,8 +182,9 @@ def test_stage_vlad_normalises_each_patch_first(tmp_path):
     with stores.atomic_store(path, {"stage": "vocabulary"}) as group:
         stores.write_array(group, "centres", centres)
     spec = {"aggregator": "anyloc_vlad", "normalize_descriptors": True}
-    vector = global_aggregator(spec, {"vocabulary": path})(grid)
-    raw = global_aggregator({**spec, "normalize_descriptors": False}, {"vocabulary": path})(grid)
+    inputs = {"vocabulary": path, "features": features_store(tmp_path, grid)}
+    vector = image_descriptor(spec, inputs)
+    raw = image_descriptor({**spec, "normalize_descriptors": False}, inputs)
     flat = grid.reshape(-1, 8).astype(np.float64)
     unit = flat / np.linalg.norm(flat, axis=1, keepdims=True)
     np.testing.assert_allclose(vector, direct_vlad(unit, centres), rtol=1e-4, atol=1e-5)

@@ -106,7 +106,7 @@ def test_c_centers_errors(tmp_path):
 
 
 def test_pickled_npy_vocabulary_is_refused_naming_the_file(tmp_path):
-    from vprflow.stages import load_centres_file
+    from vprflow.stages.vocabulary import load_centres_file
 
     table = np.empty(2, dtype=object)
     table[0], table[1] = [1.0, 2.0], [3.0, 4.0]

@@ -97,6 +97,7 @@ def test_toy_workflow_through_sbatch_matches_local_run(slurm_cluster, tmp_path):
         "--snakefile", str(local_snakefile),
         "--directory", str(local_dir),
         "--profile", str(REPO / "workflow" / "profiles" / "default"),
+        "--cores", "2",
     ]  # fmt: skip
     local_out, local_seconds = run_snakemake(local_cmd, cwd=local_dir)
 

@@ -96,9 +96,31 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
 def test_every_rule_wrote_a_log(toy_run):
     workdir, _ = toy_run
     for stage in ("dataset", "features", "segments", "vocabulary", "pca", "descriptors", "recall"):
-        logs = list((workdir / "logs" / stage).glob("*.log"))
+        logs = list((workdir / "logs" / stage).glob("*/*.log"))
         assert logs, f"no log for {stage}"
     assert (workdir / "logs" / "report" / "toy.log").exists()
+
+
+def test_index_and_log_links_name_the_dataset_and_methods(toy_run):
+    """results/cache/index.tsv maps every store to its stage, dataset and methods, and
+    logs/by-method/<dataset>/<method>/<stage> leads to that store's logs."""
+    workdir, _ = toy_run
+    with open(workdir / "results" / "cache" / "index.tsv") as f:
+        rows = list(csv.DictReader(f, delimiter="\t"))
+    by_key = {(r["stage"], r["key"]): r for r in rows}
+    for stage, key in by_key:
+        assert (workdir / by_key[stage, key]["store"]).is_dir(), (stage, key)
+    features = [r for r in rows if r["stage"] == "features"]
+    assert len(features) == 1 and features[0]["dataset"] == "toy"
+    assert features[0]["methods"].split(",") == sorted(METHODS)  # one backbone, shared
+    pcas = {r["methods"] for r in rows if r["stage"] == "pca"}
+    assert pcas == {"segvlad_o0", "segvlad"}  # a PCA per order
+    for method in METHODS:
+        recall_log = workdir / "logs" / "by-method" / "toy" / method / "recall"
+        assert list(recall_log.glob("*.log")), method
+    link = workdir / "logs" / "by-method" / "toy" / "segvlad" / "pca"
+    (pca_row,) = [r for r in rows if r["stage"] == "pca" and r["methods"] == "segvlad"]
+    assert link.resolve() == (workdir / pca_row["logs"]).resolve()
 
 
 def test_stages_are_shared_and_self_describing(toy_run):
@@ -349,4 +371,4 @@ def test_pca_beyond_the_sample_rank_is_capped_and_reported(tmp_path):
     assert row["pca.dim"] == "1024" and pca.attrs["requested_dim"] == 1024
     assert int(row["descriptor_dim"]) == int(pca.attrs["dim"]) < n_samples < 1024
     assert np.isfinite(np.asarray(pca["explained_variance"][...])).all()
-    assert "capped" in "".join(p.read_text() for p in (tmp_path / "logs/pca").glob("*.log"))
+    assert "capped" in "".join(p.read_text() for p in (tmp_path / "logs/pca").glob("*/*.log"))

@@ -6,7 +6,8 @@ grid of patch descriptors ``[B, h, w, D]`` with ``h = H // patch_size`` and
 
 ``daisy`` is weight-free: scikit-image's dense DAISY sampled at the centre of every
 patch, a classical dense-VLAD baseline. ``dinov2`` and ``dino`` are the foundation
-models of the published pipelines (``vprflow.vit``).
+models of the published pipelines (``vprflow.vit``); :mod:`vprflow.registry` says
+which loader builds which kind.
 """
 
 from __future__ import annotations
@@ -16,6 +17,9 @@ from typing import Protocol
 import numpy as np
 
 from vprflow.arrays import center_crop_box, l2_normalize
+from vprflow.registry import BACKBONES, with_defaults
+
+_DAISY = BACKBONES["daisy"].defaults
 
 
 class Backbone(Protocol):
@@ -33,11 +37,11 @@ class DaisyBackbone:
 
     def __init__(
         self,
-        patch_size: int = 8,
-        radius: int = 12,
-        rings: int = 2,
-        histograms: int = 6,
-        orientations: int = 8,
+        patch_size: int = _DAISY["patch_size"],
+        radius: int = _DAISY["radius"],
+        rings: int = _DAISY["rings"],
+        histograms: int = _DAISY["histograms"],
+        orientations: int = _DAISY["orientations"],
         normalize: bool = True,
     ):
         if radius < patch_size // 2:
@@ -80,14 +84,8 @@ class DaisyBackbone:
         return np.stack([self._one(image) for image in batch])
 
 
-def load_backbone(params: dict, device: str = "auto") -> Backbone:
-    """Build the backbone named by ``params['backbone']`` (``daisy``, ``dinov2``, ``dino``)."""
-    name = params["backbone"]
-    if name == "daisy":
-        keys = ("patch_size", "radius", "rings", "histograms", "orientations", "normalize")
-        return DaisyBackbone(**{k: params[k] for k in keys if k in params})
-    if name in ("dinov2", "dino"):
-        from vprflow.vit import load_vit
-
-        return load_vit(params, device)
-    raise ValueError(f"unknown backbone {name!r} (expected daisy, dinov2 or dino)")
+def load_daisy(params: dict, device: str = "auto") -> DaisyBackbone:
+    """A :class:`DaisyBackbone` from a ``daisy`` config entry (``device`` is unused)."""
+    params = with_defaults("features", params)
+    keys = ("patch_size", "radius", "rings", "histograms", "orientations", "normalize")
+    return DaisyBackbone(**{k: params[k] for k in keys if k in params})

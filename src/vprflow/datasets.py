@@ -1,4 +1,4 @@
-"""Place datasets: folder layouts, image lists and ground truth.
+"""Place datasets: folder layouts, image lists and ground truth (docs/methods.md §9).
 
 A dataset is a reference folder and a query folder under ``<data_root>/<path>``
 (VPR-Bench layout: ``ref/`` and ``query/``; paired RGB-thermal layout: ``vi/`` and

@@ -1,4 +1,4 @@
-"""PCA (optionally whitened) fitted on descriptors and stored as plain arrays.
+"""PCA (optionally whitened) fitted on descriptors, as plain arrays (docs/methods.md §5).
 
 A fitted PCA is ``mean [D]``, ``components [d, D]`` (rows = principal axes, by
 decreasing variance) and ``explained_variance [d]``; projection is

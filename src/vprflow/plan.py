@@ -19,6 +19,9 @@ import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vprflow.config import METHOD_DEFAULT_SECTIONS
+from vprflow.registry import aggregator, model_kind
+
 CACHE = "results/cache"
 # Per-dataset tables written by the report rule.
 RECALL_CSV = "results/recall_{dataset}.csv"
@@ -35,7 +38,7 @@ FORMAT_VERSIONS = {
 }
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
-EXECUTION_ONLY = ("batch_size",)
+EXECUTION_ONLY = ("batch_size", "cache_dir")
 
 
 class PlanError(ValueError):
@@ -101,7 +104,33 @@ def save_fingerprints(memo: dict, path: str | Path = FINGERPRINTS) -> None:
 
 
 def store_path(stage: str, key: str) -> str:
-    return f"{CACHE}/{stage}/{key}.zarr"
+    return store_pattern(stage).format(key=key)
+
+
+# Where everything lives. Rules take their outputs and logs from these, input functions
+# their inputs: one place decides each path.
+def store_pattern(stage: str) -> str:
+    """A stage's store, wildcard ``{key}``."""
+    return f"{CACHE}/{stage}/{{key}}.zarr"
+
+
+def shard_pattern(stage: str) -> str:
+    """One shard of a per-image stage, wildcards ``{key}``, ``{start}``, ``{stop}``."""
+    return f"{CACHE}/{stage}/{{key}}.shards/{{start}}-{{stop}}.zarr"
+
+
+def log_pattern(stage: str, part: str = "{stage}") -> str:
+    """A stage's log: every log of one store (its shards, its gather) in one folder,
+    ``logs/<stage>/<key>/``; ``logs/by-method/`` links to them by dataset and method."""
+    return f"logs/{stage}/{{key}}/{part.replace('{stage}', stage)}.log"
+
+
+def benchmark_pattern(stage: str, part: str = "{stage}") -> str:
+    """A stage's benchmark table, next to its log."""
+    return log_pattern(stage, part).removesuffix(".log") + ".benchmark.tsv"
+
+
+INDEX = f"{CACHE}/index.tsv"
 
 
 @dataclass
@@ -168,31 +197,83 @@ class Plan:
             ) from None
 
 
-def stale_reports(plan: Plan) -> list[Path]:
+def stale_reports(plan: Plan, root: str = "") -> list[Path]:
     """Results tables on disk that do not describe the current config: one of the
-    dataset's recall stores is missing or newer than the table."""
+    dataset's recall stores is missing or newer than the table. ``root`` is the
+    prefix of every path (a host workflow's module ``prefix``)."""
     stale = []
     for dataset, runs in plan.runs.items():
-        tables = [Path(t.format(dataset=dataset)) for t in (RECALL_CSV, PREDICTIONS_CSV)]
+        tables = [Path(root) / t.format(dataset=dataset) for t in (RECALL_CSV, PREDICTIONS_CSV)]
         for table in tables:
             if not table.exists():
                 continue
             built = table.stat().st_mtime
-            recalls = [Path(store_path("recall", run.recall_key)) for run in runs]
+            recalls = [Path(root) / store_path("recall", run.recall_key) for run in runs]
             if any(not r.exists() or r.stat().st_mtime > built for r in recalls):
                 stale.append(table)
     return stale
 
 
-def withdraw_stale_reports(plan: Plan) -> list[Path]:
+def withdraw_stale_reports(plan: Plan, root: str = "") -> list[Path]:
     """Rename every stale table to ``<name>.stale`` so that a failed run never leaves a
     table that looks current; returns the new paths."""
     moved = []
-    for table in stale_reports(plan):
+    for table in stale_reports(plan, root):
         target = table.with_name(table.name + ".stale")
         table.replace(target)
         moved.append(target)
     return moved
+
+
+def stage_users(plan: Plan) -> dict[tuple[str, str], set[tuple[str, str]]]:
+    """``(stage, key) -> {(dataset, method)}``: which rows of which tables use a store."""
+    users: dict[tuple[str, str], set[tuple[str, str]]] = {}
+
+    def visit(stage: str, key: str, row: tuple[str, str]) -> None:
+        users.setdefault((stage, key), set()).add(row)
+        for upstream in plan.get(stage, key).inputs.values():
+            visit(*upstream, row)
+
+    for dataset, runs in plan.runs.items():
+        for run in runs:
+            visit("recall", run.recall_key, (dataset, run.method))
+    return users
+
+
+def write_index(plan: Plan, root: str = "") -> Path:
+    """``<root>results/cache/index.tsv``: every store of the current config with its
+    stage, key, dataset, the methods using it and its log folder; and
+    ``<root>logs/by-method/<dataset>/<method>/<stage>`` links to those log folders.
+    Written atomically and only when changed; links are replaced, never half made."""
+    users = stage_users(plan)
+    lines = ["stage\tkey\tdataset\tmethods\tstore\tlogs"]
+    for (stage, key), rows in sorted(users.items()):
+        datasets = sorted({d for d, _ in rows})
+        methods = sorted({m for _, m in rows})
+        logs = str(Path(log_pattern(stage).format(key=key)).parent)
+        lines.append(
+            "\t".join(
+                [stage, key, ",".join(datasets), ",".join(methods), store_path(stage, key), logs]
+            )
+        )
+        for dataset, method in rows:
+            link = Path(root) / "logs" / "by-method" / dataset / method / stage
+            link.parent.mkdir(parents=True, exist_ok=True)
+            target = os.path.relpath(Path(root) / logs, link.parent)
+            if link.is_symlink() and os.readlink(link) == target:
+                continue
+            tmp = link.with_name(f".{stage}.{os.getpid()}.tmp")
+            tmp.unlink(missing_ok=True)
+            tmp.symlink_to(target, target_is_directory=True)
+            os.replace(tmp, link)
+    index = Path(root) / INDEX
+    index.parent.mkdir(parents=True, exist_ok=True)
+    text = "\n".join(lines) + "\n"
+    if not index.exists() or index.read_text() != text:
+        tmp = index.with_name(f"{index.name}.{os.getpid()}.tmp")
+        tmp.write_text(text)
+        os.replace(tmp, index)
+    return index
 
 
 def _flatten(prefix: str, value, out: dict) -> None:
@@ -215,23 +296,8 @@ def _resolution(dataset: dict, profile: dict) -> list[int]:
     return list(profile["resolution"])
 
 
-METHOD_SECTIONS = (
-    "features",
-    "segmenter",
-    "vocabulary",
-    "vlad",
-    "pca",
-    "segvlad",
-    "snsm",
-    "pooling",
-)
-
-# Model a backbone or segmenter entry uses when it names none.
-DEFAULT_MODELS = {
-    "dinov2": "facebook/dinov2-giant",
-    "dino": "facebook/dino-vitb8",
-    "sam": "facebook/sam-vit-huge",
-}
+# What a method inherits: its backbone and segmenter entry names, then the sections.
+METHOD_SECTIONS = ("features", "segmenter", *METHOD_DEFAULT_SECTIONS)
 
 
 def resolve_method(config: dict, name: str, dataset: dict | None = None) -> dict:
@@ -244,21 +310,22 @@ def resolve_method(config: dict, name: str, dataset: dict | None = None) -> dict
     return deep_merge(settings, config["methods"][name])
 
 
-def source_fingerprint(entry: dict, memo: dict, where: str = "") -> dict:
-    """What identifies the weights or file a backbone/segmenter entry reads.
+def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> dict:
+    """What identifies the weights or file a backbone (``stage="features"``) or
+    segmenter (``stage="segments"``) entry reads, as its registry kind says.
 
     Hub ids stand for themselves; local model directories and imported HDF5 files are
     hashed by content (memoised by path, size and modification time, because a
     ViT-G checkpoint takes seconds to hash and the plan is built on every run).
     ``where`` is the entry's config key (``backbones.<name>``), named in errors.
     """
-    kind = entry.get("backbone", entry.get("segmenter"))
-    if kind == "import":
+    kind = model_kind(stage, entry)
+    if kind.weights == "file":
         return {"file_sha256": _memoised(entry["file"], memo, file_digest, f"{where}.file")}
-    if kind in DEFAULT_MODELS:
+    if kind.weights == "model":
         from vprflow.models import is_local_model, weights_fingerprint
 
-        model = entry.get("model", DEFAULT_MODELS[kind])
+        model = entry["model"]
         if not is_local_model(model):
             return {"model": model, "weights": f"hf:{model}"}
         if not Path(model).expanduser().exists():
@@ -372,13 +439,14 @@ def _named_entry(config: dict, section: str, name: str, method_name: str) -> dic
 def _plan_method(
     plan, config, dataset_name, dataset, dataset_key, method_name, method, execution, memo
 ):
-    aggregator = method["aggregator"]
+    """Plan one method's stages (as its registry entry needs them) and its CSV row."""
+    agg = aggregator(method["aggregator"])
     features_name = method["features"]
     backbone = _named_entry(config, "backbones", features_name, method_name)
     ds = ("dataset", dataset_key)
     features_params = {
         **_hashed(backbone),
-        **source_fingerprint(backbone, memo, f"backbones.{features_name}"),
+        **source_fingerprint("features", backbone, memo, f"backbones.{features_name}"),
         "resolution": _resolution(dataset, backbone),
     }
     patch = backbone.get("patch_size")
@@ -400,76 +468,64 @@ def _plan_method(
         {**execution, "batch_size": backbone.get("batch_size", 1)},
     )
     fx = ("features", features_key)
-    row = {"aggregator": aggregator, "features": features_name, **_prefixed("features", backbone)}
+    row = {"aggregator": agg.name, "features": features_name, **_prefixed("features", backbone)}
     inputs = {"dataset": ds, "features": fx}
-
-    def vocabulary_stage():
-        vocabulary = method["vocabulary"]
-        params = {k: v for k, v in vocabulary.items() if k != "file"}
-        if vocabulary["source"] == "file":
-            params.update(
-                file=vocabulary["file"],
-                sha256=_memoised(vocabulary["file"], memo, file_digest, "vocabulary.file"),
+    options = agg.options(method)
+    for stage in agg.needs:
+        if stage == "segments":
+            segmenter_name = method["segmenter"]
+            segmenter = _named_entry(config, "segmenters", segmenter_name, method_name)
+            params = {
+                **_hashed(segmenter),
+                **source_fingerprint("segments", segmenter, memo, f"segmenters.{segmenter_name}"),
+                "resolution": _segment_resolution(dataset, segmenter),
+            }
+            inputs["segments"] = (
+                "segments",
+                plan.add("segments", params, {"dataset": ds}, dataset_name, execution),
             )
-        row.update(_prefixed("vocabulary", vocabulary))
-        return (
-            "vocabulary",
-            plan.add("vocabulary", params, {"dataset": ds, "features": fx}, dataset_name),
-        )
-
-    if aggregator == "segvlad":
-        segmenter_name = method["segmenter"]
-        segmenter = _named_entry(config, "segmenters", segmenter_name, method_name)
-        segments_params = {
-            **_hashed(segmenter),
-            **source_fingerprint(segmenter, memo, f"segmenters.{segmenter_name}"),
-            "resolution": _segment_resolution(dataset, segmenter),
-        }
-        sx = (
-            "segments",
-            plan.add("segments", segments_params, {"dataset": ds}, dataset_name, execution),
-        )
-        vx = vocabulary_stage()
-        segvlad = method["segvlad"]
-        # What turns features and masks into segment VLAD vectors, at any order.
-        graph = {k: segvlad[k] for k in ("mask_to_patch", "small_graph")}
-        graph.update(method["vlad"])
-        inputs.update(segments=sx, vocabulary=vx)
-        pca = method["pca"]
-        if pca["enabled"]:
-            pca_params = {**{k: v for k, v in pca.items() if k != "enabled"}, **graph}
-            # Published: a PCA per neighbourhood order, fitted at the method's own order.
-            if pca["fit_order"] == "method":
-                pca_params["fit_order"] = segvlad["order"]
-            inputs["pca"] = ("pca", plan.add("pca", pca_params, dict(inputs), dataset_name))
+            row.update(segmenter=segmenter_name, **_prefixed("segmenter", segmenter))
+        elif stage == "vocabulary":
+            vocabulary = method["vocabulary"]
+            params = {k: v for k, v in vocabulary.items() if k != "file"}
+            if vocabulary["source"] == "file":
+                params.update(
+                    file=vocabulary["file"],
+                    sha256=_memoised(vocabulary["file"], memo, file_digest, "vocabulary.file"),
+                )
+            inputs["vocabulary"] = (
+                "vocabulary",
+                plan.add("vocabulary", params, {"dataset": ds, "features": fx}, dataset_name),
+            )
+            row.update(_prefixed("vocabulary", vocabulary))
+        elif stage == "pca":
+            pca = method["pca"]
+            if not pca["enabled"]:
+                row["pca.enabled"] = False
+                continue
+            # Fitted on the aggregator's own descriptors; published: at the method's own
+            # neighbourhood order (one PCA per order).
+            fit_order = options["order"] if pca["fit_order"] == "method" else pca["fit_order"]
+            params = {
+                **{k: v for k, v in pca.items() if k != "enabled"},
+                "aggregator": agg.name,
+                **{k: v for k, v in options.items() if k != "order"},
+                "fit_order": fit_order,
+            }
+            inputs["pca"] = ("pca", plan.add("pca", params, dict(inputs), dataset_name))
             row.update(_prefixed("pca", pca))
-        else:
-            row["pca.enabled"] = False
-        row.update(_prefixed("vlad", method["vlad"]))
-        descriptor_params = {"aggregator": "segvlad", "order": segvlad["order"], **graph}
-        row.update(segmenter=segmenter_name, **_prefixed("segmenter", segmenter))
-        row.update(_prefixed("segvlad", segvlad))
-    elif aggregator == "anyloc_vlad":
-        inputs["vocabulary"] = vocabulary_stage()
-        descriptor_params = {"aggregator": aggregator, **method["vlad"]}
-        row.update(_prefixed("vlad", method["vlad"]))
-    elif aggregator == "snsm":
-        descriptor_params = {"aggregator": aggregator, **method["snsm"]}
-        row.update(_prefixed("snsm", method["snsm"]))
-    else:
-        pooling = method["pooling"]
-        descriptor_params = {"aggregator": aggregator, "normalization": pooling["normalization"]}
-        row["pooling.normalization"] = pooling["normalization"]
-        if aggregator == "gem":
-            descriptor_params["p"] = pooling["gem_p"]
-            row["pooling.gem_p"] = pooling["gem_p"]
-    descriptors_key = plan.add("descriptors", descriptor_params, inputs, dataset_name)
-    is_segvlad = aggregator == "segvlad"
+        else:  # a registry entry naming a stage the plan does not know
+            raise PlanError(f"aggregator {agg.name!r} needs unknown stage {stage!r}")
+    row.update(agg.columns(method))
+    descriptors_key = plan.add(
+        "descriptors", {"aggregator": agg.name, **options}, inputs, dataset_name
+    )
+    by_segments = agg.output == "segments"
     recall_params = {
         "recall_at": dataset["recall_at"],
         "top_k": max(max(dataset["recall_at"]), 20),
-        "top_segments": method["segvlad"]["top_segments"] if is_segvlad else None,
-        "vote_ranking": method["segvlad"]["vote_ranking"] if is_segvlad else None,
+        "top_segments": method["segvlad"]["top_segments"] if by_segments else None,
+        "vote_ranking": method["segvlad"]["vote_ranking"] if by_segments else None,
     }
     recall_key = plan.add(
         "recall",

@@ -1,4 +1,4 @@
-"""Global pooling baselines compared with SNSM: GeM, average and max pooling.
+"""Global pooling baselines compared with SNSM: GeM, average and max (docs/methods.md §7).
 
 Each function pools ONE image's tokens ``[N, D]`` or ``[h, w, D]`` over all token axes
 into ``[D]``. Matching the SNSM authors' baseline code:

@@ -1,4 +1,4 @@
-"""Recall@N over queries that have at least one positive."""
+"""Recall@N over queries that have at least one positive (docs/methods.md §8)."""
 
 from __future__ import annotations
 

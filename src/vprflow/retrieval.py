@@ -1,4 +1,5 @@
-"""Exhaustive nearest-neighbour retrieval with faiss, and SegVLAD image voting."""
+"""Exhaustive nearest-neighbour retrieval with faiss, and SegVLAD image voting
+(docs/methods.md §5, §8)."""
 
 from __future__ import annotations
 

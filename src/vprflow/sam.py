@@ -47,19 +47,10 @@ import numpy as np
 import torch
 from PIL import Image
 
-SAM_DEFAULTS: dict = {
-    "model": "facebook/sam-vit-huge",
-    "cache_dir": None,
-    "points_per_side": 32,
-    "points_per_batch": 64,
-    "pred_iou_thresh": 0.88,
-    "stability_score_thresh": 0.95,
-    "stability_score_offset": 1.0,
-    "box_nms_thresh": 0.7,
-    "min_mask_region_area": 0,
-    "mask_threshold": 0.0,
-    "dtype": "float32",
-}
+from vprflow.registry import SEGMENTERS, with_defaults
+
+# The original automatic mask generator's defaults (ViT-H), stated in the registry.
+SAM_DEFAULTS: dict = SEGMENTERS["sam"].defaults
 
 # The original SAM's normalisation constants, in 0..255 units (= ImageNet mean/std).
 PIXEL_MEAN = np.array([123.675, 116.28, 103.53], dtype=np.float32)
@@ -423,9 +414,8 @@ def sam_params(params: dict) -> dict:
 
     Keys outside :data:`SAM_DEFAULTS` (e.g. ``segmenter``) are ignored.
     """
-    merged = {key: params.get(key, default) for key, default in SAM_DEFAULTS.items()}
-    if merged["model"] is None:
-        merged["model"] = SAM_DEFAULTS["model"]
+    filled = with_defaults("segments", {**params, "segmenter": "sam"})
+    merged = {key: filled[key] for key in SAM_DEFAULTS}
     if int(merged["points_per_side"]) < 1 or int(merged["points_per_batch"]) < 1:
         raise ValueError("points_per_side and points_per_batch must be >= 1")
     if float(merged["stability_score_offset"]) < 0:

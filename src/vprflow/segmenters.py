@@ -11,6 +11,11 @@ from typing import Protocol
 
 import numpy as np
 
+from vprflow.registry import SEGMENTERS, with_defaults
+
+_SLIC = SEGMENTERS["slic"].defaults
+_FELZENSZWALB = SEGMENTERS["felzenszwalb"].defaults
+
 
 class Segmenter(Protocol):
     def masks(self, image: np.ndarray) -> np.ndarray: ...
@@ -23,7 +28,12 @@ def labels_to_masks(labels: np.ndarray) -> np.ndarray:
 
 
 class SlicSegmenter:
-    def __init__(self, n_segments: int = 50, compactness: float = 10.0, sigma: float = 1.0):
+    def __init__(
+        self,
+        n_segments: int = _SLIC["n_segments"],
+        compactness: float = _SLIC["compactness"],
+        sigma: float = _SLIC["sigma"],
+    ):
         self.n_segments, self.compactness, self.sigma = n_segments, compactness, sigma
 
     def masks(self, image: np.ndarray) -> np.ndarray:
@@ -41,7 +51,12 @@ class SlicSegmenter:
 
 
 class FelzenszwalbSegmenter:
-    def __init__(self, scale: float = 100.0, sigma: float = 0.8, min_size: int = 50):
+    def __init__(
+        self,
+        scale: float = _FELZENSZWALB["scale"],
+        sigma: float = _FELZENSZWALB["sigma"],
+        min_size: int = _FELZENSZWALB["min_size"],
+    ):
         self.scale, self.sigma, self.min_size = scale, sigma, min_size
 
     def masks(self, image: np.ndarray) -> np.ndarray:
@@ -53,19 +68,11 @@ class FelzenszwalbSegmenter:
         return labels_to_masks(labels)
 
 
-def load_segmenter(params: dict, device: str = "auto") -> Segmenter:
-    """Build the segmenter named by ``params['segmenter']``."""
-    name = params["segmenter"]
-    if name == "slic":
-        return SlicSegmenter(
-            **{k: params[k] for k in ("n_segments", "compactness", "sigma") if k in params}
-        )
-    if name == "felzenszwalb":
-        return FelzenszwalbSegmenter(
-            **{k: params[k] for k in ("scale", "sigma", "min_size") if k in params}
-        )
-    if name == "sam":
-        from vprflow.sam import load_sam
+def load_slic(params: dict, device: str = "auto") -> SlicSegmenter:
+    params = with_defaults("segments", params)
+    return SlicSegmenter(**{k: params[k] for k in ("n_segments", "compactness", "sigma")})
 
-        return load_sam(params, device)
-    raise ValueError(f"unknown segmenter {name!r} (expected slic, felzenszwalb or sam)")
+
+def load_felzenszwalb(params: dict, device: str = "auto") -> FelzenszwalbSegmenter:
+    params = with_defaults("segments", params)
+    return FelzenszwalbSegmenter(**{k: params[k] for k in ("scale", "sigma", "min_size")})

@@ -1,8 +1,8 @@
 """SegVLAD: VLAD descriptors of segments and their graph neighbourhoods.
 
 Per image: masks ``[S, Hm, Wm]`` at segmentation resolution, patch descriptors
-``[N = h * w, D]`` on the feature grid, VLAD centres ``[K, D]``. Steps (REFERENCE.md
-section 2): masks -> patch membership ``M [S, N]``; centroid Delaunay graph ``A
+``[N = h * w, D]`` on the feature grid, VLAD centres ``[K, D]``. Steps
+(docs/methods.md §5): masks -> patch membership ``M [S, N]``; centroid Delaunay graph ``A
 [S, S]``; neighbourhood ``(A^k M) > 0``; VLAD of each neighbourhood -> ``[S, K * D]``.
 """
 

@@ -1,4 +1,4 @@
-"""SNSM: spatial neighbourhood support maps (REFERENCE.md section 3).
+"""SNSM: spatial neighbourhood support maps (docs/methods.md §6).
 
 A dense token grid ``X [h, w, D]`` becomes a global descriptor in four steps:
 

@@ -49,12 +49,11 @@ from torch import nn
 from .arrays import center_crop_box
 from .devices import resolve_device, resolve_dtype
 from .models import load_pretrained, resolve_model_source
+from .registry import with_defaults
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-DEFAULT_MODELS = {"dinov2": "facebook/dinov2-giant", "dino": "facebook/dino-vitb8"}
 # AnyLoc / SegVLAD use block 31 (0-based) of DINOv2 ViT-G/14's 40 blocks.
-DEFAULT_DINOV2_LAYER = 31
 MODEL_TYPES = {"dinov2": ("dinov2", "dinov2_with_registers"), "dino": ("vit",)}
 FACETS = ("query", "key", "value", "token")
 # Submodule names of the q/k/v projections: transformers >= 5 ("q_proj") and the
@@ -164,9 +163,7 @@ def _set_pos_embed_interpolation(model: nn.Module, interpolation: str) -> None:
     )
 
 
-def _resolve_layer(layer: int | None, backbone: str, n_blocks: int) -> int:
-    if layer is None:
-        layer = DEFAULT_DINOV2_LAYER if backbone == "dinov2" else n_blocks - 1
+def _resolve_layer(layer: int, n_blocks: int) -> int:
     index = int(layer) + n_blocks if int(layer) < 0 else int(layer)
     if not 0 <= index < n_blocks:
         raise ValueError(
@@ -281,19 +278,18 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
         raise ValueError(
             f"unknown ViT backbone {backbone!r}; expected one of {sorted(MODEL_TYPES)}"
         )
-    facet = str(params.get("facet", "value")).lower()
+    params = with_defaults("features", {**params, "backbone": backbone})
+    facet = str(params["facet"]).lower()
     if facet not in FACETS:
         raise ValueError(f"unknown facet {facet!r}; expected one of {FACETS}")
-    final_norm = bool(params.get("final_norm", False))
+    final_norm = bool(params["final_norm"])
     if final_norm and facet != "token":
         raise ValueError(f"final_norm applies to the 'token' facet only, not {facet!r}")
-    interpolation = _check_pos_embed_interpolation(
-        params.get("pos_embed_interpolation", "original")
-    )
+    interpolation = _check_pos_embed_interpolation(params["pos_embed_interpolation"])
     torch_device = resolve_device(device)
-    dtype = resolve_dtype(params.get("dtype", "float32"), torch_device)
+    dtype = resolve_dtype(params["dtype"], torch_device)
 
-    model_name = params.get("model") or DEFAULT_MODELS[backbone]
+    model_name = params["model"]
     source = resolve_model_source(str(model_name), params.get("cache_dir"))
     config = AutoConfig.from_pretrained(source)
     if config.model_type not in MODEL_TYPES[backbone]:
@@ -322,7 +318,7 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
         )
     model = model.to(torch_device)
     _, _, blocks = _find_blocks(model)
-    layer = _resolve_layer(params.get("layer"), backbone, len(blocks))
+    layer = _resolve_layer(params["layer"], len(blocks))
     return VitBackbone(
         model,
         layer=layer,

@@ -1,4 +1,4 @@
-"""VLAD vocabularies and AnyLoc-style VLAD aggregation.
+"""VLAD vocabularies and AnyLoc-style VLAD aggregation (docs/methods.md §3-4).
 
 Shapes: ``x`` patch descriptors ``[N, D]``; ``centres`` ``[K, D]``; a VLAD vector is
 ``[K * D]`` (cluster-major: block ``c`` holds the residual sum of cluster ``c``).

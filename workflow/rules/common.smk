@@ -5,29 +5,47 @@ from pathlib import Path
 from vprflow.config import validate_config
 from vprflow.datasets import list_dataset
 from vprflow.plan import (
-    CACHE,
     PREDICTIONS_CSV,
     RECALL_CSV,
     PlanError,
+    benchmark_pattern,
     build_plan,
+    FINGERPRINTS,
     load_fingerprints,
+    log_pattern,
     save_fingerprints,
+    shard_pattern,
+    store_path,
+    store_pattern,
     withdraw_stale_reports,
+    write_index,
 )
+from vprflow.registry import model_kind
 
 
 configfile: "config/config.yaml"
 
 
-CONFIG = validate_config(config, Path(workflow.basedir) / "config" / "schema.yaml")
+# Found next to this file (not via workflow.basedir), so that a host workflow that
+# imports vprflow as a module validates against vprflow's schema.
+SCHEMA = Path(workflow.current_basedir).parent / "schemas" / "config.schema.yaml"
+CONFIG = validate_config(config, SCHEMA)
 # Content hashes of images, local model weights and imported files, memoised between runs.
-_memo = load_fingerprints()
+# A host workflow that imports vprflow as a module with a `prefix` finds every output
+# under it; the few paths this file opens itself (not via rules) follow.
+_modifier = getattr(workflow.modifier, "path_modifier", None)
+PREFIX = getattr(_modifier, "prefix", None) or ""
+# Content hashes of images, local model weights and imported files, memoised between runs.
+_memo = load_fingerprints(PREFIX + FINGERPRINTS)
 _memo_size = len(_memo)
 PLAN = build_plan(CONFIG, _memo)
 if len(_memo) != _memo_size:
-    save_fingerprints(_memo)
-# Backbones and segmenters that run a neural network (and so want a GPU).
-MODEL_KINDS = {"dinov2", "dino", "sam"}
+    save_fingerprints(_memo, PREFIX + FINGERPRINTS)
+# A map of every store to its dataset and methods, and log links by method. Written
+# here, not in `onstart` (which a host workflow's module import never runs); not by
+# cluster job steps, which parse this file again.
+if workflow.is_main_process:
+    write_index(PLAN, PREFIX)
 SHARDED = "features|segments|descriptors"
 
 
@@ -63,9 +81,8 @@ def gpu_request(stage):
     """
 
     def request(wildcards):
-        params = planned(stage, wildcards).params["params"]
-        kind = params.get("backbone", params.get("segmenter"))
-        return int(kind in MODEL_KINDS and CONFIG["device"] != "cpu")
+        kind = model_kind(stage, planned(stage, wildcards).params["params"])
+        return int(kind.uses_gpu and CONFIG["device"] != "cpu")
 
     return request
 
@@ -100,8 +117,9 @@ def shard_ranges(name):
 def shard_inputs(wildcards):
     """The shards a per-image stage is gathered from, in image order."""
     stage = planned(wildcards.stage, wildcards)
+    pattern = shard_pattern(wildcards.stage)
     return [
-        f"{CACHE}/{wildcards.stage}/{wildcards.key}.shards/{start}-{stop}.zarr"
+        pattern.format(key=wildcards.key, start=start, stop=stop)
         for start, stop in shard_ranges(stage.dataset)
     ]
 
@@ -113,10 +131,9 @@ def gather_params(wildcards):
 def report_inputs(wildcards):
     dataset_spec(wildcards.dataset)  # an unknown dataset fails here, by name
     return {
-        "dataset": f"{CACHE}/dataset/{PLAN.dataset_keys[wildcards.dataset]}.zarr",
+        "dataset": store_path("dataset", PLAN.dataset_keys[wildcards.dataset]),
         "recalls": [
-            f"{CACHE}/recall/{run.recall_key}.zarr"
-            for run in PLAN.runs[wildcards.dataset]
+            store_path("recall", run.recall_key) for run in PLAN.runs[wildcards.dataset]
         ],
     }
 

@@ -2,9 +2,9 @@
 # vprflow.plan.dataset_contents), and their location must not trigger a rerun.
 rule dataset:
     output:
-        directory("results/cache/dataset/{key}.zarr"),
+        directory(store_pattern("dataset")),
     log:
-        "logs/dataset/{key}.log",
+        log_pattern("dataset"),
     conda:
         "../envs/vprflow.yaml"
     params:

@@ -2,11 +2,11 @@ rule descriptors:
     input:
         unpack(stage_inputs("descriptors")),
     output:
-        temp(directory("results/cache/descriptors/{key}.shards/{start}-{stop}.zarr")),
+        temp(directory(shard_pattern("descriptors"))),
     log:
-        "logs/descriptors/{key}.{start}-{stop}.log",
+        log_pattern("descriptors", "{start}-{stop}"),
     benchmark:
-        "logs/descriptors/{key}.{start}-{stop}.benchmark.tsv"
+        benchmark_pattern("descriptors", "{start}-{stop}")
     conda:
         "../envs/vprflow.yaml"
     threads: 2

@@ -2,11 +2,11 @@ rule features:
     input:
         unpack(stage_inputs("features")),
     output:
-        temp(directory("results/cache/features/{key}.shards/{start}-{stop}.zarr")),
+        temp(directory(shard_pattern("features"))),
     log:
-        "logs/features/{key}.{start}-{stop}.log",
+        log_pattern("features", "{start}-{stop}"),
     benchmark:
-        "logs/features/{key}.{start}-{stop}.benchmark.tsv"
+        benchmark_pattern("features", "{start}-{stop}")
     conda:
         "../envs/vprflow.yaml"
     threads: 4
@@ -24,9 +24,9 @@ rule gather:
     input:
         shard_inputs,
     output:
-        directory("results/cache/{stage}/{key}.zarr"),
+        directory(store_pattern("{stage}")),
     log:
-        "logs/{stage}/{key}.gather.log",
+        log_pattern("{stage}", "gather"),
     wildcard_constraints:
         stage=SHARDED,
     conda:

@@ -2,11 +2,11 @@ rule pca:
     input:
         unpack(stage_inputs("pca")),
     output:
-        directory("results/cache/pca/{key}.zarr"),
+        directory(store_pattern("pca")),
     log:
-        "logs/pca/{key}.log",
+        log_pattern("pca"),
     benchmark:
-        "logs/pca/{key}.benchmark.tsv"
+        benchmark_pattern("pca")
     conda:
         "../envs/vprflow.yaml"
     threads: 2

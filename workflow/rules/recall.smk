@@ -2,11 +2,11 @@ rule recall:
     input:
         unpack(stage_inputs("recall")),
     output:
-        directory("results/cache/recall/{key}.zarr"),
+        directory(store_pattern("recall")),
     log:
-        "logs/recall/{key}.log",
+        log_pattern("recall"),
     benchmark:
-        "logs/recall/{key}.benchmark.tsv"
+        benchmark_pattern("recall")
     conda:
         "../envs/vprflow.yaml"
     threads: 2
@@ -40,5 +40,5 @@ localrules:
 # A failed run must not leave a results table that looks current (e.g. one method of
 # several failed): tables older than their recall stores are renamed to *.stale.
 onerror:
-    for table in withdraw_stale_reports(PLAN):
+    for table in withdraw_stale_reports(PLAN, PREFIX):
         print(f"vprflow: {table} is out of date after the failure (renamed)")

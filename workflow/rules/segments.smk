@@ -2,11 +2,11 @@ rule segments:
     input:
         unpack(stage_inputs("segments")),
     output:
-        temp(directory("results/cache/segments/{key}.shards/{start}-{stop}.zarr")),
+        temp(directory(shard_pattern("segments"))),
     log:
-        "logs/segments/{key}.{start}-{stop}.log",
+        log_pattern("segments", "{start}-{stop}"),
     benchmark:
-        "logs/segments/{key}.{start}-{stop}.benchmark.tsv"
+        benchmark_pattern("segments", "{start}-{stop}")
     conda:
         "../envs/vprflow.yaml"
     threads: 4

@@ -2,11 +2,11 @@ rule vocabulary:
     input:
         unpack(stage_inputs("vocabulary")),
     output:
-        directory("results/cache/vocabulary/{key}.zarr"),
+        directory(store_pattern("vocabulary")),
     log:
-        "logs/vocabulary/{key}.log",
+        log_pattern("vocabulary"),
     benchmark:
-        "logs/vocabulary/{key}.benchmark.tsv"
+        benchmark_pattern("vocabulary")
     conda:
         "../envs/vprflow.yaml"
     threads: 2

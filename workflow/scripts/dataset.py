@@ -1,5 +1,5 @@
 from vprflow.runner import run_stage
-from vprflow.stages import build_dataset
+from vprflow.stages.dataset import build_dataset
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(

@@ -1,5 +1,5 @@
 from vprflow.runner import run_stage
-from vprflow.stages import compute_descriptors
+from vprflow.stages.descriptors import compute_descriptors
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(

@@ -1,5 +1,5 @@
 from vprflow.runner import run_stage
-from vprflow.stages import compute_features
+from vprflow.stages.features import compute_features
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(

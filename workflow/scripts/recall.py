@@ -1,5 +1,5 @@
 from vprflow.runner import run_stage
-from vprflow.stages import evaluate
+from vprflow.stages.recall import evaluate
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(

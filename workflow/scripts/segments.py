@@ -1,5 +1,5 @@
 from vprflow.runner import run_stage
-from vprflow.stages import compute_segments
+from vprflow.stages.segments import compute_segments
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(

@@ -1,5 +1,5 @@
 from vprflow.runner import run_stage
-from vprflow.stages import fit_vocabulary
+from vprflow.stages.vocabulary import fit_vocabulary
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(

@@ -1,0 +1,14 @@
+"""Regenerate config/README.md from the schema's descriptions.
+
+python scripts/write_config_readme.py
+"""
+
+from pathlib import Path
+
+import yaml
+
+from vprflow.config import config_readme
+
+REPO = Path(__file__).resolve().parents[1]
+schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
+(REPO / "config" / "README.md").write_text(config_readme(schema))

@@ -1,0 +1,281 @@
+"""Every component vprflow knows, in one place: model kinds and aggregators.
+
+The plan (which stages a method needs, what each key covers), the stages (which
+function computes a descriptor, which loader builds a model), the GPU request, the
+weight fingerprints and the schema's enums all read this module;
+``tests/test_registry.py`` checks that ``workflow/schemas/config.schema.yaml`` agrees.
+
+Adding an aggregator: its per-image function (``vprflow.stages.descriptors``), one
+:data:`AGGREGATORS` entry, its schema section and its test. Adding a backbone or
+segmenter: its loader, one :data:`BACKBONES` / :data:`SEGMENTERS` entry and the schema
+properties of its parameters.
+
+Only data and lazy ``"module:function"`` references live here, so that planning a
+workflow never imports torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+# ------------------------------------------------------------------ model kinds
+
+
+@dataclass(frozen=True)
+class ModelKind:
+    """A backbone (``role="backbone"``) or segmenter (``role="segmenter"``) kind.
+
+    ``loader`` is ``"module:function"`` with signature ``(params, device) -> model``;
+    ``None`` for ``import``, which reads the authors' published HDF5 file instead.
+    ``defaults`` are filled into every config entry of this kind before hashing, so a
+    key records what ran. ``weights`` says what identifies the model's output beyond
+    its parameters: ``"model"`` (hub id, or a local directory hashed by content),
+    ``"file"`` (the imported file, hashed) or ``"none"`` (weight-free).
+    """
+
+    name: str
+    role: str
+    loader: str | None
+    defaults: dict = field(default_factory=dict)
+    weights: str = "none"
+    uses_gpu: bool = False
+
+    def load(self, params: dict, device: str = "auto"):
+        if self.loader is None:
+            raise ValueError(f"{self.role} {self.name!r} reads a file; it has no model to load")
+        return resolve(self.loader)(params, device)
+
+
+_VIT = {
+    "facet": "value",
+    "final_norm": False,
+    "dtype": "float32",
+    "pos_embed_interpolation": "original",
+    "cache_dir": None,
+}
+
+BACKBONES: dict[str, ModelKind] = {
+    kind.name: kind
+    for kind in (
+        ModelKind(
+            "daisy",
+            "backbone",
+            "vprflow.backbones:load_daisy",
+            {"patch_size": 8, "radius": 12, "rings": 2, "histograms": 6, "orientations": 8},
+        ),
+        # AnyLoc / SegVLAD: value facet of block 31 (0-based) of ViT-G/14's 40.
+        ModelKind(
+            "dinov2",
+            "backbone",
+            "vprflow.vit:load_vit",
+            {"model": "facebook/dinov2-giant", "layer": 31, **_VIT},
+            weights="model",
+            uses_gpu=True,
+        ),
+        # DINO v1: the last block (-1 counts from the end).
+        ModelKind(
+            "dino",
+            "backbone",
+            "vprflow.vit:load_vit",
+            {"model": "facebook/dino-vitb8", "layer": -1, **_VIT},
+            weights="model",
+            uses_gpu=True,
+        ),
+        ModelKind("import", "backbone", None, {"patch_size": 14}, weights="file"),
+    )
+}
+
+SEGMENTERS: dict[str, ModelKind] = {
+    kind.name: kind
+    for kind in (
+        ModelKind(
+            "slic",
+            "segmenter",
+            "vprflow.segmenters:load_slic",
+            {"n_segments": 50, "compactness": 10.0, "sigma": 1.0},
+        ),
+        ModelKind(
+            "felzenszwalb",
+            "segmenter",
+            "vprflow.segmenters:load_felzenszwalb",
+            {"scale": 100.0, "sigma": 0.8, "min_size": 50},
+        ),
+        # The original automatic mask generator's defaults (ViT-H).
+        ModelKind(
+            "sam",
+            "segmenter",
+            "vprflow.sam:load_sam",
+            {
+                "model": "facebook/sam-vit-huge",
+                "cache_dir": None,
+                "points_per_side": 32,
+                "points_per_batch": 64,
+                "pred_iou_thresh": 0.88,
+                "stability_score_thresh": 0.95,
+                "stability_score_offset": 1.0,
+                "box_nms_thresh": 0.7,
+                "min_mask_region_area": 0,
+                "mask_threshold": 0.0,
+                "dtype": "float32",
+            },
+            weights="model",
+            uses_gpu=True,
+        ),
+        ModelKind("import", "segmenter", None, weights="file"),
+    )
+}
+
+# The config key that names an entry's kind, and the registry of each stage that runs one.
+KIND_KEY = {"features": "backbone", "segments": "segmenter"}
+MODEL_STAGES = {"features": BACKBONES, "segments": SEGMENTERS}
+
+
+def model_kind(stage: str, entry: dict) -> ModelKind:
+    """The kind of a backbone entry (``stage="features"``) or segmenter entry
+    (``stage="segments"``)."""
+    kinds = MODEL_STAGES[stage]
+    name = entry[KIND_KEY[stage]]
+    if name not in kinds:
+        raise ValueError(f"unknown {KIND_KEY[stage]} {name!r}; expected one of {sorted(kinds)}")
+    return kinds[name]
+
+
+def with_defaults(stage: str, entry: dict) -> dict:
+    """``entry`` with its kind's defaults filled in where it names none (or ``None``)."""
+    filled = dict(entry)
+    for name, value in model_kind(stage, entry).defaults.items():
+        if filled.get(name) is None:
+            filled[name] = value
+    return filled
+
+
+# ------------------------------------------------------------------ aggregators
+
+
+@dataclass(frozen=True)
+class Aggregator:
+    """A method's descriptor: what it needs upstream and what it outputs.
+
+    ``needs``: upstream stages besides ``dataset`` and ``features``, in plan order
+    (``pca`` is planned only when the method's ``pca.enabled``). ``output``:
+    ``"global"`` (one vector per image) or ``"segments"`` (one per segment, retrieved
+    by voting). ``options(method)`` is the descriptor stage's own hashed settings
+    (method = the resolved method settings); ``columns(method)`` its CSV columns.
+    ``image_descriptor`` is ``"module:function"`` with signature
+    ``(options, input store paths) -> (image index -> [dim] or [S, dim])``.
+    """
+
+    name: str
+    needs: tuple[str, ...]
+    output: str
+    options: Callable[[dict], dict]
+    columns: Callable[[dict], dict]
+    image_descriptor: str
+
+    def descriptor_function(self, options: dict, inputs: dict[str, str]):
+        return resolve(self.image_descriptor)(options, inputs)
+
+
+def prefixed(section: str, values: dict) -> dict:
+    """CSV columns ``<section>.<key>`` of a settings section."""
+    return {f"{section}.{k}": v for k, v in values.items()}
+
+
+def _segvlad_options(method: dict) -> dict:
+    segvlad = method["segvlad"]
+    return {
+        "order": segvlad["order"],
+        "mask_to_patch": segvlad["mask_to_patch"],
+        "small_graph": segvlad["small_graph"],
+        **method["vlad"],
+    }
+
+
+def _pooling_options(method: dict, with_p: bool) -> dict:
+    pooling = method["pooling"]
+    options = {"normalization": pooling["normalization"]}
+    if with_p:
+        options["p"] = pooling["gem_p"]
+    return options
+
+
+def _pooling_columns(with_p: bool):
+    def columns(method: dict) -> dict:
+        pooling = method["pooling"]
+        out = {"pooling.normalization": pooling["normalization"]}
+        if with_p:
+            out["pooling.gem_p"] = pooling["gem_p"]
+        return out
+
+    return columns
+
+
+_DESCRIPTORS = "vprflow.stages.descriptors"
+
+AGGREGATORS: dict[str, Aggregator] = {
+    agg.name: agg
+    for agg in (
+        Aggregator(
+            "segvlad",
+            ("segments", "vocabulary", "pca"),
+            "segments",
+            _segvlad_options,
+            lambda m: {**prefixed("segvlad", m["segvlad"]), **prefixed("vlad", m["vlad"])},
+            f"{_DESCRIPTORS}:segvlad_descriptors",
+        ),
+        Aggregator(
+            "anyloc_vlad",
+            ("vocabulary",),
+            "global",
+            lambda m: dict(m["vlad"]),
+            lambda m: prefixed("vlad", m["vlad"]),
+            f"{_DESCRIPTORS}:anyloc_vlad_descriptor",
+        ),
+        Aggregator(
+            "snsm",
+            (),
+            "global",
+            lambda m: dict(m["snsm"]),
+            lambda m: prefixed("snsm", m["snsm"]),
+            f"{_DESCRIPTORS}:snsm_descriptor",
+        ),
+        Aggregator(
+            "gem",
+            (),
+            "global",
+            lambda m: _pooling_options(m, True),
+            _pooling_columns(True),
+            f"{_DESCRIPTORS}:pooled_descriptor",
+        ),
+        Aggregator(
+            "average",
+            (),
+            "global",
+            lambda m: _pooling_options(m, False),
+            _pooling_columns(False),
+            f"{_DESCRIPTORS}:pooled_descriptor",
+        ),
+        Aggregator(
+            "max",
+            (),
+            "global",
+            lambda m: _pooling_options(m, False),
+            _pooling_columns(False),
+            f"{_DESCRIPTORS}:pooled_descriptor",
+        ),
+    )
+}
+
+
+def aggregator(name: str) -> Aggregator:
+    if name not in AGGREGATORS:
+        raise ValueError(f"unknown aggregator {name!r}; expected one of {sorted(AGGREGATORS)}")
+    return AGGREGATORS[name]
+
+
+def resolve(reference: str):
+    """The object a ``"module:function"`` reference names (imported on first use)."""
+    module, _, name = reference.partition(":")
+    return getattr(importlib.import_module(module), name)

@@ -1,0 +1,13 @@
+"""The workflow's stages, one module per Snakemake rule, named after it.
+
+Each module holds the function its rule runs (inputs are store paths, output is a
+store) and the readers later stages use on that store. ``workflow/scripts/<rule>.py``
+only unpacks ``snakemake`` and calls it. ``params`` is the stage's hashed record from
+:mod:`vprflow.plan` (``params["params"]`` holds the stage's own settings); it is
+written into the output store's attributes so every store documents itself.
+
+Per-image stages (features, segments, descriptors) take ``start``/``stop``: a shard
+of the concatenated image list (references first, then queries); :mod:`.gather`
+concatenates the shards. Reading order: dataset, features, segments, vocabulary, pca,
+descriptors, gather, recall, report.
+"""

@@ -1,0 +1,157 @@
+"""The ``descriptors`` rule: each method's descriptors of every image.
+
+What a method computes per image is its registry entry's ``image_descriptor``
+(:mod:`vprflow.registry`), one of the functions at the end of this module.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import stores
+from vprflow.arrays import l2_normalize
+from vprflow.registry import aggregator
+from vprflow.stages.base import shard_range, stage_attrs
+from vprflow.stages.dataset import Dataset
+from vprflow.stages.features import read_features
+from vprflow.stages.pca import read_pca
+from vprflow.stages.segments import read_masks
+from vprflow.stages.vocabulary import read_centres
+
+
+def compute_descriptors(
+    inputs: dict[str, str],
+    params: dict,
+    out: str,
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
+    """Per-image descriptors of one method, as its registry entry computes them.
+
+    Aggregators with ``output="segments"`` write a ragged ``descriptors`` array (one
+    row per segment, offsets per image), projected by the ``pca`` input when there is
+    one; ``output="global"`` aggregators write ``descriptors [n, dim]``.
+    """
+    spec = params["params"]
+    agg = aggregator(spec["aggregator"])
+    dataset = Dataset(inputs["dataset"])
+    images = shard_range(dataset.n_images, start, stop)
+    describe = agg.descriptor_function(spec, inputs)
+    if agg.output == "segments":
+        pca = read_pca(inputs["pca"]) if "pca" in inputs else None
+        attrs = {**stage_attrs("descriptors", params, images), "kind": "segments"}
+        with stores.atomic_store(out, attrs) as group:
+            writer = None
+            for i in tqdm(images, desc=agg.name, unit="image"):
+                vectors = describe(i)
+                if pca is not None:
+                    vectors = pca.transform(vectors)
+                if writer is None:
+                    dim = vectors.shape[1]
+                    group.attrs["dim"] = dim
+                    writer = stores.RaggedWriter(
+                        group, "descriptors", (dim,), np.float32, chunk_rows=_chunk_rows(dim)
+                    )
+                writer.append(vectors)
+            writer.close()
+        return
+    attrs = {**stage_attrs("descriptors", params, images), "kind": "global"}
+    with stores.atomic_store(out, attrs) as group:
+        array = None
+        for i in tqdm(images, desc=agg.name, unit="image"):
+            vector = describe(i)
+            if array is None:
+                array = group.create_array(
+                    "descriptors",
+                    shape=(len(images), len(vector)),
+                    chunks=(_chunk_rows(len(vector)), len(vector)),
+                    dtype=np.float32,
+                    compressors=stores.COMPRESSOR,
+                )
+                group.attrs["dim"] = len(vector)
+            stores.check_finite(group, f"descriptors of {dataset.paths[i]}", vector)
+            array[i - images.start] = vector
+
+
+def _chunk_rows(dim: int) -> int:
+    """Rows per chunk of about 4 MiB of float32."""
+    return max(1, (1 << 22) // (4 * dim))
+
+
+# ------------------------------------------------------------------ per-image functions
+# Each takes the method's options and the input store paths and returns
+# ``image index -> descriptor`` (``[dim]``, or ``[S, dim]`` for segment aggregators).
+
+
+def vlad_input(grid: np.ndarray, options: dict) -> np.ndarray:
+    """Patches as VLAD sees them: L2-normalised per patch unless the method says not
+    (AnyLoc's VLAD ``norm_descs=True``; stored float16 features are only nearly unit)."""
+    return l2_normalize(grid) if options["normalize_descriptors"] else grid
+
+
+def segvlad_descriptors(options: dict, inputs: dict[str, str]):
+    """SegVLAD: one VLAD vector per segment neighbourhood of ``options["order"]``
+    (docs/methods.md §5), ``[S, K * D]``."""
+    from vprflow.segvlad import image_segvlad
+
+    features = stores.open_store(inputs["features"])
+    segments = stores.open_store(inputs["segments"])
+    centres = read_centres(inputs["vocabulary"])
+    height, width = features.attrs["image_size"]
+    patch_size = int(features.attrs["patch_size"])
+
+    def describe(index: int) -> np.ndarray:
+        return image_segvlad(
+            vlad_input(read_features(features, index), options),
+            read_masks(segments, index),
+            centres,
+            (height, width),
+            patch_size,
+            options["order"],
+            crop_aligned=options["mask_to_patch"] == "crop_aligned",
+            small_graph=options["small_graph"],
+        )
+
+    return describe
+
+
+def anyloc_vlad_descriptor(options: dict, inputs: dict[str, str]):
+    """AnyLoc VLAD of the whole patch grid (docs/methods.md §4), ``[K * D]``."""
+    from vprflow.vlad import vlad
+
+    features = stores.open_store(inputs["features"])
+    centres = read_centres(inputs["vocabulary"])
+
+    def describe(index: int) -> np.ndarray:
+        grid = vlad_input(read_features(features, index), options)
+        return vlad(grid.reshape(-1, grid.shape[-1]), centres)
+
+    return describe
+
+
+def snsm_descriptor(options: dict, inputs: dict[str, str]):
+    """SNSM support-map descriptor (docs/methods.md §6)."""
+    from vprflow.snsm import snsm_descriptor as snsm
+
+    features = stores.open_store(inputs["features"])
+    keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
+    settings = {k: options[k] for k in keys}
+    return lambda index: snsm(read_features(features, index), **settings)
+
+
+def pooled_descriptor(options: dict, inputs: dict[str, str]):
+    """GeM / average / max pooling of the channel-normalised tokens (docs/methods.md §7):
+    the SNSM authors pool tokens normalised like SNSM's own input."""
+    from vprflow import pooling
+    from vprflow.snsm import normalize_tokens
+
+    features = stores.open_store(inputs["features"])
+    pool = {
+        "gem": lambda tokens: pooling.gem(tokens, p=options["p"]),
+        "average": pooling.average_pool,
+        "max": pooling.max_pool,
+    }[options["aggregator"]]
+    return lambda index: pool(
+        normalize_tokens(read_features(features, index), options["normalization"])
+    )

@@ -1,0 +1,94 @@
+"""The ``features`` rule: dense patch descriptors of every image."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import stores
+from vprflow.images import read_image, resize_image
+from vprflow.registry import model_kind
+from vprflow.stages.base import resolved_sources, stage_attrs
+from vprflow.stages.dataset import open_shard
+
+log = logging.getLogger("vprflow")
+
+
+def compute_features(
+    dataset_path: str,
+    params: dict,
+    out: str,
+    data_root: str,
+    device: str = "auto",
+    batch_size: int = 1,
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
+    """Dense patch descriptors ``features [n, h, w, D]`` of images ``start..stop``."""
+    spec = params["params"]
+    dataset, images = open_shard(dataset_path, data_root, start, stop)
+    width, height = spec["resolution"]
+    store_dtype = np.dtype(spec.get("store_dtype", "float16"))
+    extract, patch_size = _feature_extractor(spec, device, width, height)
+    attrs = {**stage_attrs("features", params, images), "sources": resolved_sources(spec)}
+    with stores.atomic_store(out, attrs) as group:
+        array = None
+        batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
+        for batch in tqdm(batches, desc="features", unit="batch"):
+            grids = extract([dataset.paths[i] for i in batch])
+            if array is None:
+                h, w, dim = grids.shape[1:]
+                array = group.create_array(
+                    "features",
+                    shape=(len(images), h, w, dim),
+                    chunks=(1, h, w, dim),
+                    dtype=store_dtype,
+                    compressors=stores.COMPRESSOR,
+                )
+                group.attrs.update(
+                    grid=[h, w], dim=dim, patch_size=patch_size, image_size=[height, width]
+                )
+            elif grids.shape[1:] != array.shape[1:]:
+                raise ValueError(
+                    f"{dataset.paths[batch.start]}: feature grid {grids.shape[1:]} differs from "
+                    f"the first image's {array.shape[1:]}"
+                )
+            start_row = batch.start - images.start
+            stored = grids.astype(store_dtype)
+            stores.check_finite(group, f"features of {dataset.paths[batch.start]}", stored)
+            array[start_row : start_row + len(batch)] = stored
+
+
+def _feature_extractor(spec: dict, device: str, width: int, height: int):
+    """``(paths -> float32 [B, h, w, D], patch size)`` for the configured backbone.
+
+    A kind without a loader (``backbone: import``) reads the authors' published HDF5
+    features instead of running a model (``<image file name>/ift_dino``).
+    """
+    kind = model_kind("features", spec)
+    if kind.loader is None:
+        from vprflow.arrays import l2_normalize
+        from vprflow.published import read_features_h5
+
+        def read(paths):
+            grids = np.stack([read_features_h5(spec["file"], Path(p).name) for p in paths])
+            return l2_normalize(grids) if spec.get("normalize", True) else grids
+
+        return read, spec["patch_size"]
+    backbone = kind.load(spec, device)
+
+    def run(paths):
+        pixels = np.stack(
+            [resize_image(read_image(p), width, height, spec["resize"]) for p in paths]
+        )
+        return backbone.features(pixels)
+
+    return run, backbone.patch_size
+
+
+def read_features(group, index: int) -> np.ndarray:
+    """float32 ``[h, w, D]`` of one image of a features store."""
+    return np.asarray(group["features"][index], dtype=np.float32)

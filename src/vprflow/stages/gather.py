@@ -1,0 +1,46 @@
+"""The ``gather`` rule: one store from the per-image shards of a stage."""
+
+from __future__ import annotations
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import stores
+
+
+def gather(shard_paths: list[str], params: dict, out: str) -> None:
+    """Concatenate per-image shard stores (in image order) into one store.
+
+    Arrays with an ``<name>_offsets`` partner are ragged: rows are concatenated and
+    offsets shifted; other arrays are concatenated along the image axis.
+    """
+    shards = [stores.open_store(p) for p in shard_paths]
+    first = shards[0]
+    names = [name for name, _ in stores.array_items(first)]
+    attrs = {k: v for k, v in first.attrs.items() if k not in ("start", "stop")}
+    attrs["params"] = params
+    attrs["shards"] = len(shards)
+    with stores.atomic_store(out, attrs) as group:
+        for name in names:
+            if name.endswith("_offsets"):
+                continue
+            source = first[name]
+            chunks = source.chunks
+            target = group.create_array(
+                name,
+                shape=(0, *source.shape[1:]),
+                chunks=chunks,
+                dtype=source.dtype,
+                compressors=stores.COMPRESSOR,
+            )
+            for shard in tqdm(shards, desc=f"gather {name}", unit="shard"):
+                if shard[name].shape[0]:
+                    target.append(np.asarray(shard[name][...]), axis=0)
+            if f"{name}_offsets" in names:
+                offsets = [np.zeros(1, dtype=np.int64)]
+                base = 0
+                for shard in shards:
+                    local = np.asarray(shard[f"{name}_offsets"][...])
+                    offsets.append(local[1:] + base)
+                    base += int(local[-1])
+                stores.write_array(group, f"{name}_offsets", np.concatenate(offsets))

@@ -1,0 +1,61 @@
+"""The ``pca`` rule: PCA fitted on a sample of the references' segment descriptors."""
+
+from __future__ import annotations
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import stores
+from vprflow.registry import aggregator
+from vprflow.stages.dataset import Dataset
+
+
+def fit_pca_stage(inputs: dict[str, str], params: dict, out: str) -> None:
+    """PCA fitted on a random sample of the reference images' segment descriptors,
+    computed by the method's aggregator at ``fit_order`` (docs/methods.md §5)."""
+    from vprflow.pca import fit_pca
+
+    spec = params["params"]
+    dataset = Dataset(inputs["dataset"])
+    describe = aggregator(spec["aggregator"]).descriptor_function(
+        {**spec, "order": spec["fit_order"]}, inputs
+    )
+    segments_path = inputs["segments"]
+    offsets = np.asarray(stores.open_store(segments_path)["masks_offsets"][...])
+    total = int(offsets[dataset.n_reference])
+    rng = np.random.default_rng(spec["seed"])
+    chosen = np.sort(rng.choice(total, size=min(total, spec["max_samples"]), replace=False))
+    # Filled in place: for DINOv2-G this is 50,000 x 49,152 floats (10 GB), one copy only.
+    sample = None
+    filled = 0
+    for i in tqdm(range(dataset.n_reference), desc="pca sample", unit="image"):
+        rows = chosen[(chosen >= offsets[i]) & (chosen < offsets[i + 1])] - offsets[i]
+        if len(rows):
+            vectors = describe(i)
+            if sample is None:
+                sample = np.empty((len(chosen), vectors.shape[1]), dtype=np.float32)
+            sample[filled : filled + len(rows)] = vectors[rows]
+            filled += len(rows)
+    if sample is None:
+        raise ValueError(f"{segments_path}: the reference images have no segments to fit PCA on")
+    fitted = fit_pca(sample, spec["dim"], spec["whiten"], spec["seed"], solver=spec["solver"])
+    with stores.atomic_store(out, {"stage": "pca", "params": params}) as group:
+        # `dim` is the effective dimension: capped at the sample's numerical rank.
+        group.attrs.update(
+            whiten=fitted.whiten, n_samples=len(chosen), dim=fitted.dim, requested_dim=spec["dim"]
+        )
+        stores.write_array(group, "mean", fitted.mean)
+        stores.write_array(group, "components", fitted.components)
+        stores.write_array(group, "explained_variance", fitted.explained_variance)
+
+
+def read_pca(path: str):
+    from vprflow.pca import Pca
+
+    group = stores.open_store(path)
+    return Pca(
+        mean=np.asarray(group["mean"][...]),
+        components=np.asarray(group["components"][...]),
+        explained_variance=np.asarray(group["explained_variance"][...]),
+        whiten=bool(group.attrs["whiten"]),
+    )

@@ -1,0 +1,67 @@
+"""The ``recall`` rule: rank the references for every query and compute Recall@N."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from vprflow import stores
+from vprflow.stages.dataset import Dataset
+
+log = logging.getLogger("vprflow")
+
+
+def evaluate(dataset_path: str, descriptors_path: str, params: dict, out: str) -> None:
+    """Retrieve references for every query, score them and compute Recall@N."""
+    from vprflow.recall import correct_at, recall_at
+    from vprflow.retrieval import (
+        global_ranking,
+        image_of_segment,
+        search,
+        vote_ranking,
+    )
+
+    spec = params["params"]
+    dataset = Dataset(dataset_path)
+    group = stores.open_store(descriptors_path)
+    n_ref, n_query = dataset.n_reference, dataset.n_query
+    top_k = min(spec["top_k"], n_ref)
+    if group.attrs["kind"] == "segments":
+        offsets = np.asarray(group["descriptors_offsets"][...])
+        split = int(offsets[n_ref])
+        vectors = group["descriptors"]
+        reference, query = np.asarray(vectors[:split]), np.asarray(vectors[split:])
+        distances, indices = search(reference, query, spec["top_segments"])
+        owner = image_of_segment(offsets)
+        ranking = vote_ranking(
+            distances,
+            indices,
+            owner[split:] - n_ref,
+            owner[:split],
+            n_query,
+            n_ref,
+            top_k,
+            spec["vote_ranking"],
+        )
+    else:
+        vectors = np.asarray(group["descriptors"][...])
+        ranking = global_ranking(vectors[:n_ref], vectors[n_ref:], top_k)
+    truth = dataset.truth()
+    # N beyond the number of references is kept: it equals Recall@n_ref.
+    recalls = recall_at(ranking, truth, spec["recall_at"])
+    evaluated = np.array([len(t) > 0 for t in truth], dtype=bool)
+    ranked = (ranking >= 0).sum(axis=1)
+    with stores.atomic_store(out, {"stage": "recall", "params": params}) as result:
+        result.attrs.update(
+            recall={str(n): v for n, v in recalls.items()},
+            n_queries=int(evaluated.sum()),
+            descriptor_dim=int(group.attrs["dim"]),
+            # Queries ranking fewer references than the largest N (or than all of them):
+            # SegVLAD ranks only voted images, and a missing rank counts as a miss.
+            n_short_rankings=int((evaluated & (ranked < min(max(spec["recall_at"]), n_ref))).sum()),
+            ground_truth_rule=dataset.group.attrs["ground_truth_rule"],
+        )
+        stores.write_array(result, "ranking", ranking.astype(np.int64))
+        stores.write_array(result, "first_correct", correct_at(ranking, truth))
+    log.info("recall: %s", recalls)

@@ -1,0 +1,77 @@
+"""The ``segments`` rule: bit-packed segment masks of every image."""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import stores
+from vprflow.images import read_image, resize_image
+from vprflow.registry import model_kind
+from vprflow.stages.base import resolved_sources, stage_attrs
+from vprflow.stages.dataset import open_shard
+
+log = logging.getLogger("vprflow")
+
+
+def compute_segments(
+    dataset_path: str,
+    params: dict,
+    out: str,
+    data_root: str,
+    device: str = "auto",
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
+    """Bit-packed masks per image at the segmentation resolution (ragged ``masks``)."""
+    spec = params["params"]
+    dataset, images = open_shard(dataset_path, data_root, start, stop)
+    segment = _mask_source(spec, device)
+    attrs = {**stage_attrs("segments", params, images), "sources": resolved_sources(spec)}
+    with stores.atomic_store(out, attrs) as group:
+        writer, shape = None, None
+        for i in tqdm(images, desc="segments", unit="image"):
+            masks = segment(dataset.paths[i])
+            if shape is None:
+                shape = masks.shape[1:]
+                group.attrs.update(mask_height=shape[0], mask_width=shape[1])
+                writer = stores.RaggedWriter(
+                    group, "masks", ((shape[0] * shape[1] + 7) // 8,), np.uint8, chunk_rows=256
+                )
+            elif masks.shape[1:] != shape:
+                raise ValueError(
+                    f"{dataset.paths[i]}: masks of size {masks.shape[1:]} differ from the "
+                    f"first image's {shape}"
+                )
+            if len(masks) == 0:
+                log.warning("%s: the segmenter returned no masks", dataset.paths[i])
+            writer.append(stores.pack_masks(masks))
+        writer.close()
+
+
+def _mask_source(spec: dict, device: str):
+    """``path -> bool [S, Hm, Wm]`` for the configured segmenter.
+
+    ``segmenter: import`` reads the authors' published HDF5 masks
+    (``<image file name>/masks/<j>/segmentation``) at their own resolution.
+    """
+    kind = model_kind("segments", spec)
+    if kind.loader is None:
+        from vprflow.published import read_masks_h5
+
+        return lambda path: read_masks_h5(spec["file"], Path(path).name)
+    segmenter = kind.load(spec, device)
+    width, height = spec["resolution"]
+    return lambda path: segmenter.masks(
+        resize_image(read_image(path), width, height, spec["resize"])
+    )
+
+
+def read_masks(group, index: int) -> np.ndarray:
+    packed = stores.read_ragged(group, "masks", index)
+    return stores.unpack_masks(
+        packed, int(group.attrs["mask_height"]), int(group.attrs["mask_width"])
+    )

@@ -1,0 +1,84 @@
+"""The ``vocabulary`` rule: VLAD centres fitted on a dataset's patches, or read from a file."""
+
+from __future__ import annotations
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import stores
+from vprflow.stages.base import resolved_sources
+from vprflow.stages.dataset import Dataset
+from vprflow.stages.features import read_features
+
+
+def load_centres_file(path: str) -> np.ndarray:
+    """Centres ``[K, D]`` from a torch-saved ``c_centers.pt`` or a ``.npy`` file
+    (plain numbers only: a pickled object array is refused, naming the file)."""
+    if path.endswith(".npy"):
+        try:
+            centres = np.load(path, allow_pickle=False)
+        except ValueError as error:
+            raise ValueError(
+                f"vocabulary.file {path}: cannot load it without unpickling ({error}); save "
+                "the centres as a plain float array: np.save(path, centres.astype('float32'))"
+            ) from error
+        if centres.ndim != 2 or centres.dtype.kind not in "fiu":
+            raise ValueError(
+                f"vocabulary.file {path}: expected numeric centres [K, D], found "
+                f"{centres.dtype} {centres.shape}"
+            )
+        return centres.astype(np.float32)
+    from vprflow.published import load_c_centers
+
+    return load_c_centers(path)
+
+
+def fit_vocabulary(dataset_path: str, features_path: str, params: dict, out: str) -> None:
+    """VLAD centres ``[K, D]``: spherical k-means on sampled patch descriptors, or a file."""
+    from vprflow.vlad import fit_spherical_kmeans
+
+    spec = params["params"]
+    if spec["source"] == "file":
+        centres = load_centres_file(spec["file"])
+        dim = int(stores.open_store(features_path).attrs["dim"])
+        if centres.shape[1] != dim:
+            raise ValueError(
+                f"vocabulary.file {spec['file']}: centres have {centres.shape[1]} dimensions "
+                f"but the features have {dim}; the file belongs to another backbone or layer"
+            )
+    else:
+        dataset = Dataset(dataset_path)
+        features = stores.open_store(features_path)
+        images = dataset.indices(spec["fit_on"])
+        h, w = features.attrs["grid"]
+        per_image = h * w
+        total = len(images) * per_image
+        rng = np.random.default_rng(spec["seed"])
+        chosen = np.sort(rng.choice(total, size=min(total, spec["max_descriptors"]), replace=False))
+        owner = chosen // per_image
+        sample = []
+        for i in tqdm(np.unique(owner), desc="vocabulary sample", unit="image"):
+            grid = read_features(features, images[i]).reshape(per_image, -1)
+            sample.append(grid[chosen[owner == i] % per_image])
+        sample = np.concatenate(sample)
+        if len(sample) < spec["n_clusters"]:
+            raise ValueError(
+                f"config key vocabulary.n_clusters = {spec['n_clusters']} is more than the "
+                f"{len(sample)} patch descriptors of the {spec['fit_on']} images "
+                f"({len(images)} images x {per_image} patches, max_descriptors "
+                f"{spec['max_descriptors']}): lower n_clusters"
+            )
+        centres = fit_spherical_kmeans(
+            sample,
+            spec["n_clusters"],
+            spec["n_iter"],
+            spec["seed"],
+            centres=spec["centres"],
+        )
+    attrs = {"stage": "vocabulary", "params": params, "sources": resolved_sources(spec)}
+    with stores.atomic_store(out, attrs) as group:
+        stores.write_array(group, "centres", centres.astype(np.float32))
+
+
+def read_centres(path: str) -> np.ndarray:
+    return np.asarray(stores.open_store(path)["centres"][...], dtype=np.float32)

@@ -1,0 +1,220 @@
+"""Every stage function run directly, without Snakemake, on a synthetic dataset with the
+weight-free DAISY features and SLIC segments, checked against direct computations."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from synthetic import make_dataset
+
+from vprflow import stores
+from vprflow.config import validate_config
+from vprflow.images import read_image, resize_image
+from vprflow.plan import build_plan
+from vprflow.stages.dataset import Dataset, build_dataset
+from vprflow.stages.descriptors import compute_descriptors
+from vprflow.stages.features import compute_features, read_features
+from vprflow.stages.gather import gather
+from vprflow.stages.pca import fit_pca_stage, read_pca
+from vprflow.stages.recall import evaluate
+from vprflow.stages.report import write_report
+from vprflow.stages.segments import compute_segments, read_masks
+from vprflow.stages.vocabulary import fit_vocabulary, read_centres
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+METHODS = ["anyloc_vlad", "segvlad", "gem"]
+N_PLACES = 6
+
+
+class Runner:
+    """Runs a plan's stages in dependency order, as the rules would (per-image stages in
+    two shards, then gathered)."""
+
+    def __init__(self, plan, data_root: Path, out: Path):
+        self.plan, self.data_root, self.out = plan, str(data_root), out
+        self.done: dict[tuple[str, str], str] = {}
+
+    def path(self, stage: str, key: str) -> str:
+        if (stage, key) not in self.done:
+            self.done[stage, key] = self._run(self.plan.get(stage, key))
+        return self.done[stage, key]
+
+    def _run(self, stage) -> str:
+        inputs = {name: self.path(*ref) for name, ref in stage.inputs.items()}
+        out = str(self.out / stage.stage / f"{stage.key}.zarr")
+        params = stage.params
+        if stage.stage == "dataset":
+            build_dataset(stage.dataset, params, self.data_root, out)
+        elif stage.stage in ("features", "segments", "descriptors"):
+            n = Dataset(inputs["dataset"]).n_images
+            shards = []
+            for start, stop in ((0, n // 2), (n // 2, n)):
+                shard = f"{out}.shards/{start}-{stop}.zarr"
+                if stage.stage == "features":
+                    compute_features(
+                        inputs["dataset"], params, shard, self.data_root, "cpu", 2, start, stop
+                    )
+                elif stage.stage == "segments":
+                    compute_segments(
+                        inputs["dataset"], params, shard, self.data_root, "cpu", start, stop
+                    )
+                else:
+                    compute_descriptors(inputs, params, shard, start, stop)
+                shards.append(shard)
+            gather(shards, params, out)
+        elif stage.stage == "vocabulary":
+            fit_vocabulary(inputs["dataset"], inputs["features"], params, out)
+        elif stage.stage == "pca":
+            fit_pca_stage(inputs, params, out)
+        elif stage.stage == "recall":
+            evaluate(inputs["dataset"], inputs["descriptors"], params, out)
+        return out
+
+
+@pytest.fixture(scope="module")
+def pipeline(tmp_path_factory):
+    root = tmp_path_factory.mktemp("stages")
+    make_dataset(root / "data" / "toy", n_places=N_PLACES, width=64, height=48)
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    config["data_root"] = str(root / "data")
+    config["datasets"] = {
+        "toy": {
+            "path": "toy",
+            "reference": "ref",
+            "query": "query",
+            "resolution": [64, 48],
+            "ground_truth": {"kind": "vprbench", "file": "ground_truth_new.npy"},
+            "recall_at": [1, 3],
+            "methods": METHODS,
+            "defaults": {"pca": {"dim": 8, "whiten": False}, "segvlad": {"order": 1}},
+        }
+    }
+    config["vocabulary"].update(n_clusters=3, n_iter=5)
+    config["segmenters"]["slic"].update(n_segments=6, resolution_scale=1.0)
+    config = validate_config(config, SCHEMA)
+    plan = build_plan(config)
+    runner = Runner(plan, root / "data", root / "cache")
+    recalls = [runner.path("recall", run.recall_key) for run in plan.runs["toy"]]
+    return plan, runner, recalls, root
+
+
+def stage_path(pipeline, stage: str, method: str = "segvlad") -> str:
+    plan, runner, _, _ = pipeline
+    run = {r.method: r for r in plan.runs["toy"]}[method]
+    users = {}
+    from vprflow.plan import stage_users
+
+    for (name, key), rows in stage_users(plan).items():
+        if name == stage and ("toy", method) in rows:
+            users[key] = runner.path(name, key)
+    assert len(users) == 1, (stage, method, run)
+    return next(iter(users.values()))
+
+
+def test_dataset_lists_images_and_truth(pipeline):
+    dataset = Dataset(stage_path(pipeline, "dataset"))
+    assert (dataset.n_reference, dataset.n_query) == (N_PLACES, N_PLACES)
+    assert [list(t) for t in dataset.truth()][:2] == [[0, 1], [0, 1, 2]]
+    assert dataset.paths[0] == "toy/ref/0000.png"
+
+
+def test_sharded_daisy_features_equal_the_backbone_on_each_image(pipeline):
+    from vprflow.backbones import DaisyBackbone
+
+    _, _, _, root = pipeline
+    group = stores.open_store(stage_path(pipeline, "features"))
+    assert group["features"].shape == (2 * N_PLACES, 6, 8, 104)
+    assert group.attrs["shards"] == 2
+    backbone = DaisyBackbone(patch_size=8, radius=12)
+    dataset = Dataset(stage_path(pipeline, "dataset"), str(root / "data"))
+    for index in (0, N_PLACES + 1):  # one image of each shard
+        pixels = resize_image(read_image(dataset.paths[index]), 64, 48, "linear")
+        expected = backbone.features(pixels[None])[0]
+        # Stored as float16: half-precision rounding of unit-norm values.
+        np.testing.assert_allclose(read_features(group, index), expected, atol=1e-3)
+
+
+def test_slic_segments_partition_every_image(pipeline):
+    group = stores.open_store(stage_path(pipeline, "segments"))
+    assert int(group["masks_offsets"][-1]) == group["masks"].shape[0]
+    for index in range(2 * N_PLACES):
+        masks = read_masks(group, index)
+        assert masks.shape[1:] == (48, 64)
+        np.testing.assert_array_equal(masks.sum(axis=0), 1)  # SLIC labels every pixel once
+
+
+def test_vocabulary_and_pca_shapes(pipeline):
+    centres = read_centres(stage_path(pipeline, "vocabulary"))
+    assert centres.shape == (3, 104)
+    pca = read_pca(stage_path(pipeline, "pca"))
+    assert pca.components.shape == (8, 3 * 104)
+
+
+def test_segvlad_descriptors_are_the_projected_segment_vlads(pipeline):
+    """The descriptors stage equals image_segvlad + the PCA projection, per image."""
+    from vprflow.segvlad import image_segvlad
+    from vprflow.stages.descriptors import vlad_input
+
+    features = stores.open_store(stage_path(pipeline, "features"))
+    segments = stores.open_store(stage_path(pipeline, "segments"))
+    centres = read_centres(stage_path(pipeline, "vocabulary"))
+    pca = read_pca(stage_path(pipeline, "pca"))
+    group = stores.open_store(stage_path(pipeline, "descriptors"))
+    offsets = np.asarray(group["descriptors_offsets"][...])
+    for index in (1, 2 * N_PLACES - 1):
+        vectors = image_segvlad(
+            vlad_input(read_features(features, index), {"normalize_descriptors": True}),
+            read_masks(segments, index),
+            centres,
+            (48, 64),
+            8,
+            1,
+        )
+        stored = np.asarray(group["descriptors"][offsets[index] : offsets[index + 1]])
+        np.testing.assert_allclose(stored, pca.transform(vectors), rtol=1e-5, atol=1e-5)
+
+
+def test_global_recall_matches_a_direct_ranking(pipeline):
+    """Recall@N of a global method from a float64 brute-force L2 ranking in the test."""
+    descriptors = np.asarray(
+        stores.open_store(stage_path(pipeline, "descriptors", "anyloc_vlad"))["descriptors"][...],
+        dtype=np.float64,
+    )
+    ref, query = descriptors[:N_PLACES], descriptors[N_PLACES:]
+    truth = Dataset(stage_path(pipeline, "dataset")).truth()
+    distances = ((query[:, None, :] - ref[None, :, :]) ** 2).sum(-1)
+    order = np.argsort(distances, axis=1, kind="stable")
+    # Ties closer than float32 precision would make the order arbitrary: none here.
+    gaps = np.diff(np.sort(distances, axis=1), axis=1)
+    assert gaps.min() > 1e-4 * distances.max()
+    result = stores.open_store(stage_path(pipeline, "recall", "anyloc_vlad"))
+    for n in (1, 3):
+        direct = np.mean([bool(set(order[q, :n]) & set(truth[q])) for q in range(N_PLACES)])
+        assert result.attrs["recall"][str(n)] == pytest.approx(direct, abs=1e-12)
+    np.testing.assert_array_equal(np.asarray(result["ranking"][...])[:, :3], order[:, :3])
+
+
+def test_report_writes_one_row_per_method_and_every_prediction(pipeline, tmp_path):
+    plan, _, recalls, _ = pipeline
+    runs = [{"method": r.method, "params": r.row_params} for r in plan.runs["toy"]]
+    csv_out, predictions_out = tmp_path / "recall.csv", tmp_path / "predictions.csv"
+    dataset = stage_path(pipeline, "dataset")
+    write_report("toy", dataset, runs, recalls, str(csv_out), str(predictions_out))
+    with open(csv_out) as f:
+        rows = list(csv.DictReader(f))
+    assert [r["method"] for r in rows] == METHODS
+    for row, path in zip(rows, recalls, strict=True):
+        recall = stores.open_store(path).attrs["recall"]
+        assert float(row["recall@1"]) == pytest.approx(recall["1"], abs=1e-6)
+    with open(predictions_out) as f:
+        predictions = list(csv.DictReader(f))
+    assert len(predictions) == len(METHODS) * N_PLACES
+    # Same inputs, same bytes.
+    again = tmp_path / "again.csv"
+    write_report("toy", dataset, runs, recalls, str(again), str(tmp_path / "p2.csv"))
+    assert again.read_bytes() == csv_out.read_bytes()
