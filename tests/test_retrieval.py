@@ -17,7 +17,6 @@ import pytest
 from vprflow.retrieval import (
     global_ranking,
     image_of_segment,
-    rank_by_score,
     search,
     segment_vote_scores,
     vote_ranking,
@@ -106,6 +105,20 @@ def published_ranking(distances, indices, query_image, ref_image, n_query, top):
     return rankings
 
 
+def rank_by_score(scores: np.ndarray) -> np.ndarray:
+    """Reference indices by decreasing score, ties by increasing index: ``[Nq, Nr]``."""
+    return np.argsort(-scores, axis=1, kind="stable")
+
+
+def dense_scores(distances, indices, query_image, ref_image, n_query, n_ref):
+    """The sparse voted scores as a dense ``[n_query, n_ref]`` array (0 where unvoted)."""
+    votes = segment_vote_scores(distances, indices, query_image, ref_image, n_ref)
+    assert (np.diff(votes.query * n_ref + votes.ref) > 0).all()  # sorted, one per pair
+    scores = np.zeros((n_query, n_ref))
+    scores[votes.query, votes.ref] = votes.score
+    return scores
+
+
 def vote_problem(seed, n_query=4, n_ref=6, segments_per_ref=(3, 0, 5, 2, 4, 1), k=5):
     rng = np.random.default_rng(seed)
     ref_offsets = np.concatenate([[0], np.cumsum(segments_per_ref)])
@@ -121,7 +134,7 @@ def vote_problem(seed, n_query=4, n_ref=6, segments_per_ref=(3, 0, 5, 2, 4, 1), 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_segment_vote_scores_match_direct_loop(seed):
     distances, indices, query_image, ref_image = vote_problem(seed)
-    scores = segment_vote_scores(distances, indices, query_image, ref_image, 4, 6)
+    scores = dense_scores(distances, indices, query_image, ref_image, 4, 6)
     expected = direct_vote(distances, indices, query_image, ref_image, 4, 6)
     assert scores.shape == (4, 6) and scores.dtype == np.float64
     np.testing.assert_allclose(scores, expected, rtol=1e-12, atol=1e-12)
@@ -135,14 +148,14 @@ def test_segment_vote_normalises_with_global_min_and_max():
     # Two query images with one segment each; min-max over both lists together.
     distances = np.array([[0.0, 1.0], [2.0, 4.0]], np.float32)  # similarities 2, 1, 0, -2
     indices = np.array([[0, 1], [1, 0]])
-    scores = segment_vote_scores(distances, indices, np.array([0, 1]), np.array([0, 1]), 2, 2)
+    scores = dense_scores(distances, indices, np.array([0, 1]), np.array([0, 1]), 2, 2)
     np.testing.assert_allclose(scores, [[1.0, 0.75], [0.0, 0.5]])
 
 
 def test_segment_vote_with_equal_distances_counts_every_pair_once():
     distances = np.full((3, 2), 0.5, np.float32)
     indices = np.array([[0, 1], [1, 2], [2, 0]])
-    scores = segment_vote_scores(distances, indices, np.array([0, 0, 1]), np.array([0, 0, 1]), 2, 2)
+    scores = dense_scores(distances, indices, np.array([0, 0, 1]), np.array([0, 0, 1]), 2, 2)
     np.testing.assert_allclose(scores, [[3.0, 1.0], [1.0, 1.0]])
 
 
@@ -199,7 +212,7 @@ def test_vote_ranking_breaks_ties_by_first_appearance_not_index():
 
 def test_vote_ranking_all_images_is_rank_by_score():
     distances, indices, query_image, ref_image = vote_problem(3)
-    scores = segment_vote_scores(distances, indices, query_image, ref_image, 4, 6)
+    scores = dense_scores(distances, indices, query_image, ref_image, 4, 6)
     ranking = vote_ranking(distances, indices, query_image, ref_image, 4, 6, 5, "all_images")
     np.testing.assert_array_equal(ranking, rank_by_score(scores)[:, :5])
 
@@ -208,3 +221,22 @@ def test_vote_ranking_rejects_an_unknown_mode():
     distances, indices, query_image, ref_image = vote_problem(0)
     with pytest.raises(ValueError, match="'borda'"):
         vote_ranking(distances, indices, query_image, ref_image, 4, 6, 5, "borda")
+
+
+@pytest.mark.parametrize("mode", ["published", "all_images"])
+def test_voting_never_allocates_query_by_reference_scores(mode):
+    """1,000 query images against 10^9 reference images: a dense score matrix would be
+    8 TB; the sparse votes are a few thousand pairs."""
+    rng = np.random.default_rng(0)
+    n_query, n_ref, k = 1000, 10**9, 5
+    query_image = np.repeat(np.arange(n_query), 2)
+    ref_image = rng.integers(0, n_ref, 50)  # 50 reference segments of far-apart images
+    indices = rng.integers(0, 50, (len(query_image), k))
+    distances = np.sort(rng.uniform(0, 2, indices.shape), axis=1).astype(np.float32)
+    ranking = vote_ranking(distances, indices, query_image, ref_image, n_query, n_ref, 20, mode)
+    assert ranking.shape == (n_query, 20)
+    voted = ranking[ranking >= 0]
+    if mode == "published":
+        assert np.isin(voted, ref_image).all()
+    else:
+        assert (ranking >= 0).all()

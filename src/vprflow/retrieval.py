@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 
@@ -20,11 +22,6 @@ def search(database: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarra
     return distances, indices
 
 
-def rank_by_score(scores: np.ndarray) -> np.ndarray:
-    """Reference indices by decreasing score, ties by increasing index: ``[Nq, Nr]``."""
-    return np.argsort(-scores, axis=1, kind="stable")
-
-
 def global_ranking(reference: np.ndarray, query: np.ndarray, top: int) -> np.ndarray:
     """Top-``top`` reference images per query for global descriptors ``[N, D]``."""
     _, indices = search(reference, query, top)
@@ -34,14 +31,29 @@ def global_ranking(reference: np.ndarray, query: np.ndarray, top: int) -> np.nda
 VOTE_RANKINGS = ("published", "all_images")
 
 
+@dataclass
+class ImageScores:
+    """Voted image scores, sparse: one entry per (query image, reference image) pair that
+    received at least one vote, sorted by query then reference image.
+
+    ``query``, ``ref`` ``[P]`` int64; ``score`` ``[P]`` float64; ``first_seen`` ``[P]``
+    int64, the position of the pair's first vote when the retrieved lists are read
+    rank-major (see :func:`segment_vote_scores`).
+    """
+
+    query: np.ndarray
+    ref: np.ndarray
+    score: np.ndarray
+    first_seen: np.ndarray
+
+
 def segment_vote_scores(
     distances: np.ndarray,
     indices: np.ndarray,
     query_image_of_segment: np.ndarray,
     ref_image_of_segment: np.ndarray,
-    n_query: int,
     n_ref: int,
-) -> np.ndarray:
+) -> ImageScores:
     """Similarity-weighted Borda voting of retrieved segments into image scores.
 
     ``distances``/``indices`` ``[Sq, k]``: each query segment's nearest reference
@@ -49,19 +61,23 @@ def segment_vote_scores(
     min and max over all lists (in float32, as the published code does it on faiss's
     float32 output); the score of reference image ``r`` for query image ``q`` is the
     sum of normalised similarities of every (segment of ``q``, retrieved segment of
-    ``r``) pair, accumulated in float64 in the published order (rank by rank, query
-    segments in order within a rank) so that exact ties come out as published.
-    Returns ``[n_query, n_ref]`` float64.
+    ``r``) pair, accumulated in float64 in the published order (per query image rank by
+    rank, query segments in order within a rank) so that exact ties come out as
+    published. Only voted pairs are stored: memory is ``O(Sq * k)``, never
+    ``n_query x n_ref``.
     """
-    votes = _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment)
-    return _add_votes(distances, votes, n_query, n_ref)
-
-
-def _add_votes(distances, votes, n_query: int, n_ref: int) -> np.ndarray:
-    rows, cols, order = votes
-    scores = np.zeros((n_query, n_ref), dtype=np.float64)
-    np.add.at(scores, (rows[order], cols[order]), _vote_weights(distances).reshape(-1)[order])
-    return scores
+    n_segments, k = indices.shape
+    rows = np.repeat(np.asarray(query_image_of_segment, dtype=np.int64), k)
+    cols = np.asarray(ref_image_of_segment, dtype=np.int64)[indices.reshape(-1)]
+    rank = np.tile(np.arange(k), n_segments)
+    segment = np.repeat(np.arange(n_segments), k)
+    reading = np.lexsort((segment, rank, rows))
+    pair = rows[reading] * n_ref + cols[reading]
+    keys, first_seen, inverse = np.unique(pair, return_index=True, return_inverse=True)
+    # bincount adds in array order, i.e. in the published reading order.
+    weights = _vote_weights(distances).reshape(-1)[reading]
+    score = np.bincount(inverse.reshape(-1), weights=weights, minlength=len(keys))
+    return ImageScores(keys // n_ref, keys % n_ref, score, first_seen.astype(np.int64))
 
 
 def _vote_weights(distances: np.ndarray) -> np.ndarray:
@@ -73,18 +89,6 @@ def _vote_weights(distances: np.ndarray) -> np.ndarray:
     if span > 0:
         return ((similarity - low) / span).astype(np.float64)
     return np.ones_like(similarity, dtype=np.float64)
-
-
-def _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment):
-    """Every (query image, reference image) vote as flat arrays ``[Sq * k]`` plus the
-    permutation that reads them query image by query image, rank by rank, query
-    segments in order within a rank."""
-    n_segments, k = indices.shape
-    rows = np.repeat(np.asarray(query_image_of_segment), k)
-    cols = np.asarray(ref_image_of_segment)[indices.reshape(-1)]
-    rank = np.tile(np.arange(k), n_segments)
-    segment = np.repeat(np.arange(n_segments), k)
-    return rows, cols, np.lexsort((segment, rank, rows))
 
 
 def vote_ranking(
@@ -106,26 +110,35 @@ def vote_ranking(
     ``top`` voted images has its row padded with ``-1`` (never a positive, so a missing
     rank counts as a miss). ``mode="all_images"``: every reference image is ranked,
     ties (unvoted images included, score 0) by increasing index.
+
+    Works on the sparse scores: sorts only voted pairs, never a full row.
     """
     if mode not in VOTE_RANKINGS:
         raise ValueError(f"unknown vote ranking {mode!r}; expected one of {VOTE_RANKINGS}")
-    votes = _votes_rank_major(indices, query_image_of_segment, ref_image_of_segment)
-    scores = _add_votes(distances, votes, n_query, n_ref)
+    votes = segment_vote_scores(
+        distances, indices, query_image_of_segment, ref_image_of_segment, n_ref
+    )
     top = min(top, n_ref)
-    if mode == "all_images":
-        return rank_by_score(scores)[:, :top].astype(np.int64)
-    rows, cols, order = votes
-    first_seen = np.full((n_query, n_ref), np.iinfo(np.int64).max, dtype=np.int64)
-    # Position of each vote in its query's rank-major reading; the minimum per image is
-    # where it first appears.
-    position = np.empty(len(order), dtype=np.int64)
-    position[order] = np.arange(len(order))
-    np.minimum.at(first_seen, (rows, cols), position)
     ranking = np.full((n_query, top), -1, dtype=np.int64)
-    for q in range(n_query):
-        voted = np.flatnonzero(first_seen[q] != np.iinfo(np.int64).max)
-        best = voted[np.lexsort((first_seen[q, voted], -scores[q, voted]))][:top]
-        ranking[q, : len(best)] = best
+    if mode == "published":
+        order = np.lexsort((votes.first_seen, -votes.score, votes.query))
+    else:  # zero scores tie with unvoted images: they are filled in by index below
+        positive = np.flatnonzero(votes.score > 0)
+        order = positive[
+            np.lexsort((votes.ref[positive], -votes.score[positive], votes.query[positive]))
+        ]
+    query, ref = votes.query[order], votes.ref[order]
+    starts = np.searchsorted(query, np.arange(n_query))
+    place = np.arange(len(order)) - starts[query]
+    kept = place < top
+    ranking[query[kept], place[kept]] = ref[kept]
+    if mode == "all_images":
+        counts = np.bincount(query, minlength=n_query)
+        for q in np.flatnonzero(counts < top):
+            ranked = ranking[q, : counts[q]]
+            # The first (top - counts) images by index that are not ranked yet.
+            candidates = np.arange(min(n_ref, top + counts[q]))
+            ranking[q, counts[q] :] = candidates[~np.isin(candidates, ranked)][: top - counts[q]]
     return ranking
 
 

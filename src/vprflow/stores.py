@@ -48,10 +48,18 @@ def atomic_store(path: str | Path, attrs: dict | None = None) -> Iterator[zarr.G
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    # Snakemake may pre-create (or leave) the directory output; it holds no data.
+    replace_store(tmp, path)
+
+
+def replace_store(source: str | Path, path: str | Path) -> None:
+    """Move a finished store from ``source`` to ``path`` in one rename (same file system),
+    replacing whatever is at ``path``."""
+    path = Path(path)
     if path.exists():
-        # Snakemake may pre-create (or leave) the directory output; it holds no data.
         shutil.rmtree(path)
-    os.replace(tmp, path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(source, path)
 
 
 def open_store(path: str | Path) -> zarr.Group:
@@ -119,12 +127,9 @@ def read_strings(group: zarr.Group, name: str) -> list[str]:
     return [str(s) for s in np.asarray(group[name][...]).tolist()]
 
 
-class RaggedWriter:
-    """Append per-image blocks of rows ``[n_i, *row_shape]`` into one concatenated array.
-
-    Rows are buffered and flushed in whole chunks, so appending many small blocks
-    does not rewrite partial chunks over and over.
-    """
+class RowWriter:
+    """Append rows ``[n, *row_shape]`` to ``group[name]``, buffered and flushed in whole
+    chunks, so appending one image at a time does not recompress a chunk per image."""
 
     def __init__(self, group: zarr.Group, name: str, row_shape: tuple, dtype, chunk_rows: int):
         self.array = group.create_array(
@@ -139,25 +144,42 @@ class RaggedWriter:
         self.chunk_rows = chunk_rows
         self.buffer: list[np.ndarray] = []
         self.buffered = 0
-        self.offsets = [0]
+        self.written = 0
 
-    def append(self, rows: np.ndarray) -> None:
+    def append(self, rows: np.ndarray, what: str | None = None) -> None:
+        """``what`` names the rows in a NaN/inf error (default: the array and row)."""
         rows = np.asarray(rows, dtype=self.array.dtype)
-        check_finite(self.group, self.name, rows, first_row=self.offsets[-1])
+        check_finite(self.group, what or self.name, rows, first_row=self.written + self.buffered)
         self.buffer.append(rows)
         self.buffered += len(rows)
-        self.offsets.append(self.offsets[-1] + len(rows))
         if self.buffered >= self.chunk_rows:
             self._flush()
 
     def _flush(self) -> None:
         if self.buffered:
             self.array.append(np.concatenate(self.buffer, axis=0), axis=0)
+            self.written += self.buffered
             self.buffer, self.buffered = [], 0
+
+    def close(self) -> None:
+        self._flush()
+
+
+class RaggedWriter(RowWriter):
+    """Append per-image blocks of rows ``[n_i, *row_shape]`` into one concatenated array,
+    with ``<name>_offsets [n + 1]`` written on :meth:`close`."""
+
+    def __init__(self, group: zarr.Group, name: str, row_shape: tuple, dtype, chunk_rows: int):
+        super().__init__(group, name, row_shape, dtype, chunk_rows)
+        self.offsets = [0]
+
+    def append(self, rows: np.ndarray, what: str | None = None) -> None:
+        super().append(rows, what)
+        self.offsets.append(self.offsets[-1] + len(rows))
 
     def close(self) -> np.ndarray:
         """Flush and write ``<name>_offsets``; returns the offsets ``[n + 1]``."""
-        self._flush()
+        super().close()
         offsets = np.asarray(self.offsets, dtype=np.int64)
         write_array(self.group, f"{self.name}_offsets", offsets)
         return offsets

@@ -58,20 +58,16 @@ def compute_descriptors(
         return
     attrs = {**stage_attrs("descriptors", params, images), "kind": "global"}
     with stores.atomic_store(out, attrs) as group:
-        array = None
+        writer = None
         for i in tqdm(images, desc=agg.name, unit="image"):
             vector = describe(i)
-            if array is None:
-                array = group.create_array(
-                    "descriptors",
-                    shape=(len(images), len(vector)),
-                    chunks=(_chunk_rows(len(vector)), len(vector)),
-                    dtype=np.float32,
-                    compressors=stores.COMPRESSOR,
-                )
+            if writer is None:
                 group.attrs["dim"] = len(vector)
-            stores.check_finite(group, f"descriptors of {dataset.paths[i]}", vector)
-            array[i - images.start] = vector
+                writer = stores.RowWriter(
+                    group, "descriptors", (len(vector),), np.float32, _chunk_rows(len(vector))
+                )
+            writer.append(vector[None], f"descriptors of {dataset.paths[i]}")
+        writer.close()
 
 
 def _chunk_rows(dim: int) -> int:

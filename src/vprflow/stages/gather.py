@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import zarr
 from tqdm import tqdm
 
 from vprflow import stores
@@ -12,7 +13,8 @@ def gather(shard_paths: list[str], params: dict, out: str) -> None:
     """Concatenate per-image shard stores (in image order) into one store.
 
     Arrays with an ``<name>_offsets`` partner are ragged: rows are concatenated and
-    offsets shifted; other arrays are concatenated along the image axis.
+    offsets shifted; other arrays are concatenated along the image axis. A single shard
+    is renamed into place (its store is a temporary output nobody else reads).
     """
     shards = [stores.open_store(p) for p in shard_paths]
     first = shards[0]
@@ -20,6 +22,12 @@ def gather(shard_paths: list[str], params: dict, out: str) -> None:
     attrs = {k: v for k, v in first.attrs.items() if k not in ("start", "stop")}
     attrs["params"] = params
     attrs["shards"] = len(shards)
+    if len(shards) == 1:
+        # One shard is the whole store: rename it instead of copying every array. Its
+        # attributes are rewritten first, so `out` appears complete or not at all.
+        zarr.open_group(shard_paths[0], mode="r+").attrs.put(attrs)
+        stores.replace_store(shard_paths[0], out)
+        return
     with stores.atomic_store(out, attrs) as group:
         for name in names:
             if name.endswith("_offsets"):
