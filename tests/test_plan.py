@@ -60,6 +60,7 @@ def test_shipped_methods_share_features_segments_vocabulary_and_pca(config):
         "vocabulary": 1,
         "pca": 2,  # one per neighbourhood order with PCA (segvlad_o0 and segvlad)
         "descriptors": 5,
+        "search": 4,  # the four SegVLAD methods' segment lists
         "recall": 5,
     }
 
@@ -68,7 +69,7 @@ def test_order_refits_pca_but_never_features_segments_or_vocabulary(config):
     # Published: one PCA per neighbourhood order, fitted at the method's own order.
     changed = copy.deepcopy(config)
     changed["segvlad"]["order"] = 2
-    assert changed_stages(config, changed) == {"pca", "descriptors", "recall"}
+    assert changed_stages(config, changed) == {"pca", "descriptors", "search", "recall"}
     assert (
         build_plan(changed).get("pca", keys_of(changed)["pca"]).params["params"]["fit_order"] == 2
     )
@@ -79,7 +80,7 @@ def test_fixed_fit_order_keeps_pca_when_the_order_changes(config):
     fixed["pca"]["fit_order"] = 3
     changed = copy.deepcopy(fixed)
     changed["segvlad"]["order"] = 2
-    assert changed_stages(fixed, changed) == {"descriptors", "recall"}
+    assert changed_stages(fixed, changed) == {"descriptors", "search", "recall"}
     # fit_order 3 is what `method` resolves to at the default order 3: same PCA store.
     assert keys_of(fixed)["pca"] == keys_of(config)["pca"]
 
@@ -87,10 +88,11 @@ def test_fixed_fit_order_keeps_pca_when_the_order_changes(config):
 @pytest.mark.parametrize(
     ("section", "name", "value", "reaches"),
     [
-        ("vocabulary", "centres", "unit", {"vocabulary", "pca", "descriptors", "recall"}),
-        ("vlad", "normalize_descriptors", False, {"pca", "descriptors", "recall"}),
-        ("pca", "solver", "randomized", {"pca", "descriptors", "recall"}),
+        ("vocabulary", "centres", "unit", {"vocabulary", "pca", "descriptors", "search", "recall"}),
+        ("vlad", "normalize_descriptors", False, {"pca", "descriptors", "search", "recall"}),
+        ("pca", "solver", "randomized", {"pca", "descriptors", "search", "recall"}),
         ("segvlad", "vote_ranking", "all_images", {"recall"}),
+        ("segvlad", "top_segments", 20, {"search", "recall"}),
     ],
 )
 def test_published_default_options_reach_their_stages(config, section, name, value, reaches):
@@ -109,12 +111,12 @@ def test_pooling_normalization_reaches_only_pooling_descriptors(config):
 
 def test_omitted_method_sections_take_the_schema_defaults(config):
     raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    for section in ("vocabulary", "vlad", "pca", "segvlad", "snsm", "pooling"):
-        del raw[section]
+    for section in ("vocabulary", "vlad", "pca", "segvlad", "retrieval", "snsm", "pooling"):
+        raw.pop(section, None)
     for entry in raw["backbones"].values():
         entry.pop("resize", None)
     filled = validate_config(raw, SCHEMA)
-    for section in ("vocabulary", "vlad", "pca", "segvlad", "snsm", "pooling"):
+    for section in ("vocabulary", "vlad", "pca", "segvlad", "retrieval", "snsm", "pooling"):
         assert filled[section] == config[section], section
     assert filled["backbones"]["daisy"]["resize"] == "linear"
 
@@ -122,7 +124,13 @@ def test_omitted_method_sections_take_the_schema_defaults(config):
 def test_segmenter_reaches_segments_pca_descriptors_recall(config):
     changed = copy.deepcopy(config)
     changed["segmenters"]["slic"]["n_segments"] = 60
-    assert changed_stages(config, changed) == {"segments", "pca", "descriptors", "recall"}
+    assert changed_stages(config, changed) == {
+        "segments",
+        "pca",
+        "descriptors",
+        "search",
+        "recall",
+    }
 
 
 def test_backbone_reaches_everything_but_the_dataset(config):
@@ -133,6 +141,7 @@ def test_backbone_reaches_everything_but_the_dataset(config):
         "vocabulary",
         "pca",
         "descriptors",
+        "search",
         "recall",
     }
 
@@ -142,6 +151,7 @@ def test_execution_settings_are_not_in_keys(config):
     changed["backbones"]["daisy"]["batch_size"] = 8
     changed["device"] = "cpu"
     changed["shard_size"] = 16
+    changed["search_shard_size"] = 3
     changed["data_root"] = "/somewhere/else"
     assert changed_stages(config, changed) == set()
 

@@ -27,6 +27,7 @@ def test_sharded_workflow_on_slurm_matches_local_run(slurm_cluster, tmp_path):
 
     config["data_root"] = str(cluster_dir / "data")
     config["shard_size"] = 10  # 20 images -> 2 shards per per-image stage
+    config["search_shard_size"] = 4  # 10 references -> 3 segment-search jobs, merged
     config_path = write_config(cluster_dir, config)
     command = snakemake_slurm_command(
         slurm_cluster, SNAKEFILE, cluster_dir, TARGET, "--configfile", str(config_path)
@@ -35,11 +36,15 @@ def test_sharded_workflow_on_slurm_matches_local_run(slurm_cluster, tmp_path):
 
     job_ids = submitted_job_ids(output)
     # dataset, 2 feature shards + gather, 2 segment shards + gather, vocabulary, pca,
-    # 2 x (2 descriptor shards + gather), 2 recalls; the report runs locally.
-    assert len(job_ids) == 17, output[-3000:]
+    # 2 x (2 descriptor shards + gather), 3 search shards + merge, 2 recalls; the report
+    # runs locally.
+    assert len(job_ids) == 21, output[-3000:]
     states = {fields.get("JobState") for fields in slurm_job_info(job_ids).values()}
     assert states == {"COMPLETED"}
     logs = list((cluster_dir / ".snakemake" / "slurm_logs").rglob("*.log"))
     assert {int(p.stem) for p in logs} >= set(job_ids)
+    # Each segment-search shard was its own cluster job.
+    search_jobs = {p.stem for p in logs if p.relative_to(cluster_dir).parts[2] == "rule_search"}
+    assert len(search_jobs) == 3, sorted(str(p) for p in logs)
     assert (cluster_dir / TARGET).read_bytes() == (local_dir / TARGET).read_bytes()
     print(f"SLURM run: {len(job_ids)} jobs in {seconds:.0f} s")

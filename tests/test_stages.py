@@ -22,6 +22,7 @@ from vprflow.stages.gather import gather
 from vprflow.stages.pca import fit_pca_stage, read_pca
 from vprflow.stages.recall import evaluate
 from vprflow.stages.report import write_report
+from vprflow.stages.search import merge_search, read_search, search_shard
 from vprflow.stages.segments import compute_segments, read_masks
 from vprflow.stages.vocabulary import fit_vocabulary, read_centres
 
@@ -71,8 +72,16 @@ class Runner:
             fit_vocabulary(inputs["dataset"], inputs["features"], params, out)
         elif stage.stage == "pca":
             fit_pca_stage(inputs, params, out)
+        elif stage.stage == "search":
+            n_ref = Dataset(inputs["dataset"]).n_reference
+            shards = []
+            for start, stop in ((0, 2), (2, 3), (3, n_ref)):  # uneven reference shards
+                shard = f"{out}.shards/{start}-{stop}.zarr"
+                search_shard(inputs["dataset"], inputs["descriptors"], params, shard, start, stop)
+                shards.append(shard)
+            merge_search(shards, params, out)
         elif stage.stage == "recall":
-            evaluate(inputs["dataset"], inputs["descriptors"], params, out)
+            evaluate(inputs["dataset"], inputs["descriptors"], params, out, inputs.get("search"))
         return out
 
 
@@ -239,3 +248,40 @@ def test_gather_of_one_shard_renames_it_with_the_gathered_attributes(tmp_path):
     }
     np.testing.assert_array_equal(group["descriptors"][...], rows)
     np.testing.assert_array_equal(group["descriptors_offsets"][...], [0, 1, 1, 6])
+
+
+def test_sharded_search_equals_one_faiss_search_over_all_references(pipeline):
+    """Three reference shards merged give the lists of one exact search (ties by index)."""
+    from vprflow.retrieval import search
+
+    group = stores.open_store(stage_path(pipeline, "descriptors"))
+    offsets = np.asarray(group["descriptors_offsets"][...])
+    split = int(offsets[N_PLACES])
+    vectors = np.asarray(group["descriptors"][...])
+    distances, indices = read_search(stage_path(pipeline, "search"))
+    expected_d, expected_i = search(vectors[:split], vectors[split:], 50)
+    np.testing.assert_array_equal(distances, expected_d)
+    np.testing.assert_array_equal(indices, expected_i)
+    # Against float64: every list holds the true nearest segments.
+    exact = ((vectors[split:, None, :].astype(np.float64) - vectors[None, :split]) ** 2).sum(-1)
+    k = indices.shape[1]
+    for row in range(len(exact)):
+        kth = np.sort(exact[row])[k - 1]
+        assert (exact[row, indices[row]] <= kth + 1e-4).all()
+
+
+def test_float16_segment_descriptors_are_the_float32_ones_rounded(pipeline, tmp_path):
+    plan, runner, _, _ = pipeline
+    (stage,) = [
+        s
+        for s in plan.stages["descriptors"].values()
+        if s.params["params"]["aggregator"] == "segvlad"
+    ]
+    inputs = {name: runner.path(*ref) for name, ref in stage.inputs.items()}
+    params = {**stage.params, "params": {**stage.params["params"], "store_dtype": "float16"}}
+    out = str(tmp_path / "half.zarr")
+    compute_descriptors(inputs, params, out)
+    half = stores.open_store(out)["descriptors"]
+    full = stores.open_store(stage_path(pipeline, "descriptors"))["descriptors"]
+    assert half.dtype == np.float16
+    np.testing.assert_array_equal(np.asarray(half[...]), np.asarray(full[...]).astype(np.float16))

@@ -136,6 +136,7 @@ def test_stages_are_shared_and_self_describing(toy_run):
         "vocabulary": 1,
         "pca": 2,
         "descriptors": 5,
+        "search": 4,  # one segment search per SegVLAD method
         "recall": 5,
     }
     store = zarr.open_group(str(next((cache / "features").glob("*.zarr"))), mode="r")
@@ -149,10 +150,16 @@ def test_changing_order_rebuilds_pca_descriptors_and_recall_only(toy_run):
     changed = copy.deepcopy(config)
     changed["segvlad"]["order"] = 2
     path = write_config(workdir, changed, "order2.yaml")
-    assert scheduled_stages(workdir, path, TARGET) == {"pca", "descriptors", "recall", "report"}
+    assert scheduled_stages(workdir, path, TARGET) == {
+        "pca",
+        "descriptors",
+        "search",
+        "recall",
+        "report",
+    }
     changed["pca"]["fit_order"] = 3  # a fixed fit order keeps the order-3 PCA
     path = write_config(workdir, changed, "order2_fit3.yaml")
-    assert scheduled_stages(workdir, path, TARGET) == {"descriptors", "recall", "report"}
+    assert scheduled_stages(workdir, path, TARGET) == {"descriptors", "search", "recall", "report"}
 
 
 def test_changing_segmenter_rebuilds_segments_pca_descriptors_not_features(toy_run):
@@ -164,6 +171,7 @@ def test_changing_segmenter_rebuilds_segments_pca_descriptors_not_features(toy_r
         "segments",
         "pca",
         "descriptors",
+        "search",
         "recall",
         "report",
     }
@@ -190,17 +198,20 @@ def test_same_inputs_give_a_byte_identical_csv_and_sharding_changes_nothing(toy_
     sharded = copy.deepcopy(config)
     sharded["data_root"] = str(tmp_path / "data")
     sharded["shard_size"] = 3
+    sharded["search_shard_size"] = 4  # 10 references: segment search in 3 jobs, merged
     snakemake(tmp_path, write_config(tmp_path, sharded), TARGET)
     assert (tmp_path / TARGET).read_bytes() == (workdir / TARGET).read_bytes()
     assert (tmp_path / "results" / "predictions_toy.csv").read_bytes() == (
         workdir / "results" / "predictions_toy.csv"
     ).read_bytes()
     # Same keys (shard size is an execution setting), same arrays bit for bit.
-    for stage in ("features", "segments", "descriptors"):
-        for twin in sorted((tmp_path / "results" / "cache" / stage).glob("*.zarr")):
+    for stage, shards in (("features", 7), ("segments", 7), ("descriptors", 7), ("search", 3)):
+        twins = sorted((tmp_path / "results" / "cache" / stage).glob("*.zarr"))
+        assert twins, stage
+        for twin in twins:
             store = workdir / "results" / "cache" / stage / twin.name
             a, b = zarr.open_group(str(store), mode="r"), zarr.open_group(str(twin), mode="r")
-            assert b.attrs["shards"] == 7 and a.attrs["shards"] == 1
+            assert b.attrs["shards"] == shards and a.attrs["shards"] == 1
             for name, array in array_items(a):
                 np.testing.assert_array_equal(np.asarray(array[...]), np.asarray(b[name][...]))
 

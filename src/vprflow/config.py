@@ -19,7 +19,15 @@ import yaml
 from vprflow.registry import AGGREGATORS, BACKBONES, KIND_KEY, SEGMENTERS, with_defaults
 
 # Top-level sections that every method inherits and that may be omitted entirely.
-METHOD_DEFAULT_SECTIONS = ("vocabulary", "vlad", "pca", "segvlad", "snsm", "pooling")
+METHOD_DEFAULT_SECTIONS = (
+    "vocabulary",
+    "vlad",
+    "pca",
+    "segvlad",
+    "retrieval",
+    "snsm",
+    "pooling",
+)
 
 
 class ConfigError(ValueError):
@@ -101,7 +109,7 @@ unknown key is an error that names it, and every `default` below is filled in be
 anything is hashed, so a store's key and attributes record what ran.
 
 A method's settings are, later winning: the top-level sections (`vocabulary`, `vlad`,
-`pca`, `segvlad`, `snsm`, `pooling`), then the dataset's `defaults`, then the method's
+`pca`, `segvlad`, `retrieval`, `snsm`, `pooling`), then the dataset's `defaults`, then the method's
 own. Backbone and segmenter entries also get their kind's defaults from
 `src/vprflow/registry.py` (named in the descriptions below). What the methods compute
 is in `docs/methods.md`.

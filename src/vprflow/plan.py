@@ -34,7 +34,8 @@ FORMAT_VERSIONS = {
     "vocabulary": 2,  # 2: `centres` (plain cluster means by default)
     "pca": 2,  # 2: exact solver by default, capped at the numerical rank
     "descriptors": 3,  # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm
-    "recall": 2,  # 2: published vote ranking (voted images only, first-appearance ties)
+    "search": 1,
+    "recall": 3,  # 2: published vote ranking; 3: segment lists from the search stage
 }
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
@@ -509,7 +510,8 @@ def _plan_method(
             params = {
                 **{k: v for k, v in pca.items() if k != "enabled"},
                 "aggregator": agg.name,
-                **{k: v for k, v in options.items() if k != "order"},
+                # Not the order (fit_order says which) nor how descriptors are stored.
+                **{k: v for k, v in options.items() if k not in ("order", "store_dtype")},
                 "fit_order": fit_order,
             }
             inputs["pca"] = ("pca", plan.add("pca", params, dict(inputs), dataset_name))
@@ -520,19 +522,24 @@ def _plan_method(
     descriptors_key = plan.add(
         "descriptors", {"aggregator": agg.name, **options}, inputs, dataset_name
     )
-    by_segments = agg.output == "segments"
+    descriptors = ("descriptors", descriptors_key)
+    recall_inputs = {"dataset": ds, "descriptors": descriptors}
     recall_params = {
         "recall_at": dataset["recall_at"],
         "top_k": max(max(dataset["recall_at"]), 20),
-        "top_segments": method["segvlad"]["top_segments"] if by_segments else None,
-        "vote_ranking": method["segvlad"]["vote_ranking"] if by_segments else None,
     }
-    recall_key = plan.add(
-        "recall",
-        recall_params,
-        {"dataset": ds, "descriptors": ("descriptors", descriptors_key)},
-        dataset_name,
-    )
+    if agg.output == "segments":
+        retrieval = method["retrieval"]
+        search_params = {"top_segments": method["segvlad"]["top_segments"], **retrieval}
+        recall_inputs["search"] = (
+            "search",
+            plan.add(
+                "search", search_params, {"dataset": ds, "descriptors": descriptors}, dataset_name
+            ),
+        )
+        recall_params["vote_ranking"] = method["segvlad"]["vote_ranking"]
+        row.update(_prefixed("retrieval", retrieval))
+    recall_key = plan.add("recall", recall_params, recall_inputs, dataset_name)
     return MethodRun(method_name, recall_key, _flat(row))
 
 

@@ -189,6 +189,7 @@ def _segvlad_options(method: dict) -> dict:
         "order": segvlad["order"],
         "mask_to_patch": segvlad["mask_to_patch"],
         "small_graph": segvlad["small_graph"],
+        "store_dtype": segvlad["store_dtype"],
         **method["vlad"],
     }
 

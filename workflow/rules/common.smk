@@ -46,7 +46,7 @@ if len(_memo) != _memo_size:
 # cluster job steps, which parse this file again.
 if workflow.is_main_process:
     write_index(PLAN, PREFIX)
-SHARDED = "features|segments|descriptors"
+SHARDED = "features|segments|descriptors|search"
 
 
 wildcard_constraints:
@@ -107,10 +107,15 @@ def data_root_param(wildcards, output):
     return CONFIG["data_root"]
 
 
-def shard_ranges(name):
+def shard_ranges(name, stage):
+    """``(start, stop)`` image ranges of a sharded stage's jobs: all images for the
+    per-image stages, the reference images for search."""
     files = dataset_files(name)
-    n_images = len(files.reference) + len(files.query)
-    size = CONFIG["shard_size"] or n_images
+    if stage == "search":
+        n_images, size = len(files.reference), CONFIG["search_shard_size"]
+    else:
+        n_images, size = len(files.reference) + len(files.query), CONFIG["shard_size"]
+    size = size or n_images
     return [(start, min(start + size, n_images)) for start in range(0, n_images, size)]
 
 
@@ -120,7 +125,7 @@ def shard_inputs(wildcards):
     pattern = shard_pattern(wildcards.stage)
     return [
         pattern.format(key=wildcards.key, start=start, stop=stop)
-        for start, stop in shard_ranges(stage.dataset)
+        for start, stop in shard_ranges(stage.dataset, wildcards.stage)
     ]
 
 

@@ -14,7 +14,7 @@ from vprflow.arrays import l2_normalize
 from vprflow.registry import aggregator
 from vprflow.stages.base import shard_range, stage_attrs
 from vprflow.stages.dataset import Dataset
-from vprflow.stages.features import read_features
+from vprflow.stages.features import FeatureReader
 from vprflow.stages.pca import read_pca
 from vprflow.stages.segments import read_masks
 from vprflow.stages.vocabulary import read_centres
@@ -50,8 +50,9 @@ def compute_descriptors(
                 if writer is None:
                     dim = vectors.shape[1]
                     group.attrs["dim"] = dim
+                    dtype = np.dtype(spec.get("store_dtype", "float32"))
                     writer = stores.RaggedWriter(
-                        group, "descriptors", (dim,), np.float32, chunk_rows=_chunk_rows(dim)
+                        group, "descriptors", (dim,), dtype, chunk_rows=_chunk_rows(dim)
                     )
                 writer.append(vectors)
             writer.close()
@@ -92,6 +93,7 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
     from vprflow.segvlad import image_segvlad
 
     features = stores.open_store(inputs["features"])
+    read_features = FeatureReader(features)
     segments = stores.open_store(inputs["segments"])
     centres = read_centres(inputs["vocabulary"])
     height, width = features.attrs["image_size"]
@@ -99,7 +101,7 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
 
     def describe(index: int) -> np.ndarray:
         return image_segvlad(
-            vlad_input(read_features(features, index), options),
+            vlad_input(read_features(index), options),
             read_masks(segments, index),
             centres,
             (height, width),
@@ -116,11 +118,11 @@ def anyloc_vlad_descriptor(options: dict, inputs: dict[str, str]):
     """AnyLoc VLAD of the whole patch grid (docs/methods.md §4), ``[K * D]``."""
     from vprflow.vlad import vlad
 
-    features = stores.open_store(inputs["features"])
+    read_features = FeatureReader(stores.open_store(inputs["features"]))
     centres = read_centres(inputs["vocabulary"])
 
     def describe(index: int) -> np.ndarray:
-        grid = vlad_input(read_features(features, index), options)
+        grid = vlad_input(read_features(index), options)
         return vlad(grid.reshape(-1, grid.shape[-1]), centres)
 
     return describe
@@ -130,10 +132,10 @@ def snsm_descriptor(options: dict, inputs: dict[str, str]):
     """SNSM support-map descriptor (docs/methods.md §6)."""
     from vprflow.snsm import snsm_descriptor as snsm
 
-    features = stores.open_store(inputs["features"])
+    read_features = FeatureReader(stores.open_store(inputs["features"]))
     keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
     settings = {k: options[k] for k in keys}
-    return lambda index: snsm(read_features(features, index), **settings)
+    return lambda index: snsm(read_features(index), **settings)
 
 
 def pooled_descriptor(options: dict, inputs: dict[str, str]):
@@ -142,12 +144,12 @@ def pooled_descriptor(options: dict, inputs: dict[str, str]):
     from vprflow import pooling
     from vprflow.snsm import normalize_tokens
 
-    features = stores.open_store(inputs["features"])
+    read_features = FeatureReader(stores.open_store(inputs["features"]))
     pool = {
         "gem": lambda tokens: pooling.gem(tokens, p=options["p"]),
         "average": pooling.average_pool,
         "max": pooling.max_pool,
     }[options["aggregator"]]
     return lambda index: pool(
-        normalize_tokens(read_features(features, index), options["normalization"])
+        normalize_tokens(read_features(index), options["normalization"])
     )

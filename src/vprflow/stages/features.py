@@ -92,3 +92,22 @@ def _feature_extractor(spec: dict, device: str, width: int, height: int):
 def read_features(group, index: int) -> np.ndarray:
     """float32 ``[h, w, D]`` of one image of a features store."""
     return np.asarray(group["features"][index], dtype=np.float32)
+
+
+class FeatureReader:
+    """``reader(index) -> float32 [h, w, D]`` (a copy), reading about ``block_bytes``
+    of images per store access: a per-image stage walks the images in order, and one
+    store read per image costs more than the arithmetic on it for small grids."""
+
+    def __init__(self, group, block_bytes: int = 64 << 20):
+        self.array = group["features"]
+        per_image = 4 * int(np.prod(self.array.shape[1:]))
+        self.block = max(1, block_bytes // max(per_image, 1))
+        self.start, self.cached = 0, np.zeros((0,), np.float32)
+
+    def __call__(self, index: int) -> np.ndarray:
+        if not self.start <= index < self.start + len(self.cached):
+            self.start = index
+            stop = min(index + self.block, self.array.shape[0])
+            self.cached = np.asarray(self.array[index:stop], dtype=np.float32)
+        return self.cached[index - self.start].copy()

@@ -12,15 +12,17 @@ from vprflow.stages.dataset import Dataset
 log = logging.getLogger("vprflow")
 
 
-def evaluate(dataset_path: str, descriptors_path: str, params: dict, out: str) -> None:
-    """Retrieve references for every query, score them and compute Recall@N."""
+def evaluate(
+    dataset_path: str, descriptors_path: str, params: dict, out: str, search_path: str | None = None
+) -> None:
+    """Rank the references for every query and compute Recall@N.
+
+    Per-segment descriptors are ranked by voting over the segment lists of the
+    ``search`` stage (``search_path``); global ones by exact search here.
+    """
     from vprflow.recall import correct_at, recall_at
-    from vprflow.retrieval import (
-        global_ranking,
-        image_of_segment,
-        search,
-        vote_ranking,
-    )
+    from vprflow.retrieval import global_ranking, image_of_segment, vote_ranking
+    from vprflow.stages.search import read_search
 
     spec = params["params"]
     dataset = Dataset(dataset_path)
@@ -28,11 +30,11 @@ def evaluate(dataset_path: str, descriptors_path: str, params: dict, out: str) -
     n_ref, n_query = dataset.n_reference, dataset.n_query
     top_k = min(spec["top_k"], n_ref)
     if group.attrs["kind"] == "segments":
+        if search_path is None:
+            raise ValueError(f"{descriptors_path}: per-segment descriptors need a search input")
         offsets = np.asarray(group["descriptors_offsets"][...])
         split = int(offsets[n_ref])
-        vectors = group["descriptors"]
-        reference, query = np.asarray(vectors[:split]), np.asarray(vectors[split:])
-        distances, indices = search(reference, query, spec["top_segments"])
+        distances, indices = read_search(search_path)
         owner = image_of_segment(offsets)
         ranking = vote_ranking(
             distances,

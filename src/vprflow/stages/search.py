@@ -1,0 +1,121 @@
+"""The ``search`` rule: every query segment's nearest reference segments, one shard of
+reference images per job, merged into the exact global top-k by :func:`merge_search`.
+
+A job holds one shard of reference segments and one block of query segments at a
+time, so its memory is bounded by the shard and block sizes, not by the database.
+Results are listed nearest first with exact distance ties broken by increasing
+reference segment index, in every shard and after the merge, so a sharded search
+gives the same lists as an unsharded one (docs/methods.md §8).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import stores
+from vprflow.stages.base import stage_attrs
+from vprflow.stages.dataset import Dataset
+
+log = logging.getLogger("vprflow")
+
+# Query segments searched (and merged) per block: 65,536 x 50 results is 40 MB.
+QUERY_BLOCK = 1 << 16
+
+
+def canonical_order(distances: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each row sorted by (distance, index): ``[n, k]`` each, same shapes back."""
+    order = np.lexsort((indices, distances), axis=-1)
+    return np.take_along_axis(distances, order, -1), np.take_along_axis(indices, order, -1)
+
+
+def knn(database: np.ndarray, queries: np.ndarray, k: int, spec: dict):
+    """``(distances [Nq, k'], indices [Nq, k'])`` of the configured index, k' = min(k, Nd)."""
+    from vprflow.retrieval import search
+
+    if spec.get("index", "flat") != "flat":
+        raise ValueError(f"unknown retrieval index {spec['index']!r}")
+    return search(database, queries, k)
+
+
+def search_shard(
+    dataset_path: str,
+    descriptors_path: str,
+    params: dict,
+    out: str,
+    start: int | None = None,
+    stop: int | None = None,
+) -> None:
+    """Top-``top_segments`` reference segments of reference images ``start..stop`` for
+    every query segment: ``distances [Sq, k']`` float32, ``indices [Sq, k']`` int64
+    (global reference segment rows), k' = min(top_segments, segments in the shard)."""
+    spec = params["params"]
+    dataset = Dataset(dataset_path)
+    start = 0 if start is None else start
+    stop = dataset.n_reference if stop is None else min(stop, dataset.n_reference)
+    group = stores.open_store(descriptors_path)
+    offsets = np.asarray(group["descriptors_offsets"][...])
+    low, high = int(offsets[start]), int(offsets[stop])
+    split, total = int(offsets[dataset.n_reference]), int(offsets[-1])
+    vectors = group["descriptors"]
+    database = np.asarray(vectors[low:high], dtype=np.float32)
+    k = min(spec["top_segments"], len(database))
+    attrs = {**stage_attrs("search", params, range(start, stop)), "rows": [low, high]}
+    with stores.atomic_store(out, attrs) as result:
+        chunk = max(1, (1 << 22) // (12 * max(k, 1)))
+        found = {
+            "distances": stores.RowWriter(result, "distances", (k,), np.float32, chunk),
+            "indices": stores.RowWriter(result, "indices", (k,), np.int64, chunk),
+        }
+        for block in tqdm(range(split, total, QUERY_BLOCK), desc="search", unit="block"):
+            queries = np.asarray(vectors[block : min(block + QUERY_BLOCK, total)], np.float32)
+            if k:
+                distances, indices = knn(database, queries, k, spec)
+                distances, indices = canonical_order(distances, indices + low)
+            else:  # a shard of images without segments retrieves nothing
+                distances = np.zeros((len(queries), 0), np.float32)
+                indices = np.zeros((len(queries), 0), np.int64)
+            found["distances"].append(distances)
+            found["indices"].append(indices)
+        for writer in found.values():
+            writer.close()
+    log.info("searched %d query segments in reference segments %d..%d", total - split, low, high)
+
+
+def merge_search(shard_paths: list[str], params: dict, out: str) -> None:
+    """The exact top-k over all shards: per query segment the ``top_segments`` best of
+    every shard's lists by (distance, index), read one query block at a time."""
+    k = params["params"]["top_segments"]
+    shards = [stores.open_store(p) for p in shard_paths]
+    n_rows = shards[0]["distances"].shape[0]
+    k_total = min(k, sum(s["distances"].shape[1] for s in shards))
+    attrs = {"stage": "search", "params": params, "shards": len(shards)}
+    with stores.atomic_store(out, attrs) as result:
+        chunk = max(1, (1 << 22) // (12 * max(k_total, 1)))
+        found = {
+            "distances": stores.RowWriter(result, "distances", (k_total,), np.float32, chunk),
+            "indices": stores.RowWriter(result, "indices", (k_total,), np.int64, chunk),
+        }
+        for block in tqdm(range(0, n_rows, QUERY_BLOCK), desc="merge", unit="block"):
+            rows = slice(block, min(block + QUERY_BLOCK, n_rows))
+            # Shard by shard, keeping the best k: memory is two lists per row, whatever
+            # the number of shards.
+            distances, indices = shards[0]["distances"][rows], shards[0]["indices"][rows]
+            for shard in shards[1:]:
+                distances, indices = canonical_order(
+                    np.concatenate([distances, shard["distances"][rows]], axis=1),
+                    np.concatenate([indices, shard["indices"][rows]], axis=1),
+                )
+                distances, indices = distances[:, :k_total], indices[:, :k_total]
+            found["distances"].append(distances)
+            found["indices"].append(indices)
+        for writer in found.values():
+            writer.close()
+
+
+def read_search(path: str) -> tuple[np.ndarray, np.ndarray]:
+    """``(distances [Sq, k], indices [Sq, k])`` of a merged search store."""
+    group = stores.open_store(path)
+    return np.asarray(group["distances"][...]), np.asarray(group["indices"][...])

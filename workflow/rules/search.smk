@@ -1,0 +1,16 @@
+rule search:
+    input:
+        unpack(stage_inputs("search")),
+    output:
+        temp(directory(shard_pattern("search"))),
+    log:
+        log_pattern("search", "{start}-{stop}"),
+    benchmark:
+        benchmark_pattern("search", "{start}-{stop}")
+    conda:
+        "../envs/vprflow.yaml"
+    threads: 2
+    params:
+        cfg=stage_params("search"),
+    script:
+        "../scripts/search.py"
