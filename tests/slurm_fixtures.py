@@ -18,6 +18,8 @@ fails it when CI=true (CI must not silently lose the SLURM coverage).
 
 from __future__ import annotations
 
+import contextlib
+import json
 import os
 import re
 import shutil
@@ -78,9 +80,29 @@ def _format_value(value) -> str:
     return str(value).lower() if isinstance(value, bool) else str(value)
 
 
+def node_memory_share_mb(cluster: local_slurm.ClusterHandle) -> int:
+    """Memory one job may ask for: RealMemory / CPUs, so that jobs can run side by side."""
+    return cluster.real_memory_mb // max(1, cluster.cpus)
+
+
+def cluster_limits(cluster: local_slurm.ClusterHandle) -> list[str]:
+    """Options that keep every job within the test node, whatever asks for more.
+
+    ``--max-threads`` caps threads (and so ``--cpus-per-task``) at the node's CPUs;
+    ``--resources mem_mb=N`` caps each job's ``mem_mb`` at N in cluster mode (``mem_mb``
+    is a per-job resource there, so it does not limit how many jobs run at once),
+    including the values the rules set in their own ``resources:``. Neither is one of
+    the keys a user overrides (``--default-resources`` / ``--set-resources``).
+    """
+    return [
+        "--max-threads", str(cluster.cpus),
+        "--resources", f"mem_mb={node_memory_share_mb(cluster)}",
+    ]  # fmt: skip
+
+
 def _cap(name: str, value, cluster: local_slurm.ClusterHandle):
     """A resource value that fits the test cluster: no GPUs, <= its CPUs and memory."""
-    mem_cap = cluster.real_memory_mb // max(1, cluster.cpus)  # let jobs run side by side
+    mem_cap = node_memory_share_mb(cluster)
     caps = {"cpus_per_task": cluster.cpus, "mem_mb": mem_cap, "mem_mb_per_cpu": mem_cap}
     if name in {"gpu", "gpus"}:
         return 0
@@ -103,11 +125,12 @@ def fit_profile_to_cluster(
     what this cluster cannot provide: GPU requests become 0, partition/account/QoS/
     constraint requests are dropped, CPUs and memory are capped at what the node has
     (memory at RealMemory / CPUs so that jobs can run side by side). Also adds
-    ``--max-threads`` (threads beyond the node's CPUs could never be scheduled).
+    :func:`cluster_limits` (threads beyond the node's CPUs could never be scheduled; the
+    rules' own memory requests are capped too).
     A command-line option replaces the profile's whole key, so both keys are rebuilt in full.
     """
     config = yaml.safe_load((profile / "config.yaml").read_text()) or {}
-    args: list[str] = ["--max-threads", str(cluster.cpus)]
+    args: list[str] = cluster_limits(cluster)
     defaults = config.get("default-resources") or {}
     default_items = []
     for name, value in defaults.items():
@@ -158,10 +181,17 @@ def snakemake_slurm_command(
     return cmd + list(extra)
 
 
-def run_snakemake(cmd: list[str], cwd: Path, timeout: float = 600) -> tuple[str, float]:
-    """Run a Snakemake command; return (combined output, wall seconds). Fails with the output."""
+def run_snakemake(
+    cmd: list[str], cwd: Path, timeout: float = 600, path_prefix: Path | None = None
+) -> tuple[str, float]:
+    """Run a Snakemake command; return (combined output, wall seconds). Fails with the output.
+
+    ``path_prefix``: a directory put first on PATH (e.g. :func:`gpu_stripping_wrappers`).
+    """
     env = {k: v for k, v in os.environ.items() if not k.startswith("SLURM_")}
     env.pop("SNAKEMAKE_PROFILE", None)
+    if path_prefix is not None:
+        env["PATH"] = f"{path_prefix}{os.pathsep}{env.get('PATH', '')}"
     start = time.monotonic()
     proc = subprocess.run(
         cmd,
@@ -204,3 +234,69 @@ def slurm_job_info(job_ids: list[int]) -> dict[int, dict[str, str]]:
                 fields[key] = value
         info[job_id] = fields
     return info
+
+
+# --------------------------------------------------------------------------- overrides
+
+_WRAPPER = """#!{python}
+# Written by tests/slurm_fixtures.py: log the call, then run the real {name} without GPU
+# requests (the test node has no GPUs).
+import json, os, sys
+with open({log!r}, "a") as log:
+    log.write(json.dumps([{name!r}, *sys.argv[1:]]) + "\\n")
+args = [a for a in sys.argv[1:] if not a.startswith("--gpus=")]
+os.execv({real!r}, [{real!r}, *args])
+"""
+
+
+def gpu_stripping_wrappers(directory: Path) -> tuple[Path, Path]:
+    """``sbatch`` and ``srun`` wrappers for the GPU-less test node; returns (bin dir, log).
+
+    Each wrapper appends its arguments (a JSON list, the command's name first) to the
+    log and runs the real command with every ``--gpus=...`` argument removed, so that a
+    job that asks for a GPU (``sbatch --gpus=a100:1``, and the job step's own
+    ``srun --gpus=1``) still runs here, while the log shows what was asked for. Put the
+    bin dir first on PATH (``run_snakemake(..., path_prefix=bin_dir)``); ``sbatch
+    --export=ALL`` hands that PATH on to the job, whose ``srun`` is then wrapped too.
+    """
+    bin_dir = directory / "bin"
+    bin_dir.mkdir(parents=True, exist_ok=True)
+    log = directory / "calls.jsonl"
+    for name in ("sbatch", "srun"):
+        real = shutil.which(name)
+        if real is None:
+            pytest.fail(f"{name} is not on PATH", pytrace=False)
+        wrapper = bin_dir / name
+        wrapper.write_text(
+            _WRAPPER.format(python=sys.executable, name=name, log=str(log), real=real)
+        )
+        wrapper.chmod(0o755)
+    return bin_dir, log
+
+
+def wrapped_calls(log: Path, name: str) -> list[list[str]]:
+    """Argument lists the wrapper ``name`` (sbatch or srun) received, in call order."""
+    if not log.exists():
+        return []
+    calls = [json.loads(line) for line in log.read_text().splitlines() if line.strip()]
+    return [call[1:] for call in calls if call[0] == name]
+
+
+@contextlib.contextmanager
+def extra_partition(cluster: local_slurm.ClusterHandle, name: str):
+    """A second partition ``name`` on the test node while the block runs (``scontrol
+    create``), deleted afterwards; read the jobs' ``scontrol`` fields inside the block."""
+    created = subprocess.run(
+        ["scontrol", "create", f"PartitionName={name}", f"Nodes={cluster.node}",
+         "MaxTime=INFINITE", "State=UP"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    if created.returncode != 0:
+        pytest.fail(f"scontrol create partition {name}: {created.stderr}", pytrace=False)
+    try:
+        yield name
+    finally:
+        subprocess.run(
+            ["scontrol", "delete", f"PartitionName={name}"],
+            capture_output=True, text=True, check=False,
+        )  # fmt: skip

@@ -7,6 +7,9 @@ rule dataset:
         log_pattern("dataset"),
     conda:
         "../envs/vprflow.yaml"
+    resources:
+        mem_mb=lambda wildcards, attempt: 4000 * attempt,
+        runtime=lambda wildcards, attempt: 60 * attempt,
     params:
         cfg=stage_params("dataset"),
         name=lambda wildcards: planned("dataset", wildcards).dataset,

@@ -11,6 +11,8 @@ rule features:
         "../envs/vprflow.yaml"
     threads: 4
     resources:
+        mem_mb=lambda wildcards, attempt: 16000 * attempt,
+        runtime=lambda wildcards, attempt: 120 * attempt,
         gpu=gpu_request("features"),
     params:
         cfg=stage_params("features"),
@@ -31,6 +33,9 @@ rule gather:
         stage=SHARDED,
     conda:
         "../envs/vprflow.yaml"
+    resources:
+        mem_mb=lambda wildcards, attempt: 4000 * attempt,
+        runtime=lambda wildcards, attempt: 60 * attempt,
     params:
         cfg=gather_params,
     script:

@@ -10,6 +10,9 @@ rule pca:
     conda:
         "../envs/vprflow.yaml"
     threads: 2
+    resources:
+        mem_mb=lambda wildcards, attempt: 4000 * attempt,
+        runtime=lambda wildcards, attempt: 60 * attempt,
     params:
         cfg=stage_params("pca"),
     script:

@@ -11,6 +11,8 @@ rule segments:
         "../envs/vprflow.yaml"
     threads: 4
     resources:
+        mem_mb=lambda wildcards, attempt: 16000 * attempt,
+        runtime=lambda wildcards, attempt: 180 * attempt,
         gpu=gpu_request("segments"),
     params:
         cfg=stage_params("segments"),
