@@ -304,3 +304,21 @@ def test_corrupt_fingerprints_cache_is_named_ignored_and_rewritten_atomically(tm
     save_fingerprints({"a": "b"}, path)
     assert load_fingerprints(path) == {"a": "b"}
     assert [p.name for p in tmp_path.iterdir()] == ["fingerprints.json"]  # no temporary left
+
+
+@pytest.mark.parametrize(
+    ("index", "searches", "gpu"), [("flat", 1, False), ("exact_fast", 1, True), ("hnsw", 2, False)]
+)
+def test_retrieval_index_plans_its_search_and_an_exact_one_when_approximate(
+    config, index, searches, gpu
+):
+    changed = copy.deepcopy(config)
+    changed["retrieval"]["index"] = index
+    plan = build_plan(changed)
+    recall = plan.get("recall", keys_of(changed)["recall"])
+    assert len({"search", "exact_search"} & set(recall.inputs)) == searches
+    search = plan.get(*recall.inputs["search"])
+    assert search.params["params"]["index"] == index
+    assert search.run_params["uses_gpu"] is gpu
+    if searches == 2:
+        assert plan.get(*recall.inputs["exact_search"]).params["params"]["index"] == "flat"

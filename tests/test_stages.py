@@ -285,3 +285,29 @@ def test_float16_segment_descriptors_are_the_float32_ones_rounded(pipeline, tmp_
     full = stores.open_store(stage_path(pipeline, "descriptors"))["descriptors"]
     assert half.dtype == np.float16
     np.testing.assert_array_equal(np.asarray(half[...]), np.asarray(full[...]).astype(np.float16))
+
+
+@pytest.mark.parametrize(
+    ("index", "options"),
+    [("exact_fast", {"block_database": 40}), ("ivf_flat", {"nlist": 4, "nprobe": 4})],
+)
+def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, options):
+    """exact_fast gives the flat lists (float32 re-scored distances); an IVF index that
+    probes every list is exhaustive too; with an approximate index, recall also reports
+    the exact search's Recall@N, which equals the flat method's."""
+    plan, runner, _, _ = pipeline
+    (search,) = plan.stages["search"].values()
+    inputs = {name: runner.path(*ref) for name, ref in search.inputs.items()}
+    spec = {**search.params["params"], "index": index, "params": options}
+    out = str(tmp_path / "search.zarr")
+    search_shard(inputs["dataset"], inputs["descriptors"], {**search.params, "params": spec}, out)
+    distances, indices = read_search(out)
+    flat_distances, flat_indices = read_search(stage_path(pipeline, "search"))
+    np.testing.assert_array_equal(indices, flat_indices)
+    np.testing.assert_allclose(distances, flat_distances, rtol=1e-5, atol=1e-5)
+    (recall,) = [s for s in plan.stages["recall"].values() if "search" in s.inputs]
+    result = str(tmp_path / "recall.zarr")
+    evaluate(inputs["dataset"], inputs["descriptors"], recall.params, result, out, out)
+    attrs = stores.open_store(result).attrs
+    flat = stores.open_store(stage_path(pipeline, "recall", "segvlad")).attrs
+    assert attrs["recall_exact"] == attrs["recall"] == flat["recall"]

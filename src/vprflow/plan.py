@@ -39,6 +39,11 @@ FORMAT_VERSIONS = {
     "recall": 3,  # 2: published vote ranking; 3: segment lists from the search stage
 }
 
+# Segment search indexes that give the exact top-k, and those that run on a GPU when
+# there is one (the rest are faiss CPU indexes).
+EXACT_INDEXES = ("flat", "exact_fast")
+GPU_INDEXES = ("exact_fast",)
+
 # Settings that change how a stage runs but not what it computes: kept out of keys.
 EXECUTION_ONLY = ("batch_size", "cache_dir")
 
@@ -143,7 +148,8 @@ class Stage:
     key: str
     params: dict  # exactly what was hashed (plus execution-only settings, see run_params)
     inputs: dict[str, tuple[str, str]]  # input name -> (stage, key)
-    run_params: dict = field(default_factory=dict)  # not hashed: device, batch size
+    # Not hashed: device, batch size, whether the stage runs on a GPU when there is one.
+    run_params: dict = field(default_factory=dict)
     dataset: str = ""
 
     @property
@@ -469,7 +475,11 @@ def _plan_method(
         features_params,
         {"dataset": ds},
         dataset_name,
-        {**execution, "batch_size": backbone.get("batch_size", 1)},
+        {
+            **execution,
+            "batch_size": backbone.get("batch_size", 1),
+            "uses_gpu": model_kind("features", backbone).uses_gpu,
+        },
     )
     fx = ("features", features_key)
     row = {"aggregator": agg.name, "features": features_name, **_prefixed("features", backbone)}
@@ -486,7 +496,13 @@ def _plan_method(
             }
             inputs["segments"] = (
                 "segments",
-                plan.add("segments", params, {"dataset": ds}, dataset_name, execution),
+                plan.add(
+                    "segments",
+                    params,
+                    {"dataset": ds},
+                    dataset_name,
+                    {**execution, "uses_gpu": model_kind("segments", segmenter).uses_gpu},
+                ),
             )
             row.update(segmenter=segmenter_name, **_prefixed("segmenter", segmenter))
         elif stage == "vocabulary":
@@ -533,13 +549,19 @@ def _plan_method(
     }
     if agg.output == "segments":
         retrieval = method["retrieval"]
-        search_params = {"top_segments": method["segvlad"]["top_segments"], **retrieval}
-        recall_inputs["search"] = (
-            "search",
-            plan.add(
-                "search", search_params, {"dataset": ds, "descriptors": descriptors}, dataset_name
-            ),
-        )
+        search_inputs = {"dataset": ds, "descriptors": descriptors}
+        top_segments = method["segvlad"]["top_segments"]
+
+        def search_stage(settings: dict) -> tuple[str, str]:
+            params = {"top_segments": top_segments, **settings}
+            run = {**execution, "uses_gpu": settings["index"] in GPU_INDEXES}
+            return ("search", plan.add("search", params, search_inputs, dataset_name, run))
+
+        recall_inputs["search"] = search_stage(retrieval)
+        if retrieval["index"] not in EXACT_INDEXES:
+            # The table states what the approximation costs: recall of an exact search
+            # of the same descriptors, in the same run.
+            recall_inputs["exact_search"] = search_stage({"index": "flat", "params": {}})
         recall_params["vote_ranking"] = method["segvlad"]["vote_ranking"]
         row.update(_prefixed("retrieval", retrieval))
     recall_key = plan.add("recall", recall_params, recall_inputs, dataset_name)

@@ -63,19 +63,21 @@ def segment_vote_scores(
     sum of normalised similarities of every (segment of ``q``, retrieved segment of
     ``r``) pair, accumulated in float64 in the published order (per query image rank by
     rank, query segments in order within a rank) so that exact ties come out as
-    published. Only voted pairs are stored: memory is ``O(Sq * k)``, never
+    published. Entries with index ``-1`` (not found by an approximate index) are
+    ignored. Only voted pairs are stored: memory is ``O(Sq * k)``, never
     ``n_query x n_ref``.
     """
     n_segments, k = indices.shape
-    rows = np.repeat(np.asarray(query_image_of_segment, dtype=np.int64), k)
-    cols = np.asarray(ref_image_of_segment, dtype=np.int64)[indices.reshape(-1)]
-    rank = np.tile(np.arange(k), n_segments)
-    segment = np.repeat(np.arange(n_segments), k)
+    found = indices.reshape(-1) >= 0  # an approximate search may find fewer than k
+    rows = np.repeat(np.asarray(query_image_of_segment, dtype=np.int64), k)[found]
+    cols = np.asarray(ref_image_of_segment, dtype=np.int64)[indices.reshape(-1)[found]]
+    rank = np.tile(np.arange(k), n_segments)[found]
+    segment = np.repeat(np.arange(n_segments), k)[found]
     reading = np.lexsort((segment, rank, rows))
     pair = rows[reading] * n_ref + cols[reading]
     keys, first_seen, inverse = np.unique(pair, return_index=True, return_inverse=True)
     # bincount adds in array order, i.e. in the published reading order.
-    weights = _vote_weights(distances).reshape(-1)[reading]
+    weights = _vote_weights(np.asarray(distances).reshape(-1)[found])[reading]
     score = np.bincount(inverse.reshape(-1), weights=weights, minlength=len(keys))
     return ImageScores(keys // n_ref, keys % n_ref, score, first_seen.astype(np.int64))
 

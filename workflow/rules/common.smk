@@ -20,7 +20,6 @@ from vprflow.plan import (
     withdraw_stale_reports,
     write_index,
 )
-from vprflow.registry import model_kind
 
 
 configfile: "config/config.yaml"
@@ -75,14 +74,15 @@ def stage_run_params(stage):
 
 
 def gpu_request(stage):
-    """Resource function: 1 GPU for stages that run a model, unless device is cpu.
+    """Resource function: 1 GPU for stages the plan marks as GPU work (a model, the
+    torch search), unless device is cpu.
 
     The SLURM executor turns it into `--gpus=1`; a cluster profile may override it.
     """
 
     def request(wildcards):
-        kind = model_kind(stage, planned(stage, wildcards).params["params"])
-        return int(kind.uses_gpu and CONFIG["device"] != "cpu")
+        uses_gpu = planned(stage, wildcards).run_params.get("uses_gpu", False)
+        return int(uses_gpu and CONFIG["device"] != "cpu")
 
     return request
 

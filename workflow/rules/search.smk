@@ -11,9 +11,11 @@ rule search:
         "../envs/vprflow.yaml"
     threads: 2
     resources:
+        gpu=gpu_request("search"),
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
         cfg=stage_params("search"),
+        run=stage_run_params("search"),
     script:
         "../scripts/search.py"

@@ -10,6 +10,7 @@ run_stage(
         sm.params.cfg,
         sm.output[0],
         search_path=sm.input.get("search"),
+        exact_search_path=sm.input.get("exact_search"),
     ),
     sm.threads,
 )

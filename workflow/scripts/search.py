@@ -11,6 +11,7 @@ run_stage(
         sm.output[0],
         start=int(sm.wildcards.start),
         stop=int(sm.wildcards.stop),
+        device=sm.params.run["device"],
     ),
     sm.threads,
 )

@@ -13,12 +13,20 @@ log = logging.getLogger("vprflow")
 
 
 def evaluate(
-    dataset_path: str, descriptors_path: str, params: dict, out: str, search_path: str | None = None
+    dataset_path: str,
+    descriptors_path: str,
+    params: dict,
+    out: str,
+    search_path: str | None = None,
+    exact_search_path: str | None = None,
 ) -> None:
     """Rank the references for every query and compute Recall@N.
 
     Per-segment descriptors are ranked by voting over the segment lists of the
-    ``search`` stage (``search_path``); global ones by exact search here.
+    ``search`` stage (``search_path``); global ones by exact search here. With an
+    approximate segment search, ``exact_search_path`` holds an exact search of the
+    same descriptors: its Recall@N is stored too (``recall_exact``), so the table can
+    say what the approximation cost.
     """
     from vprflow.recall import correct_at, recall_at
     from vprflow.retrieval import global_ranking, image_of_segment, vote_ranking
@@ -29,27 +37,34 @@ def evaluate(
     group = stores.open_store(descriptors_path)
     n_ref, n_query = dataset.n_reference, dataset.n_query
     top_k = min(spec["top_k"], n_ref)
+    truth = dataset.truth()
+    recall_exact = None
     if group.attrs["kind"] == "segments":
         if search_path is None:
             raise ValueError(f"{descriptors_path}: per-segment descriptors need a search input")
         offsets = np.asarray(group["descriptors_offsets"][...])
         split = int(offsets[n_ref])
-        distances, indices = read_search(search_path)
         owner = image_of_segment(offsets)
-        ranking = vote_ranking(
-            distances,
-            indices,
-            owner[split:] - n_ref,
-            owner[:split],
-            n_query,
-            n_ref,
-            top_k,
-            spec["vote_ranking"],
-        )
+
+        def voted(path: str) -> np.ndarray:
+            distances, indices = read_search(path)
+            return vote_ranking(
+                distances,
+                indices,
+                owner[split:] - n_ref,
+                owner[:split],
+                n_query,
+                n_ref,
+                top_k,
+                spec["vote_ranking"],
+            )
+
+        ranking = voted(search_path)
+        if exact_search_path is not None:
+            recall_exact = recall_at(voted(exact_search_path), truth, spec["recall_at"])
     else:
         vectors = np.asarray(group["descriptors"][...])
         ranking = global_ranking(vectors[:n_ref], vectors[n_ref:], top_k)
-    truth = dataset.truth()
     # N beyond the number of references is kept: it equals Recall@n_ref.
     recalls = recall_at(ranking, truth, spec["recall_at"])
     evaluated = np.array([len(t) > 0 for t in truth], dtype=bool)
@@ -57,6 +72,9 @@ def evaluate(
     with stores.atomic_store(out, {"stage": "recall", "params": params}) as result:
         result.attrs.update(
             recall={str(n): v for n, v in recalls.items()},
+            recall_exact=None
+            if recall_exact is None
+            else {str(n): v for n, v in recall_exact.items()},
             n_queries=int(evaluated.sum()),
             descriptor_dim=int(group.attrs["dim"]),
             # Queries ranking fewer references than the largest N (or than all of them):

@@ -32,19 +32,24 @@ def write_report(
     header = ["dataset", "method", *param_columns, "descriptor_dim", "ground_truth"]
     header += ["n_queries", "n_short_rankings"]
     header += [f"recall@{n}" for n in recall_columns]
+    # Rows of an approximate segment search also show an exact search's recall.
+    exact = [r.attrs.get("recall_exact") or {} for r in results]
+    if any(exact):
+        header += [f"exact_recall@{n}" for n in recall_columns]
     Path(csv_out).parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(csv_out).with_suffix(".csv.tmp")
     with open(tmp, "w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(header)
-        for run, result in zip(runs, results, strict=True):
+        for run, result, exact_recall in zip(runs, results, exact, strict=True):
             recall = result.attrs["recall"]
             writer.writerow(
                 [dataset_name, run["method"]]
                 + [_cell(run["params"].get(name, "")) for name in param_columns]
                 + [result.attrs["descriptor_dim"], result.attrs["ground_truth_rule"]]
                 + [result.attrs["n_queries"], result.attrs["n_short_rankings"]]
-                + [f"{recall[str(n)]:.6f}" if str(n) in recall else "" for n in recall_columns]
+                + _recall_cells(recall, recall_columns)
+                + (_recall_cells(exact_recall, recall_columns) if any(exact) else [])
             )
     tmp.replace(csv_out)
     tmp = Path(predictions_out).with_suffix(".csv.tmp")
@@ -69,6 +74,10 @@ def write_report(
                     ]
                 )
     tmp.replace(predictions_out)
+
+
+def _recall_cells(recall: dict, columns: list[int]) -> list[str]:
+    return [f"{recall[str(n)]:.6f}" if str(n) in recall else "" for n in columns]
 
 
 def _cell(value) -> str:

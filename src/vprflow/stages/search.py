@@ -5,7 +5,9 @@ A job holds one shard of reference segments and one block of query segments at a
 time, so its memory is bounded by the shard and block sizes, not by the database.
 Results are listed nearest first with exact distance ties broken by increasing
 reference segment index, in every shard and after the merge, so a sharded search
-gives the same lists as an unsharded one (docs/methods.md §8).
+gives the same lists as an unsharded one (docs/methods.md §8). Rows of an
+approximate index that found fewer than k segments end in index ``-1`` with
+distance ``inf``; voting ignores them.
 """
 
 from __future__ import annotations
@@ -31,13 +33,22 @@ def canonical_order(distances: np.ndarray, indices: np.ndarray) -> tuple[np.ndar
     return np.take_along_axis(distances, order, -1), np.take_along_axis(indices, order, -1)
 
 
-def knn(database: np.ndarray, queries: np.ndarray, k: int, spec: dict):
-    """``(distances [Nq, k'], indices [Nq, k'])`` of the configured index, k' = min(k, Nd)."""
+def knn(database: np.ndarray, queries: np.ndarray, k: int, spec: dict, device: str = "auto"):
+    """``(distances [Nq, k'], indices [Nq, k'])`` of the configured index, k' = min(k, Nd).
+
+    ``flat`` is faiss's exact IndexFlatL2 (published); ``exact_fast`` the blocked torch
+    path (low-precision candidates, float32 re-score, CPU or GPU); the others are
+    approximate faiss indexes, whose rows may end in ``-1`` (fewer than k found).
+    """
+    from vprflow import knn as knn_search
     from vprflow.retrieval import search
 
-    if spec.get("index", "flat") != "flat":
-        raise ValueError(f"unknown retrieval index {spec['index']!r}")
-    return search(database, queries, k)
+    index, options = spec["index"], spec.get("params") or {}
+    if index == "flat":
+        return search(database, queries, k)
+    if index == "exact_fast":
+        return knn_search.exact_knn(database, queries, k, device=device, **options)
+    return knn_search.faiss_knn(database, queries, k, index=index, **options)
 
 
 def search_shard(
@@ -47,6 +58,7 @@ def search_shard(
     out: str,
     start: int | None = None,
     stop: int | None = None,
+    device: str = "auto",
 ) -> None:
     """Top-``top_segments`` reference segments of reference images ``start..stop`` for
     every query segment: ``distances [Sq, k']`` float32, ``indices [Sq, k']`` int64
@@ -72,8 +84,11 @@ def search_shard(
         for block in tqdm(range(split, total, QUERY_BLOCK), desc="search", unit="block"):
             queries = np.asarray(vectors[block : min(block + QUERY_BLOCK, total)], np.float32)
             if k:
-                distances, indices = knn(database, queries, k, spec)
-                distances, indices = canonical_order(distances, indices + low)
+                distances, indices = knn(database, queries, k, spec, device)
+                found_any = indices >= 0  # approximate indexes pad short rows with -1
+                indices = np.where(found_any, indices + low, -1)
+                distances = np.where(found_any, distances, np.inf).astype(np.float32)
+                distances, indices = canonical_order(distances, indices)
             else:  # a shard of images without segments retrieves nothing
                 distances = np.zeros((len(queries), 0), np.float32)
                 indices = np.zeros((len(queries), 0), np.int64)

@@ -1,0 +1,276 @@
+"""Exact k-NN in torch against float64 brute force and faiss flat; approximate faiss indexes
+by name; top-k merging and agreement.
+
+Tie rule: float32 distances may order two items differently from float64 (or from faiss)
+only when their distances are within float32 rounding. Index sets are therefore compared
+exactly on rows whose float64 gap between the k-th and (k+1)-th distance exceeds 1e-4
+(float32 errors here are below 1e-6); distances are compared to float64 within 1e-5.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from vprflow.knn import exact_knn, faiss_knn, merge_knn, topk_agreement
+
+GAP = 1e-4
+DIST_TOL = 1e-5
+
+
+def unit_vectors(rng, n, d):
+    x = rng.standard_normal((n, d))
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def clustered(rng, n, d, centres):
+    """Unit vectors around ``centres [c, d]``, noise comparable to the centres' spacing."""
+    labels = rng.integers(0, len(centres), n)
+    x = centres[labels] + 0.5 * rng.standard_normal((n, d)) / np.sqrt(d)
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def brute_force(database, queries):
+    """All squared L2 distances in float64 ``[Nq, Nd]`` (differences, no expansion)."""
+    diff = queries.astype(np.float64)[:, None, :] - database.astype(np.float64)[None, :, :]
+    return (diff * diff).sum(-1)
+
+
+def check_against_float64(distances, indices, database, queries, k):
+    """Shapes and dtypes, distances vs float64, index sets on rows with a clear k-th gap."""
+    exact = brute_force(database, queries)
+    k_out = min(k, len(database))
+    assert distances.shape == indices.shape == (len(queries), k_out)
+    assert distances.dtype == np.float32 and indices.dtype == np.int64
+    assert np.all(np.diff(distances, axis=1) >= 0)
+    assert np.all((indices >= 0) & (indices < len(database)))
+    assert all(len(set(row)) == k_out for row in indices)
+    # Each returned distance is that of its index, and the sorted k smallest are float64's.
+    np.testing.assert_allclose(
+        distances, np.take_along_axis(exact, indices, 1), rtol=0, atol=DIST_TOL
+    )
+    ordered = np.sort(exact, axis=1)
+    np.testing.assert_allclose(distances, ordered[:, :k_out], rtol=0, atol=DIST_TOL)
+    if k_out < len(database):
+        clear = ordered[:, k_out] - ordered[:, k_out - 1] > GAP
+    else:
+        clear = np.ones(len(queries), dtype=bool)
+    assert clear.mean() > 0.5  # the comparison below is not vacuous
+    truth = np.argsort(exact, axis=1, kind="stable")[:, :k_out]
+    for row in np.flatnonzero(clear):
+        assert set(indices[row]) == set(truth[row]), row
+    return clear
+
+
+@pytest.mark.parametrize("candidate_dtype", ["bfloat16", "float32"])
+@pytest.mark.parametrize(
+    ("n_db", "n_q", "dim", "k", "block_queries", "block_database"),
+    [
+        (300, 40, 32, 10, 4096, 65536),  # one block each
+        (257, 33, 64, 20, 8, 50),  # ragged blocks on both sides: merging across blocks
+        (37, 9, 16, 50, 4, 10),  # Nd < k: everything, sorted
+        (200, 21, 24, 5, 21, 7),  # database blocks smaller than k + margin
+    ],
+)
+def test_exact_knn_matches_float64(
+    candidate_dtype, n_db, n_q, dim, k, block_queries, block_database
+):
+    rng = np.random.default_rng(n_db + dim)
+    database, queries = unit_vectors(rng, n_db, dim), unit_vectors(rng, n_q, dim)
+    distances, indices = exact_knn(
+        database,
+        queries,
+        k,
+        device="cpu",
+        block_queries=block_queries,
+        block_database=block_database,
+        candidate_dtype=candidate_dtype,
+    )
+    check_against_float64(distances, indices, database, queries, k)
+
+
+def test_exact_knn_float16_and_unnormalised_data():
+    """float16 candidates with norms from 1e-3 to 1e3 (scaled blocks, no overflow)."""
+    rng = np.random.default_rng(3)
+    database = unit_vectors(rng, 150, 48) * rng.uniform(0.5, 2.0, (150, 1)).astype(np.float32)
+    database[:5] *= np.float32(1e3)
+    database[5:10] *= np.float32(1e-3)
+    queries = unit_vectors(rng, 20, 48)
+    for candidate_dtype in ("float16", "bfloat16"):
+        distances, indices = exact_knn(
+            database, queries, 15, device="cpu", block_database=64, candidate_dtype=candidate_dtype
+        )
+        check_against_float64(distances, indices, database, queries, 15)
+
+
+@pytest.mark.parametrize("candidate_dtype", ["bfloat16", "float32"])
+def test_widening_without_margin_is_still_exact(candidate_dtype):
+    """margin=0 leaves rows uncertified: they must be widened, and the result stays exact."""
+    rng = np.random.default_rng(5)
+    centres = unit_vectors(rng, 6, 64)
+    database, queries = clustered(rng, 400, 64, centres), clustered(rng, 30, 64, centres)
+    stats = {}
+    distances, indices = exact_knn(
+        database,
+        queries,
+        12,
+        device="cpu",
+        block_database=150,
+        candidate_dtype=candidate_dtype,
+        margin=0,
+        stats=stats,
+    )
+    assert stats["widened"] > 0
+    check_against_float64(distances, indices, database, queries, 12)
+
+
+def test_duplicates_tie_to_the_lowest_index():
+    """More exact duplicates than k + margin: ties are exact and go to the lower index."""
+    rng = np.random.default_rng(7)
+    others = unit_vectors(rng, 100, 32)
+    target = unit_vectors(rng, 1, 32)
+    database = np.concatenate([others[:40], np.repeat(target, 90, axis=0), others[40:]])
+    queries = np.concatenate([target, unit_vectors(rng, 3, 32)])
+    stats = {}
+    distances, indices = exact_knn(database, queries, 20, device="cpu", margin=5, stats=stats)
+    assert stats["widened"] > 0
+    np.testing.assert_array_equal(distances[0], np.zeros(20, np.float32))
+    np.testing.assert_array_equal(indices[0], np.arange(40, 60))
+
+
+@pytest.mark.parametrize("candidate_dtype", ["bfloat16", "float16", "float32"])
+def test_certified_error_bound_holds(candidate_dtype):
+    """The bound behind the candidate cut-off, checked pair by pair on this machine's GEMM:
+    |d' - d| <= bound + 2 u |s~| for unit, heavy-tailed and unnormalised vectors."""
+    from vprflow import knn
+
+    rng = np.random.default_rng(31)
+    heavy = rng.standard_normal((260, 48)) ** 5  # a few large coordinates: C-S nearly tight
+    scaled = rng.standard_normal((260, 40)) * rng.uniform(0.01, 100, (260, 1))
+    low = knn.CANDIDATE_DTYPES[candidate_dtype]
+    for data in (
+        unit_vectors(rng, 260, 256),
+        heavy / np.linalg.norm(heavy, axis=1)[:, None],
+        scaled,
+    ):
+        data = torch.from_numpy(data.astype(np.float32))
+        ref, query = knn._side(data[:200], low), knn._side(data[200:], low)
+        product, unit = knn._product(query, ref)
+        approx = query.sq_norm[:, None] + ref.sq_norm[None, :] - 2 * product
+        exact = ((data[200:, None, :] - data[None, :200, :]) ** 2).sum(-1)
+        bound = knn._error_bound(query, ref)[:, None] + 2 * unit / (1 - unit) * product.abs()
+        assert torch.all((approx - exact).abs() <= bound)
+
+
+def test_exact_knn_matches_faiss_flat():
+    rng = np.random.default_rng(11)
+    database, queries = unit_vectors(rng, 1500, 128), unit_vectors(rng, 120, 128)
+    ours_d, ours_i = exact_knn(database, queries, 50, device="cpu", block_database=600)
+    ref_d, ref_i = faiss_knn(database, queries, 50, index="flat")
+    np.testing.assert_allclose(ours_d, ref_d, rtol=0, atol=DIST_TOL)
+    exact = np.sort(brute_force(database, queries), axis=1)
+    clear = exact[:, 50] - exact[:, 49] > GAP
+    assert clear.mean() > 0.5
+    for row in np.flatnonzero(clear):
+        assert set(ours_i[row]) == set(ref_i[row]), row
+    assert topk_agreement(ours_i, ref_i) > 0.99
+
+
+def test_candidate_dtypes_agree():
+    rng = np.random.default_rng(13)
+    database, queries = unit_vectors(rng, 500, 96), unit_vectors(rng, 40, 96)
+    d16, i16 = exact_knn(database, queries, 25, device="cpu", candidate_dtype="bfloat16")
+    d32, i32 = exact_knn(database, queries, 25, device="cpu", candidate_dtype="float32")
+    np.testing.assert_allclose(d16, d32, rtol=0, atol=1e-6)
+    assert topk_agreement(i16, i32) > 0.99
+
+
+def test_exact_knn_edge_cases_and_errors():
+    rng = np.random.default_rng(17)
+    database, queries = unit_vectors(rng, 20, 8), unit_vectors(rng, 3, 8)
+    d, i = exact_knn(database, queries[:0], 5, device="cpu")
+    assert d.shape == i.shape == (0, 5)
+    d, i = exact_knn(database, queries, 0, device="cpu")
+    assert d.shape == i.shape == (3, 0)
+    with pytest.raises(ValueError, match="candidate_dtype"):
+        exact_knn(database, queries, 5, candidate_dtype="int8")
+    with pytest.raises(ValueError, match="dimension"):
+        exact_knn(database, queries[:, :4], 5)
+    bad = database.copy()
+    bad[3, 2] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        exact_knn(bad, queries, 5, device="cpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(RuntimeError, match="CUDA"):
+            exact_knn(database, queries, 5, device="cuda")
+
+
+@pytest.mark.parametrize(
+    ("index", "params", "least_recall"),
+    [
+        ("ivf_flat", {"nlist": 16, "nprobe": 4}, 0.8),
+        ("ivf_pq", {"nlist": 8, "nprobe": 4, "m": 8, "nbits": 6}, 0.3),
+        ("hnsw", {"M": 16, "ef_search": 64}, 0.8),
+    ],
+)
+def test_approximate_indexes(index, params, least_recall):
+    rng = np.random.default_rng(19)
+    centres = unit_vectors(rng, 20, 32)
+    database, queries = clustered(rng, 3000, 32, centres), clustered(rng, 100, 32, centres)
+    _, truth = exact_knn(database, queries, 10, device="cpu")
+    distances, indices = faiss_knn(database, queries, 10, index=index, **params)
+    assert distances.shape == indices.shape == (100, 10)
+    assert distances.dtype == np.float32 and indices.dtype == np.int64
+    assert np.all((indices >= -1) & (indices < len(database)))
+    assert topk_agreement(indices, truth) > least_recall
+    # Seeded training: a second build gives the same answer.
+    if index != "hnsw":
+        again = faiss_knn(database, queries, 10, index=index, **params)
+        np.testing.assert_array_equal(again[1], indices)
+
+
+def test_faiss_knn_defaults_and_errors():
+    rng = np.random.default_rng(23)
+    database, queries = unit_vectors(rng, 400, 16), unit_vectors(rng, 5, 16)
+    distances, indices = faiss_knn(database, queries, 500, index="ivf_flat")
+    assert distances.shape == indices.shape == (5, 400)  # k' = min(k, Nd)
+    with pytest.raises(ValueError, match="'ivf_hnsw'"):
+        faiss_knn(database, queries, 5, index="ivf_hnsw")
+    with pytest.raises(ValueError, match="nprobes"):
+        faiss_knn(database, queries, 5, index="ivf_flat", nprobes=3)
+    with pytest.raises(ValueError, match="nlist"):
+        faiss_knn(database, queries, 5, index="flat", nlist=3)
+    with pytest.raises(ValueError, match="divide"):
+        faiss_knn(database, queries, 5, index="ivf_pq", m=3, nbits=4)
+
+
+def test_merge_knn_of_shards_equals_one_search():
+    rng = np.random.default_rng(29)
+    database, queries = unit_vectors(rng, 230, 24), unit_vectors(rng, 12, 24)
+    whole = exact_knn(database, queries, 15, device="cpu")
+    parts = []
+    for start in range(0, len(database), 60):
+        d, i = exact_knn(database[start : start + 60], queries, 15, device="cpu")
+        parts.append((d, i + start))
+    merged = merge_knn(parts, 15)
+    np.testing.assert_array_equal(merged[0], whole[0])
+    np.testing.assert_array_equal(merged[1], whole[1])
+    # faiss padding (-1) sorts after every real neighbour.
+    padded = merge_knn([(np.array([[0.5, np.inf]], np.float32), np.array([[4, -1]]))], 2)
+    np.testing.assert_array_equal(padded[1], [[4, -1]])
+
+
+def test_topk_agreement():
+    a = np.array([[1, 2, 3, 4], [5, 6, 7, 8]])
+    assert topk_agreement(a, a) == 1.0
+    assert topk_agreement(a, a[:, ::-1]) == 1.0  # order does not matter
+    assert topk_agreement(a, a + 100) == 0.0
+    b = np.array([[1, 2, 9, 10], [8, -1, -1, 5]])
+    assert topk_agreement(a, b) == pytest.approx((2 / 4 + 2 / 4) / 2)
+    # -1 is "missing", never shared, even when both sides miss.
+    assert topk_agreement(np.array([[-1, 3]]), np.array([[-1, 3]])) == 0.5
+    # Rows do not leak into each other.
+    assert topk_agreement(np.array([[1], [2]]), np.array([[2], [1]])) == 0.0
+    with pytest.raises(ValueError):
+        topk_agreement(a, a[:, :2])
