@@ -150,6 +150,4 @@ def pooled_descriptor(options: dict, inputs: dict[str, str]):
         "average": pooling.average_pool,
         "max": pooling.max_pool,
     }[options["aggregator"]]
-    return lambda index: pool(
-        normalize_tokens(read_features(index), options["normalization"])
-    )
+    return lambda index: pool(normalize_tokens(read_features(index), options["normalization"]))

@@ -1,0 +1,209 @@
+"""Segment retrieval: faiss flat against the exact torch path (bf16 and float32 candidates),
+optionally sharded, and SegVLAD image voting, on random unit vectors.
+
+    python benchmarks/bench_retrieval.py        # 20,000 x 5,000 x 1024, about 1 min on 2 cores
+    # 17places shapes (34,510 reference x 34,510 query segments, d 1024)
+    python benchmarks/bench_retrieval.py --ref-segments 34510 --query-segments 34510 --dim 1024
+    # 1M reference x 20k query segments: a 4 GiB database (+ 4 GiB per worker process),
+    # faiss flat does 4e13 flops (minutes on 16 cores; a GPU takes the torch path)
+    python benchmarks/bench_retrieval.py --ref-segments 1000000 --query-segments 20000 \\
+        --dim 1024 --shard 250000
+
+The inputs are written once as ``.npy`` to a temporary folder. Each method runs in a fresh
+process that loads them and makes a small warm-up call (library start-up, thread pools),
+then times ``--repeat`` searches (default 3): the table shows the fastest, the notes the
+median, since on a shared machine the spread comes from other load. Memory: ``peak`` is
+the process's ``ru_maxrss`` (inputs included); ``search`` is how much the first search
+raised it over the resident size after loading and warm-up, i.e. the method's own working
+memory and outputs. tracemalloc would miss both torch's and faiss's native allocations.
+
+Columns: ``/ faiss`` is the time over faiss flat's; ``agree@k`` is the mean fraction of
+each query's top-k set shared with faiss flat (:func:`vprflow.knn.topk_agreement`; below 1
+only through near-ties within float32 rounding). Voting is
+:func:`vprflow.retrieval.vote_ranking` on faiss flat's lists with 85 segments per image;
+its note gives the fraction of query images whose top-50 ranking is identical when voted
+from the exact bf16 lists instead.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+SRC = Path(__file__).resolve().parents[1] / "src"
+SEGMENTS_PER_IMAGE = 85
+VOTE_TOP = 50
+CHUNK = 8192
+
+
+def write_unit_vectors(path: Path, n: int, dim: int, seed: int) -> None:
+    """Random unit vectors ``[n, dim]`` float32 to ``path``, in chunks (bounded memory)."""
+    rng = np.random.default_rng(seed)
+    out = np.lib.format.open_memmap(path, mode="w+", dtype=np.float32, shape=(n, dim))
+    for start in range(0, n, CHUNK):
+        x = rng.standard_normal((min(CHUNK, n - start), dim), dtype=np.float32)
+        out[start : start + len(x)] = x / np.linalg.norm(x, axis=1, keepdims=True)
+    out.flush()
+    del out
+
+
+def max_rss_mib() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
+
+
+def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
+    """Run one method in this (fresh) process and save its lists and measurements."""
+    sys.path.insert(0, str(SRC))
+    from vprflow.knn import exact_knn, faiss_knn, merge_knn
+
+    database = np.load(folder / "database.npy")
+    queries = np.load(folder / "queries.npy")
+    options = {
+        "device": args.device,
+        "block_queries": args.block_queries,
+        "candidate_dtype": "float32" if method == "exact_float32" else "bfloat16",
+    }
+
+    def search(db: np.ndarray, q: np.ndarray, stats: dict) -> tuple[np.ndarray, np.ndarray]:
+        if method == "faiss_flat":
+            return faiss_knn(db, q, args.k, index="flat")
+        if method != "exact_sharded":
+            return exact_knn(db, q, args.k, stats=stats, **options)
+        parts = []
+        for first in range(0, len(db), args.shard):
+            d, i = exact_knn(db[first : first + args.shard], q, args.k, stats=stats, **options)
+            parts.append((d, i + first))
+        return merge_knn(parts, args.k)
+
+    search(database[:2000], queries[:64], {})  # warm-up: thread pools, kernels, faiss init
+    base = max_rss_mib()
+    times = []
+    for _ in range(args.repeat):
+        stats: dict = {}
+        start = time.perf_counter()
+        distances, indices = search(database, queries, stats)
+        times.append(time.perf_counter() - start)
+        if len(times) == 1:
+            peak = max_rss_mib()  # repeats reuse the memory; the first shows what it takes
+    np.save(folder / f"{method}_distances.npy", distances)
+    np.save(folder / f"{method}_indices.npy", indices)
+    report = {"seconds": min(times), "median": float(np.median(times)), "search_mib": peak - base}
+    report["stats"] = stats
+    (folder / f"{method}.json").write_text(json.dumps(report))
+
+
+def run_method(method: str, folder: Path, args: argparse.Namespace) -> dict:
+    command = [sys.executable, __file__, "--worker", method, "--data", str(folder)]
+    command += ["--k", str(args.k), "--block-queries", str(args.block_queries)]
+    command += ["--shard", str(args.shard or 0), "--device", args.device]
+    command += ["--repeat", str(args.repeat)]
+    process = subprocess.Popen(command)
+    _, status, usage = os.wait4(process.pid, 0)
+    if status != 0:
+        raise SystemExit(f"{method} failed (status {status})")
+    report = json.loads((folder / f"{method}.json").read_text())
+    report["peak_mib"] = usage.ru_maxrss / 1024
+    report["indices"] = np.load(folder / f"{method}_indices.npy")
+    report["distances"] = np.load(folder / f"{method}_distances.npy")
+    return report
+
+
+def voted(report: dict, n_query: int, n_ref: int, args: argparse.Namespace):
+    from vprflow.retrieval import vote_ranking
+
+    query_image = np.arange(args.query_segments) // SEGMENTS_PER_IMAGE
+    ref_image = np.arange(args.ref_segments) // SEGMENTS_PER_IMAGE
+    start = time.perf_counter()
+    ranking = vote_ranking(
+        report["distances"], report["indices"], query_image, ref_image, n_query, n_ref, VOTE_TOP
+    )
+    return ranking, time.perf_counter() - start
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--ref-segments", type=int, default=20_000)
+    parser.add_argument("--query-segments", type=int, default=5_000)
+    parser.add_argument("--dim", type=int, default=1024)
+    parser.add_argument("--k", type=int, default=50)
+    parser.add_argument("--shard", type=int, default=0, help="also run per reference shard")
+    parser.add_argument("--block-queries", type=int, default=4096)
+    parser.add_argument("--device", default="auto", help="torch device of the exact path")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--repeat", type=int, default=3, help="timed runs per method (min shown)")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    parser.add_argument("--data", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        worker(args.worker, Path(args.data), args)
+        return
+
+    sys.path.insert(0, str(SRC))
+    import faiss
+    import torch
+
+    from vprflow.knn import topk_agreement
+
+    with tempfile.TemporaryDirectory(prefix="bench_retrieval_") as tmp:
+        folder = Path(tmp)
+        write_unit_vectors(folder / "database.npy", args.ref_segments, args.dim, args.seed)
+        write_unit_vectors(folder / "queries.npy", args.query_segments, args.dim, args.seed + 1)
+        methods = ["faiss_flat", "exact_bf16", "exact_float32"]
+        if args.shard:
+            methods.append("exact_sharded")
+        reports = {method: run_method(method, folder, args) for method in methods}
+
+    n_query = -(-args.query_segments // SEGMENTS_PER_IMAGE)
+    n_ref = -(-args.ref_segments // SEGMENTS_PER_IMAGE)
+    reference = reports["faiss_flat"]
+    ranking, vote_seconds = voted(reference, n_query, n_ref, args)
+    ranking_exact, _ = voted(reports["exact_bf16"], n_query, n_ref, args)
+
+    print(
+        f"\n{args.ref_segments:,} reference x {args.query_segments:,} query segments, "
+        f"d {args.dim}, k {args.k}; {platform.processor() or platform.machine()}, "
+        f"{os.cpu_count()} cpus, torch {torch.__version__} ({torch.get_num_threads()} threads, "
+        f"exact path on {args.device}), faiss {faiss.__version__} "
+        f"({faiss.omp_get_max_threads()} threads)\n"
+    )
+    header = f"{'method':<34}{'time s':>9}{'/ faiss':>9}{'agree@k':>10}"
+    header += f"{'search MiB':>12}{'peak MiB':>10}  notes"
+    print(header)
+    print("-" * len(header))
+    names = {
+        "faiss_flat": "faiss IndexFlatL2",
+        "exact_bf16": "exact_knn, bf16 candidates",
+        "exact_float32": "exact_knn, float32 candidates",
+        "exact_sharded": f"exact_knn bf16, shards of {args.shard:,}",
+    }
+    for method, report in reports.items():
+        seconds = report["seconds"]
+        agreement = topk_agreement(report["indices"], reference["indices"])
+        stats = report["stats"]
+        notes = f"median {report['median']:.2f} s"
+        if stats:
+            per_row = stats["rescored"] / args.query_segments
+            notes += f"; {per_row:.0f} re-scored/query, {stats['widened']} rows widened"
+        print(
+            f"{names[method]:<34}{seconds:>9.2f}{seconds / reference['seconds']:>9.2f}"
+            f"{agreement:>10.5f}{report['search_mib']:>12.0f}{report['peak_mib']:>10.0f}  {notes}"
+        )
+    same = float(np.mean(np.all(ranking == ranking_exact, axis=1)))
+    print(
+        f"{'vote_ranking (faiss lists)':<34}{vote_seconds:>9.2f}{'':>41}  {n_query:,} x "
+        f"{n_ref:,} images, top {VOTE_TOP}; {same:.2%} of rankings equal with exact bf16 lists"
+    )
+
+
+if __name__ == "__main__":
+    main()
