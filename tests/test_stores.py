@@ -134,3 +134,18 @@ def test_float16_overflow_is_named(tmp_path):
             with np.errstate(over="ignore"):
                 overflowed = np.array([1e5], np.float32).astype(np.float16)
             stores.check_finite(group, "features", overflowed)
+
+
+@pytest.mark.parametrize("block_bytes", [1, 24, 1 << 20])
+def test_ragged_reader_returns_each_image_in_any_order(tmp_path, block_bytes):
+    rng = np.random.default_rng(0)
+    counts = [3, 0, 5, 1, 0, 2]
+    blocks = [rng.standard_normal((c, 3)).astype(np.float32) for c in counts]
+    with stores.atomic_store(tmp_path / "r.zarr") as group:
+        writer = stores.RaggedWriter(group, "rows", (3,), np.float32, chunk_rows=4)
+        for block in blocks:
+            writer.append(block)
+        writer.close()
+    reader = stores.RaggedReader(stores.open_store(tmp_path / "r.zarr"), "rows", block_bytes)
+    for index in [0, 1, 2, 3, 4, 5, 2, 0, 5]:
+        np.testing.assert_array_equal(reader(index), blocks[index])

@@ -192,6 +192,28 @@ def read_ragged(group: zarr.Group, name: str, index: int) -> np.ndarray:
     return np.asarray(group[name][start:stop])
 
 
+class RaggedReader:
+    """``reader(index) -> rows [n_i, ...]`` of a ragged array, reading the offsets once
+    and about ``block_bytes`` of rows per store access (a stage walks images in order;
+    per-image store reads cost more than the arithmetic on small images)."""
+
+    def __init__(self, group: zarr.Group, name: str, block_bytes: int = 64 << 20):
+        self.array = group[name]
+        self.offsets = np.asarray(group[f"{name}_offsets"][...])
+        row_bytes = self.array.dtype.itemsize * int(np.prod(self.array.shape[1:]))
+        self.block_rows = max(1, block_bytes // max(row_bytes, 1))
+        self.start, self.rows = 0, self.array[0:0]
+
+    def __call__(self, index: int) -> np.ndarray:
+        low, high = int(self.offsets[index]), int(self.offsets[index + 1])
+        if not (self.start <= low and high <= self.start + len(self.rows)):
+            # Whole images from `index` on, at least this one, up to about block_bytes.
+            last = np.searchsorted(self.offsets, low + self.block_rows, side="right") - 1
+            stop = int(self.offsets[max(last, index + 1)])
+            self.start, self.rows = low, np.asarray(self.array[low:stop])
+        return self.rows[low - self.start : high - self.start].copy()
+
+
 def pack_masks(masks: np.ndarray) -> np.ndarray:
     """bool ``[S, H, W]`` -> uint8 ``[S, ceil(H * W / 8)]`` (row-major bits)."""
     masks = np.asarray(masks, dtype=bool)

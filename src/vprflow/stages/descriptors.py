@@ -16,7 +16,7 @@ from vprflow.stages.base import shard_range, stage_attrs
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.features import FeatureReader
 from vprflow.stages.pca import read_pca
-from vprflow.stages.segments import read_masks
+from vprflow.stages.segments import MaskReader
 from vprflow.stages.vocabulary import read_centres
 
 
@@ -94,7 +94,7 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
 
     features = stores.open_store(inputs["features"])
     read_features = FeatureReader(features)
-    segments = stores.open_store(inputs["segments"])
+    read_masks = MaskReader(stores.open_store(inputs["segments"]))
     centres = read_centres(inputs["vocabulary"])
     height, width = features.attrs["image_size"]
     patch_size = int(features.attrs["patch_size"])
@@ -102,7 +102,7 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
     def describe(index: int) -> np.ndarray:
         return image_segvlad(
             vlad_input(read_features(index), options),
-            read_masks(segments, index),
+            read_masks(index),
             centres,
             (height, width),
             patch_size,

@@ -71,7 +71,17 @@ def _mask_source(spec: dict, device: str):
 
 
 def read_masks(group, index: int) -> np.ndarray:
-    packed = stores.read_ragged(group, "masks", index)
-    return stores.unpack_masks(
-        packed, int(group.attrs["mask_height"]), int(group.attrs["mask_width"])
-    )
+    """bool ``[S, Hm, Wm]`` of one image of a segments store."""
+    return MaskReader(group)(index)
+
+
+class MaskReader:
+    """``reader(index) -> bool [S, Hm, Wm]``, reading the packed masks of many images
+    per store access (see :class:`vprflow.stores.RaggedReader`)."""
+
+    def __init__(self, group):
+        self.packed = stores.RaggedReader(group, "masks")
+        self.height, self.width = int(group.attrs["mask_height"]), int(group.attrs["mask_width"])
+
+    def __call__(self, index: int) -> np.ndarray:
+        return stores.unpack_masks(self.packed(index), self.height, self.width)
