@@ -86,20 +86,10 @@ def test_defaults_are_filled_before_hashing_so_keys_record_what_ran():
 @pytest.mark.parametrize("name", sorted(registry.AGGREGATORS))
 def test_the_plan_builds_exactly_the_stages_an_aggregator_needs(name, tmp_path):
     from synthetic import make_dataset
+    from workflow_helpers import toy_config
 
     make_dataset(tmp_path / "toy", n_places=3)
-    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    config["data_root"] = str(tmp_path)
-    config["datasets"] = {
-        "toy": {
-            "path": "toy",
-            "reference": "ref",
-            "query": "query",
-            "resolution": [64, 48],
-            "ground_truth": {"kind": "vprbench", "file": "ground_truth_new.npy"},
-            "methods": ["m"],
-        }
-    }
+    config = toy_config(tmp_path, resolution=[64, 48], methods=["m"])
     config["methods"] = {"m": {"aggregator": name, "features": "daisy"}}
     plan = build_plan(validate_config(config, SCHEMA_PATH))
     (descriptors,) = plan.stages["descriptors"].values()

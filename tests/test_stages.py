@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from synthetic import make_dataset
+from workflow_helpers import toy_config
 
 from vprflow import stores
 from vprflow.config import validate_config
@@ -89,20 +89,13 @@ class Runner:
 def pipeline(tmp_path_factory):
     root = tmp_path_factory.mktemp("stages")
     make_dataset(root / "data" / "toy", n_places=N_PLACES, width=64, height=48)
-    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    config["data_root"] = str(root / "data")
-    config["datasets"] = {
-        "toy": {
-            "path": "toy",
-            "reference": "ref",
-            "query": "query",
-            "resolution": [64, 48],
-            "ground_truth": {"kind": "vprbench", "file": "ground_truth_new.npy"},
-            "recall_at": [1, 3],
-            "methods": METHODS,
-            "defaults": {"pca": {"dim": 8, "whiten": False}, "segvlad": {"order": 1}},
-        }
-    }
+    config = toy_config(
+        root / "data",
+        resolution=[64, 48],
+        recall_at=[1, 3],
+        methods=METHODS,
+        defaults={"pca": {"dim": 8, "whiten": False}, "segvlad": {"order": 1}},
+    )
     config["vocabulary"].update(n_clusters=3, n_iter=5)
     config["segmenters"]["slic"].update(n_segments=6, resolution_scale=1.0)
     config = validate_config(config, SCHEMA)
