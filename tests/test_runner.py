@@ -1,0 +1,41 @@
+"""What a workflow script runs a stage in: its log and its thread budget."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import pytest
+
+PROGRAM = """
+import sys
+from vprflow.runner import run_stage
+
+def stage():
+    import faiss
+    import torch
+    print("threads", torch.get_num_threads(), faiss.omp_get_max_threads(), file=sys.__stdout__)
+    if {fail}:
+        raise ValueError("bad input x.png")
+
+run_stage({log!r}, stage, 1)
+"""
+
+
+@pytest.mark.parametrize("fail", [False, True])
+def test_stage_libraries_imported_inside_keep_the_thread_budget(tmp_path, fail):
+    """torch and faiss imported by the stage itself (not by the runner) use one thread;
+    a failure goes to the log and to stderr, naming the problem."""
+    log = tmp_path / "stage.log"
+    result = subprocess.run(
+        [sys.executable, "-c", PROGRAM.format(fail=fail, log=str(log))],
+        capture_output=True,
+        text=True,
+    )
+    assert "threads 1 1" in result.stdout, result.stdout + result.stderr
+    if fail:
+        assert result.returncode != 0
+        assert "ValueError: bad input x.png" in result.stderr
+        assert "Traceback" in log.read_text() and "bad input x.png" in log.read_text()
+    else:
+        assert result.returncode == 0, result.stderr
