@@ -22,6 +22,16 @@ def test_schema_enums_list_exactly_the_registry_components():
     assert enums["backbones"] == list(registry.BACKBONES)
     assert enums["segmenters"] == list(registry.SEGMENTERS)
     assert enums["aggregators"] == list(registry.AGGREGATORS)
+    assert enums["search_indexes"] == list(registry.SEARCH_INDEXES)
+
+
+def test_every_search_index_is_one_the_search_stage_can_run():
+    from vprflow.knn import FAISS_INDEXES
+
+    # flat and the approximate ones go to faiss; exact_fast to the torch path.
+    faiss_names = {"flat"} | {n for n, i in registry.SEARCH_INDEXES.items() if not i.exact}
+    assert faiss_names <= set(FAISS_INDEXES)
+    assert set(registry.SEARCH_INDEXES) == faiss_names | {"exact_fast"}
 
 
 @pytest.mark.parametrize(

@@ -16,7 +16,14 @@ from pathlib import Path
 
 import yaml
 
-from vprflow.registry import AGGREGATORS, BACKBONES, KIND_KEY, SEGMENTERS, with_defaults
+from vprflow.registry import (
+    AGGREGATORS,
+    BACKBONES,
+    KIND_KEY,
+    SEARCH_INDEXES,
+    SEGMENTERS,
+    with_defaults,
+)
 
 # Top-level sections that every method inherits and that may be omitted entirely.
 METHOD_DEFAULT_SECTIONS = (
@@ -69,13 +76,14 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
 
 
 def registry_enums(schema: dict) -> dict[str, list[str]]:
-    """The schema's lists of backbone, segmenter and aggregator names (which
+    """The schema's lists of backbone, segmenter, aggregator and search index names (which
     ``tests/test_registry.py`` checks against :mod:`vprflow.registry`)."""
     definitions = schema["definitions"]
     return {
         "backbones": definitions["backbone"]["properties"]["backbone"]["enum"],
         "segmenters": definitions["segmenter"]["properties"]["segmenter"]["enum"],
         "aggregators": definitions["method"]["properties"]["aggregator"]["enum"],
+        "search_indexes": definitions["retrieval"]["properties"]["index"]["enum"],
     }
 
 
@@ -85,6 +93,7 @@ def _set_registry_enums(schema: dict) -> None:
     enums["backbones"][:] = list(BACKBONES)
     enums["segmenters"][:] = list(SEGMENTERS)
     enums["aggregators"][:] = list(AGGREGATORS)
+    enums["search_indexes"][:] = list(SEARCH_INDEXES)
 
 
 def _fill_defaults(instance: dict, schema: dict) -> None:

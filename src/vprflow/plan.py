@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS
-from vprflow.registry import aggregator, model_kind
+from vprflow.registry import SEARCH_INDEXES, aggregator, model_kind, prefixed
 
 CACHE = "results/cache"
 # Per-dataset tables written by the report rule.
@@ -38,11 +38,6 @@ FORMAT_VERSIONS = {
     "search": 1,
     "recall": 3,  # 2: published vote ranking; 3: segment lists from the search stage
 }
-
-# Segment search indexes that give the exact top-k, and those that run on a GPU when
-# there is one (the rest are faiss CPU indexes).
-EXACT_INDEXES = ("flat", "exact_fast")
-GPU_INDEXES = ("exact_fast",)
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
 EXECUTION_ONLY = ("batch_size", "cache_dir")
@@ -554,11 +549,11 @@ def _plan_method(
 
         def search_stage(settings: dict) -> tuple[str, str]:
             params = {"top_segments": top_segments, **settings}
-            run = {**execution, "uses_gpu": settings["index"] in GPU_INDEXES}
+            run = {**execution, "uses_gpu": SEARCH_INDEXES[settings["index"]].uses_gpu}
             return ("search", plan.add("search", params, search_inputs, dataset_name, run))
 
         recall_inputs["search"] = search_stage(retrieval)
-        if retrieval["index"] not in EXACT_INDEXES:
+        if not SEARCH_INDEXES[retrieval["index"]].exact:
             # The table states what the approximation costs: recall of an exact search
             # of the same descriptors, in the same run.
             recall_inputs["exact_search"] = search_stage({"index": "flat", "params": {}})
@@ -577,7 +572,7 @@ def _segment_resolution(dataset: dict, segmenter: dict) -> list[int]:
 
 
 def _prefixed(prefix: str, section: dict) -> dict:
-    return {f"{prefix}.{k}": v for k, v in section.items() if k not in EXECUTION_ONLY}
+    return prefixed(prefix, _hashed(section))
 
 
 def _flat(row: dict) -> dict:

@@ -194,26 +194,22 @@ def _segvlad_options(method: dict) -> dict:
     }
 
 
-def _pooling_options(method: dict, with_p: bool) -> dict:
-    pooling = method["pooling"]
-    options = {"normalization": pooling["normalization"]}
-    if with_p:
-        options["p"] = pooling["gem_p"]
-    return options
-
-
-def _pooling_columns(with_p: bool):
-    def columns(method: dict) -> dict:
-        pooling = method["pooling"]
-        out = {"pooling.normalization": pooling["normalization"]}
-        if with_p:
-            out["pooling.gem_p"] = pooling["gem_p"]
-        return out
-
-    return columns
-
-
 _DESCRIPTORS = "vprflow.stages.descriptors"
+
+
+def _pooling(name: str) -> Aggregator:
+    """GeM, average or max pooling: the `pooling` settings it uses (``gem_p`` for GeM
+    only, passed to the pooling function as ``p``) are its options and its columns."""
+    keys = ("normalization", "gem_p") if name == "gem" else ("normalization",)
+    return Aggregator(
+        name,
+        (),
+        "global",
+        lambda m: {"p" if k == "gem_p" else k: m["pooling"][k] for k in keys},
+        lambda m: prefixed("pooling", {k: m["pooling"][k] for k in keys}),
+        f"{_DESCRIPTORS}:pooled_descriptor",
+    )
+
 
 AGGREGATORS: dict[str, Aggregator] = {
     agg.name: agg
@@ -242,30 +238,34 @@ AGGREGATORS: dict[str, Aggregator] = {
             lambda m: prefixed("snsm", m["snsm"]),
             f"{_DESCRIPTORS}:snsm_descriptor",
         ),
-        Aggregator(
-            "gem",
-            (),
-            "global",
-            lambda m: _pooling_options(m, True),
-            _pooling_columns(True),
-            f"{_DESCRIPTORS}:pooled_descriptor",
-        ),
-        Aggregator(
-            "average",
-            (),
-            "global",
-            lambda m: _pooling_options(m, False),
-            _pooling_columns(False),
-            f"{_DESCRIPTORS}:pooled_descriptor",
-        ),
-        Aggregator(
-            "max",
-            (),
-            "global",
-            lambda m: _pooling_options(m, False),
-            _pooling_columns(False),
-            f"{_DESCRIPTORS}:pooled_descriptor",
-        ),
+        *(_pooling(name) for name in ("gem", "average", "max")),
+    )
+}
+
+
+# ------------------------------------------------------------------ search indexes
+
+
+@dataclass(frozen=True)
+class SearchIndex:
+    """A ``retrieval.index``: whether it returns the exact top-k (an approximate one makes
+    the plan add an exact search, so the table can report the difference) and whether it
+    runs on a GPU when there is one. Searches are dispatched in
+    :func:`vprflow.stages.search.knn`."""
+
+    name: str
+    exact: bool
+    uses_gpu: bool = False
+
+
+SEARCH_INDEXES: dict[str, SearchIndex] = {
+    index.name: index
+    for index in (
+        SearchIndex("flat", exact=True),  # faiss IndexFlatL2, published
+        SearchIndex("exact_fast", exact=True, uses_gpu=True),  # vprflow.knn.exact_knn
+        SearchIndex("ivf_flat", exact=False),  # the rest: vprflow.knn.faiss_knn
+        SearchIndex("ivf_pq", exact=False),
+        SearchIndex("hnsw", exact=False),
     )
 }
 
