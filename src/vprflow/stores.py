@@ -127,6 +127,11 @@ def read_strings(group: zarr.Group, name: str) -> list[str]:
     return [str(s) for s in np.asarray(group[name][...]).tolist()]
 
 
+def rows_per_chunk(row_bytes: int) -> int:
+    """Rows in a chunk of about 4 MiB (at least one)."""
+    return max(1, (1 << 22) // max(row_bytes, 1))
+
+
 class RowWriter:
     """Append rows ``[n, *row_shape]`` to ``group[name]``, buffered and flushed in whole
     chunks, so appending one image at a time does not recompress a chunk per image."""

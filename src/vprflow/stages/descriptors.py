@@ -38,42 +38,23 @@ def compute_descriptors(
     dataset = Dataset(inputs["dataset"])
     images = shard_range(dataset.n_images, start, stop)
     describe = agg.descriptor_function(spec, inputs)
-    if agg.output == "segments":
-        pca = read_pca(inputs["pca"]) if "pca" in inputs else None
-        attrs = {**stage_attrs("descriptors", params, images), "kind": "segments"}
-        with stores.atomic_store(out, attrs) as group:
-            writer = None
-            for i in tqdm(images, desc=agg.name, unit="image"):
-                vectors = describe(i)
-                if pca is not None:
-                    vectors = pca.transform(vectors)
-                if writer is None:
-                    dim = vectors.shape[1]
-                    group.attrs["dim"] = dim
-                    dtype = np.dtype(spec.get("store_dtype", "float32"))
-                    writer = stores.RaggedWriter(
-                        group, "descriptors", (dim,), dtype, chunk_rows=_chunk_rows(dim)
-                    )
-                writer.append(vectors)
-            writer.close()
-        return
-    attrs = {**stage_attrs("descriptors", params, images), "kind": "global"}
+    by_segment = agg.output == "segments"
+    pca = read_pca(inputs["pca"]) if "pca" in inputs else None
+    dtype = np.dtype(spec.get("store_dtype", "float32"))
+    attrs = {**stage_attrs("descriptors", params, images), "kind": agg.output}
     with stores.atomic_store(out, attrs) as group:
         writer = None
         for i in tqdm(images, desc=agg.name, unit="image"):
-            vector = describe(i)
+            rows = describe(i) if by_segment else describe(i)[None]
+            if pca is not None:
+                rows = pca.transform(rows)
             if writer is None:
-                group.attrs["dim"] = len(vector)
-                writer = stores.RowWriter(
-                    group, "descriptors", (len(vector),), np.float32, _chunk_rows(len(vector))
-                )
-            writer.append(vector[None], f"descriptors of {dataset.paths[i]}")
+                dim = rows.shape[1]
+                group.attrs["dim"] = dim
+                kind = stores.RaggedWriter if by_segment else stores.RowWriter
+                writer = kind(group, "descriptors", (dim,), dtype, stores.rows_per_chunk(4 * dim))
+            writer.append(rows, f"descriptors of {dataset.paths[i]}")
         writer.close()
-
-
-def _chunk_rows(dim: int) -> int:
-    """Rows per chunk of about 4 MiB of float32."""
-    return max(1, (1 << 22) // (4 * dim))
 
 
 # ------------------------------------------------------------------ per-image functions

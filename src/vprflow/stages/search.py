@@ -76,11 +76,7 @@ def search_shard(
     k = min(spec["top_segments"], len(database))
     attrs = {**stage_attrs("search", params, range(start, stop)), "rows": [low, high]}
     with stores.atomic_store(out, attrs) as result:
-        chunk = max(1, (1 << 22) // (12 * max(k, 1)))
-        found = {
-            "distances": stores.RowWriter(result, "distances", (k,), np.float32, chunk),
-            "indices": stores.RowWriter(result, "indices", (k,), np.int64, chunk),
-        }
+        found = _list_writers(result, k)
         for block in tqdm(range(split, total, QUERY_BLOCK), desc="search", unit="block"):
             queries = np.asarray(vectors[block : min(block + QUERY_BLOCK, total)], np.float32)
             if k:
@@ -108,11 +104,7 @@ def merge_search(shard_paths: list[str], params: dict, out: str) -> None:
     k_total = min(k, sum(s["distances"].shape[1] for s in shards))
     attrs = {"stage": "search", "params": params, "shards": len(shards)}
     with stores.atomic_store(out, attrs) as result:
-        chunk = max(1, (1 << 22) // (12 * max(k_total, 1)))
-        found = {
-            "distances": stores.RowWriter(result, "distances", (k_total,), np.float32, chunk),
-            "indices": stores.RowWriter(result, "indices", (k_total,), np.int64, chunk),
-        }
+        found = _list_writers(result, k_total)
         for block in tqdm(range(0, n_rows, QUERY_BLOCK), desc="merge", unit="block"):
             rows = slice(block, min(block + QUERY_BLOCK, n_rows))
             # Shard by shard, keeping the best k: memory is two lists per row, whatever
@@ -128,6 +120,15 @@ def merge_search(shard_paths: list[str], params: dict, out: str) -> None:
             found["indices"].append(indices)
         for writer in found.values():
             writer.close()
+
+
+def _list_writers(group, k: int) -> dict[str, stores.RowWriter]:
+    """Writers of the ``[Sq, k]`` segment lists: float32 distances, int64 indices."""
+    chunk = stores.rows_per_chunk(12 * k)
+    return {
+        "distances": stores.RowWriter(group, "distances", (k,), np.float32, chunk),
+        "indices": stores.RowWriter(group, "indices", (k,), np.int64, chunk),
+    }
 
 
 def read_search(path: str) -> tuple[np.ndarray, np.ndarray]:
