@@ -63,6 +63,7 @@ def main() -> None:
     config["shard_size"] = args.shard
     config["search_shard_size"] = args.shard
     config["datasets"] = {"cycled": {**corridor, "path": "cycled"}}
+    config["targets"] = ["cycled"]
     config_path = args.workdir / "config.yaml"
     config_path.write_text(yaml.safe_dump(config))
     command = [

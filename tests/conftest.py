@@ -23,3 +23,19 @@ def data_root() -> Path:
             pytest.fail(message, pytrace=False)
         pytest.skip(message)
     return Path(value).resolve()
+
+
+@pytest.fixture(scope="session")
+def corridor_run(tmp_path_factory, data_root):
+    """The shipped config's default run (`snakemake` with no target: corridor, tables and
+    figures), then `snakemake --report report.html`; shared by the tests that read them.
+    Returns ``(workdir, report path)``."""
+    from workflow_helpers import repo_config, snakemake, write_config
+
+    workdir = tmp_path_factory.mktemp("corridor")
+    config = repo_config()
+    config["data_root"] = str(data_root)
+    config_path = write_config(workdir, config)
+    snakemake(workdir, config_path)
+    snakemake(workdir, config_path, "--report", "report.html")
+    return workdir, workdir / "report.html"

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+from pathlib import Path
 
 import pytest
 from workflow_helpers import repo_config, snakemake, write_config
@@ -10,19 +11,40 @@ from workflow_helpers import repo_config, snakemake, write_config
 pytestmark = [pytest.mark.workflow, pytest.mark.data]
 
 
-def run_dataset(tmp_path, data_root, dataset: str) -> dict[str, dict]:
+def run_dataset(workdir: Path, data_root: Path, dataset: str) -> dict[str, dict]:
+    """`snakemake` with no target and ``targets: [dataset]``: its tables and figures."""
     config = repo_config()
     config["data_root"] = str(data_root)
-    target = f"results/recall_{dataset}.csv"
-    snakemake(tmp_path, write_config(tmp_path, config), target)
-    with open(tmp_path / target) as f:
+    config["targets"] = [dataset]
+    snakemake(workdir, write_config(workdir, config))
+    with open(workdir / f"results/recall_{dataset}.csv") as f:
         rows = list(csv.DictReader(f))
     assert [r["method"] for r in rows] == config["datasets"][dataset]["methods"]
     return {r["method"]: r for r in rows}
 
 
-def test_corridor_recall_is_well_above_chance(tmp_path, data_root):
-    rows = run_dataset(tmp_path, data_root, "corridor")
+def assert_figures_drawn(workdir: Path, dataset: str, rows: dict[str, dict]) -> None:
+    """The recall plot and every method's figures exist as PNG files."""
+    from PIL import Image
+
+    expected = [workdir / f"results/plots/recall_{dataset}.png"]
+    for method, row in rows.items():
+        expected.append(workdir / f"results/figures/{dataset}/retrievals/{method}.png")
+        explanation = {"segvlad": "segment_matches", "snsm": "support_maps"}
+        if row["aggregator"] in explanation:
+            figure = explanation[row["aggregator"]]
+            expected.append(workdir / f"results/figures/{dataset}/{figure}/{method}.png")
+    for path in expected:
+        with Image.open(path) as image:
+            assert image.format == "PNG", path
+
+
+def test_corridor_recall_is_well_above_chance(corridor_run):
+    workdir, _ = corridor_run
+    with open(workdir / "results/recall_corridor.csv") as f:
+        rows = {r["method"]: r for r in csv.DictReader(f)}
+    assert list(rows) == repo_config()["datasets"]["corridor"]["methods"]
+    assert_figures_drawn(workdir, "corridor", rows)
     # 111 references, about 5 positives per query: chance Recall@1 is about 0.045.
     for method, row in rows.items():
         assert row["n_queries"] == "111" and row["ground_truth"] == "vprbench:ground_truth_new.npy"
@@ -34,6 +56,7 @@ def test_corridor_recall_is_well_above_chance(tmp_path, data_root):
 
 def test_roadscene_rgb_thermal_methods_beat_chance(tmp_path, data_root):
     rows = run_dataset(tmp_path, data_root, "roadscene")
+    assert_figures_drawn(tmp_path, "roadscene", rows)
     # 50 pairs, one positive each: chance Recall@1 is 0.02, Recall@10 0.2.
     for method, row in rows.items():
         assert row["n_queries"] == "50" and row["ground_truth"] == "pairs"

@@ -134,6 +134,7 @@ def write_workflow(workdir: Path, **backbone) -> Path:
     make_dataset(workdir / "data" / "toy")
     config = toy_config(workdir / "data")
     config["datasets"] = {DATASET: config["datasets"]["toy"]}
+    config["targets"] = [DATASET]
     config["datasets"][DATASET]["defaults"] = {
         "features": "dinov2_vitg14",
         "segmenter": "sam_vith",

@@ -28,7 +28,7 @@ from vprflow.stages.vocabulary import fit_vocabulary, read_centres
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
-METHODS = ["anyloc_vlad", "segvlad", "gem"]
+METHODS = ["anyloc_vlad", "segvlad", "gem", "snsm"]
 N_PLACES = 6
 
 
@@ -304,3 +304,49 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     attrs = stores.open_store(result).attrs
     flat = stores.open_store(stage_path(pipeline, "recall", "segvlad")).attrs
     assert attrs["recall_exact"] == attrs["recall"] == flat["recall"]
+
+
+def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
+    """The stores a figure rule would get (vprflow.plan.figure_inputs), as run here."""
+    from vprflow.plan import FIGURES
+
+    return {name: stage_path(pipeline, name, method) for name in FIGURES[figure]}
+
+
+@pytest.mark.parametrize(
+    ("method", "figure"),
+    [("anyloc_vlad", "retrievals"), ("segvlad", "segment_matches"), ("snsm", "support_maps")],
+)
+def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure):
+    from PIL import Image
+
+    from vprflow.plan import figure_inputs
+    from vprflow.stages.figures import draw_figure
+
+    plan, _, _, root = pipeline
+    # The plan names the same stores (by key) that this figure is drawn from.
+    planned = figure_inputs(plan, "toy", method, figure)
+    stores_used = figure_stores(pipeline, method, figure)
+    assert planned.keys() == stores_used.keys()
+    for name, path in planned.items():
+        assert Path(path).name == Path(stores_used[name]).name, name
+    settings = {"queries": 3, "top": 2, "wrong_only": False, "explained_queries": 2, "seed": 0}
+    out = tmp_path / f"{figure}.png"
+    draw_figure(figure, stores_used, str(root / "data"), method, {**settings, "height": 32}, out)
+    with Image.open(out) as image:
+        assert image.format == "PNG" and min(image.size) > 100
+
+
+def test_a_method_has_the_figures_of_its_aggregator(pipeline):
+    from vprflow.plan import PlanError, dataset_outputs, figure_inputs
+
+    plan, _, _, _ = pipeline
+    figures = {run.method: run.figures for run in plan.runs["toy"]}
+    assert figures["segvlad"] == ("retrievals", "segment_matches")
+    assert figures["snsm"] == ("retrievals", "support_maps")
+    assert figures["gem"] == ("retrievals",)
+    outputs = dataset_outputs(plan, "toy")
+    assert "results/plots/recall_toy.png" in outputs
+    assert "results/figures/toy/segment_matches/segvlad.png" in outputs
+    with pytest.raises(PlanError, match="segment_matches.*'gem'"):
+        figure_inputs(plan, "toy", "gem", "segment_matches")

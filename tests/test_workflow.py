@@ -16,6 +16,7 @@ import pytest
 import zarr
 from synthetic import make_dataset
 from workflow_helpers import (
+    scheduled_outputs,
     scheduled_stages,
     snakemake,
     snakemake_command,
@@ -190,6 +191,24 @@ def test_changing_a_value_and_back_schedules_at_most_the_csv(toy_run):
     assert scheduled_stages(workdir, original, TARGET) <= {"report"}
     snakemake(workdir, original, TARGET)
     assert scheduled_stages(workdir, original, TARGET) == set()
+
+
+def test_figures_are_drawn_and_a_figure_setting_reruns_only_figures(toy_run):
+    workdir, config = toy_run
+    original = write_config(workdir, config, "original.yaml")
+    snakemake(workdir, original)  # the default target: `targets` datasets with figures
+    figures = workdir / "results" / "figures" / "toy"
+    assert sorted(p.name for p in (figures / "retrievals").iterdir()) == sorted(
+        f"{m}.png" for m in METHODS
+    )
+    assert len(list((figures / "segment_matches").iterdir())) == 4
+    assert (workdir / "results" / "plots" / "recall_toy.png").exists()
+    assert (workdir / "logs" / "figures" / "toy" / "retrievals" / "segvlad.log").exists()
+    changed = copy.deepcopy(config)
+    changed["figures"]["queries"] = 2
+    outputs = scheduled_outputs(workdir, write_config(workdir, changed, "fig.yaml"), "all")
+    assert outputs and all(o.startswith("results/figures/toy/") for o in outputs), outputs
+    assert scheduled_outputs(workdir, original, "all") == []
 
 
 def test_same_inputs_give_a_byte_identical_csv_and_sharding_changes_nothing(toy_run, tmp_path):

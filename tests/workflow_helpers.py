@@ -40,6 +40,7 @@ def toy_config(data_root: Path, **dataset_overrides) -> dict:
             **dataset_overrides,
         }
     }
+    config["targets"] = ["toy"]
     config["segmenters"]["slic"]["n_segments"] = 12
     config["vocabulary"]["n_clusters"] = 4
     config["vocabulary"]["n_iter"] = 10

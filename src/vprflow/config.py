@@ -65,8 +65,16 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
     for section in METHOD_DEFAULT_SECTIONS:
         config[section] = config.get(section) or {}
         _fill_defaults(config[section], schema["definitions"][section])
+    config["figures"] = config.get("figures") or {}
+    _fill_defaults(config["figures"], schema["definitions"]["figures"])
     for dataset in config["datasets"].values():
         _fill_defaults(dataset, schema["definitions"]["dataset"])
+    unknown = [name for name in config["targets"] if name not in config["datasets"]]
+    if unknown:
+        raise ConfigError(
+            f"config key 'targets' names datasets {unknown} that are not configured; "
+            f"configured: {sorted(config['datasets'])}"
+        )
     for entries, stage in (("backbones", "features"), ("segmenters", "segments")):
         for entry in config[entries].values():
             _fill_defaults(entry, schema["definitions"][KIND_KEY[stage]])

@@ -27,6 +27,16 @@ CACHE = "results/cache"
 # Per-dataset tables written by the report rule.
 RECALL_CSV = "results/recall_{dataset}.csv"
 PREDICTIONS_CSV = "results/predictions_{dataset}.csv"
+# Figures of the report (not stages: no key, a changed figure setting reruns only them).
+RECALL_PLOT = "results/plots/recall_{dataset}.png"
+RECALL_TABLE = "results/tables/recall_{dataset}.html"
+FIGURE = "results/figures/{dataset}/{figure}/{method}.png"
+# Each figure kind of one method and the stores it reads (the method's own, by name).
+FIGURES = {
+    "retrievals": ("dataset", "recall"),
+    "segment_matches": ("dataset", "recall", "search", "descriptors", "segments"),
+    "support_maps": ("dataset", "recall", "descriptors", "features"),
+}
 
 FORMAT_VERSIONS = {
     "dataset": 2,  # 2: paths relative to data_root, contents in the key
@@ -162,6 +172,14 @@ class MethodRun:
     method: str
     recall_key: str
     row_params: dict  # flattened parameters for the CSV
+    aggregator_name: str
+
+    @property
+    def figures(self) -> tuple[str, ...]:
+        """The report's figures of this method: its retrievals, and its aggregator's
+        explanation when it has one."""
+        explanation = aggregator(self.aggregator_name).explanation
+        return ("retrievals", explanation) if explanation else ("retrievals",)
 
 
 @dataclass
@@ -226,6 +244,34 @@ def withdraw_stale_reports(plan: Plan, root: str = "") -> list[Path]:
         table.replace(target)
         moved.append(target)
     return moved
+
+
+def dataset_outputs(plan: Plan, dataset: str) -> list[str]:
+    """Everything a dataset's report shows: its tables, its recall plot and every
+    method's figures."""
+    tables = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
+    outputs = [t.format(dataset=dataset) for t in tables]
+    for run in plan.runs[dataset]:
+        outputs += [
+            FIGURE.format(dataset=dataset, figure=figure, method=run.method)
+            for figure in run.figures
+        ]
+    return outputs
+
+
+def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[str, str]:
+    """The stores one method's figure reads, by name (see :data:`FIGURES`)."""
+    runs = {run.method: run for run in plan.runs.get(dataset, [])}
+    if method not in runs or figure not in runs[method].figures:
+        raise PlanError(f"no figure {figure!r} of method {method!r} on dataset {dataset!r}")
+    recall = plan.get("recall", runs[method].recall_key)
+    descriptors = plan.get(*recall.inputs["descriptors"])
+    stores = {
+        "recall": recall.path,
+        **recall.input_paths(),
+        **{k: v for k, v in descriptors.input_paths().items() if k != "pca"},
+    }
+    return {name: stores[name] for name in FIGURES[figure]}
 
 
 def stage_users(plan: Plan) -> dict[tuple[str, str], set[tuple[str, str]]]:
@@ -560,7 +606,7 @@ def _plan_method(
         recall_params["vote_ranking"] = method["segvlad"]["vote_ranking"]
         row.update(_prefixed("retrieval", retrieval))
     recall_key = plan.add("recall", recall_params, recall_inputs, dataset_name)
-    return MethodRun(method_name, recall_key, _flat(row))
+    return MethodRun(method_name, recall_key, _flat(row), agg.name)
 
 
 def _segment_resolution(dataset: dict, segmenter: dict) -> list[int]:

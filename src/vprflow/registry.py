@@ -165,6 +165,8 @@ class Aggregator:
     (method = the resolved method settings); ``columns(method)`` its CSV columns.
     ``image_descriptor`` is ``"module:function"`` with signature
     ``(options, input store paths) -> (image index -> [dim] or [S, dim])``.
+    ``explanation``: the report's figure of how the method decided, besides the
+    retrievals every method gets (a name in :data:`vprflow.plan.FIGURES`), or None.
     """
 
     name: str
@@ -173,6 +175,7 @@ class Aggregator:
     options: Callable[[dict], dict]
     columns: Callable[[dict], dict]
     image_descriptor: str
+    explanation: str | None = None
 
     def descriptor_function(self, options: dict, inputs: dict[str, str]):
         return resolve(self.image_descriptor)(options, inputs)
@@ -221,6 +224,7 @@ AGGREGATORS: dict[str, Aggregator] = {
             _segvlad_options,
             lambda m: {**prefixed("segvlad", m["segvlad"]), **prefixed("vlad", m["vlad"])},
             f"{_DESCRIPTORS}:segvlad_descriptors",
+            explanation="segment_matches",
         ),
         Aggregator(
             "anyloc_vlad",
@@ -237,6 +241,7 @@ AGGREGATORS: dict[str, Aggregator] = {
             lambda m: dict(m["snsm"]),
             lambda m: prefixed("snsm", m["snsm"]),
             f"{_DESCRIPTORS}:snsm_descriptor",
+            explanation="support_maps",
         ),
         *(_pooling(name) for name in ("gem", "average", "max")),
     )

@@ -5,11 +5,16 @@ from pathlib import Path
 from vprflow.config import validate_config
 from vprflow.datasets import list_dataset
 from vprflow.plan import (
+    FIGURE,
     PREDICTIONS_CSV,
     RECALL_CSV,
+    RECALL_PLOT,
+    RECALL_TABLE,
     PlanError,
     benchmark_pattern,
     build_plan,
+    dataset_outputs,
+    figure_inputs,
     FINGERPRINTS,
     load_fingerprints,
     log_pattern,
@@ -148,3 +153,19 @@ def report_runs(wildcards):
         {"method": run.method, "params": run.row_params}
         for run in PLAN.runs[wildcards.dataset]
     ]
+
+
+def default_targets():
+    """What `snakemake` without a target builds: every output of the `targets` datasets."""
+    return [path for name in CONFIG["targets"] for path in dataset_outputs(PLAN, name)]
+
+
+def figure_pattern(figure):
+    return FIGURE.replace("{figure}", figure)
+
+
+def figure_stores(figure):
+    """Input function: the stores one method's figure reads, by name."""
+    return lambda wildcards: figure_inputs(
+        PLAN, wildcards.dataset, wildcards.method, figure
+    )

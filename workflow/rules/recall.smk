@@ -23,7 +23,16 @@ rule report:
     input:
         unpack(report_inputs),
     output:
-        csv=RECALL_CSV,
+        csv=report(
+            RECALL_CSV,
+            caption="../report/recall_csv.rst",
+            category="{dataset}",
+            subcategory="Recall",
+            labels={
+                "figure": "Recall@N table (CSV, every parameter)",
+                "method": "all",
+            },
+        ),
         predictions=PREDICTIONS_CSV,
     log:
         "logs/report/{dataset}.log",

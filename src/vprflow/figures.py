@@ -1,0 +1,350 @@
+"""Pictures of results: recall curves, retrieval montages, SegVLAD segment matches and
+SNSM support maps.
+
+Plain functions over arrays. Images are float RGB ``[H, W, 3]`` in ``[0, 1]`` as
+:func:`vprflow.images.read_image` returns them (so 16-bit and grayscale files display
+like any other); colours are RGB triples in ``[0, 1]``. Only the ``*_figure``
+functions touch matplotlib (Agg backend, no screen), and :func:`save_figure` writes a
+PNG to a temporary name first, so an interrupted job leaves no complete-looking file.
+"""
+
+from __future__ import annotations
+
+import colorsys
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vprflow.images import resize_image
+
+CORRECT = (0.0, 0.75, 0.0)  # frame of a retrieved reference that is a true positive
+WRONG = (0.9, 0.0, 0.0)  # frame of one that is not
+NEUTRAL = (0.55, 0.55, 0.55)  # frame of the query, and of references with no truth known
+FRAME_FRACTION = 0.06  # frame width as a fraction of the thumbnail height
+
+
+def thumbnail(image: np.ndarray, height: int) -> np.ndarray:
+    """``image [H, W, 3]`` scaled to ``height`` rows, aspect kept (antialiased)."""
+    width = max(1, round(image.shape[1] * height / image.shape[0]))
+    return resize_image(image, width, height, method="antialias")
+
+
+def framed(image: np.ndarray, colour: Sequence[float], width: int) -> np.ndarray:
+    """A copy of ``image [H, W, 3]`` whose outer ``width`` pixels are ``colour``."""
+    out = np.array(image, dtype=np.float32, copy=True)
+    if width <= 0:
+        return out
+    out[:width] = colour
+    out[-width:] = colour
+    out[:, :width] = colour
+    out[:, -width:] = colour
+    return out
+
+
+def frame_colour(correct: bool | None) -> tuple[float, float, float]:
+    """Green for a true positive, red for a wrong reference, grey when unknown."""
+    if correct is None:
+        return NEUTRAL
+    return CORRECT if correct else WRONG
+
+
+def distinct_colours(n: int) -> np.ndarray:
+    """``[n, 3]`` saturated colours, neighbours far apart in hue (golden-ratio steps), so
+    that every segment of an image is told apart from the others."""
+    hues = (np.arange(n) * 0.618033988749895) % 1.0
+    values = np.where(np.arange(n) % 2 == 0, 0.95, 0.75)
+    colours = [colorsys.hsv_to_rgb(h, 0.85, v) for h, v in zip(hues, values, strict=True)]
+    return np.array(colours, dtype=np.float64).reshape(n, 3)
+
+
+def upsample_masks(masks: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Nearest-neighbour upsampling of bool ``masks [S, Hm, Wm]`` to ``[S, height, width]``
+    (the mapping SegVLAD uses from mask to image pixels)."""
+    s, hm, wm = masks.shape
+    rows = np.minimum((np.arange(height) * hm) // height, hm - 1)
+    cols = np.minimum((np.arange(width) * wm) // width, wm - 1)
+    return masks[:, rows][:, :, cols]
+
+
+def paint_segments(
+    image: np.ndarray,
+    masks: np.ndarray,
+    colours: np.ndarray,
+    alpha: float = 0.55,
+    painted: Sequence[int] | None = None,
+) -> np.ndarray:
+    """``image [H, W, 3]`` with segment ``s`` (``masks [S, Hm, Wm]``, any resolution)
+    blended with ``colours[s]``; only the segments in ``painted`` when it is given (the
+    rest are greyed out). Where segments overlap, the later one is on top."""
+    height, width = image.shape[:2]
+    full = upsample_masks(np.asarray(masks, dtype=bool), height, width)
+    chosen = range(len(full)) if painted is None else painted
+    out = np.array(image, dtype=np.float32, copy=True)
+    if painted is not None:
+        grey = out.mean(axis=2, keepdims=True)
+        out = 0.35 * out + 0.65 * grey
+    for s in chosen:
+        out[full[s]] = (1 - alpha) * out[full[s]] + alpha * np.asarray(colours[s], np.float32)
+    return out
+
+
+def recall_curve(first_correct: np.ndarray, evaluated: np.ndarray, n_max: int) -> np.ndarray:
+    """Recall@N for ``N = 1 .. n_max``: the fraction of evaluated queries whose first
+    correct reference is within the top N.
+
+    ``first_correct [Q]``: 0-based rank of the first true positive, -1 for none in the
+    ranking; ``evaluated [Q]`` bool: queries with at least one positive (the others are
+    not counted, as in the results table). Returns float64 ``[n_max]``.
+    """
+    ranks = np.asarray(first_correct)[np.asarray(evaluated, dtype=bool)]
+    if len(ranks) == 0:
+        return np.zeros(n_max)
+    hits = np.bincount(ranks[ranks >= 0], minlength=n_max)[:n_max]
+    return np.cumsum(hits) / len(ranks)
+
+
+def sample_queries(candidates: np.ndarray, count: int, seed: int) -> np.ndarray:
+    """``count`` of the ``candidates`` (query indices), chosen by ``seed`` and sorted: the
+    same queries for every method given the same candidates."""
+    candidates = np.asarray(candidates)
+    if count >= len(candidates):
+        return np.sort(candidates)
+    rng = np.random.default_rng(seed)
+    return np.sort(rng.choice(candidates, size=count, replace=False))
+
+
+def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[str] = ()) -> str:
+    """An HTML page of a results table (``rows`` as read from the CSV): the method, its
+    Recall@N columns (the best of each column in bold), then the counting columns; every
+    other column of the CSV stays in the CSV. ``notes`` are paragraphs under the title."""
+    from html import escape
+
+    columns = list(rows[0]) if rows else []
+    recall = [c for c in columns if c.startswith(("recall@", "exact_recall@"))]
+    counting = ["descriptor_dim", "n_queries", "n_short_rankings"]
+    shown = ["method", "aggregator", *recall, *[c for c in counting if c in columns]]
+    best = {c: max((float(r[c]) for r in rows if r[c] != ""), default=None) for c in recall}
+    head = "".join(f"<th>{escape(c)}</th>" for c in shown)
+    body = []
+    for row in rows:
+        cells = []
+        for column in shown:
+            value = row.get(column, "")
+            text = escape(value)
+            if column in best and value != "":
+                text = f"{float(value):.3f}"
+                if float(value) == best[column]:
+                    text = f"<b>{text}</b>"
+            cells.append(f"<td>{text}</td>")
+        body.append("<tr>" + "".join(cells) + "</tr>")
+    paragraphs = "".join(f"<p>{escape(note)}</p>" for note in notes)
+    style = (
+        "body{font-family:sans-serif;font-size:14px}table{border-collapse:collapse}"
+        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}"
+        "td:first-child,th:first-child{text-align:left}"
+    )
+    return (
+        f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{escape(title)}</title>"
+        f"<style>{style}</style></head><body><h3>{escape(title)}</h3>{paragraphs}"
+        f"<table><thead><tr>{head}</tr></thead><tbody>{''.join(body)}</tbody></table>"
+        "</body></html>\n"
+    )
+
+
+# ------------------------------------------------------------------ matplotlib figures
+
+
+def _pyplot():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(figure, path: str | Path, dpi: int = 100) -> None:
+    """Write ``figure`` as a PNG at ``path`` via a temporary file, then close it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    figure.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+    _pyplot().close(figure)
+    os.replace(tmp, path)
+
+
+def recall_curve_figure(curves: dict[str, np.ndarray], title: str, marks: Sequence[int] = ()):
+    """One line per method: ``curves[method] [n_max]`` is Recall@1..n_max. ``marks`` are
+    the table's N values, drawn as points."""
+    plt = _pyplot()
+    figure, axes = plt.subplots(figsize=(7, 4.5))
+    for method, curve in curves.items():
+        n = np.arange(1, len(curve) + 1)
+        (line,) = axes.plot(n, curve, label=method, linewidth=1.6)
+        at = [m for m in marks if 1 <= m <= len(curve)]
+        axes.plot(at, curve[np.array(at, dtype=int) - 1], "o", color=line.get_color(), ms=4)
+    from matplotlib.ticker import MaxNLocator
+
+    axes.xaxis.set_major_locator(MaxNLocator(integer=True))
+    axes.set_xlabel("N (references retrieved)")
+    axes.set_ylabel("Recall@N")
+    axes.set_ylim(0, 1.02)
+    axes.set_xlim(1, max((len(c) for c in curves.values()), default=1))
+    axes.grid(alpha=0.3)
+    axes.set_title(title)
+    axes.legend(loc="lower right", fontsize=8)
+    return figure
+
+
+@dataclass
+class RetrievalRow:
+    """One query of a retrieval montage: its image and name, and its top references
+    (images, names, whether each is a true positive: None when the truth is unknown)."""
+
+    query: np.ndarray
+    query_name: str
+    references: list[np.ndarray]
+    reference_names: list[str]
+    correct: list[bool | None]
+
+
+def retrieval_figure(rows: list[RetrievalRow], title: str, height: int = 120):
+    """Rows of query | top references, each reference framed green (correct) or red
+    (wrong); names under each thumbnail."""
+    plt = _pyplot()
+    n_cols = 1 + max((len(r.references) for r in rows), default=0)
+    border = max(2, round(FRAME_FRACTION * height))
+    figure, axes = plt.subplots(
+        len(rows), n_cols, figsize=(1.9 * n_cols, 1.7 * len(rows) + 0.6), squeeze=False
+    )
+    for axis in axes.ravel():
+        axis.axis("off")
+    for r, row in enumerate(rows):
+        cells = [(row.query, f"query {row.query_name}", None)]
+        cells += [
+            (image, f"{rank}. {name}", ok)
+            for rank, (image, name, ok) in enumerate(
+                zip(row.references, row.reference_names, row.correct, strict=True), start=1
+            )
+        ]
+        for c, (image, label, ok) in enumerate(cells):
+            axes[r, c].imshow(framed(thumbnail(image, height), frame_colour(ok), border))
+            axes[r, c].set_title(label, fontsize=7)
+    figure.suptitle(title, fontsize=10)
+    return figure
+
+
+@dataclass
+class SegmentMatch:
+    """A query segment, the reference segment that matched it in the top-1 reference
+    image (None when none of its nearest segments lies there), and their cosine
+    similarity."""
+
+    query_segment: int
+    reference_segment: int | None
+    similarity: float | None
+
+
+def match_colours(matches: list[SegmentMatch], n_query: int, n_reference: int):
+    """Colours of the query's segments (distinct) and of the reference's segments: each
+    matched reference segment takes the colour of the query segment that retrieved it
+    (the best-matching one when several did). Returns ``(query [Sq, 3], reference
+    [Sr, 3], painted reference segments)``."""
+    query_colours = distinct_colours(n_query)
+    reference_colours = np.zeros((n_reference, 3))
+    painted: list[int] = []
+    best: dict[int, float] = {}
+    for match in matches:
+        r = match.reference_segment
+        if r is None:
+            continue
+        if r not in best or match.similarity > best[r]:
+            best[r] = match.similarity
+            reference_colours[r] = query_colours[match.query_segment]
+            if r not in painted:
+                painted.append(r)
+    return query_colours, reference_colours, painted
+
+
+@dataclass
+class SegmentExplanation:
+    """One query explained: its image and masks ``[Sq, Hm, Wm]``, its top-1 reference's
+    image and masks ``[Sr, Hm, Wm]``, the matches, a title, and whether the reference is
+    a true positive (None when unknown)."""
+
+    query: np.ndarray
+    query_masks: np.ndarray
+    reference: np.ndarray
+    reference_masks: np.ndarray
+    matches: list[SegmentMatch]
+    title: str
+    correct: bool | None
+
+
+def segment_match_figure(explanations: list[SegmentExplanation], title: str):
+    """Per explanation: the query's segments in distinct colours beside its top-1
+    reference, each matched reference segment in its query segment's colour (the
+    reference framed green or red), and a strip of the matches' cosine similarities."""
+    plt = _pyplot()
+    figure = plt.figure(figsize=(9, 4.6 * len(explanations) + 0.4))
+    grid = figure.add_gridspec(2 * len(explanations), 2, height_ratios=[3, 1] * len(explanations))
+    for e, item in enumerate(explanations):
+        q_colours, r_colours, painted = match_colours(
+            item.matches, len(item.query_masks), len(item.reference_masks)
+        )
+        left = figure.add_subplot(grid[2 * e, 0])
+        right = figure.add_subplot(grid[2 * e, 1])
+        border = max(2, round(FRAME_FRACTION * item.reference.shape[0] / 2))
+        left.imshow(paint_segments(item.query, item.query_masks, q_colours))
+        left.set_title(f"{item.title}\nquery segments", fontsize=8, loc="left")
+        shown = paint_segments(item.reference, item.reference_masks, r_colours, painted=painted)
+        right.imshow(framed(shown, frame_colour(item.correct), border))
+        right.set_title("top-1 reference: matched segments", fontsize=8)
+        for axis in (left, right):
+            axis.axis("off")
+        strip = figure.add_subplot(grid[2 * e + 1, :])
+        strip.axis("off")
+        found = sorted(
+            (m for m in item.matches if m.reference_segment is not None),
+            key=lambda m: -m.similarity,
+        )
+        for i, match in enumerate(found[:24]):
+            x, y = (i % 8) / 8, 1 - (i // 8) / 3
+            colour = q_colours[match.query_segment]
+            strip.add_patch(plt.Rectangle((x, y - 0.3), 0.025, 0.25, color=colour))
+            strip.text(x + 0.03, y - 0.18, f"{match.similarity:.3f}", fontsize=8, va="center")
+        strip.set_xlim(0, 1)
+        strip.set_ylim(0, 1.05)
+        strip.set_title(
+            "cosine similarity of each matched pair (colour: query segment)", fontsize=8
+        )
+    figure.suptitle(title, fontsize=10)
+    return figure
+
+
+def support_map_figure(
+    rows: list[tuple[str, np.ndarray, np.ndarray, str, np.ndarray, np.ndarray]], title: str
+):
+    """SNSM support maps: per row ``(query name, query image, its support map, reference
+    name, reference image, its support map)``, the images beside their maps."""
+    plt = _pyplot()
+    figure, axes = plt.subplots(len(rows), 4, figsize=(10, 2.6 * len(rows) + 0.5), squeeze=False)
+    for r, (q_name, q_image, q_map, r_name, r_image, r_map) in enumerate(rows):
+        panels = [
+            (q_image, f"query {q_name}", None, q_image),
+            (q_map, "query support map", "viridis", q_image),
+            (r_image, f"reference {r_name}", None, r_image),
+            (r_map, "reference support map", "viridis", r_image),
+        ]
+        for c, (picture, label, cmap, image) in enumerate(panels):
+            # A map covers the image it was computed from (resized to the features'
+            # input size): drawn over that image's extent, so both have its shape.
+            extent = (0, image.shape[1], image.shape[0], 0)
+            axes[r, c].imshow(picture, cmap=cmap, extent=extent)
+            axes[r, c].set_title(label, fontsize=8)
+            axes[r, c].axis("off")
+    figure.suptitle(title, fontsize=10)
+    return figure

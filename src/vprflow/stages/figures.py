@@ -1,0 +1,245 @@
+"""The figure rules: what the report shows of a dataset's results.
+
+Each function reads the stores of one dataset (and one method) and writes one PNG with
+:mod:`vprflow.figures`. Figures are not stages: they hash nothing and change no key, so
+a changed figure setting (``figures:`` in the config) reruns only figures. Images are
+read with the project's reader from ``data_root``.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from vprflow import figures, stores
+from vprflow.images import read_image
+from vprflow.stages.dataset import Dataset
+
+log = logging.getLogger("vprflow")
+
+
+def _evaluated(dataset: Dataset) -> np.ndarray:
+    """Queries with at least one positive: those the results table counts."""
+    return np.array([len(t) > 0 for t in dataset.truth()], dtype=bool)
+
+
+def plot_recall(
+    dataset_name: str, dataset_path: str, methods: list[str], recall_paths: list[str], out: str
+) -> None:
+    """All methods' Recall@N for N = 1 .. the largest configured N, on one figure."""
+    dataset = Dataset(dataset_path)
+    evaluated = _evaluated(dataset)
+    curves, marks = {}, set()
+    for method, path in zip(methods, recall_paths, strict=True):
+        result = stores.open_store(path)
+        recall_at = sorted(int(n) for n in result.attrs["recall"])
+        marks.update(recall_at)
+        n_max = min(max(recall_at), dataset.n_reference)
+        curves[method] = figures.recall_curve(result["first_correct"][...], evaluated, n_max)
+    title = (
+        f"{dataset_name}: Recall@N over {int(evaluated.sum())} queries with a positive "
+        f"({dataset.group.attrs['ground_truth_rule']})"
+    )
+    figures.save_figure(figures.recall_curve_figure(curves, title, sorted(marks)), out)
+
+
+def write_recall_table(dataset_name: str, csv_path: str, out: str) -> None:
+    """The results table as an HTML page the report displays (the CSV is a download)."""
+    import csv
+    import os
+    from pathlib import Path
+
+    with open(csv_path, newline="") as f:
+        rows = list(csv.DictReader(f))
+    rules = sorted({row["ground_truth"] for row in rows})
+    notes = [
+        f"Positives by the ground-truth rule {', '.join(rules)}.",
+        "Recall@N: the fraction of queries with at least one positive whose first N "
+        "retrieved references include one (queries without a positive are not counted; "
+        "n_queries says how many are). n_short_rankings: queries that ranked fewer references than "
+        "the largest N (SegVLAD ranks only voted images); a missing rank is a miss.",
+        f"Every method parameter is a column of {Path(csv_path).name}.",
+    ]
+    text = figures.recall_table_html(rows, f"{dataset_name}: Recall@N", notes)
+    Path(out).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(out).with_name(f".{Path(out).name}.tmp")
+    tmp.write_text(text)
+    os.replace(tmp, out)
+
+
+def sampled_queries(
+    dataset: Dataset, first_correct: np.ndarray, settings: dict, count: int
+) -> np.ndarray:
+    """The queries a figure shows: ``count`` of those with a positive (only those wrong at
+    rank 1 when ``settings["wrong_only"]``), chosen by ``settings["seed"]``."""
+    candidates = np.flatnonzero(_evaluated(dataset))
+    if settings["wrong_only"]:
+        candidates = candidates[np.asarray(first_correct)[candidates] != 0]
+    return figures.sample_queries(candidates, count, settings["seed"])
+
+
+def draw_retrievals(
+    inputs: dict[str, str], data_root: str, method: str, settings: dict, out: str
+) -> None:
+    """Sampled queries with their top ``settings["top"]`` references, framed green
+    (a true positive) or red; ``inputs``: the ``dataset`` and ``recall`` stores."""
+    dataset = Dataset(inputs["dataset"], data_root)
+    result = stores.open_store(inputs["recall"])
+    ranking = np.asarray(result["ranking"][...])
+    first = np.asarray(result["first_correct"][...])
+    truth = dataset.truth()
+    queries = sampled_queries(dataset, first, settings, settings["queries"])
+    rows = []
+    for q in queries:
+        top = [int(r) for r in ranking[q, : settings["top"]] if r >= 0]
+        rows.append(
+            figures.RetrievalRow(
+                query=read_image(dataset.paths[dataset.n_reference + q]),
+                query_name=dataset.names[dataset.n_reference + q],
+                references=[read_image(dataset.paths[r]) for r in top],
+                reference_names=[dataset.names[r] for r in top],
+                correct=[bool(np.isin(r, truth[q])) for r in top],
+            )
+        )
+    if not rows:
+        log.warning("%s: no query to show (wrong_only and every query right at rank 1?)", method)
+    what = "queries wrong at rank 1" if settings["wrong_only"] else "queries"
+    title = f"{method}: {len(rows)} sampled {what} and their top {settings['top']} references"
+    figures.save_figure(figures.retrieval_figure(rows, title, settings["height"]), out)
+
+
+def segment_matches(
+    query_rows: range,
+    indices: np.ndarray,
+    reference_rows: range,
+    descriptors,
+) -> list[figures.SegmentMatch]:
+    """For each query segment (global descriptor rows ``query_rows``), the nearest of its
+    retrieved segments that lies in the reference image owning ``reference_rows``, and
+    their cosine similarity. ``indices [len(query_rows), k]`` are the segment search's
+    lists of these rows (global reference rows, nearest first, -1 padding); the
+    returned segment numbers are local to the two images."""
+    matches = []
+    for i, row in enumerate(query_rows):
+        inside = (indices[i] >= reference_rows.start) & (indices[i] < reference_rows.stop)
+        hits = np.flatnonzero(inside)
+        if len(hits) == 0:
+            matches.append(figures.SegmentMatch(i, None, None))
+            continue
+        match = int(indices[i, hits[0]])
+        q = np.asarray(descriptors[row], dtype=np.float64)
+        r = np.asarray(descriptors[match], dtype=np.float64)
+        cosine = float(q @ r / max(np.linalg.norm(q) * np.linalg.norm(r), 1e-12))
+        matches.append(figures.SegmentMatch(i, match - reference_rows.start, cosine))
+    return matches
+
+
+def draw_segment_matches(
+    inputs: dict[str, str], data_root: str, method: str, settings: dict, out: str
+) -> None:
+    """SegVLAD explanations: per sampled query, its segments beside its top-1 reference
+    with each matched segment in the colour of the query segment that retrieved it.
+
+    ``inputs``: the ``dataset``, ``recall``, ``search``, ``descriptors`` and ``segments``
+    stores of the method.
+    """
+    from vprflow.stages.segments import MaskReader
+
+    dataset = Dataset(inputs["dataset"], data_root)
+    result = stores.open_store(inputs["recall"])
+    ranking = np.asarray(result["ranking"][...])
+    first = np.asarray(result["first_correct"][...])
+    group = stores.open_store(inputs["descriptors"])
+    offsets = np.asarray(group["descriptors_offsets"][...])
+    split = int(offsets[dataset.n_reference])
+    search = stores.open_store(inputs["search"])
+    masks = MaskReader(stores.open_store(inputs["segments"]))
+    truth = dataset.truth()
+    explanations = []
+    for q in sampled_queries(dataset, first, settings, settings["explained_queries"]):
+        image = dataset.n_reference + q
+        top1 = int(ranking[q, 0])
+        if top1 < 0:
+            log.warning("%s: query %s ranked no reference", method, dataset.names[image])
+            continue
+        rows = range(int(offsets[image]), int(offsets[image + 1]))
+        lists = slice(rows.start - split, rows.stop - split)
+        matches = segment_matches(
+            rows,
+            np.asarray(search["indices"][lists]),
+            range(int(offsets[top1]), int(offsets[top1 + 1])),
+            group["descriptors"],
+        )
+        n_matched = sum(m.reference_segment is not None for m in matches)
+        explanations.append(
+            figures.SegmentExplanation(
+                read_image(dataset.paths[image]),
+                masks(image),
+                read_image(dataset.paths[top1]),
+                masks(top1),
+                matches,
+                f"query {dataset.names[image]} -> {dataset.names[top1]}: {n_matched} of "
+                f"{len(matches)} query segments matched a segment of it",
+                bool(np.isin(top1, truth[q])),
+            )
+        )
+    if not explanations:
+        raise ValueError(f"{method}: no sampled query ranked any reference to explain")
+    title = f"{method}: which segments of the top-1 reference matched the query's"
+    figures.save_figure(figures.segment_match_figure(explanations, title), out)
+
+
+def draw_support_maps(
+    inputs: dict[str, str], data_root: str, method: str, settings: dict, out: str
+) -> None:
+    """SNSM: sampled queries and their ground-truth references (for RoadScene, a thermal
+    image and its RGB pair) beside their support maps, computed with the method's own
+    settings from the ``features`` store; ``inputs`` also has ``dataset``, ``recall``
+    and ``descriptors`` (whose attributes hold those settings)."""
+    from vprflow.snsm import snsm_descriptor, snsm_grid_shape
+    from vprflow.stages.features import FeatureReader
+
+    dataset = Dataset(inputs["dataset"], data_root)
+    first = np.asarray(stores.open_store(inputs["recall"])["first_correct"][...])
+    options = stores.open_store(inputs["descriptors"]).attrs["params"]["params"]
+    keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
+    snsm = {k: options[k] for k in keys}
+    read_features = FeatureReader(stores.open_store(inputs["features"]), block_bytes=0)
+    truth = dataset.truth()
+
+    def support(index: int) -> np.ndarray:
+        tokens = read_features(index)
+        shape = snsm_grid_shape(tokens.shape[0], tokens.shape[1], snsm["upscale"], snsm["window"])
+        return snsm_descriptor(tokens, **snsm).reshape(shape)
+
+    rows = []
+    for q in sampled_queries(dataset, first, settings, settings["explained_queries"]):
+        image, reference = dataset.n_reference + q, int(truth[q][0])
+        rows.append(
+            (
+                dataset.names[image],
+                read_image(dataset.paths[image]),
+                support(image),
+                dataset.names[reference],
+                read_image(dataset.paths[reference]),
+                support(reference),
+            )
+        )
+    title = f"{method}: support maps of sampled queries and their true references"
+    figures.save_figure(figures.support_map_figure(rows, title), out)
+
+
+# The figure rules by name (vprflow.plan.FIGURES says which stores each reads).
+FIGURE_FUNCTIONS = {
+    "retrievals": draw_retrievals,
+    "segment_matches": draw_segment_matches,
+    "support_maps": draw_support_maps,
+}
+
+
+def draw_figure(
+    figure: str, inputs: dict[str, str], data_root: str, method: str, settings: dict, out: str
+) -> None:
+    """Draw one method's ``figure`` (a key of :data:`FIGURE_FUNCTIONS`)."""
+    FIGURE_FUNCTIONS[figure](inputs, data_root, method, settings, out)

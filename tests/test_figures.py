@@ -1,0 +1,152 @@
+"""The report's figure functions on small arrays: frame colours, segment colours that
+match between a query and its reference, recall curves against a direct count."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from vprflow import figures
+from vprflow.segvlad import _source_index
+from vprflow.stages.figures import segment_matches
+
+
+def test_frames_are_green_for_correct_red_for_wrong_and_leave_the_inside():
+    image = np.full((20, 30, 3), 0.5, np.float32)
+    for correct, colour in ((True, figures.CORRECT), (False, figures.WRONG)):
+        out = figures.framed(image, figures.frame_colour(correct), 3)
+        border = np.ones((20, 30), bool)
+        border[3:-3, 3:-3] = False
+        expected = np.broadcast_to(np.float32(colour), (border.sum(), 3))
+        np.testing.assert_array_equal(out[border], expected)  # stored as float32
+        np.testing.assert_array_equal(out[~border], image[~border])
+    assert figures.frame_colour(None) == figures.NEUTRAL
+    # Green is green and red is red: the dominant channel.
+    assert np.argmax(figures.CORRECT) == 1 and np.argmax(figures.WRONG) == 0
+    np.testing.assert_array_equal(figures.framed(image, figures.WRONG, 0), image)
+
+
+def test_distinct_colours_are_far_apart():
+    colours = figures.distinct_colours(40)
+    assert colours.shape == (40, 3) and colours.min() >= 0 and colours.max() <= 1
+    gaps = np.linalg.norm(colours[:, None] - colours[None], axis=2)[np.triu_indices(40, 1)]
+    # Consecutive segments differ clearly; no two of the first 12 are near-identical.
+    assert np.linalg.norm(np.diff(colours, axis=0), axis=1).min() > 0.3
+    first = np.linalg.norm(colours[:12, None] - colours[None, :12], axis=2)
+    assert first[np.triu_indices(12, 1)].min() > 0.1
+    assert gaps.min() > 0
+
+
+def test_upsampled_masks_use_segvlads_nearest_mapping():
+    rng = np.random.default_rng(0)
+    masks = rng.random((3, 5, 7)) > 0.5
+    out = figures.upsample_masks(masks, 12, 17)
+    rows, cols = _source_index(12, 5), _source_index(17, 7)
+    for s in range(3):
+        np.testing.assert_array_equal(out[s], masks[s][np.ix_(rows, cols)])
+
+
+def test_matched_reference_segments_take_their_query_segments_colour():
+    matches = [
+        figures.SegmentMatch(0, 2, 0.9),
+        figures.SegmentMatch(1, None, None),
+        figures.SegmentMatch(2, 0, 0.5),
+        figures.SegmentMatch(3, 2, 0.4),  # also segment 2, but less similar than query 0
+    ]
+    q_colours, r_colours, painted = figures.match_colours(matches, 4, 3)
+    np.testing.assert_array_equal(r_colours[2], q_colours[0])
+    np.testing.assert_array_equal(r_colours[0], q_colours[2])
+    assert sorted(painted) == [0, 2]
+    # Painted pixels carry the colour: segment 2 of the reference, blended at alpha.
+    reference = np.zeros((4, 6, 3), np.float32)
+    masks = np.zeros((3, 4, 6), bool)
+    masks[2, :2] = True
+    masks[0, 2:, :3] = True
+    out = figures.paint_segments(reference, masks, r_colours, alpha=1.0, painted=painted)
+    np.testing.assert_allclose(out[0, 0], q_colours[0], atol=1e-6)
+    np.testing.assert_allclose(out[3, 0], q_colours[2], atol=1e-6)
+    np.testing.assert_array_equal(out[3, 5], 0)  # in no painted segment: greyed black
+
+
+def test_segment_matches_take_the_nearest_segment_inside_the_reference_image():
+    rng = np.random.default_rng(1)
+    descriptors = rng.normal(size=(20, 6)).astype(np.float32)
+    # Query segments are rows 15..17; the top-1 reference owns rows 4..8.
+    indices = np.array([[12, 6, 5, -1], [1, 2, 3, 9], [8, 4, -1, -1]])
+    matches = segment_matches(range(15, 18), indices, range(4, 8), descriptors)
+    assert [m.reference_segment for m in matches] == [2, None, 0]  # local numbers
+    for match, row, ref in ((matches[0], 15, 6), (matches[2], 17, 4)):
+        q, r = descriptors[row].astype(np.float64), descriptors[ref].astype(np.float64)
+        expected = q @ r / (np.linalg.norm(q) * np.linalg.norm(r))
+        assert match.similarity == pytest.approx(expected, abs=1e-12)
+
+
+def test_recall_curve_counts_first_correct_ranks_of_evaluated_queries():
+    rng = np.random.default_rng(2)
+    first = rng.integers(-1, 30, size=200)
+    evaluated = rng.random(200) > 0.2
+    curve = figures.recall_curve(first, evaluated, 25)
+    for n in (1, 5, 13, 25):
+        direct = np.mean([0 <= f < n for f, e in zip(first, evaluated, strict=True) if e])
+        assert curve[n - 1] == pytest.approx(direct, abs=1e-12)
+    assert np.all(np.diff(curve) >= 0)
+    assert figures.recall_curve(first, np.zeros(200, bool), 5).tolist() == [0.0] * 5
+
+
+def test_sampled_queries_are_deterministic_sorted_and_from_the_candidates():
+    candidates = np.arange(3, 100, 2)
+    a = figures.sample_queries(candidates, 7, seed=4)
+    assert np.array_equal(a, figures.sample_queries(candidates, 7, seed=4))
+    assert np.all(np.diff(a) > 0) and set(a) <= set(candidates)
+    assert not np.array_equal(a, figures.sample_queries(candidates, 7, seed=5))
+    np.testing.assert_array_equal(figures.sample_queries(candidates[:3], 7, 0), candidates[:3])
+
+
+def test_figures_are_written_whole_as_png(tmp_path):
+    rows = [
+        figures.RetrievalRow(
+            np.zeros((30, 40, 3), np.float32),
+            "q0",
+            [np.ones((30, 40, 3), np.float32)] * 2,
+            ["r0", "r1"],
+            [True, False],
+        )
+    ]
+    out = tmp_path / "deep" / "montage.png"
+    figures.save_figure(figures.retrieval_figure(rows, "test", height=24), out)
+    with Image.open(out) as image:
+        assert image.format == "PNG" and image.size[0] > 100
+    assert [p.name for p in out.parent.iterdir()] == ["montage.png"]  # no temporary left
+    curves = {"a": np.linspace(0.2, 1, 10), "b": np.linspace(0.1, 0.9, 10)}
+    figures.save_figure(figures.recall_curve_figure(curves, "t", [1, 5, 10]), tmp_path / "c.png")
+    assert (tmp_path / "c.png").stat().st_size > 1000
+
+
+def test_recall_table_page_shows_each_method_its_recall_and_marks_the_best():
+    rows = [
+        {"dataset": "d", "method": "a<b", "aggregator": "x", "recall@1": "0.500000",
+         "recall@5": "0.900000", "n_queries": "10", "ground_truth": "pairs"},
+        {"dataset": "d", "method": "c", "aggregator": "y", "recall@1": "0.700000",
+         "recall@5": "0.800000", "n_queries": "10", "ground_truth": "pairs"},
+    ]  # fmt: skip
+    page = figures.recall_table_html(rows, "d: Recall@N", ["counted: 10 queries"])
+    assert page.count("<tr>") == 3  # header and one row per method
+    assert "<td>a&lt;b</td>" in page  # names are escaped
+    assert "<b>0.700</b>" in page and "<b>0.900</b>" in page
+    assert "<b>0.500</b>" not in page and "<td>0.800</td>" in page
+    assert "<th>n_queries</th>" in page and "counted: 10 queries" in page
+    assert "<th>ground_truth</th>" not in page  # one rule per dataset: said in the notes
+
+
+def test_a_16_bit_grayscale_image_keeps_its_range_in_a_thumbnail(tmp_path):
+    from vprflow.images import read_image
+
+    ramp = np.tile(np.linspace(0, 65535, 64).astype(np.uint16), (48, 1))
+    path = tmp_path / "thermal16.png"
+    Image.fromarray(ramp).save(path)
+    thumb = figures.thumbnail(read_image(path), 24)
+    assert thumb.shape == (24, 32, 3)
+    # Read as 16-bit (not clipped to 8-bit white): dark on the left, bright on the right.
+    assert thumb[:, 0].max() < 0.05 and thumb[:, -1].min() > 0.95
+    assert np.all(np.diff(thumb[12, :, 0]) >= -1e-6)

@@ -1,0 +1,15 @@
+from vprflow.runner import run_stage
+from vprflow.stages.figures import draw_figure
+
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+run_stage(
+    sm.log[0],
+    lambda: draw_figure(
+        sm.rule,
+        dict(sm.input.items()),
+        sm.params.data_root,
+        sm.wildcards.method,
+        sm.params.settings,
+        sm.output[0],
+    ),
+)
