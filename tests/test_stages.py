@@ -21,7 +21,7 @@ from vprflow.stages.features import compute_features, read_features
 from vprflow.stages.gather import gather
 from vprflow.stages.pca import fit_pca_stage, read_pca
 from vprflow.stages.recall import evaluate
-from vprflow.stages.report import write_report
+from vprflow.stages.report import write_predictions, write_report
 from vprflow.stages.search import merge_search, read_search, search_shard
 from vprflow.stages.segments import compute_segments, read_masks
 from vprflow.stages.vocabulary import fit_vocabulary, read_centres
@@ -206,7 +206,8 @@ def test_report_writes_one_row_per_method_and_every_prediction(pipeline, tmp_pat
     runs = [{"method": r.method, "params": r.row_params} for r in plan.runs["toy"]]
     csv_out, predictions_out = tmp_path / "recall.csv", tmp_path / "predictions.csv"
     dataset = stage_path(pipeline, "dataset")
-    write_report("toy", dataset, runs, recalls, str(csv_out), str(predictions_out))
+    write_report("toy", runs, recalls, str(csv_out))
+    write_predictions(dataset, runs, recalls, str(predictions_out))
     with open(csv_out) as f:
         rows = list(csv.DictReader(f))
     assert [r["method"] for r in rows] == METHODS
@@ -218,7 +219,7 @@ def test_report_writes_one_row_per_method_and_every_prediction(pipeline, tmp_pat
     assert len(predictions) == len(METHODS) * N_PLACES
     # Same inputs, same bytes.
     again = tmp_path / "again.csv"
-    write_report("toy", dataset, runs, recalls, str(again), str(tmp_path / "p2.csv"))
+    write_report("toy", runs, recalls, str(again))
     assert again.read_bytes() == csv_out.read_bytes()
 
 

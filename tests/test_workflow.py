@@ -53,15 +53,20 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     assert [r["method"] for r in rows] == METHODS
     header = list(rows[0])
     assert header[:2] == ["dataset", "method"]
-    assert header[-8:] == [
+    assert header[-13:] == [
         "descriptor_dim",
         "ground_truth",
+        "denominator",
         "n_queries",
         "n_short_rankings",
         "recall@1",
         "recall@5",
         "recall@10",
         "recall@20",
+        "map@1",
+        "map@5",
+        "map@10",
+        "map@20",
     ]
     for row in rows:
         assert row["dataset"] == "toy"
@@ -73,6 +78,10 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
         recalls = [float(row[f"recall@{n}"]) for n in (1, 5, 10, 20)]
         assert all(0.0 <= r <= 1.0 for r in recalls)
         assert recalls == sorted(recalls)
+        assert row["denominator"] == "with_positives"
+        # mAP@1 is Recall@1 (the top reference is right or not); mAP@N <= Recall@N.
+        assert float(row["map@1"]) == float(row["recall@1"])
+        assert all(float(row[f"map@{n}"]) <= float(row[f"recall@{n}"]) for n in (5, 10, 20))
     by_method = {r["method"]: r for r in rows}
     assert by_method["segvlad"]["segvlad.order"] == "3"
     assert by_method["segvlad_o0"]["segvlad.order"] == "0"
@@ -92,6 +101,8 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     predictions = read_rows(workdir / "results" / "predictions_toy.csv")
     assert len(predictions) == 10 * len(METHODS)
     assert len(predictions[0]["top"].split()) == 10
+    assert len(predictions[0]["top_scores"].split()) == 10
+    assert predictions[0]["top_images"].split()[0].startswith("ref/")
 
 
 def test_every_rule_wrote_a_log(toy_run):
@@ -209,6 +220,57 @@ def test_figures_are_drawn_and_a_figure_setting_reruns_only_figures(toy_run):
     outputs = scheduled_outputs(workdir, write_config(workdir, changed, "fig.yaml"), "all")
     assert outputs and all(o.startswith("results/figures/toy/") for o in outputs), outputs
     assert scheduled_outputs(workdir, original, "all") == []
+
+
+def test_export_writes_a_methods_descriptors_to_one_npz(toy_run):
+    workdir, config = toy_run
+    path = write_config(workdir, config, "original.yaml")
+    targets = [f"results/export/toy/{m}.npz" for m in ("anyloc_vlad", "segvlad")]
+    snakemake(workdir, path, *targets)
+    index = read_rows_tsv(workdir / "results" / "cache" / "index.tsv")
+    for method, target in zip(("anyloc_vlad", "segvlad"), targets, strict=True):
+        store = next(
+            r["store"]
+            for r in index
+            if r["stage"] == "descriptors" and method in r["methods"].split(",")
+        )
+        group = zarr.open_group(str(workdir / store), mode="r")
+        with np.load(workdir / target, allow_pickle=False) as exported:
+            np.testing.assert_array_equal(exported["descriptors"], group["descriptors"][...])
+            assert len(exported["names"]) == len(exported["is_query"])
+            assert exported["names"][0] == "ref/0000.png" and exported["is_query"][-1]
+            assert str(exported["kind"]) == group.attrs["kind"]
+            if method == "segvlad":
+                np.testing.assert_array_equal(
+                    exported["offsets"], group["descriptors_offsets"][...]
+                )
+    result = snakemake(workdir, path, "results/export/toy/nosuch.npz", check=False)
+    assert result.returncode != 0 and "no method 'nosuch' on dataset 'toy'" in result.stderr
+
+
+def read_rows_tsv(path: Path) -> list[dict]:
+    with open(path) as f:
+        return list(csv.DictReader(f, delimiter="\t"))
+
+
+def test_a_dataset_without_ground_truth_gets_predictions_and_figures_not_a_table(tmp_path):
+    make_dataset(tmp_path / "data" / "toy", n_places=6)
+    config = toy_config(
+        tmp_path / "data", ground_truth={"kind": "none"}, methods=["anyloc_vlad", "segvlad"]
+    )
+    path = write_config(tmp_path, config)
+    snakemake(tmp_path, path)  # the default target: predictions and figures
+    rows = read_rows(tmp_path / "results" / "predictions_toy.csv")
+    assert len(rows) == 2 * 6
+    assert all(r["positives"] == "" and r["first_correct_rank"] == "" for r in rows)
+    assert all(len(r["top_scores"].split()) == len(r["top"].split()) > 0 for r in rows)
+    assert {r["score_kind"] for r in rows} == {"squared_l2", "votes"}
+    for figure in ("retrievals/anyloc_vlad", "retrievals/segvlad", "segment_matches/segvlad"):
+        assert (tmp_path / "results" / "figures" / "toy" / f"{figure}.png").exists()
+    assert not (tmp_path / "results" / "recall_toy.csv").exists()
+    result = snakemake(tmp_path, path, "results/recall_toy.csv", check=False)
+    assert result.returncode != 0
+    assert "has ground_truth kind 'none': there is no recall to tabulate" in result.stderr
 
 
 def test_same_inputs_give_a_byte_identical_csv_and_sharding_changes_nothing(toy_run, tmp_path):

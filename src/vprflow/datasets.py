@@ -2,15 +2,22 @@
 
 A dataset is a reference folder and a query folder under ``<data_root>/<path>``
 (VPR-Bench layout: ``ref/`` and ``query/``; paired RGB-thermal layout: ``vi/`` and
-``ir/`` with matching file names). Ground truth is a list, per query, of the
-reference indices that count as correct. Four kinds are supported:
+``ir/`` with matching file names), searched recursively unless ``recursive: false``;
+either may instead be a ``.txt`` file listing image paths relative to the dataset
+folder, one per line, in the order given. Ground truth is a list, per query, of the
+reference indices that count as correct. The kinds:
 
 - ``vprbench``: a VPR-Bench ``ground_truth_new.npy`` object array of
   ``[query_index, [ref indices]]`` rows, read without executing arbitrary pickles;
 - ``frame_window``: query ``i`` matches references ``j`` with ``|i - j| <= radius``;
 - ``utm``: references within ``radius`` metres, UTM easting and northing taken from
   ``@easting@northing@`` in the file names (Pitts30k, SF-XL, MSLS convention);
-- ``pairs``: query ``i`` matches reference ``i`` (aligned RGB-thermal pairs).
+- ``pairs``: query ``i`` matches reference ``i`` (aligned RGB-thermal pairs);
+- ``coordinates``: references within ``radius_m`` metres of each query, positions
+  from a CSV file (``lat``/``lon``: great-circle distance; ``easting``/``northing``:
+  Euclidean) or from the images' EXIF GPS tags (``source: exif``), optionally also
+  within ``max_heading_diff`` degrees of the query's ``heading`` (as MSLS);
+- ``none``: no ground truth; the workflow ranks and draws, but computes no recall.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vprflow.images import list_images
+from vprflow.images import IMAGE_SUFFIXES, ImageScan, scan_images
 
 
 class DatasetError(ValueError):
@@ -30,10 +37,12 @@ class DatasetError(ValueError):
 
 @dataclass(frozen=True)
 class DatasetFiles:
-    """Image paths of one dataset, each list in natural sort order."""
+    """Image paths of one dataset (folders: natural order of relative paths; list
+    files: their order), and per role how many entries were skipped (hidden, other)."""
 
     reference: list[Path]
     query: list[Path]
+    skipped: dict[str, tuple[int, int]] | None = None
 
 
 def dataset_folder(data_root: str | Path, spec: dict) -> Path:
@@ -54,19 +63,51 @@ def list_dataset(data_root: str | Path, name: str, spec: dict) -> DatasetFiles:
             f"(with '{spec['reference']}/' and '{spec['query']}/' inside) or set "
             f"data_root.{hint}"
         )
-    lists = []
+    scans: dict[str, ImageScan] = {}
     for role in ("reference", "query"):
-        folder = root / spec[role]
-        if not folder.is_dir():
-            raise DatasetError(f"dataset '{name}': {role} folder {folder} does not exist.{hint}")
-        images = list_images(folder)
-        if not images:
-            raise DatasetError(f"dataset '{name}': {role} folder {folder} contains no images")
-        lists.append(images)
-    files = DatasetFiles(reference=lists[0], query=lists[1])
+        entry = root / spec[role]
+        if entry.suffix.lower() == ".txt":
+            scans[role] = read_image_list(entry, root, f"dataset '{name}': {role} list")
+            continue
+        if not entry.is_dir():
+            raise DatasetError(f"dataset '{name}': {role} folder {entry} does not exist.{hint}")
+        scans[role] = scan_images(entry, spec.get("recursive", True))
+        if not scans[role].paths:
+            raise DatasetError(f"dataset '{name}': {role} folder {entry} contains no images")
+    files = DatasetFiles(
+        reference=scans["reference"].paths,
+        query=scans["query"].paths,
+        skipped={r: (s.skipped_hidden, s.skipped_other) for r, s in scans.items()},
+    )
     if spec.get("paired"):
         check_pairs(name, files)
     return files
+
+
+def read_image_list(list_file: Path, root: Path, what: str) -> ImageScan:
+    """Images named in ``list_file``, one path per line relative to ``root`` (blank
+    lines and ``#`` comments ignored), in the file's order. Errors name the line."""
+    if not list_file.is_file():
+        raise DatasetError(f"{what}: image list {list_file} does not exist")
+    paths: list[Path] = []
+    seen: dict[str, int] = {}
+    for number, line in enumerate(list_file.read_text().splitlines(), start=1):
+        name = line.strip()
+        if not name or name.startswith("#"):
+            continue
+        where = f"{what}: {list_file} line {number}"
+        path = root / name
+        if path.suffix.lower() not in IMAGE_SUFFIXES:
+            raise DatasetError(f"{where}: {name!r} is not an image file name")
+        if name in seen:
+            raise DatasetError(f"{where}: {name!r} is listed again (first on line {seen[name]})")
+        if not path.is_file():
+            raise DatasetError(f"{where}: image {path} does not exist")
+        seen[name] = number
+        paths.append(path)
+    if not paths:
+        raise DatasetError(f"{what}: image list {list_file} names no images")
+    return ImageScan(paths)
 
 
 def check_pairs(name: str, files: DatasetFiles) -> None:
@@ -223,10 +264,176 @@ def utm_ground_truth(
     ]
 
 
+EARTH_RADIUS_M = 6_371_008.8  # mean Earth radius (IUGG), for great-circle distances
+
+
+def haversine_m(lat1, lon1, lat2, lon2) -> np.ndarray:
+    """Great-circle distance in metres between points given in degrees (broadcast)."""
+    phi1, phi2 = np.radians(lat1), np.radians(lat2)
+    dphi, dlam = phi2 - phi1, np.radians(np.asarray(lon2) - np.asarray(lon1))
+    a = np.sin(dphi / 2) ** 2 + np.cos(phi1) * np.cos(phi2) * np.sin(dlam / 2) ** 2
+    return 2 * EARTH_RADIUS_M * np.arcsin(np.sqrt(np.clip(a, 0.0, 1.0)))
+
+
+def heading_difference(a, b) -> np.ndarray:
+    """Smallest angle in degrees between headings ``a`` and ``b`` (broadcast), 0..180."""
+    return np.abs((np.asarray(b) - np.asarray(a) + 180.0) % 360.0 - 180.0)
+
+
+@dataclass(frozen=True)
+class Positions:
+    """Per image ``[n]`` float64: ``x, y`` (lat/lon in degrees when ``geographic``,
+    else easting/northing in metres) and ``heading`` (degrees, or None)."""
+
+    x: np.ndarray
+    y: np.ndarray
+    heading: np.ndarray | None
+    geographic: bool
+
+
+def read_positions(csv_path: Path, names: list[str]) -> Positions:
+    """Positions of ``names`` (image paths relative to the dataset folder) from a CSV
+    with an ``image`` column and ``lat``/``lon`` or ``easting``/``northing`` columns
+    (and optionally ``heading``). Errors name the file and the line at fault."""
+    import csv
+
+    if not csv_path.is_file():
+        raise DatasetError(f"coordinates file {csv_path} does not exist")
+    with open(csv_path, newline="") as f:
+        reader = csv.DictReader(f)
+        columns = reader.fieldnames or []
+        if {"lat", "lon"} <= set(columns):
+            keys, geographic = ("lat", "lon"), True
+        elif {"easting", "northing"} <= set(columns):
+            keys, geographic = ("easting", "northing"), False
+        else:
+            keys, geographic = (), False
+        if "image" not in columns or not keys:
+            raise DatasetError(
+                f"{csv_path}: needs an 'image' column and 'lat'/'lon' or "
+                f"'easting'/'northing' columns; found {columns}"
+            )
+        with_heading = "heading" in columns
+        rows: dict[str, tuple[int, tuple[float, ...]]] = {}
+        for line, row in enumerate(reader, start=2):
+            image = (row.get("image") or "").strip()
+            if image in rows:
+                raise DatasetError(
+                    f"{csv_path} line {line}: image {image!r} is listed again "
+                    f"(first on line {rows[image][0]})"
+                )
+            wanted = (*keys, "heading") if with_heading else keys
+            try:
+                values = tuple(float(row[k]) for k in wanted)
+            except (TypeError, ValueError):
+                bad = {k: row.get(k) for k in wanted}
+                raise DatasetError(
+                    f"{csv_path} line {line}: non-numeric coordinates for {image!r}: {bad}"
+                ) from None
+            if not np.all(np.isfinite(values)):
+                raise DatasetError(f"{csv_path} line {line}: coordinates of {image!r} not finite")
+            if geographic and not (-90 <= values[0] <= 90 and -180 <= values[1] <= 180):
+                raise DatasetError(
+                    f"{csv_path} line {line}: lat {values[0]} / lon {values[1]} of {image!r} "
+                    "are outside -90..90 / -180..180"
+                )
+            rows[image] = (line, values)
+    unknown = [(line, image) for image, (line, _) in rows.items() if image not in set(names)]
+    if unknown:
+        listing = ", ".join(f"line {line}: {image!r}" for line, image in unknown[:5])
+        raise DatasetError(
+            f"{csv_path}: {len(unknown)} row(s) name images that are not in the dataset "
+            f"({listing}); names are paths relative to the dataset folder, e.g. {names[0]!r}"
+        )
+    missing = [name for name in names if name not in rows]
+    if missing:
+        raise DatasetError(
+            f"{csv_path}: {len(missing)} image(s) of the dataset have no row, "
+            f"e.g. {', '.join(missing[:5])}"
+        )
+    table = np.array([rows[name][1] for name in names], dtype=np.float64)
+    heading = table[:, 2] if with_heading else None
+    return Positions(table[:, 0], table[:, 1], heading, geographic)
+
+
+def exif_lat_lon(path: Path) -> tuple[float, float]:
+    """Latitude and longitude in degrees from an image's EXIF GPS tags."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            gps = image.getexif().get_ifd(0x8825)
+    except OSError as error:
+        raise DatasetError(f"{path}: cannot read EXIF: {error}") from error
+
+    def degrees(value, ref, negative: str) -> float:
+        d, m, s = (float(v) for v in value)
+        return (-1 if str(ref).upper() == negative else 1) * (d + m / 60 + s / 3600)
+
+    try:
+        return degrees(gps[2], gps[1], "S"), degrees(gps[4], gps[3], "W")
+    except (KeyError, TypeError, ValueError, ZeroDivisionError):
+        raise DatasetError(f"{path}: no EXIF GPS latitude/longitude") from None
+
+
+def coordinates_ground_truth(
+    reference: Positions, query: Positions, radius_m: float, max_heading_diff: float | None
+) -> list[np.ndarray]:
+    """References within ``radius_m`` metres of each query (great-circle for lat/lon,
+    Euclidean for easting/northing) and, when ``max_heading_diff`` is set, within that
+    many degrees of its heading."""
+    truth = []
+    block = 1024  # queries per distance block: memory ~ block x n_ref float64
+    for start in range(0, len(query.x), block):
+        rows = slice(start, start + block)
+        if query.geographic:
+            distance = haversine_m(
+                query.x[rows, None], query.y[rows, None], reference.x[None], reference.y[None]
+            )
+        else:
+            distance = np.hypot(
+                query.x[rows, None] - reference.x[None], query.y[rows, None] - reference.y[None]
+            )
+        close = distance <= radius_m
+        if max_heading_diff is not None:
+            close &= (
+                heading_difference(query.heading[rows, None], reference.heading[None])
+                <= max_heading_diff
+            )
+        truth += [np.flatnonzero(row).astype(np.int64) for row in close]
+    return truth
+
+
+def _positions(files: DatasetFiles, spec: dict, folder: Path) -> tuple[Positions, Positions]:
+    """Reference and query positions of a ``coordinates`` ground truth."""
+    if spec.get("source", "file") == "exif":
+        parts = []
+        for paths in (files.reference, files.query):
+            table = np.array([exif_lat_lon(p) for p in paths], dtype=np.float64)
+            parts.append(Positions(table[:, 0], table[:, 1], None, True))
+        return parts[0], parts[1]
+    names = [p.relative_to(folder).as_posix() for p in files.reference + files.query]
+    both = read_positions(folder / spec["file"], names)
+    if spec.get("max_heading_diff") is not None and both.heading is None:
+        raise DatasetError(
+            f"{folder / spec['file']}: ground_truth.max_heading_diff is set but the file "
+            "has no 'heading' column"
+        )
+    n = len(files.reference)
+
+    def part(rows: slice) -> Positions:
+        heading = None if both.heading is None else both.heading[rows]
+        return Positions(both.x[rows], both.y[rows], heading, both.geographic)
+
+    return part(slice(0, n)), part(slice(n, None))
+
+
 def ground_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
     """Dispatch on ``spec['kind']``; see the module docstring for the kinds."""
     n_query, n_ref = len(files.query), len(files.reference)
     kind = spec["kind"]
+    if kind == "none":
+        return [np.zeros(0, dtype=np.int64) for _ in range(n_query)]
     if kind == "vprbench":
         truth = vprbench_ground_truth(
             folder / spec["file"], n_query, n_ref, spec.get("drop_out_of_range", False)
@@ -237,13 +444,19 @@ def ground_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarr
         truth = utm_ground_truth(files.reference, files.query, float(spec.get("radius", 25.0)))
     elif kind == "pairs":
         truth = pairs_ground_truth(n_query, n_ref)
+    elif kind == "coordinates":
+        reference, query = _positions(files, spec, folder)
+        truth = coordinates_ground_truth(
+            reference, query, float(spec["radius_m"]), spec.get("max_heading_diff")
+        )
     else:
         raise DatasetError(f"unknown ground-truth kind {kind!r}")
     if not any(len(t) for t in truth):
-        source = folder / spec["file"] if kind == "vprbench" else f"{folder} ({kind})"
+        source = folder / spec["file"] if spec.get("file") else f"{folder} ({kind})"
         raise DatasetError(
             f"ground truth {ground_truth_rule(spec)} from {source}: no query has a positive "
-            f"among the {n_ref} references, so recall is undefined; check the file or rule"
+            f"among the {n_ref} references, so recall is undefined; check the file or rule "
+            "(or use ground_truth: {kind: none} to rank without recall)"
         )
     return truth
 
@@ -257,11 +470,20 @@ def ground_truth_rule(spec: dict) -> str:
         return f"frame_window:+-{spec['radius']}"
     if kind == "utm":
         return f"utm:{spec.get('radius', 25.0)}m"
+    if kind == "coordinates":
+        source = "exif" if spec.get("source", "file") == "exif" else spec["file"]
+        rule = f"coordinates:{source}:{spec['radius_m']}m"
+        if spec.get("max_heading_diff") is not None:
+            rule += f",heading<={spec['max_heading_diff']}deg"
+        return rule
     return kind
 
 
 def ground_truth_files(data_root: str | Path, spec: dict) -> list[Path]:
     """Files the ground truth is read from (inputs of the dataset stage)."""
-    if spec["ground_truth"]["kind"] == "vprbench":
-        return [dataset_folder(data_root, spec) / spec["ground_truth"]["file"]]
+    truth = spec["ground_truth"]
+    if truth["kind"] == "vprbench" or (
+        truth["kind"] == "coordinates" and truth.get("source", "file") == "file"
+    ):
+        return [dataset_folder(data_root, spec) / truth["file"]]
     return []

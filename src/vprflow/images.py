@@ -22,6 +22,7 @@ alpha channels are dropped.
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -148,15 +149,40 @@ def _resize_antialias(image: np.ndarray, width: int, height: int) -> np.ndarray:
     return np.stack(channels, axis=2)
 
 
-def list_images(folder: str | Path) -> list[Path]:
-    """Image files directly inside ``folder``, natural order (``2.jpg`` before ``10.jpg``).
+@dataclass(frozen=True)
+class ImageScan:
+    """Images found under a folder, natural order of their relative paths, and how
+    many entries were passed over (hidden ones, and files that are not images)."""
+
+    paths: list[Path]
+    skipped_hidden: int = 0
+    skipped_other: int = 0
+
+
+def scan_images(folder: str | Path, recursive: bool = False) -> ImageScan:
+    """Image files inside ``folder`` (and its subfolders when ``recursive``), in natural
+    order of their path relative to ``folder`` (``2.jpg`` before ``10.jpg``, ``a/9.jpg``
+    before ``b/1.jpg``). Hidden files and folders (``.name``) are skipped, as are files
+    without an image suffix; both are counted.
 
     An entry with an image suffix that is not a readable file (a broken symbolic link,
     a folder named ``x.jpg``) is an error naming it: skipping it would shift every later
     index against the ground truth.
     """
     folder = Path(folder)
-    candidates = [p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES]
+    candidates, hidden, other = [], 0, 0
+    pending = [folder]
+    while pending:
+        current = pending.pop()
+        for entry in current.iterdir():
+            if entry.name.startswith("."):
+                hidden += 1
+            elif entry.suffix.lower() in IMAGE_SUFFIXES:
+                candidates.append(entry)
+            elif recursive and entry.is_dir():
+                pending.append(entry)
+            elif not entry.is_dir():
+                other += 1
     unreadable = [p for p in candidates if not p.is_file() or not os.access(p, os.R_OK)]
     if unreadable:
         names = ", ".join(str(p) for p in sorted(unreadable)[:5])
@@ -164,7 +190,13 @@ def list_images(folder: str | Path) -> list[Path]:
             f"{len(unreadable)} entr{'y' if len(unreadable) == 1 else 'ies'} in {folder} "
             f"look like images but are not readable files (broken link? folder?): {names}"
         )
-    return sorted(candidates, key=lambda p: natural_key(p.name))
+    ordered = sorted(candidates, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
+    return ImageScan(ordered, hidden, other)
+
+
+def list_images(folder: str | Path, recursive: bool = False) -> list[Path]:
+    """The image paths of :func:`scan_images`."""
+    return scan_images(folder, recursive).paths
 
 
 def natural_key(name: str) -> tuple:

@@ -30,6 +30,8 @@ PREDICTIONS_CSV = "results/predictions_{dataset}.csv"
 # Figures of the report (not stages: no key, a changed figure setting reruns only them).
 RECALL_PLOT = "results/plots/recall_{dataset}.png"
 RECALL_TABLE = "results/tables/recall_{dataset}.html"
+# A method's descriptors of a dataset in one NumPy file (the `export` rule).
+EXPORT = "results/export/{dataset}/{method}.npz"
 FIGURE = "results/figures/{dataset}/{figure}/{method}.png"
 # Each figure kind of one method and the stores it reads (the method's own, by name).
 FIGURES = {
@@ -46,7 +48,7 @@ FORMAT_VERSIONS = {
     "pca": 2,  # 2: exact solver by default, capped at the numerical rank
     "descriptors": 3,  # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm
     "search": 1,
-    "recall": 3,  # 2: published vote ranking; 3: segment lists from the search stage
+    "recall": 4,  # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP
 }
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
@@ -187,6 +189,7 @@ class Plan:
     stages: dict[str, dict[str, Stage]] = field(default_factory=dict)
     runs: dict[str, list[MethodRun]] = field(default_factory=dict)  # dataset -> rows
     dataset_keys: dict[str, str] = field(default_factory=dict)
+    has_ground_truth: dict[str, bool] = field(default_factory=dict)
 
     def add(
         self,
@@ -224,7 +227,8 @@ def stale_reports(plan: Plan, root: str = "") -> list[Path]:
     prefix of every path (a host workflow's module ``prefix``)."""
     stale = []
     for dataset, runs in plan.runs.items():
-        tables = [Path(root) / t.format(dataset=dataset) for t in (RECALL_CSV, PREDICTIONS_CSV)]
+        shown = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
+        tables = [Path(root) / t.format(dataset=dataset) for t in shown]
         for table in tables:
             if not table.exists():
                 continue
@@ -249,7 +253,9 @@ def withdraw_stale_reports(plan: Plan, root: str = "") -> list[Path]:
 def dataset_outputs(plan: Plan, dataset: str) -> list[str]:
     """Everything a dataset's report shows: its tables, its recall plot and every
     method's figures."""
-    tables = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
+    tables = (PREDICTIONS_CSV,)
+    if plan.has_ground_truth[dataset]:  # without it there is no recall to show
+        tables += (RECALL_CSV, RECALL_TABLE, RECALL_PLOT)
     outputs = [t.format(dataset=dataset) for t in tables]
     for run in plan.runs[dataset]:
         outputs += [
@@ -259,18 +265,24 @@ def dataset_outputs(plan: Plan, dataset: str) -> list[str]:
     return outputs
 
 
-def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[str, str]:
-    """The stores one method's figure reads, by name (see :data:`FIGURES`)."""
+def method_stores(plan: Plan, dataset: str, method: str) -> dict[str, str]:
+    """The stores of one method on one dataset by name: ``dataset``, ``features``,
+    ``descriptors``, ``recall`` and, as the method has them, ``segments``,
+    ``vocabulary``, ``pca``, ``search``."""
     runs = {run.method: run for run in plan.runs.get(dataset, [])}
-    if method not in runs or figure not in runs[method].figures:
-        raise PlanError(f"no figure {figure!r} of method {method!r} on dataset {dataset!r}")
+    if method not in runs:
+        raise PlanError(f"no method {method!r} on dataset {dataset!r}; its methods: {sorted(runs)}")
     recall = plan.get("recall", runs[method].recall_key)
     descriptors = plan.get(*recall.inputs["descriptors"])
-    stores = {
-        "recall": recall.path,
-        **recall.input_paths(),
-        **{k: v for k, v in descriptors.input_paths().items() if k != "pca"},
-    }
+    return {**descriptors.input_paths(), **recall.input_paths(), "recall": recall.path}
+
+
+def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[str, str]:
+    """The stores one method's figure reads, by name (see :data:`FIGURES`)."""
+    stores = method_stores(plan, dataset, method)
+    run = next(run for run in plan.runs[dataset] if run.method == method)
+    if figure not in run.figures:
+        raise PlanError(f"no figure {figure!r} of method {method!r} on dataset {dataset!r}")
     return {name: stores[name] for name in FIGURES[figure]}
 
 
@@ -397,7 +409,7 @@ def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str |
     image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
     ``rsync -a`` or ``tar`` (which restore an older mtime).
     """
-    from vprflow.datasets import DatasetError, ground_truth_files, list_dataset
+    from vprflow.datasets import DatasetError, dataset_folder, ground_truth_files, list_dataset
     from vprflow.images import ImageReadError
 
     try:
@@ -405,12 +417,15 @@ def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str |
     except (DatasetError, ImageReadError):
         return None
     digest = hashlib.sha256()
+    root = dataset_folder(data_root, spec)
     for role, paths in (("reference", files.reference), ("query", files.query)):
+        # Named relative to the role's folder (a list file's: the dataset folder), so a
+        # flat folder hashes its file names and a nested one its relative paths.
+        base = root / spec[role] if (root / spec[role]).is_dir() else root
         for path in paths:
             where = f"datasets.{name}.{role}"
-            digest.update(
-                f"{role}/{path.name}:{_memoised(path, memo, file_digest, where)}\n".encode()
-            )
+            label = path.relative_to(base).as_posix()
+            digest.update(f"{role}/{label}:{_memoised(path, memo, file_digest, where)}\n".encode())
     for path in ground_truth_files(data_root, spec):
         if path.exists():
             where = f"datasets.{name}.ground_truth.file"
@@ -458,6 +473,7 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
         }
         dataset_key = plan.add("dataset", dataset_params, {}, dataset_name)
         plan.dataset_keys[dataset_name] = dataset_key
+        plan.has_ground_truth[dataset_name] = dataset["ground_truth"]["kind"] != "none"
         rows = []
         for method_name in dataset["methods"]:
             method = resolve_method(config, method_name, dataset)
@@ -586,6 +602,7 @@ def _plan_method(
     recall_inputs = {"dataset": ds, "descriptors": descriptors}
     recall_params = {
         "recall_at": dataset["recall_at"],
+        "denominator": dataset["denominator"],
         "top_k": max(max(dataset["recall_at"]), 20),
     }
     if agg.output == "segments":

@@ -103,7 +103,25 @@ def vote_ranking(
     top: int,
     mode: str = "published",
 ) -> np.ndarray:
-    """Reference images per query image by voted score: ``[n_query, top]`` int64.
+    """Reference images per query image by voted score: ``[n_query, top]`` int64 (the
+    ranking of :func:`scored_vote_ranking`)."""
+    return scored_vote_ranking(
+        distances, indices, query_image_of_segment, ref_image_of_segment, n_query, n_ref, top, mode
+    )[0]
+
+
+def scored_vote_ranking(
+    distances: np.ndarray,
+    indices: np.ndarray,
+    query_image_of_segment: np.ndarray,
+    ref_image_of_segment: np.ndarray,
+    n_query: int,
+    n_ref: int,
+    top: int,
+    mode: str = "published",
+) -> tuple[np.ndarray, np.ndarray]:
+    """Reference images per query image by voted score, and their scores:
+    ``(ranking [n_query, top] int64, scores [n_query, top] float64)``.
 
     ``mode="published"`` (SegVLAD's ``max_seg_topk_wt_borda_Im``): only images that
     received at least one vote are ranked; equal scores keep the order in which the
@@ -113,7 +131,8 @@ def vote_ranking(
     rank counts as a miss). ``mode="all_images"``: every reference image is ranked,
     ties (unvoted images included, score 0) by increasing index.
 
-    Works on the sparse scores: sorts only voted pairs, never a full row.
+    Works on the sparse scores: sorts only voted pairs, never a full row. Scores of
+    unvoted images (``all_images``) and of padding (rank -1) are 0.
     """
     if mode not in VOTE_RANKINGS:
         raise ValueError(f"unknown vote ranking {mode!r}; expected one of {VOTE_RANKINGS}")
@@ -122,6 +141,7 @@ def vote_ranking(
     )
     top = min(top, n_ref)
     ranking = np.full((n_query, top), -1, dtype=np.int64)
+    scores = np.zeros((n_query, top))
     if mode == "published":
         order = np.lexsort((votes.first_seen, -votes.score, votes.query))
     else:  # zero scores tie with unvoted images: they are filled in by index below
@@ -134,6 +154,7 @@ def vote_ranking(
     place = np.arange(len(order)) - starts[query]
     kept = place < top
     ranking[query[kept], place[kept]] = ref[kept]
+    scores[query[kept], place[kept]] = votes.score[order][kept]
     if mode == "all_images":
         counts = np.bincount(query, minlength=n_query)
         for q in np.flatnonzero(counts < top):
@@ -141,7 +162,7 @@ def vote_ranking(
             # The first (top - counts) images by index that are not ranked yet.
             candidates = np.arange(min(n_ref, top + counts[q]))
             ranking[q, counts[q] :] = candidates[~np.isin(candidates, ranked)][: top - counts[q]]
-    return ranking
+    return ranking, scores
 
 
 def image_of_segment(offsets: np.ndarray) -> np.ndarray:

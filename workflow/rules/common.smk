@@ -5,6 +5,7 @@ from pathlib import Path
 from vprflow.config import validate_config
 from vprflow.datasets import list_dataset
 from vprflow.plan import (
+    EXPORT,
     FIGURE,
     PREDICTIONS_CSV,
     RECALL_CSV,
@@ -15,6 +16,7 @@ from vprflow.plan import (
     build_plan,
     dataset_outputs,
     figure_inputs,
+    method_stores,
     FINGERPRINTS,
     load_fingerprints,
     log_pattern,
@@ -138,13 +140,30 @@ def gather_params(wildcards):
     return planned(wildcards.stage, wildcards).params
 
 
-def report_inputs(wildcards):
+def prediction_inputs(wildcards):
     dataset_spec(wildcards.dataset)  # an unknown dataset fails here, by name
     return {
         "dataset": store_path("dataset", PLAN.dataset_keys[wildcards.dataset]),
         "recalls": [
             store_path("recall", run.recall_key) for run in PLAN.runs[wildcards.dataset]
         ],
+    }
+
+
+def report_inputs(wildcards):
+    """The recall stores of a dataset's table; a dataset without ground truth has no
+    table, and asking for one says so."""
+    if dataset_spec(wildcards.dataset)["ground_truth"]["kind"] == "none":
+        raise PlanError(
+            f"dataset {wildcards.dataset!r} has ground_truth kind 'none': there is no "
+            f"recall to tabulate. Its rankings are in "
+            f"{PREDICTIONS_CSV.format(dataset=wildcards.dataset)} (`snakemake` builds them "
+            "and its figures when the dataset is in `targets`)"
+        )
+    # The table brings the per-query predictions along (as it always has).
+    return {
+        **prediction_inputs(wildcards),
+        "predictions": PREDICTIONS_CSV.format(dataset=wildcards.dataset),
     }
 
 
@@ -169,3 +188,9 @@ def figure_stores(figure):
     return lambda wildcards: figure_inputs(
         PLAN, wildcards.dataset, wildcards.method, figure
     )
+
+
+def export_stores(wildcards):
+    """Input function: the dataset and descriptors stores of a method's export."""
+    stores = method_stores(PLAN, wildcards.dataset, wildcards.method)
+    return {name: stores[name] for name in ("dataset", "descriptors")}

@@ -23,7 +23,7 @@ rule report:
     input:
         unpack(report_inputs),
     output:
-        csv=report(
+        report(
             RECALL_CSV,
             caption="../report/recall_csv.rst",
             category="{dataset}",
@@ -33,7 +33,6 @@ rule report:
                 "method": "all",
             },
         ),
-        predictions=PREDICTIONS_CSV,
     log:
         "logs/report/{dataset}.log",
     conda:
@@ -44,9 +43,25 @@ rule report:
         "../scripts/report.py"
 
 
-# Writing two small CSV files is not worth a cluster job.
+rule predictions:
+    input:
+        unpack(prediction_inputs),
+    output:
+        PREDICTIONS_CSV,
+    log:
+        "logs/predictions/{dataset}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        runs=report_runs,
+    script:
+        "../scripts/predictions.py"
+
+
+# Writing small CSV files is not worth a cluster job.
 localrules:
     report,
+    predictions,
 
 
 # A failed run must not leave a results table that looks current (e.g. one method of

@@ -5,12 +5,7 @@ sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(
     sm.log[0],
     lambda: write_report(
-        sm.wildcards.dataset,
-        sm.input.dataset,
-        sm.params.runs,
-        list(sm.input.recalls),
-        sm.output.csv,
-        sm.output.predictions,
+        sm.wildcards.dataset, sm.params.runs, list(sm.input.recalls), sm.output[0]
     ),
     sm.threads,
 )

@@ -40,12 +40,24 @@ def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
         stores.write_array(
             group, "paths", np.array([p.relative_to(data_root).as_posix() for p in paths])
         )
-        stores.write_array(group, "names", np.array([f"{p.parent.name}/{p.name}" for p in paths]))
+        # Names relative to the dataset folder: "ref/0001.jpg", "query/2024/0001.jpg".
+        stores.write_array(
+            group, "names", np.array([p.relative_to(folder).as_posix() for p in paths])
+        )
         stores.write_array(group, "image_sizes", sizes)
         stores.write_array(
             group, "truth", np.concatenate(truth) if truth else np.zeros(0, np.int64)
         )
         stores.write_array(group, "truth_offsets", np.r_[0, np.cumsum(counts)].astype(np.int64))
+    for role, (hidden, other) in (files.skipped or {}).items():
+        if hidden or other:
+            log.warning(
+                "dataset %s: %s: skipped %d hidden and %d non-image entries",
+                name,
+                role,
+                hidden,
+                other,
+            )
     log.info(
         "dataset %s: %d reference, %d query images read from %s",
         name,

@@ -19,8 +19,15 @@ from vprflow.stages.dataset import Dataset
 log = logging.getLogger("vprflow")
 
 
-def _evaluated(dataset: Dataset) -> np.ndarray:
-    """Queries with at least one positive: those the results table counts."""
+def _has_truth(dataset: Dataset) -> bool:
+    return dataset.group.attrs["ground_truth_rule"] != "none"
+
+
+def _with_positives(dataset: Dataset) -> np.ndarray:
+    """Queries with at least one positive (every query when there is no ground truth:
+    then any query can be shown, none judged)."""
+    if not _has_truth(dataset):
+        return np.ones(dataset.n_query, dtype=bool)
     return np.array([len(t) > 0 for t in dataset.truth()], dtype=bool)
 
 
@@ -28,19 +35,20 @@ def plot_recall(
     dataset_name: str, dataset_path: str, methods: list[str], recall_paths: list[str], out: str
 ) -> None:
     """All methods' Recall@N for N = 1 .. the largest configured N, on one figure."""
+    from vprflow.recall import counted_queries
+
     dataset = Dataset(dataset_path)
-    evaluated = _evaluated(dataset)
-    curves, marks = {}, set()
+    curves, marks, denominators = {}, set(), set()
     for method, path in zip(methods, recall_paths, strict=True):
         result = stores.open_store(path)
+        counted = counted_queries(dataset.truth(), result.attrs["denominator"])
+        denominators.add((result.attrs["denominator"], int(counted.sum())))
         recall_at = sorted(int(n) for n in result.attrs["recall"])
         marks.update(recall_at)
         n_max = min(max(recall_at), dataset.n_reference)
-        curves[method] = figures.recall_curve(result["first_correct"][...], evaluated, n_max)
-    title = (
-        f"{dataset_name}: Recall@N over {int(evaluated.sum())} queries with a positive "
-        f"({dataset.group.attrs['ground_truth_rule']})"
-    )
+        curves[method] = figures.recall_curve(result["first_correct"][...], counted, n_max)
+    over = ", ".join(f"{n} queries ({name})" for name, n in sorted(denominators))
+    title = f"{dataset_name}: Recall@N over {over}, {dataset.group.attrs['ground_truth_rule']}"
     figures.save_figure(figures.recall_curve_figure(curves, title, sorted(marks)), out)
 
 
@@ -73,8 +81,8 @@ def sampled_queries(
 ) -> np.ndarray:
     """The queries a figure shows: ``count`` of those with a positive (only those wrong at
     rank 1 when ``settings["wrong_only"]``), chosen by ``settings["seed"]``."""
-    candidates = np.flatnonzero(_evaluated(dataset))
-    if settings["wrong_only"]:
+    candidates = np.flatnonzero(_with_positives(dataset))
+    if settings["wrong_only"] and _has_truth(dataset):
         candidates = candidates[np.asarray(first_correct)[candidates] != 0]
     return figures.sample_queries(candidates, count, settings["seed"])
 
@@ -88,7 +96,7 @@ def draw_retrievals(
     result = stores.open_store(inputs["recall"])
     ranking = np.asarray(result["ranking"][...])
     first = np.asarray(result["first_correct"][...])
-    truth = dataset.truth()
+    truth, judged = dataset.truth(), _has_truth(dataset)
     queries = sampled_queries(dataset, first, settings, settings["queries"])
     rows = []
     for q in queries:
@@ -99,7 +107,7 @@ def draw_retrievals(
                 query_name=dataset.names[dataset.n_reference + q],
                 references=[read_image(dataset.paths[r]) for r in top],
                 reference_names=[dataset.names[r] for r in top],
-                correct=[bool(np.isin(r, truth[q])) for r in top],
+                correct=[bool(np.isin(r, truth[q])) if judged else None for r in top],
             )
         )
     if not rows:
@@ -181,7 +189,7 @@ def draw_segment_matches(
                 matches,
                 f"query {dataset.names[image]} -> {dataset.names[top1]}: {n_matched} of "
                 f"{len(matches)} query segments matched a segment of it",
-                bool(np.isin(top1, truth[q])),
+                bool(np.isin(top1, truth[q])) if _has_truth(dataset) else None,
             )
         )
     if not explanations:
@@ -194,14 +202,17 @@ def draw_support_maps(
     inputs: dict[str, str], data_root: str, method: str, settings: dict, out: str
 ) -> None:
     """SNSM: sampled queries and their ground-truth references (for RoadScene, a thermal
-    image and its RGB pair) beside their support maps, computed with the method's own
-    settings from the ``features`` store; ``inputs`` also has ``dataset``, ``recall``
-    and ``descriptors`` (whose attributes hold those settings)."""
+    image and its RGB pair; without ground truth, their top-1 references) beside their
+    support maps, computed with the method's own settings from the ``features`` store;
+    ``inputs`` also has ``dataset``, ``recall`` and ``descriptors`` (whose attributes
+    hold those settings)."""
     from vprflow.snsm import snsm_descriptor, snsm_grid_shape
     from vprflow.stages.features import FeatureReader
 
     dataset = Dataset(inputs["dataset"], data_root)
-    first = np.asarray(stores.open_store(inputs["recall"])["first_correct"][...])
+    result = stores.open_store(inputs["recall"])
+    first = np.asarray(result["first_correct"][...])
+    top1 = np.asarray(result["ranking"][:, 0])
     options = stores.open_store(inputs["descriptors"]).attrs["params"]["params"]
     keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
     snsm = {k: options[k] for k in keys}
@@ -215,7 +226,8 @@ def draw_support_maps(
 
     rows = []
     for q in sampled_queries(dataset, first, settings, settings["explained_queries"]):
-        image, reference = dataset.n_reference + q, int(truth[q][0])
+        reference = int(truth[q][0]) if _has_truth(dataset) else int(top1[q])
+        image = dataset.n_reference + q
         rows.append(
             (
                 dataset.names[image],
@@ -226,7 +238,8 @@ def draw_support_maps(
                 support(reference),
             )
         )
-    title = f"{method}: support maps of sampled queries and their true references"
+    which = "true" if _has_truth(dataset) else "top-1"
+    title = f"{method}: support maps of sampled queries and their {which} references"
     figures.save_figure(figures.support_map_figure(rows, title), out)
 
 

@@ -1,4 +1,5 @@
-"""The ``recall`` rule: rank the references for every query and compute Recall@N."""
+"""The ``recall`` rule: rank the references for every query and compute Recall@N and
+mAP@N (none for a dataset without ground truth: ``ground_truth: {kind: none}``)."""
 
 from __future__ import annotations
 
@@ -28,8 +29,8 @@ def evaluate(
     same descriptors: its Recall@N is stored too (``recall_exact``), so the table can
     say what the approximation cost.
     """
-    from vprflow.recall import correct_at, recall_at
-    from vprflow.retrieval import global_ranking, image_of_segment, vote_ranking
+    from vprflow.recall import correct_at, counted_queries, map_at, recall_at
+    from vprflow.retrieval import image_of_segment, scored_vote_ranking, search
     from vprflow.stages.search import read_search
 
     spec = params["params"]
@@ -38,6 +39,8 @@ def evaluate(
     n_ref, n_query = dataset.n_reference, dataset.n_query
     top_k = min(spec["top_k"], n_ref)
     truth = dataset.truth()
+    has_truth = dataset.group.attrs["ground_truth_rule"] != "none"
+    denominator = spec["denominator"]
     recall_exact = None
     if group.attrs["kind"] == "segments":
         if search_path is None:
@@ -48,7 +51,7 @@ def evaluate(
 
         def voted(path: str) -> np.ndarray:
             distances, indices = read_search(path)
-            return vote_ranking(
+            return scored_vote_ranking(
                 distances,
                 indices,
                 owner[split:] - n_ref,
@@ -59,19 +62,29 @@ def evaluate(
                 spec["vote_ranking"],
             )
 
-        ranking = voted(search_path)
-        if exact_search_path is not None:
-            recall_exact = recall_at(voted(exact_search_path), truth, spec["recall_at"])
+        # Scores: votes (higher is better).
+        ranking, scores = voted(search_path)
+        if exact_search_path is not None and has_truth:
+            exact_ranking = voted(exact_search_path)[0]
+            recall_exact = recall_at(exact_ranking, truth, spec["recall_at"], denominator)
     else:
         vectors = np.asarray(group["descriptors"][...])
-        ranking = global_ranking(vectors[:n_ref], vectors[n_ref:], top_k)
+        # Scores: squared L2 distances (lower is better).
+        scores, ranking = search(vectors[:n_ref], vectors[n_ref:], top_k)
     # N beyond the number of references is kept: it equals Recall@n_ref.
-    recalls = recall_at(ranking, truth, spec["recall_at"])
-    evaluated = np.array([len(t) > 0 for t in truth], dtype=bool)
+    recalls, maps = {}, {}
+    evaluated = np.zeros(n_query, dtype=bool)
+    if has_truth:
+        recalls = recall_at(ranking, truth, spec["recall_at"], denominator)
+        maps = map_at(ranking, truth, spec["recall_at"], denominator)
+        evaluated = counted_queries(truth, denominator)
     ranked = (ranking >= 0).sum(axis=1)
     with stores.atomic_store(out, {"stage": "recall", "params": params}) as result:
         result.attrs.update(
             recall={str(n): v for n, v in recalls.items()},
+            map={str(n): v for n, v in maps.items()},
+            denominator=denominator,
+            score="votes" if group.attrs["kind"] == "segments" else "squared_l2",
             recall_exact=None
             if recall_exact is None
             else {str(n): v for n, v in recall_exact.items()},
@@ -83,5 +96,9 @@ def evaluate(
             ground_truth_rule=dataset.group.attrs["ground_truth_rule"],
         )
         stores.write_array(result, "ranking", ranking.astype(np.int64))
+        stores.write_array(result, "scores", np.asarray(scores, dtype=np.float64))
         stores.write_array(result, "first_correct", correct_at(ranking, truth))
-    log.info("recall: %s", recalls)
+    if has_truth:
+        log.info("recall: %s, mAP: %s (over %d queries)", recalls, maps, int(evaluated.sum()))
+    else:
+        log.info("no ground truth: ranked %d queries, no recall computed", n_query)

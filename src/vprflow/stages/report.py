@@ -1,7 +1,10 @@
-"""The ``report`` rule: a dataset's results table and per-query predictions."""
+"""The ``report`` and ``predictions`` rules: a dataset's results table and its
+per-query top references with scores."""
 
 from __future__ import annotations
 
+import csv
+import os
 from pathlib import Path
 
 import numpy as np
@@ -11,73 +14,91 @@ from vprflow.stages.dataset import Dataset
 
 
 def write_report(
-    dataset_name: str,
-    dataset_path: str,
-    runs: list[dict],
-    recall_paths: list[str],
-    csv_out: str,
-    predictions_out: str,
+    dataset_name: str, runs: list[dict], recall_paths: list[str], csv_out: str
 ) -> None:
-    """The results table (one row per method) and per-query top predictions.
-
-    ``runs[i]`` is ``{"method": name, "params": {flattened parameters}}`` for
-    ``recall_paths[i]``. Output is deterministic: fixed column order, no timestamps.
-    """
-    import csv
-
-    dataset = Dataset(dataset_path)
+    """The results table: one row per method (``runs[i]`` is ``{"method": name,
+    "params": {flattened parameters}}`` for ``recall_paths[i]``), with Recall@N and
+    mAP@N. Deterministic: fixed column order, no timestamps."""
     results = [stores.open_store(p) for p in recall_paths]
+    if any(r.attrs["ground_truth_rule"] == "none" for r in results):
+        raise ValueError(
+            f"dataset {dataset_name!r} has no ground truth (kind: none): there is no recall "
+            f"to tabulate; its rankings are in results/predictions_{dataset_name}.csv"
+        )
     recall_columns = sorted({int(n) for r in results for n in r.attrs["recall"]})
     param_columns = sorted({name for run in runs for name in run["params"]})
     header = ["dataset", "method", *param_columns, "descriptor_dim", "ground_truth"]
-    header += ["n_queries", "n_short_rankings"]
+    header += ["denominator", "n_queries", "n_short_rankings"]
     header += [f"recall@{n}" for n in recall_columns]
+    header += [f"map@{n}" for n in recall_columns]
     # Rows of an approximate segment search also show an exact search's recall.
     exact = [r.attrs.get("recall_exact") or {} for r in results]
     if any(exact):
         header += [f"exact_recall@{n}" for n in recall_columns]
-    Path(csv_out).parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(csv_out).with_suffix(".csv.tmp")
+    rows = []
+    for run, result, exact_recall in zip(runs, results, exact, strict=True):
+        attrs = result.attrs
+        rows.append(
+            [dataset_name, run["method"]]
+            + [_cell(run["params"].get(name, "")) for name in param_columns]
+            + [attrs["descriptor_dim"], attrs["ground_truth_rule"], attrs["denominator"]]
+            + [attrs["n_queries"], attrs["n_short_rankings"]]
+            + _metric_cells(attrs["recall"], recall_columns)
+            + _metric_cells(attrs["map"], recall_columns)
+            + (_metric_cells(exact_recall, recall_columns) if any(exact) else [])
+        )
+    _write_csv(csv_out, header, rows)
+
+
+def write_predictions(
+    dataset_path: str, runs: list[dict], recall_paths: list[str], predictions_out: str
+) -> None:
+    """Per method and query: its image, its positives (none without ground truth), the
+    rank of the first correct reference, and the top references with their scores
+    (squared L2 distance for global descriptors, lower is better; SegVLAD's votes,
+    higher is better: ``score_kind`` says which)."""
+    dataset = Dataset(dataset_path)
+    truth = dataset.truth()
+    header = ["method", "query", "query_image", "positives", "first_correct_rank"]
+    header += ["top", "top_images", "score_kind", "top_scores"]
+    rows = []
+    for run, path in zip(runs, recall_paths, strict=True):
+        result = stores.open_store(path)
+        ranking = np.asarray(result["ranking"][...])
+        scores = np.asarray(result["scores"][...])
+        first = np.asarray(result["first_correct"][...])
+        for q in range(dataset.n_query):
+            kept = ranking[q] >= 0
+            top = ranking[q][kept]
+            rows.append(
+                [
+                    run["method"],
+                    q,
+                    dataset.names[dataset.n_reference + q],
+                    " ".join(map(str, truth[q])),
+                    int(first[q]) + 1 if first[q] >= 0 else "",
+                    " ".join(map(str, top)),
+                    " ".join(dataset.names[r] for r in top),
+                    result.attrs["score"],
+                    " ".join(f"{v:.6g}" for v in scores[q][kept]),
+                ]
+            )
+    _write_csv(predictions_out, header, rows)
+
+
+def _write_csv(path: str, header: list[str], rows: list[list]) -> None:
+    """Write via a temporary file, so an interrupted job leaves no complete-looking table."""
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(path).with_name(f".{Path(path).name}.tmp")
     with open(tmp, "w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(header)
-        for run, result, exact_recall in zip(runs, results, exact, strict=True):
-            recall = result.attrs["recall"]
-            writer.writerow(
-                [dataset_name, run["method"]]
-                + [_cell(run["params"].get(name, "")) for name in param_columns]
-                + [result.attrs["descriptor_dim"], result.attrs["ground_truth_rule"]]
-                + [result.attrs["n_queries"], result.attrs["n_short_rankings"]]
-                + _recall_cells(recall, recall_columns)
-                + (_recall_cells(exact_recall, recall_columns) if any(exact) else [])
-            )
-    tmp.replace(csv_out)
-    tmp = Path(predictions_out).with_suffix(".csv.tmp")
-    truth = dataset.truth()
-    with open(tmp, "w", newline="") as f:
-        writer = csv.writer(f, lineterminator="\n")
-        writer.writerow(
-            ["method", "query", "query_image", "positives", "first_correct_rank", "top"]
-        )
-        for run, result in zip(runs, results, strict=True):
-            ranking = np.asarray(result["ranking"][...])
-            first = np.asarray(result["first_correct"][...])
-            for q in range(dataset.n_query):
-                writer.writerow(
-                    [
-                        run["method"],
-                        q,
-                        dataset.names[dataset.n_reference + q],
-                        " ".join(map(str, truth[q])),
-                        int(first[q]) + 1 if first[q] >= 0 else "",
-                        " ".join(map(str, ranking[q][ranking[q] >= 0])),
-                    ]
-                )
-    tmp.replace(predictions_out)
+        writer.writerows(rows)
+    os.replace(tmp, path)
 
 
-def _recall_cells(recall: dict, columns: list[int]) -> list[str]:
-    return [f"{recall[str(n)]:.6f}" if str(n) in recall else "" for n in columns]
+def _metric_cells(values: dict, columns: list[int]) -> list[str]:
+    return [f"{values[str(n)]:.6f}" if str(n) in values else "" for n in columns]
 
 
 def _cell(value) -> str:

@@ -1,0 +1,291 @@
+"""Your own places: coordinate and EXIF ground truth, no ground truth, nested folders and
+image lists, comparable metrics (denominator, mAP@N) and descriptor export."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from vprflow.datasets import (
+    EARTH_RADIUS_M,
+    DatasetError,
+    DatasetFiles,
+    Positions,
+    coordinates_ground_truth,
+    exif_lat_lon,
+    ground_truth,
+    ground_truth_rule,
+    haversine_m,
+    heading_difference,
+    list_dataset,
+    read_positions,
+)
+from vprflow.images import scan_images
+from vprflow.recall import average_precision_at, map_at, recall_at
+
+METRES_PER_DEGREE = math.pi * EARTH_RADIUS_M / 180  # along a meridian: 111,195.08 m
+
+
+# ------------------------------------------------------------------ distances
+
+
+def test_haversine_at_known_distances():
+    # A quarter meridian, a quarter equator, one degree of latitude, and antipodes.
+    assert haversine_m(0, 0, 90, 0) == pytest.approx(math.pi / 2 * EARTH_RADIUS_M, rel=1e-12)
+    assert haversine_m(0, 0, 0, 90) == pytest.approx(math.pi / 2 * EARTH_RADIUS_M, rel=1e-12)
+    assert haversine_m(45, 7, 46, 7) == pytest.approx(METRES_PER_DEGREE, rel=1e-12)
+    # Antipodes: arcsin near 1 amplifies rounding (the haversine form's weak spot, ~0.2 m
+    # of 20,000 km); VPR distances are metres, where the form is exact to ~1e-9 m.
+    assert haversine_m(10, 20, -10, -160) == pytest.approx(math.pi * EARTH_RADIUS_M, rel=1e-7)
+    # 25 m north of Pittsburgh; one degree of longitude at 60 N is half of one at the
+    # equator (the spherical law of cosines, small-angle limit).
+    lat = 40.4406
+    assert haversine_m(lat, -79.9959, lat + 25 / METRES_PER_DEGREE, -79.9959) == pytest.approx(
+        25.0, abs=1e-6
+    )
+    tiny = 1e-4
+    east = haversine_m(60, 0, 60, tiny) / haversine_m(0, 0, 0, tiny)
+    assert east == pytest.approx(0.5, abs=1e-6)
+
+
+def test_heading_difference_wraps_around():
+    np.testing.assert_allclose(
+        heading_difference([350, 10, 90, 0], [10, 350, 270, 180]), [20, 20, 180, 180]
+    )
+
+
+def direct_truth(ref: np.ndarray, query: np.ndarray, radius: float, distance) -> list[list[int]]:
+    return [
+        [r for r in range(len(ref)) if distance(query[q], ref[r]) <= radius]
+        for q in range(len(query))
+    ]
+
+
+def test_lat_lon_ground_truth_equals_a_pairwise_loop():
+    rng = np.random.default_rng(0)
+    ref = np.c_[47.0 + rng.uniform(0, 0.001, 60), 8.0 + rng.uniform(0, 0.001, 60)]
+    query = np.c_[47.0 + rng.uniform(0, 0.001, 20), 8.0 + rng.uniform(0, 0.001, 20)]
+    truth = coordinates_ground_truth(
+        Positions(ref[:, 0], ref[:, 1], None, True),
+        Positions(query[:, 0], query[:, 1], None, True),
+        25.0,
+        None,
+    )
+
+    def great_circle(a, b):  # spherical law of haversines, written out
+        p1, p2 = math.radians(a[0]), math.radians(b[0])
+        h = (
+            math.sin((p2 - p1) / 2) ** 2
+            + math.cos(p1) * math.cos(p2) * math.sin(math.radians(b[1] - a[1]) / 2) ** 2
+        )
+        return 2 * EARTH_RADIUS_M * math.asin(math.sqrt(h))
+
+    expected = direct_truth(ref, query, 25.0, great_circle)
+    assert [t.tolist() for t in truth] == expected
+    assert sum(map(len, expected)) > 20  # the radius matters: some in, some out
+    assert any(len(t) < len(ref) for t in expected)
+
+
+def test_easting_northing_and_heading_ground_truth():
+    ref = np.array([[0.0, 0.0], [20.0, 0.0], [0.0, 30.0], [3.0, 4.0]])
+    query = np.array([[0.0, 0.0]])
+    heading_ref = np.array([0.0, 100.0, 350.0, 200.0])
+    both = coordinates_ground_truth(
+        Positions(ref[:, 0], ref[:, 1], heading_ref, False),
+        Positions(query[:, 0], query[:, 1], np.array([10.0]), False),
+        25.0,
+        None,
+    )
+    assert both[0].tolist() == [0, 1, 3]  # 0, 20 and 5 m away; 30 m is out
+    headed = coordinates_ground_truth(
+        Positions(ref[:, 0], ref[:, 1], heading_ref, False),
+        Positions(query[:, 0], query[:, 1], np.array([10.0]), False),
+        25.0,
+        40.0,
+    )
+    assert headed[0].tolist() == [0]  # 10 deg apart; 90 and 170 are too much
+
+
+# ------------------------------------------------------------------ coordinate files
+
+
+def write_coordinates(path: Path, rows: list[list], header=("image", "lat", "lon")) -> Path:
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(header)
+        writer.writerows(rows)
+    return path
+
+
+NAMES = ["ref/a.jpg", "ref/b.jpg", "query/q.jpg"]
+
+
+def test_positions_are_read_by_image_name_in_dataset_order(tmp_path):
+    path = write_coordinates(
+        tmp_path / "c.csv", [["query/q.jpg", 1, 2], ["ref/b.jpg", 3, 4], ["ref/a.jpg", 5, 6]]
+    )
+    positions = read_positions(path, NAMES)
+    assert positions.geographic and positions.heading is None
+    assert positions.x.tolist() == [5, 3, 1] and positions.y.tolist() == [6, 4, 2]
+
+
+@pytest.mark.parametrize(
+    ("rows", "message"),
+    [
+        ([["ref/a.jpg", 1, 2], ["query/q.jpg", 1, 2]], r"1 image\(s\) .* no row, e.g. ref/b.jpg"),
+        (
+            [["ref/a.jpg", 1, 2], ["ref/b.jpg", 1, 2], ["query/q.jpg", 1, 2], ["ref/c.jpg", 1, 2]],
+            r"line 5: 'ref/c.jpg'",
+        ),
+        (
+            [["ref/a.jpg", 1, 2], ["ref/a.jpg", 1, 2]],
+            r"line 3: image 'ref/a.jpg' is listed again \(first on line 2\)",
+        ),
+        ([["ref/a.jpg", "north", 2]], r"line 2: non-numeric coordinates for 'ref/a.jpg'"),
+        ([["ref/a.jpg", 91, 2]], r"line 2: lat 91.0 / lon 2.0"),
+    ],
+)
+def test_bad_coordinate_files_name_the_row(tmp_path, rows, message):
+    path = write_coordinates(tmp_path / "c.csv", rows)
+    with pytest.raises(DatasetError, match=message):
+        read_positions(path, NAMES)
+
+
+def test_a_coordinate_file_without_coordinate_columns_names_what_it_found(tmp_path):
+    path = write_coordinates(tmp_path / "c.csv", [["ref/a.jpg", 1]], header=("image", "x"))
+    with pytest.raises(DatasetError, match=r"'lat'/'lon' or 'easting'/'northing'.*'x'"):
+        read_positions(path, NAMES)
+
+
+def gps_jpeg(path: Path, lat: tuple, lat_ref: str, lon: tuple, lon_ref: str) -> Path:
+    exif = Image.Exif()
+    exif[0x8825] = {1: lat_ref, 2: lat, 3: lon_ref, 4: lon}
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(path, exif=exif)
+    return path
+
+
+def test_exif_gps_is_read_in_signed_degrees(tmp_path):
+    path = gps_jpeg(tmp_path / "g.jpg", (40.0, 26.0, 46.5), "N", (79.0, 58.0, 56.0), "W")
+    lat, lon = exif_lat_lon(path)
+    assert lat == pytest.approx(40 + 26 / 60 + 46.5 / 3600, abs=1e-9)
+    assert lon == pytest.approx(-(79 + 58 / 60 + 56 / 3600), abs=1e-9)
+    plain = tmp_path / "plain.jpg"
+    Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(plain)
+    with pytest.raises(DatasetError, match="plain.jpg: no EXIF GPS"):
+        exif_lat_lon(plain)
+
+
+def test_exif_ground_truth_through_list_dataset(tmp_path):
+    root = tmp_path / "walk"
+    for role in ("ref", "query"):
+        (root / role).mkdir(parents=True)
+    step = 10 / METRES_PER_DEGREE  # 10 m between references, along a meridian
+    for i in range(5):
+        gps_jpeg(root / "ref" / f"{i}.jpg", (50.0, 0.0, i * step * 3600), "N", (4.0, 0, 0), "E")
+    gps_jpeg(root / "query" / "0.jpg", (50.0, 0.0, 2.2 * step * 3600), "N", (4.0, 0, 0), "E")
+    spec = {"path": "walk", "reference": "ref", "query": "query"}
+    files = list_dataset(tmp_path, "walk", spec)
+    truth_spec = {"kind": "coordinates", "source": "exif", "radius_m": 15}
+    truth = ground_truth(files, truth_spec, root)
+    assert truth[0].tolist() == [1, 2, 3]  # 12, 2 and 8 m away; 22 m is out
+    assert ground_truth_rule(truth_spec) == "coordinates:exif:15m"
+
+
+def test_no_ground_truth_gives_empty_lists_and_its_rule():
+    files = DatasetFiles([Path("r0.jpg"), Path("r1.jpg")], [Path("q.jpg")])
+    truth = ground_truth(files, {"kind": "none"}, Path("."))
+    assert [t.tolist() for t in truth] == [[]]
+    assert ground_truth_rule({"kind": "none"}) == "none"
+
+
+# ------------------------------------------------------------------ folders as people have them
+
+
+def write_images(folder: Path, names: list[str]) -> None:
+    for name in names:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(folder / name)
+
+
+def test_recursive_discovery_orders_relative_paths_naturally_and_counts_skips(tmp_path):
+    write_images(tmp_path, ["b/2.png", "b/10.png", "a/x/1.png", "3.png", ".hidden.png"])
+    (tmp_path / ".cache").mkdir()
+    write_images(tmp_path / ".cache", ["9.png"])
+    (tmp_path / "notes.txt").write_text("not an image")
+    scan = scan_images(tmp_path, recursive=True)
+    assert [p.relative_to(tmp_path).as_posix() for p in scan.paths] == [
+        "3.png",
+        "a/x/1.png",
+        "b/2.png",
+        "b/10.png",
+    ]
+    assert (scan.skipped_hidden, scan.skipped_other) == (2, 1)
+    flat = scan_images(tmp_path, recursive=False)
+    assert [p.name for p in flat.paths] == ["3.png"]
+
+
+def test_image_list_files_keep_their_order_and_name_bad_lines(tmp_path):
+    root = tmp_path / "mine"
+    write_images(root, ["db/1.png", "db/2.png", "q/1.png"])
+    (root / "ref.txt").write_text("# database\ndb/2.png\n\ndb/1.png\n")
+    (root / "query.txt").write_text("q/1.png\n")
+    spec = {"path": "mine", "reference": "ref.txt", "query": "query.txt"}
+    files = list_dataset(tmp_path, "mine", spec)
+    assert [p.relative_to(root).as_posix() for p in files.reference] == ["db/2.png", "db/1.png"]
+    for text, message in (
+        ("db/1.png\ndb/3.png\n", r"ref.txt line 2: image .*db/3.png does not exist"),
+        ("db/1.png\ndb/1.png\n", r"line 2: 'db/1.png' is listed again \(first on line 1\)"),
+        ("db/1.png\nnotes.txt\n", r"line 2: 'notes.txt' is not an image"),
+    ):
+        (root / "ref.txt").write_text(text)
+        with pytest.raises(DatasetError, match=message):
+            list_dataset(tmp_path, "mine", spec)
+
+
+# ------------------------------------------------------------------ metrics
+
+
+def published_ap(retrieved: list[bool]) -> float:
+    """Revisit-Anything's calculate_ap, as its code reads."""
+    relevant = sum(retrieved)
+    if relevant == 0:
+        return 0.0
+    hits, total = 0, 0.0
+    for i, ok in enumerate(retrieved, start=1):
+        if ok:
+            hits += 1
+            total += hits / i
+    return total / relevant
+
+
+def test_map_at_n_equals_the_published_average_precision():
+    rng = np.random.default_rng(3)
+    n_ref, n_query = 30, 40
+    ranking = np.array([rng.permutation(n_ref)[:12] for _ in range(n_query)])
+    ranking[3, 8:] = -1  # a short (voted) ranking
+    truth = [np.sort(rng.choice(n_ref, rng.integers(0, 6), replace=False)) for _ in range(n_query)]
+    truth[5] = np.zeros(0, np.int64)
+    for n in (1, 5, 10):
+        ap = average_precision_at(ranking, truth, n)
+        for q in range(n_query):
+            retrieved = [int(r) in set(truth[q].tolist()) for r in ranking[q, :n] if r >= 0]
+            assert ap[q] == pytest.approx(published_ap(retrieved), abs=1e-12)
+        with_positives = [q for q in range(n_query) if len(truth[q])]
+        assert map_at(ranking, truth, [n])[n] == pytest.approx(
+            np.mean([ap[q] for q in with_positives]), abs=1e-12
+        )
+        assert map_at(ranking, truth, [n], "all")[n] == pytest.approx(np.mean(ap), abs=1e-12)
+
+
+def test_the_denominator_counts_queries_without_positives_as_misses_when_all():
+    ranking = np.array([[0, 1], [1, 0], [2, 0], [0, 2]])
+    truth = [np.array([0]), np.array([0]), np.zeros(0, np.int64), np.array([2])]
+    assert recall_at(ranking, truth, [1, 2]) == {1: pytest.approx(1 / 3), 2: 1.0}
+    assert recall_at(ranking, truth, [1, 2], "all") == {1: 0.25, 2: 0.75}
+    with pytest.raises(ValueError, match="unknown denominator"):
+        recall_at(ranking, truth, [1], "some")

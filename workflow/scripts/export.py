@@ -1,0 +1,14 @@
+from vprflow.runner import run_stage
+from vprflow.stages.export import export_descriptors
+
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+run_stage(
+    sm.log[0],
+    lambda: export_descriptors(
+        sm.wildcards.dataset,
+        sm.wildcards.method,
+        sm.input.dataset,
+        sm.input.descriptors,
+        sm.output[0],
+    ),
+)

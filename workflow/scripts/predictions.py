@@ -1,0 +1,11 @@
+from vprflow.runner import run_stage
+from vprflow.stages.report import write_predictions
+
+sm = snakemake  # noqa: F821 (injected by Snakemake)
+run_stage(
+    sm.log[0],
+    lambda: write_predictions(
+        sm.input.dataset, sm.params.runs, list(sm.input.recalls), sm.output[0]
+    ),
+    sm.threads,
+)
