@@ -58,6 +58,10 @@ def list_dataset(data_root: str | Path, name: str, spec: dict) -> DatasetFiles:
     root = dataset_folder(data_root, spec)
     hint = f" Get it from {spec['source']}." if spec.get("source") else ""
     if not root.is_dir():
+        if spec.get("download"):
+            from vprflow.download import download_hint
+
+            hint = f" Download it with `{download_hint(name)}` (then run again).{hint}"
         raise DatasetError(
             f"dataset '{name}': folder {root} does not exist. Put the dataset there "
             f"(with '{spec['reference']}/' and '{spec['query']}/' inside) or set "

@@ -1,0 +1,39 @@
+# Public datasets on demand (README.md, "Getting the data"): `snakemake --cores 1
+# results/downloads/<dataset>.json` fetches the dataset's `download` archive, verifies
+# it and lays out its folder under data_root when the folder is missing, then writes
+# this record. Nothing here lists images, so the target works while the data is absent.
+from vprflow.datasets import dataset_folder
+from vprflow.download import (
+    LOG as DOWNLOAD_LOG,
+    RECORD as DOWNLOAD_RECORD,
+    download_entry,
+    manifest_inputs,
+)
+
+# Shipped manifests are named relative to workflow/ (found while this file is parsed).
+WORKFLOW_DIR = Path(workflow.current_basedir).parent
+
+
+# Network access happens where Snakemake runs, not in a cluster job.
+localrules:
+    download,
+
+
+rule download:
+    input:
+        manifest=lambda wildcards: manifest_inputs(
+            CONFIG, wildcards.dataset, WORKFLOW_DIR
+        ),
+    output:
+        DOWNLOAD_RECORD,
+    log:
+        DOWNLOAD_LOG,
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        spec=lambda wildcards: download_entry(CONFIG, wildcards.dataset),
+        folder=lambda wildcards: str(
+            dataset_folder(CONFIG["data_root"], CONFIG["datasets"][wildcards.dataset])
+        ),
+    script:
+        "../scripts/download.py"
