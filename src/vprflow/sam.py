@@ -1,8 +1,13 @@
-"""Segment Anything automatic mask generation on top of transformers' ``SamModel``.
+"""Segment Anything automatic mask generation on top of transformers' ``SamModel``,
+``SamHQModel`` and ``Sam2Model``.
 
 This re-implements the algorithm of the original ``SamAutomaticMaskGenerator`` for the
 single-crop case (``crop_n_layers = 0``), running the model directly so that every
-threshold is ours:
+threshold is ours. The steps below are SAM's; the model-specific parts (preprocessing,
+embedding, prompt decoding to low-res logits and predicted IoUs, the upscaling map) are
+small adapters (:class:`SamAdapter`, :class:`SamHQAdapter`, :class:`Sam2Adapter`; see
+their docstrings and docs/methods.md §2 for how SAM-HQ and SAM 2 differ), the rest is
+shared:
 
 1. Resize the image so its longest side is the model's input size (1024 for the
    published checkpoints), normalise, pad bottom/right to a square; compute the image
