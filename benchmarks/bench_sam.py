@@ -1,17 +1,24 @@
 """Time and memory of Segment Anything automatic mask generation per image.
 
-Random-weight models only (no pretrained weights here): a tiny SAM and one with the real
-ViT-B architecture (hidden 768, 12 layers, 12 heads, global attention in blocks 2, 5, 8,
-11, 1024 input). Each configuration runs in a fresh subprocess so its peak RSS is its
-own. Two filter settings: the library thresholds (with random ViT-B weights almost no
-candidate survives them, so NMS is trivial) and all filters off (every candidate reaches
-the box NMS: the post-processing worst case).
+Random-weight models only (no pretrained weights here), architectures from configs: a
+tiny SAM; SAM with the real ViT-B architecture; and the published sizes the registry
+defaults name, SAM ViT-H (``sam-vit-h``), SAM-HQ ViT-H (``sam-hq-vit-h``) and SAM 2.1
+Hiera-L (``sam2-large``). ``tiny`` and ``vit-b`` are saved and read back through the
+loader; the large ones are built in memory (saving 2.5 GB of random weights would
+dominate), with the loader's sdpa attention and the same adapters. Each configuration
+runs in a fresh subprocess so its peak RSS is its own. Two filter settings: the library
+thresholds (with random weights almost no candidate survives them, so NMS is trivial)
+and all filters off (every candidate reaches the box NMS: the post-processing worst
+case).
 
     python benchmarks/bench_sam.py [--device cpu] [--repeats 2] [--sides 16 32]
+    python benchmarks/bench_sam.py --models sam-vit-h sam-hq-vit-h sam2-large \
+        --points-per-side 32 --dtypes float32 bfloat16 --filters library
 
 Columns: ``encoder s`` = image embedding only; ``first s`` = the first full call;
-``best s`` = fastest of the repeats; ``RSS MiB`` = process peak resident memory,
-``+gen MiB`` = its growth during mask generation (CUDA: peak allocated instead).
+``best s`` = fastest of the repeats (the first call when ``--repeats 0``); ``img/s`` =
+1 / best; ``RSS MiB`` = process peak resident memory, ``+gen MiB`` = its growth during
+mask generation (CUDA: peak allocated instead).
 """
 
 from __future__ import annotations
@@ -56,6 +63,39 @@ MODELS = {
         },
     },
 }
+_VIT_H = {"hidden_size": 1280, "num_hidden_layers": 32, "num_attention_heads": 16}
+_VIT_H["global_attn_indexes"] = [7, 15, 23, 31]
+# SAM 2.1 Hiera-L (sam2.1_hiera_l.yaml): embed 144, 2 heads, stages 2-6-36-4, global
+# attention in blocks 23, 33, 43, windows 8-4-16-8; the rest is transformers' default.
+_HIERA_L = {
+    "model_type": "sam2_hiera_det_model",
+    "hidden_size": 144,
+    "num_attention_heads": 2,
+    "blocks_per_stage": [2, 6, 36, 4],
+    "embed_dim_per_stage": [144, 288, 576, 1152],
+    "num_attention_heads_per_stage": [2, 4, 8, 16],
+    "window_size_per_stage": [8, 4, 16, 8],
+    "global_attention_blocks": [23, 33, 43],
+    "window_positional_embedding_background_size": [7, 7],
+}
+LARGE = {
+    "sam-vit-h": ("sam", "SamConfig", {"vision_config": _VIT_H}),
+    "sam-hq-vit-h": (
+        "sam_hq",
+        "SamHQConfig",
+        {"vision_config": _VIT_H, "mask_decoder_config": {"vit_dim": 1280}},
+    ),
+    "sam2-large": (
+        "sam2",
+        "Sam2Config",
+        {
+            "vision_config": {
+                "backbone_config": _HIERA_L,
+                "backbone_channel_list": [1152, 576, 288, 144],
+            }
+        },
+    ),
+}
 FILTERS = {
     "library": {},
     "none": {"pred_iou_thresh": 0.0, "stability_score_thresh": 0.0},
@@ -66,18 +106,45 @@ def _rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
-def run_one(model: str, side: int, filters: str, device: str, repeats: int) -> dict:
+def _large_segmenter(model: str, params: dict, device: str, dtype_name: str):
+    """A published-size architecture with random weights, built in memory."""
+    import torch
+    import transformers
+
+    from vprflow.devices import resolve_device, resolve_dtype
+    from vprflow.sam import SAM_KINDS, SamSegmenter, sam_params
+
+    kind, config_name, config = LARGE[model]
+    class_name, adapter_class = SAM_KINDS[kind]
+    merged = sam_params({**params, "dtype": dtype_name}, kind)
+    torch_device = resolve_device(device)
+    dtype = resolve_dtype(dtype_name, torch_device)
+    torch.manual_seed(0)
+    built = getattr(transformers, class_name)._from_config(
+        getattr(transformers, config_name)(**config), attn_implementation="sdpa"
+    )
+    built = built.to(device=torch_device, dtype=dtype).eval()
+    extra = {"hq_token_only": merged["hq_token_only"]} if kind == "sam_hq" else {}
+    return SamSegmenter(adapter_class(built, torch_device, dtype, **extra), merged)
+
+
+def run_one(
+    model: str, side: int, filters: str, device: str, repeats: int, dtype: str = "float32"
+) -> dict:
     """One configuration in this process -> measurements (printed as JSON by main)."""
     import torch
     from transformers import SamConfig, SamModel
 
     from vprflow.sam import load_sam
 
-    torch.manual_seed(0)
-    with tempfile.TemporaryDirectory() as directory:
-        SamModel(SamConfig(**MODELS[model])).save_pretrained(directory)
-        params = {"model": directory, "points_per_side": side, **FILTERS[filters]}
-        segmenter = load_sam(params, device=device)
+    params = {"points_per_side": side, **FILTERS[filters]}
+    if model in LARGE:
+        segmenter = _large_segmenter(model, params, device, dtype)
+    else:
+        torch.manual_seed(0)
+        with tempfile.TemporaryDirectory() as directory:
+            SamModel(SamConfig(**MODELS[model])).save_pretrained(directory)
+            segmenter = load_sam({"model": directory, **params, "dtype": dtype}, device=device)
     image = np.random.default_rng(0).random((240, 320, 3), dtype=np.float32)
     cuda = segmenter.device.type == "cuda"
 
@@ -100,15 +167,18 @@ def run_one(model: str, side: int, filters: str, device: str, repeats: int) -> d
         sync()
         times.append(time.perf_counter() - start)
     rss_after = _rss_mib()
+    best = min(times[1:] or times)
     return {
         "model": model,
         "side": side,
         "filters": filters,
+        "dtype": dtype,
         "device": str(segmenter.device),
         "masks": int(masks.shape[0]),
         "encoder_s": encoder,
         "first_s": times[0],
-        "best_s": min(times[1:] or times),
+        "best_s": best,
+        "images_per_s": 1.0 / best,
         "rss_mib": rss_after,
         "gen_mib": (torch.cuda.max_memory_allocated() / 2**20) if cuda else rss_after - rss_before,
     }
@@ -116,38 +186,49 @@ def run_one(model: str, side: int, filters: str, device: str, repeats: int) -> d
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    choices = [*MODELS, *LARGE]
     parser.add_argument("--device", default="auto")
-    parser.add_argument("--repeats", type=int, default=2)
-    parser.add_argument("--sides", type=int, nargs="+", default=[16, 32])
-    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=list(MODELS))
-    parser.add_argument("--one", nargs=3, metavar=("MODEL", "SIDE", "FILTERS"), help="internal")
+    parser.add_argument("--repeats", type=int, default=2, help="timed calls after the first")
+    parser.add_argument("--sides", "--points-per-side", type=int, nargs="+", default=[16, 32])
+    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=choices)
+    parser.add_argument("--dtypes", nargs="+", default=["float32"])
+    parser.add_argument("--filters", nargs="+", default=list(FILTERS), choices=list(FILTERS))
+    parser.add_argument("--one", nargs=4, metavar=("MODEL", "SIDE", "FILTERS", "DTYPE"))
     args = parser.parse_args()
 
     if args.one:
-        model, side, filters = args.one
-        print(json.dumps(run_one(model, int(side), filters, args.device, args.repeats)))
+        model, side, filters, dtype = args.one
+        print(json.dumps(run_one(model, int(side), filters, args.device, args.repeats, dtype)))
         return
 
     header = (
-        f"{'model':6} {'side':>4} {'filters':8} {'device':6} {'masks':>5} {'encoder s':>9} "
-        f"{'first s':>8} {'best s':>7} {'RSS MiB':>8} {'+gen MiB':>8}"
+        f"{'model':12} {'side':>4} {'filters':8} {'dtype':8} {'device':6} {'masks':>5} "
+        f"{'encoder s':>9} {'first s':>8} {'best s':>7} {'img/s':>7} {'RSS MiB':>8} "
+        f"{'+gen MiB':>8}"
     )
     print("SAM automatic masks, one 320x240 image, random weights")
     print(header)
     print("-" * len(header))
     for model in args.models:
         for side in args.sides:
-            for filters in FILTERS:
-                command = [sys.executable, __file__, "--one", model, str(side), filters]
-                command += ["--device", args.device, "--repeats", str(args.repeats)]
-                output = subprocess.run(command, check=True, capture_output=True, text=True)
-                row = json.loads(output.stdout.strip().splitlines()[-1])
-                print(
-                    f"{row['model']:6} {row['side']:>4} {row['filters']:8} {row['device']:6} "
-                    f"{row['masks']:>5} {row['encoder_s']:>9.2f} {row['first_s']:>8.2f} "
-                    f"{row['best_s']:>7.2f} {row['rss_mib']:>8.0f} {row['gen_mib']:>8.0f}",
-                    flush=True,
-                )
+            for dtype in args.dtypes:
+                for filters in args.filters:
+                    command = [sys.executable, __file__, "--one", model, str(side), filters, dtype]
+                    command += ["--device", args.device, "--repeats", str(args.repeats)]
+                    output = subprocess.run(command, capture_output=True, text=True)
+                    if output.returncode:
+                        error = (output.stderr.strip().splitlines() or ["?"])[-1]
+                        print(f"{model:12} {side:>4} {filters:8} {dtype:8} failed: {error}")
+                        continue
+                    row = json.loads(output.stdout.strip().splitlines()[-1])
+                    print(
+                        f"{row['model']:12} {row['side']:>4} {row['filters']:8} "
+                        f"{row['dtype']:8} {row['device']:6} {row['masks']:>5} "
+                        f"{row['encoder_s']:>9.2f} {row['first_s']:>8.2f} {row['best_s']:>7.2f} "
+                        f"{row['images_per_s']:>7.3f} {row['rss_mib']:>8.0f} "
+                        f"{row['gen_mib']:>8.0f}",
+                        flush=True,
+                    )
 
 
 if __name__ == "__main__":

@@ -1,7 +1,9 @@
-"""Tiny randomly initialised DINOv2, DINO and SAM checkpoints, saved like real ones.
+"""Tiny randomly initialised DINOv2, DINO, SAM, SAM-HQ and SAM 2 checkpoints, saved like
+real ones.
 
 No weights can be downloaded here; these exercise the real loaders end to end.
-``tiny_vit`` (DINOv2, DINOv2 with registers, DINO) and ``tiny_sam`` return the model;
+``tiny_vit`` (DINOv2, DINOv2 with registers, DINO), ``tiny_sam``, ``tiny_sam_hq`` and
+``tiny_sam2`` return the model;
 the ``save_tiny_*`` wrappers save it to ``path`` and return the path. Every size is a
 keyword, so ``tiny_vit`` also makes the real-size architectures that
 ``benchmarks/bench_backbones.py`` times.
@@ -25,7 +27,11 @@ from transformers import (
     Dinov2Model,
     Dinov2WithRegistersConfig,
     Dinov2WithRegistersModel,
+    Sam2Config,
+    Sam2Model,
     SamConfig,
+    SamHQConfig,
+    SamHQModel,
     SamModel,
     ViTConfig,
     ViTModel,
@@ -111,16 +117,10 @@ def tiny_vit(
     return _initialise(build, seed, scale, skip_norms=skip_norms, bias_offset=bias_offset)
 
 
-def tiny_sam(
-    *,
-    hidden_size: int = 32,
-    model_size: int = 64,
-    seed: int = 0,
-    scale: float | None = 1.0,
-) -> SamModel:
-    """A SAM model whose input side is ``model_size`` (1024 for real checkpoints)."""
-    config = SamConfig(
-        vision_config={
+def _tiny_sam_configs(hidden_size: int, model_size: int) -> dict:
+    """Vision / prompt encoder / mask decoder configs shared by SAM and SAM-HQ."""
+    return {
+        "vision_config": {
             "hidden_size": hidden_size,
             "output_channels": hidden_size,
             "num_hidden_layers": 2,
@@ -131,6 +131,79 @@ def tiny_sam(
             "global_attn_indexes": [1],
             "num_pos_feats": hidden_size // 2,
             "mlp_dim": 64,
+        },
+        "prompt_encoder_config": {
+            "hidden_size": hidden_size,
+            "image_size": model_size,
+            "patch_size": 16,
+            "mask_input_channels": 8,
+        },
+        "mask_decoder_config": {
+            "hidden_size": hidden_size,
+            "mlp_dim": 64,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 2,
+            "iou_head_hidden_dim": 32,
+        },
+    }
+
+
+def tiny_sam(
+    *,
+    hidden_size: int = 32,
+    model_size: int = 64,
+    seed: int = 0,
+    scale: float | None = 1.0,
+) -> SamModel:
+    """A SAM model whose input side is ``model_size`` (1024 for real checkpoints)."""
+    config = SamConfig(**_tiny_sam_configs(hidden_size, model_size))
+    return _initialise(partial(SamModel, config), seed, scale)
+
+
+def tiny_sam_hq(
+    *,
+    hidden_size: int = 32,
+    model_size: int = 64,
+    seed: int = 0,
+    scale: float | None = 1.0,
+) -> SamHQModel:
+    """A SAM-HQ model (SAM's tiny architecture plus the HQ decoder) of input side
+    ``model_size``; the HQ decoder fuses the block-0 global-attention features."""
+    configs = _tiny_sam_configs(hidden_size, model_size)
+    configs["vision_config"]["global_attn_indexes"] = [0, 1]
+    configs["mask_decoder_config"]["vit_dim"] = hidden_size
+    return _initialise(partial(SamHQModel, SamHQConfig(**configs)), seed, scale)
+
+
+def tiny_sam2(
+    *,
+    hidden_size: int = 32,
+    model_size: int = 64,
+    seed: int = 0,
+    scale: float | None = 1.0,
+) -> Sam2Model:
+    """A SAM 2 model with a 4-stage Hiera of 5 blocks (the fourth global) and input side
+    ``model_size`` (a multiple of 32; 1024 for real checkpoints)."""
+    if model_size % 32:
+        raise ValueError(f"model_size must be a multiple of 32, got {model_size}")
+    backbone = {
+        "model_type": "sam2_hiera_det_model",
+        "hidden_size": 16,
+        "num_attention_heads": 1,
+        "image_size": [model_size, model_size],
+        "blocks_per_stage": [1, 1, 2, 1],
+        "embed_dim_per_stage": [16, 32, 64, 128],
+        "num_attention_heads_per_stage": [1, 1, 2, 2],
+        "window_size_per_stage": [4, 4, 4, 2],
+        "global_attention_blocks": [3],
+        "window_positional_embedding_background_size": [2, 2],
+    }
+    config = Sam2Config(
+        vision_config={
+            "backbone_config": backbone,
+            "backbone_channel_list": [128, 64, 32, 16],
+            "backbone_feature_sizes": [[model_size // s] * 2 for s in (4, 8, 16)],
+            "fpn_hidden_size": hidden_size,
         },
         prompt_encoder_config={
             "hidden_size": hidden_size,
@@ -146,7 +219,7 @@ def tiny_sam(
             "iou_head_hidden_dim": 32,
         },
     )
-    return _initialise(partial(SamModel, config), seed, scale)
+    return _initialise(partial(Sam2Model, config), seed, scale)
 
 
 def save_tiny_dinov2(path: Path, **kwargs: Any) -> Path:
@@ -161,4 +234,14 @@ def save_tiny_dino(path: Path, **kwargs: Any) -> Path:
 
 def save_tiny_sam(path: Path, **kwargs: Any) -> Path:
     tiny_sam(**kwargs).save_pretrained(path)
+    return path
+
+
+def save_tiny_sam_hq(path: Path, **kwargs: Any) -> Path:
+    tiny_sam_hq(**kwargs).save_pretrained(path)
+    return path
+
+
+def save_tiny_sam2(path: Path, **kwargs: Any) -> Path:
+    tiny_sam2(**kwargs).save_pretrained(path)
     return path

@@ -123,6 +123,51 @@ SEGMENTERS: dict[str, ModelKind] = {
             weights="model",
             uses_gpu=True,
         ),
+        # SAM-HQ's automatic mask generator (SAM's, defaults unchanged) on the HQ decoder:
+        # one mask per point, best multimask logits + HQ logits (hq_token_only off).
+        ModelKind(
+            "sam_hq",
+            "segmenter",
+            "vprflow.sam:load_sam_hq",
+            {
+                "model": "syscv-community/sam-hq-vit-huge",
+                "cache_dir": None,
+                "points_per_side": 32,
+                "points_per_batch": 64,
+                "pred_iou_thresh": 0.88,
+                "stability_score_thresh": 0.95,
+                "stability_score_offset": 1.0,
+                "box_nms_thresh": 0.7,
+                "min_mask_region_area": 0,
+                "mask_threshold": 0.0,
+                "hq_token_only": False,
+                "dtype": "float32",
+            },
+            weights="model",
+            uses_gpu=True,
+        ),
+        # SAM 2's own automatic mask generator defaults (Hiera-L): pred_iou_thresh 0.8;
+        # multimask output on and use_m2m off (fixed here).
+        ModelKind(
+            "sam2",
+            "segmenter",
+            "vprflow.sam:load_sam2",
+            {
+                "model": "facebook/sam2.1-hiera-large",
+                "cache_dir": None,
+                "points_per_side": 32,
+                "points_per_batch": 64,
+                "pred_iou_thresh": 0.8,
+                "stability_score_thresh": 0.95,
+                "stability_score_offset": 1.0,
+                "box_nms_thresh": 0.7,
+                "min_mask_region_area": 0,
+                "mask_threshold": 0.0,
+                "dtype": "float32",
+            },
+            weights="model",
+            uses_gpu=True,
+        ),
         ModelKind("import", "segmenter", None, weights="file"),
     )
 }

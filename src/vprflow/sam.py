@@ -1,8 +1,13 @@
-"""Segment Anything automatic mask generation on top of transformers' ``SamModel``.
+"""Segment Anything automatic mask generation on top of transformers' ``SamModel``,
+``SamHQModel`` and ``Sam2Model``.
 
 This re-implements the algorithm of the original ``SamAutomaticMaskGenerator`` for the
 single-crop case (``crop_n_layers = 0``), running the model directly so that every
-threshold is ours:
+threshold is ours. The steps below are SAM's; the model-specific parts (preprocessing,
+embedding, prompt decoding to low-res logits and predicted IoUs, the upscaling map) are
+small adapters (:class:`SamAdapter`, :class:`SamHQAdapter`, :class:`Sam2Adapter`; see
+their docstrings and docs/methods.md §2 for how SAM-HQ and SAM 2 differ), the rest is
+shared:
 
 1. Resize the image so its longest side is the model's input size (1024 for the
    published checkpoints), normalise, pad bottom/right to a square; compute the image
@@ -250,7 +255,149 @@ def remove_small_regions(
     return np.isin(labels, fill), True
 
 
-# ------------------------------------------------------------------------------ model
+# --------------------------------------------------------------------------- adapters
+#
+# An adapter is the model-specific part of automatic mask generation: preprocessing,
+# the image embedding, and prompt decoding to low-resolution logits and predicted IoUs.
+# Everything else (point grid, upscaling, filters, NMS, clean-up) is shared.
+
+
+class SamAdapter:
+    """transformers ``SamModel``: longest side resized to the model size with PIL
+    bilinear, SAM's mean/std, zero padding; three masks per point; logits upscaled to
+    the padded input, cropped, then resized (the original ``postprocess_masks``)."""
+
+    masks_per_point = 3
+
+    def __init__(self, model, device: torch.device, dtype: torch.dtype):
+        self.model = model
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.model_size = int(model.config.vision_config.image_size)
+        prompt_size = int(model.config.prompt_encoder_config.image_size)
+        if prompt_size != self.model_size:
+            raise ValueError(
+                f"{type(model).__name__} config mismatch: vision image_size "
+                f"{self.model_size} != prompt encoder image_size {prompt_size}"
+            )
+
+    def preprocess(self, image: np.ndarray) -> tuple[torch.Tensor, tuple[int, int]]:
+        """Image ``[H, W, 3]`` in ``[0, 1]`` -> model input ``[1, 3, L, L]`` (float32, on
+        the CPU) and the size ``(h, w)`` of the image inside it."""
+        return preprocess_image(image, self.model_size)
+
+    def embed(self, pixels: torch.Tensor):
+        """Model input -> the image embedding, in whatever form :meth:`decode` takes."""
+        return self.model.get_image_embeddings(pixels.to(device=self.device, dtype=self.dtype))
+
+    def _prompts(self, points: torch.Tensor) -> dict:
+        count = points.shape[0]
+        return {
+            "input_points": points.to(self.device, torch.float32).reshape(1, count, 1, 2),
+            "input_labels": torch.ones((1, count, 1), dtype=torch.int64, device=self.device),
+            "multimask_output": True,
+        }
+
+    def decode(self, embedding, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points ``[P, 2]`` in model-input pixels -> low-res logits ``[P, M, h, w]`` and
+        predicted IoUs ``[P, M]`` (``M = masks_per_point``), float32, on the device."""
+        output = self.model(image_embeddings=embedding, **self._prompts(points))
+        return output.pred_masks[0].float(), output.iou_scores[0].float()
+
+    def upscaler(
+        self, low_res: tuple[int, int], input_size: tuple[int, int], original_size: tuple[int, int]
+    ) -> LogitUpscaler:
+        return LogitUpscaler(low_res, self.model_size, input_size, original_size, self.device)
+
+
+class SamHQAdapter(SamAdapter):
+    """transformers ``SamHQModel``: SAM's preprocessing and upscaling; the embedding is the
+    final one plus the ViT's early global-attention features the HQ decoder fuses.
+
+    One mask per point, as SAM-HQ's ``SamAutomaticMaskGenerator`` (multimask output on,
+    ``hq_token_only`` off by default): its HQ decoder returns the best of SAM's three
+    multimask logits (highest predicted IoU) plus the HQ token's logits, with that best
+    IoU. transformers returns all three SAM logits sorted by predicted IoU, each plus the
+    HQ logits; the first of them is that mask. With ``hq_token_only`` the HQ logits alone.
+    """
+
+    masks_per_point = 1
+
+    def __init__(self, model, device, dtype, hq_token_only: bool = False):
+        super().__init__(model, device, dtype)
+        self.hq_token_only = bool(hq_token_only)
+
+    def embed(self, pixels):
+        embedding, intermediate = self.model.get_image_embeddings(
+            pixels.to(device=self.device, dtype=self.dtype)
+        )
+        return embedding, intermediate
+
+    def decode(self, embedding, points):
+        final, intermediate = embedding
+        output = self.model(
+            image_embeddings=final,
+            intermediate_embeddings=intermediate,
+            hq_token_only=self.hq_token_only,
+            **self._prompts(points),
+        )
+        return output.pred_masks[0, :, :1].float(), output.iou_scores[0, :, :1].float()
+
+
+# SAM 2's normalisation (SAM2Transforms; = transformers' Sam2ImageProcessor), 0..1 units.
+SAM2_MEAN = (0.485, 0.456, 0.406)
+SAM2_STD = (0.229, 0.224, 0.225)
+
+
+def preprocess_image_sam2(image: np.ndarray, size: int) -> tuple[torch.Tensor, tuple[int, int]]:
+    """Image float32 ``[H, W, 3]`` in ``[0, 1]`` -> SAM 2 input ``[1, 3, L, L]`` and ``(L, L)``.
+
+    As SAM 2's ``SAM2Transforms``: the 8-bit image as floats in ``[0, 1]``, resized to
+    ``L x L`` (aspect ratio not kept, no padding) bilinearly with antialiasing
+    (torchvision ``Resize`` on a tensor), then normalised with ImageNet mean/std.
+    """
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an RGB image [H, W, 3], got shape {image.shape}")
+    pixels = np.clip(np.rint(np.asarray(image, dtype=np.float64) * 255.0), 0, 255)
+    tensor = torch.from_numpy((pixels / 255.0).astype(np.float32)).permute(2, 0, 1)[None]
+    resized = torch.nn.functional.interpolate(
+        tensor, (size, size), mode="bilinear", align_corners=False, antialias=True
+    )
+    mean = torch.tensor(SAM2_MEAN, dtype=torch.float32).view(1, 3, 1, 1)
+    std = torch.tensor(SAM2_STD, dtype=torch.float32).view(1, 3, 1, 1)
+    return ((resized - mean) / std).contiguous(), (size, size)
+
+
+class Sam2Adapter(SamAdapter):
+    """transformers ``Sam2Model``: the image stretched to ``L x L`` (``L`` = 1024 for the
+    published checkpoints); the embedding is the FPN's three levels (the two high-
+    resolution ones feed the decoder's upsampling); three masks per point; low-res logits
+    resized straight to the image size (SAM 2's ``postprocess_masks``: no padding)."""
+
+    def __init__(self, model, device, dtype):
+        self.model = model
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.model_size = int(model.config.prompt_encoder_config.image_size)
+        vision = model.config.vision_config.backbone_config.image_size
+        vision = [vision, vision] if isinstance(vision, int) else list(vision)
+        if vision != [self.model_size, self.model_size]:
+            raise ValueError(
+                f"Sam2Model config mismatch: backbone image_size {vision} != prompt encoder "
+                f"image_size {self.model_size}"
+            )
+
+    def preprocess(self, image):
+        return preprocess_image_sam2(image, self.model_size)
+
+    def upscaler(self, low_res, input_size, original_size):
+        if low_res[0] != low_res[1]:
+            raise ValueError(f"expected square low-res logits, got {low_res}")
+        # Resizing to low_res first is the identity: one bilinear resize to the image.
+        return LogitUpscaler(low_res, low_res[0], low_res, original_size, self.device)
+
+
+# ------------------------------------------------------------------------- generator
 
 
 @dataclass
@@ -258,7 +405,8 @@ class SamMaskSet:
     """Everything the generator knows about its output masks (``S`` of them).
 
     ``candidate`` is each mask's index among all candidates of the image,
-    ``point_index * 3 + multimask_output_index``.
+    ``point_index * masks_per_point + output_index`` (3 masks per point for SAM and
+    SAM 2, 1 for SAM-HQ).
     """
 
     masks: np.ndarray  # bool [S, H, W]
@@ -270,46 +418,39 @@ class SamMaskSet:
 
 
 class SamSegmenter:
-    """Automatic mask generator around a loaded ``SamModel`` (see the module docstring)."""
+    """Automatic mask generator around a model adapter (see the module docstring)."""
 
-    def __init__(self, model, params: dict, device: torch.device, dtype: torch.dtype):
-        self.model = model
+    def __init__(self, adapter: SamAdapter, params: dict):
+        self.adapter = adapter
         self.params = params
-        self.device = device
-        self.dtype = dtype
-        self.model_size = int(model.config.vision_config.image_size)
-        prompt_size = int(model.config.prompt_encoder_config.image_size)
-        if prompt_size != self.model_size:
-            raise ValueError(
-                f"SAM config mismatch: vision image_size {self.model_size} != prompt "
-                f"encoder image_size {prompt_size}"
-            )
+
+    @property
+    def model(self):
+        return self.adapter.model
+
+    @property
+    def device(self) -> torch.device:
+        return self.adapter.device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.adapter.dtype
 
     def masks(self, image: np.ndarray) -> np.ndarray:
         """Image float32 ``[H, W, 3]`` in ``[0, 1]`` -> masks bool ``[S, H, W]``."""
         return self.generate(image).masks
 
     @torch.inference_mode()
-    def image_embedding(self, image: np.ndarray) -> tuple[torch.Tensor, tuple[int, int]]:
-        """Image -> embedding ``[1, C, e, e]`` (model dtype) and resized size ``(h, w)``."""
-        pixels, input_size = preprocess_image(image, self.model_size)
-        pixels = pixels.to(device=self.device, dtype=self.dtype)
-        return self.model.get_image_embeddings(pixels), input_size
+    def image_embedding(self, image: np.ndarray):
+        """Image -> the adapter's embedding (model dtype) and the resized size ``(h, w)``."""
+        pixels, input_size = self.adapter.preprocess(image)
+        return self.adapter.embed(pixels), input_size
 
     @torch.inference_mode()
-    def decode(
-        self, embedding: torch.Tensor, points: torch.Tensor
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Points ``[P, 2]`` in model-input pixels -> low-res logits ``[P, 3, h, w]`` and
-        predicted IoUs ``[P, 3]``, both float32."""
-        count = points.shape[0]
-        output = self.model(
-            image_embeddings=embedding,
-            input_points=points.to(self.device, torch.float32).reshape(1, count, 1, 2),
-            input_labels=torch.ones((1, count, 1), dtype=torch.int64, device=self.device),
-            multimask_output=True,
-        )
-        return output.pred_masks[0].float(), output.iou_scores[0].float()
+    def decode(self, embedding, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Points ``[P, 2]`` in model-input pixels -> low-res logits ``[P, M, h, w]`` and
+        predicted IoUs ``[P, M]``, both float32."""
+        return self.adapter.decode(embedding, points)
 
     def prompt_points(self, height: int, width: int, input_size: tuple[int, int]):
         """Grid points in image pixels and in model-input pixels, both float64 ``[P, 2]``."""
@@ -322,11 +463,16 @@ class SamSegmenter:
 
     @torch.inference_mode()
     def generate(self, image: np.ndarray) -> SamMaskSet:
-        """Image float32 ``[H, W, 3]`` in ``[0, 1]`` -> :class:`SamMaskSet`."""
+        """Image float32 ``[H, W, 3]`` in ``[0, 1]`` -> :class:`SamMaskSet`.
+
+        Everything stays on the model's device until the NMS survivors are known; only
+        their boxes (for the sequential NMS) and the final masks come to the host.
+        """
         p = self.params
         height, width = image.shape[:2]
         embedding, input_size = self.image_embedding(image)
         image_points, model_points = self.prompt_points(height, width, input_size)
+        per_point = self.adapter.masks_per_point
         upscale = None
         mask_threshold = float(p["mask_threshold"])
         batch = int(p["points_per_batch"])
@@ -336,20 +482,18 @@ class SamSegmenter:
             points = torch.from_numpy(model_points[start : start + batch])
             low_res, iou_preds = self.decode(embedding, points)
             if upscale is None:
-                upscale = LogitUpscaler(
-                    tuple(low_res.shape[-2:]), self.model_size, input_size, (height, width),
-                    self.device,
-                )  # fmt: skip
-            iou_preds = iou_preds.flatten()  # [3P], candidate-major as the original
-            index = torch.arange(start * 3, start * 3 + iou_preds.shape[0], device=self.device)
+                upscale = self.adapter.upscaler(
+                    tuple(low_res.shape[-2:]), input_size, (height, width)
+                )
+            iou_preds = iou_preds.flatten()  # [M*P], candidate-major as the original
+            first = start * per_point
+            index = torch.arange(first, first + iou_preds.shape[0], device=self.device)
             # The IoU filter needs no logits: apply it before the (costly) upscaling,
             # as the original does.
+            low_res = low_res.flatten(0, 1)
             if p["pred_iou_thresh"] > 0.0:
                 keep = iou_preds > p["pred_iou_thresh"]
-                iou_preds, index = iou_preds[keep], index[keep]
-                low_res = low_res.flatten(0, 1)[keep]
-            else:
-                low_res = low_res.flatten(0, 1)
+                iou_preds, index, low_res = iou_preds[keep], index[keep], low_res[keep]
             logits = upscale(low_res)  # [N, H, W]
             stability = stability_score(logits, mask_threshold, float(p["stability_score_offset"]))
             if p["stability_score_thresh"] > 0.0:
@@ -362,20 +506,20 @@ class SamSegmenter:
                 )
             binary = logits > mask_threshold
             nonempty = binary.flatten(1).any(1)
-            kept_masks.append(binary[nonempty].cpu())
-            kept_iou.append(iou_preds[nonempty].cpu())
-            kept_stab.append(stability[nonempty].cpu())
-            kept_index.append(index[nonempty].cpu())
+            kept_masks.append(binary[nonempty])
+            kept_iou.append(iou_preds[nonempty])
+            kept_stab.append(stability[nonempty])
+            kept_index.append(index[nonempty])
             del logits, binary
 
         masks = torch.cat(kept_masks)
-        iou_preds = torch.cat(kept_iou)
-        stability = torch.cat(kept_stab)
-        candidate = torch.cat(kept_index)
         boxes = masks_to_boxes(masks)
-        keep = box_nms(boxes, iou_preds, float(p["box_nms_thresh"]))
-        masks, iou_preds, stability = masks[keep], iou_preds[keep], stability[keep]
-        candidate, boxes = candidate[keep], boxes[keep]
+        keep = box_nms(boxes, torch.cat(kept_iou), float(p["box_nms_thresh"]))
+        masks = masks[keep].cpu()
+        iou_preds = torch.cat(kept_iou)[keep].cpu()
+        stability = torch.cat(kept_stab)[keep].cpu()
+        candidate = torch.cat(kept_index)[keep].cpu()
+        boxes = boxes[keep].cpu()
 
         if p["min_mask_region_area"] > 0 and len(masks):
             masks_np, boxes_np, order = self._clean_small_regions(masks.numpy())
@@ -387,7 +531,7 @@ class SamSegmenter:
             masks=masks.numpy().astype(bool, copy=False),
             iou_preds=iou_preds.numpy().astype(np.float32),
             stability_scores=stability.numpy().astype(np.float32),
-            points=image_points[candidate.numpy() // 3].astype(np.float32),
+            points=image_points[candidate.numpy() // per_point].astype(np.float32),
             boxes=boxes.numpy().astype(np.float32),
             candidate=candidate.numpy().astype(np.int64),
         )
@@ -409,13 +553,25 @@ class SamSegmenter:
         return cleaned_t[keep].numpy(), boxes[keep].numpy(), keep
 
 
-def sam_params(params: dict) -> dict:
-    """Config dict -> complete SAM parameters (defaults filled, values validated).
+# ---------------------------------------------------------------------------- loading
 
-    Keys outside :data:`SAM_DEFAULTS` (e.g. ``segmenter``) are ignored.
-    """
-    filled = with_defaults("segments", {**params, "segmenter": "sam"})
-    merged = {key: filled[key] for key in SAM_DEFAULTS}
+# kind: (transformers class name, adapter class)
+SAM_KINDS = {
+    "sam": ("SamModel", SamAdapter),
+    "sam_hq": ("SamHQModel", SamHQAdapter),
+    "sam2": ("Sam2Model", Sam2Adapter),
+}
+
+
+def sam_params(params: dict, kind: str = "sam") -> dict:
+    """Config dict -> complete parameters of SAM kind ``kind`` (its registry defaults
+    filled, values validated). Keys outside those defaults (e.g. ``segmenter``) are
+    ignored."""
+    if kind not in SAM_KINDS:
+        raise ValueError(f"unknown SAM kind {kind!r}; expected one of {sorted(SAM_KINDS)}")
+    defaults = SEGMENTERS[kind].defaults
+    filled = with_defaults("segments", {**params, "segmenter": kind})
+    merged = {key: filled[key] for key in defaults}
     if int(merged["points_per_side"]) < 1 or int(merged["points_per_batch"]) < 1:
         raise ValueError("points_per_side and points_per_batch must be >= 1")
     if float(merged["stability_score_offset"]) < 0:
@@ -423,22 +579,43 @@ def sam_params(params: dict) -> dict:
     return merged
 
 
-def load_sam(params: dict, device: str = "auto") -> SamSegmenter:
-    """Load a Segment Anything model (hub id or local directory) as a :class:`SamSegmenter`.
+def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmenter:
+    """Load a model of SAM kind ``kind`` (hub id or local directory, scaled-dot-product
+    attention) as a :class:`SamSegmenter`.
 
-    ``params`` keys and defaults: :data:`SAM_DEFAULTS` (the original library defaults,
-    ViT-H). Raises ``vprflow.models.ModelNotFoundError`` naming the model when it is
-    neither a local directory nor obtainable from the hub.
+    Raises ``vprflow.models.ModelNotFoundError`` naming the model when it is neither a
+    local directory nor obtainable from the hub.
     """
-    from transformers import SamModel
+    import transformers
 
     from vprflow.devices import resolve_device, resolve_dtype
     from vprflow.models import load_pretrained, resolve_model_source
 
-    merged = sam_params(params)
+    merged = sam_params(params, kind)
+    class_name, adapter_class = SAM_KINDS[kind]
     torch_device = resolve_device(device)
     dtype = resolve_dtype(merged["dtype"], torch_device)
     source = resolve_model_source(str(merged["model"]), merged["cache_dir"])
-    model = load_pretrained(SamModel.from_pretrained, source, str(merged["model"]))
+    load = getattr(transformers, class_name).from_pretrained
+    model = load_pretrained(load, source, str(merged["model"]), attn_implementation="sdpa")
     model = model.to(device=torch_device, dtype=dtype).eval()
-    return SamSegmenter(model, merged, torch_device, dtype)
+    extra = {"hq_token_only": merged["hq_token_only"]} if kind == "sam_hq" else {}
+    return SamSegmenter(adapter_class(model, torch_device, dtype, **extra), merged)
+
+
+def load_sam(params: dict, device: str = "auto") -> SamSegmenter:
+    """Segment Anything (``segmenter: sam``); defaults :data:`SAM_DEFAULTS` (the original
+    library's, ViT-H)."""
+    return load_segmenter("sam", params, device)
+
+
+def load_sam_hq(params: dict, device: str = "auto") -> SamSegmenter:
+    """SAM-HQ (``segmenter: sam_hq``); defaults: the registry's (SAM-HQ's automatic
+    generator = SAM's, HQ output, ViT-H)."""
+    return load_segmenter("sam_hq", params, device)
+
+
+def load_sam2(params: dict, device: str = "auto") -> SamSegmenter:
+    """SAM 2 (``segmenter: sam2``); defaults: the registry's (SAM 2's automatic
+    generator, Hiera-L)."""
+    return load_segmenter("sam2", params, device)
