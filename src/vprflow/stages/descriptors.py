@@ -7,6 +7,7 @@ What a method computes per image is its registry entry's ``image_descriptor``
 from __future__ import annotations
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from vprflow import stores
@@ -42,7 +43,11 @@ def compute_descriptors(
     pca = read_pca(inputs["pca"]) if "pca" in inputs else None
     dtype = np.dtype(spec.get("store_dtype", "float32"))
     attrs = {**stage_attrs("descriptors", params, images), "kind": agg.output}
-    with stores.atomic_store(out, attrs) as group:
+    # One BLAS thread: per-image products are small, and a second thread costs more
+    # than it saves (on a busy machine up to 10x: the pool's threads wait for each
+    # other). It also makes the stored values independent of the rule's thread count:
+    # OpenBLAS rounds a product differently with a different number of threads.
+    with stores.atomic_store(out, attrs) as group, threadpool_limits(limits=1):
         writer = None
         for i in tqdm(images, desc=agg.name, unit="image"):
             rows = describe(i) if by_segment else describe(i)[None]
