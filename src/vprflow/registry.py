@@ -164,7 +164,8 @@ class Aggregator:
     by voting). ``options(method)`` is the descriptor stage's own hashed settings
     (method = the resolved method settings); ``columns(method)`` its CSV columns.
     ``image_descriptor`` is ``"module:function"`` with signature
-    ``(options, input store paths) -> (image index -> [dim] or [S, dim])``.
+    ``(options, input store paths) -> ImageDescriptor`` (stages/descriptors.py): a
+    callable ``image index -> [dim] or [S, dim]`` split into store reads and arithmetic.
     """
 
     name: str
