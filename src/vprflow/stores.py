@@ -51,7 +51,8 @@ def atomic_store(path: str | Path, attrs: dict | None = None) -> Iterator[zarr.G
     try:
         yield group
     except BaseException:
-        wait(list(_PENDING_WRITES))
+        done, _ = wait(list(_PENDING_WRITES))
+        _PENDING_WRITES.difference_update(done)
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     # Snakemake may pre-create (or leave) the directory output; it holds no data.
