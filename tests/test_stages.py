@@ -281,6 +281,22 @@ def test_float16_segment_descriptors_are_the_float32_ones_rounded(pipeline, tmp_
     np.testing.assert_array_equal(np.asarray(half[...]), np.asarray(full[...]).astype(np.float16))
 
 
+@pytest.mark.parametrize("method", ["segvlad", "anyloc_vlad"])
+def test_descriptors_are_the_same_bits_with_more_threads(pipeline, tmp_path, method):
+    """Images computed three at a time store what the sharded one-thread runs stored."""
+    plan, runner, _, _ = pipeline
+    (stage,) = [
+        s for s in plan.stages["descriptors"].values() if s.params["params"]["aggregator"] == method
+    ]
+    inputs = {name: runner.path(*ref) for name, ref in stage.inputs.items()}
+    out = str(tmp_path / "threads.zarr")
+    compute_descriptors(inputs, stage.params, out, threads=3)
+    threaded = stores.open_store(out)
+    stored = stores.open_store(stage_path(pipeline, "descriptors", method))
+    for name, array in stores.array_items(stored):
+        np.testing.assert_array_equal(np.asarray(threaded[name]), np.asarray(array), err_msg=name)
+
+
 @pytest.mark.parametrize(
     ("index", "options"),
     [("exact_fast", {"block_database": 40}), ("ivf_flat", {"nlist": 4, "nprobe": 4})],

@@ -80,6 +80,17 @@ def test_ragged_writer_round_trip_with_many_small_appends(tmp_path, chunk_rows):
     np.testing.assert_array_equal(store["rows"][...], np.concatenate(blocks))
 
 
+def test_a_failing_stage_leaves_no_store_behind_its_background_writes(tmp_path):
+    out = tmp_path / "d.zarr"
+    with pytest.raises(RuntimeError, match="late failure"):
+        with atomic_store(out) as group:
+            writer = RaggedWriter(group, "rows", (64,), np.float32, chunk_rows=8)
+            for _ in range(40):  # several whole chunks, each written in the background
+                writer.append(np.ones((3, 64), np.float32))
+            raise RuntimeError("late failure")
+    assert not out.exists() and not stores.temporary_path(out).exists()
+
+
 def test_ragged_writer_casts_to_its_dtype(tmp_path):
     with atomic_store(tmp_path / "r.zarr") as group:
         writer = RaggedWriter(group, "ids", (), np.int64, 3)

@@ -44,9 +44,11 @@ FORMAT_VERSIONS = {
     "dataset": 2,  # 2: paths relative to data_root, contents in the key
     "features": 3,  # 2: crop offsets round like torchvision; 3: published resize, pos-embed
     "segments": 2,  # 2: published (OpenCV INTER_LINEAR) resize
-    "vocabulary": 2,  # 2: `centres` (plain cluster means by default)
-    "pca": 2,  # 2: exact solver by default, capped at the numerical rank
-    "descriptors": 3,  # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm
+    "vocabulary": 3,  # 2: `centres` (plain cluster means by default); 3: numpy assignment
+    "pca": 3,  # 2: exact solver by default, capped at the numerical rank; 3: numpy VLAD
+    # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm; 4: VLAD in
+    # numpy, one BLAS thread per image (float32 rounding differs from torch's)
+    "descriptors": 4,
     "search": 1,
     "recall": 4,  # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP
 }

@@ -209,7 +209,8 @@ class Aggregator:
     by voting). ``options(method)`` is the descriptor stage's own hashed settings
     (method = the resolved method settings); ``columns(method)`` its CSV columns.
     ``image_descriptor`` is ``"module:function"`` with signature
-    ``(options, input store paths) -> (image index -> [dim] or [S, dim])``.
+    ``(options, input store paths) -> ImageDescriptor`` (stages/descriptors.py): a
+    callable ``image index -> [dim] or [S, dim]`` split into store reads and arithmetic.
     ``explanation``: the report's figure of how the method decided, besides the
     retrievals every method gets (a name in :data:`vprflow.plan.FIGURES`), or None.
     """

@@ -8,6 +8,8 @@ Per image: masks ``[S, Hm, Wm]`` at segmentation resolution, patch descriptors
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from vprflow.arrays import center_offset
@@ -28,14 +30,19 @@ def _patch_of_pixel(n_pixels: int, n_patches: int, patch_size: int, offset: int)
     return np.where((np.arange(n_pixels) >= offset) & (index < n_patches), index, -1)
 
 
-def _source_groups(
+@functools.lru_cache(maxsize=16)
+def _source_table(
     n_pixels: int, n_mask: int, n_patches: int, patch_size: int, offset: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Mask rows (or columns) each patch row (column) sees after nearest upsampling.
+) -> np.ndarray:
+    """Mask rows (or columns) each patch row (column) sees after nearest upsampling:
+    int ``[G, n_patches]``, column ``i`` listing patch ``i``'s mask rows, the last one
+    repeated up to the longest list's length ``G``.
 
-    Returns ``(sources, starts)``: patch ``i`` sees mask rows
-    ``sources[starts[i]:starts[i + 1]]``. ORing over these few mask rows equals ORing
-    over the patch's pixels of an upsampled mask, without building that mask.
+    ORing over these few mask rows equals ORing over the patch's pixels of an upsampled
+    mask, without building that mask; repeating a row does not change an OR, and a
+    rectangular table lets one fancy index gather every patch's rows at once. Each
+    patch's rows are consecutive (both maps are monotone). Cached: it depends only on
+    the shapes, the same for every image of a stage.
     """
     source = _source_index(n_pixels, n_mask)
     patch = _patch_of_pixel(n_pixels, n_patches, patch_size, offset)
@@ -44,7 +51,12 @@ def _source_groups(
     owners, sources = np.divmod(pairs, n_mask)
     if not np.array_equal(np.unique(owners), np.arange(n_patches)):
         raise ValueError(f"{n_patches} patches of {patch_size} px do not fit in {n_pixels} px")
-    return sources, np.searchsorted(owners, np.arange(n_patches))
+    starts = np.searchsorted(owners, np.arange(n_patches))
+    stops = np.append(starts[1:], len(sources))
+    step = np.arange((stops - starts).max())[:, None]
+    table = sources[np.minimum(starts + step, stops - 1)]
+    table.flags.writeable = False  # shared by every caller (cache)
+    return table
 
 
 def mask_patch_membership(
@@ -65,17 +77,20 @@ def mask_patch_membership(
     """
     height, width = image_size
     h, w = grid
-    masks = np.asarray(masks, dtype=bool)
+    masks = np.ascontiguousarray(masks, dtype=bool)
     if len(masks) == 0:
         return np.zeros((0, h * w), dtype=bool)
     # The grid's own centre crop (the backbone's, when the grid covers the image).
     top = center_offset(height, h * patch_size) if crop_aligned else 0
     left = center_offset(width, w * patch_size) if crop_aligned else 0
-    rows, row_starts = _source_groups(height, masks.shape[1], h, patch_size, top)
-    cols, col_starts = _source_groups(width, masks.shape[2], w, patch_size, left)
-    cells = np.logical_or.reduceat(masks[:, rows], row_starts, axis=1)
-    cells = np.logical_or.reduceat(cells[:, :, cols], col_starts, axis=2)
-    return cells.reshape(len(masks), h * w)
+    rows = _source_table(height, masks.shape[1], h, patch_size, top)  # [Gr, h]
+    cols = _source_table(width, masks.shape[2], w, patch_size, left)  # [Gc, w]
+    # OR as bitwise_or.reduce over uint8 (bool's bytes are 0 or 1) along a middle axis:
+    # whole rows at a time, ~10x faster than logical_or.reduceat over many short groups.
+    bits = masks.view(np.uint8)
+    cells = np.bitwise_or.reduce(bits[:, rows], axis=1)  # [S, Gr, h, Wm] -> [S, h, Wm]
+    cells = np.bitwise_or.reduce(cells[:, :, cols], axis=2)  # [S, h, Gc, w] -> [S, h, w]
+    return cells.reshape(len(masks), h * w).view(bool)
 
 
 def segment_centroids(masks: np.ndarray) -> np.ndarray:
@@ -83,13 +98,15 @@ def segment_centroids(masks: np.ndarray) -> np.ndarray:
 
     An empty mask gets NaN coordinates.
     """
-    masks = np.asarray(masks, dtype=bool)
-    area = masks.sum(axis=(1, 2)).astype(np.float64)
-    ys = np.arange(masks.shape[1], dtype=np.float64)
-    xs = np.arange(masks.shape[2], dtype=np.float64)
+    # Integer pixel counts per column and row (summing bool would widen to int64 first,
+    # twice as slow), then exact float64 weighted sums.
+    bits = np.ascontiguousarray(masks, dtype=bool).view(np.uint8)
+    columns = bits.sum(axis=1, dtype=np.int32)  # [S, W]
+    rows = bits.sum(axis=2, dtype=np.int32)  # [S, H]
+    area = columns.sum(axis=1).astype(np.float64)
     with np.errstate(invalid="ignore", divide="ignore"):
-        cx = (masks.sum(axis=1) @ xs) / area
-        cy = (masks.sum(axis=2) @ ys) / area
+        cx = (columns @ np.arange(bits.shape[2], dtype=np.float64)) / area
+        cy = (rows @ np.arange(bits.shape[1], dtype=np.float64)) / area
     return np.stack([cx, cy], axis=1)
 
 
@@ -123,8 +140,7 @@ def segment_adjacency(centroids: np.ndarray, small_graph: str = "published") -> 
         adjacency[order[:-1], order[1:]] = True
         adjacency[order[1:], order[:-1]] = True
         return adjacency
-    for v in range(n):
-        adjacency[v, indices[indptr[v] : indptr[v + 1]]] = True
+    adjacency[np.repeat(np.arange(n), np.diff(indptr)), indices] = True
     return adjacency
 
 

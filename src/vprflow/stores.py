@@ -13,6 +13,7 @@ import os
 import shutil
 import warnings
 from collections.abc import Iterator
+from concurrent.futures import Future, ThreadPoolExecutor, wait
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -21,6 +22,10 @@ import zarr
 import zarr.codecs
 
 COMPRESSOR = zarr.codecs.ZstdCodec(level=3)
+
+# RowWriter's background writes not yet waited for: a failing stage waits for them
+# before it deletes its temporary store, so that none lands in a deleted directory.
+_PENDING_WRITES: set[Future] = set()
 
 
 def temporary_path(path: str | Path) -> Path:
@@ -46,6 +51,8 @@ def atomic_store(path: str | Path, attrs: dict | None = None) -> Iterator[zarr.G
     try:
         yield group
     except BaseException:
+        done, _ = wait(list(_PENDING_WRITES))
+        _PENDING_WRITES.difference_update(done)
         shutil.rmtree(tmp, ignore_errors=True)
         raise
     # Snakemake may pre-create (or leave) the directory output; it holds no data.
@@ -133,8 +140,14 @@ def rows_per_chunk(row_bytes: int) -> int:
 
 
 class RowWriter:
-    """Append rows ``[n, *row_shape]`` to ``group[name]``, buffered and flushed in whole
-    chunks, so appending one image at a time does not recompress a chunk per image."""
+    """Append rows ``[n, *row_shape]`` to ``group[name]``, buffered and written in whole
+    chunks, so appending one image at a time does not recompress a chunk per image
+    (nor a partly filled chunk once per flush).
+
+    Each write (compression, mostly) runs on a background thread while the caller
+    computes the next rows; one write at a time, in order. :meth:`close` waits for
+    the last and re-raises a failed write.
+    """
 
     def __init__(self, group: zarr.Group, name: str, row_shape: tuple, dtype, chunk_rows: int):
         self.array = group.create_array(
@@ -150,6 +163,8 @@ class RowWriter:
         self.buffer: list[np.ndarray] = []
         self.buffered = 0
         self.written = 0
+        self._executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix=f"write-{name}")
+        self._pending: Future | None = None
 
     def append(self, rows: np.ndarray, what: str | None = None) -> None:
         """``what`` names the rows in a NaN/inf error (default: the array and row)."""
@@ -158,16 +173,34 @@ class RowWriter:
         self.buffer.append(rows)
         self.buffered += len(rows)
         if self.buffered >= self.chunk_rows:
-            self._flush()
+            self._flush(whole_chunks=True)
 
-    def _flush(self) -> None:
-        if self.buffered:
-            self.array.append(np.concatenate(self.buffer, axis=0), axis=0)
-            self.written += self.buffered
-            self.buffer, self.buffered = [], 0
+    def _flush(self, whole_chunks: bool = False) -> None:
+        """Write the buffered rows; with ``whole_chunks``, only as many as fill whole
+        chunks (the rest stay buffered)."""
+        count = self.buffered - self.buffered % self.chunk_rows if whole_chunks else self.buffered
+        if count == 0:
+            return
+        rows = np.concatenate(self.buffer, axis=0)  # a copy: the caller may reuse its arrays
+        self._wait()
+        self._pending = self._executor.submit(self.array.append, rows[:count], axis=0)
+        _PENDING_WRITES.add(self._pending)
+        self.written += count
+        self.buffered -= count
+        self.buffer = [rows[count:].copy()] if self.buffered else []
+
+    def _wait(self) -> None:
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
+            _PENDING_WRITES.discard(pending)
+            pending.result()
 
     def close(self) -> None:
-        self._flush()
+        try:
+            self._flush()
+            self._wait()
+        finally:
+            self._executor.shutdown()
 
 
 class RaggedWriter(RowWriter):

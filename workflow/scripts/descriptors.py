@@ -10,6 +10,7 @@ run_stage(
         sm.output[0],
         start=int(sm.wildcards.start),
         stop=int(sm.wildcards.stop),
+        threads=sm.threads,
     ),
     sm.threads,
 )

@@ -6,7 +6,13 @@ What a method computes per image is its registry entry's ``image_descriptor``
 
 from __future__ import annotations
 
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from dataclasses import dataclass
+
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from vprflow import stores
@@ -26,12 +32,19 @@ def compute_descriptors(
     out: str,
     start: int | None = None,
     stop: int | None = None,
+    threads: int = 1,
 ) -> None:
     """Per-image descriptors of one method, as its registry entry computes them.
 
     Aggregators with ``output="segments"`` write a ragged ``descriptors`` array (one
     row per segment, offsets per image), projected by the ``pca`` input when there is
     one; ``output="global"`` aggregators write ``descriptors [n, dim]``.
+
+    ``threads`` images are computed at once, each with one BLAS thread: per-image
+    products are small, and BLAS threads on them cost more than they save (up to 10x
+    on a busy machine, the pool's threads waiting for each other), while whole images
+    keep every thread busy. The stored values are the same for any ``threads``
+    (OpenBLAS rounds a product differently with a different number of its threads).
     """
     spec = params["params"]
     agg = aggregator(spec["aggregator"])
@@ -42,12 +55,23 @@ def compute_descriptors(
     pca = read_pca(inputs["pca"]) if "pca" in inputs else None
     dtype = np.dtype(spec.get("store_dtype", "float32"))
     attrs = {**stage_attrs("descriptors", params, images), "kind": agg.output}
-    with stores.atomic_store(out, attrs) as group:
+
+    def rows_of(data: tuple) -> np.ndarray:
+        rows = describe.compute(*data)
+        rows = rows if by_segment else rows[None]
+        return rows if pca is None else pca.transform(rows)
+
+    with (
+        stores.atomic_store(out, attrs) as group,
+        threadpool_limits(limits=1),
+        ThreadPoolExecutor(threads) as pool,
+    ):
+        # Store reads stay on this thread, in image order (the readers cache blocks).
+        reads = (describe.read(i) for i in images)
+        computed = in_order(pool, rows_of, reads, threads)
+        progress = tqdm(computed, total=len(images), desc=agg.name, unit="image")
         writer = None
-        for i in tqdm(images, desc=agg.name, unit="image"):
-            rows = describe(i) if by_segment else describe(i)[None]
-            if pca is not None:
-                rows = pca.transform(rows)
+        for i, rows in zip(images, progress, strict=True):
             if writer is None:
                 dim = rows.shape[1]
                 group.attrs["dim"] = dim
@@ -57,9 +81,36 @@ def compute_descriptors(
         writer.close()
 
 
+def in_order(pool: Executor, function: Callable, items: Iterable, workers: int) -> Iterator:
+    """``function(item)`` for each item, run on ``pool``, yielded in order; at most
+    ``2 * workers`` submitted ahead of the one yielded (bounded memory), each item
+    drawn from ``items`` on the calling thread."""
+    pending: deque[Future] = deque()
+    for item in items:
+        pending.append(pool.submit(function, item))
+        if len(pending) >= 2 * workers:
+            yield pending.popleft().result()
+    while pending:
+        yield pending.popleft().result()
+
+
 # ------------------------------------------------------------------ per-image functions
-# Each takes the method's options and the input store paths and returns
-# ``image index -> descriptor`` (``[dim]``, or ``[S, dim]`` for segment aggregators).
+# Each takes the method's options and the input store paths and returns an
+# ImageDescriptor: ``read(index)`` -> the image's inputs, ``compute(*inputs)`` ->
+# ``[dim]``, or ``[S, dim]`` for segment aggregators.
+
+
+@dataclass(frozen=True)
+class ImageDescriptor:
+    """One image's descriptor in two steps: ``read(index)`` -> a tuple of its inputs
+    (store reads: one thread, images in order), ``compute(*inputs)`` -> descriptor
+    (arithmetic only: safe on several images at once). Calling it does both."""
+
+    read: Callable[[int], tuple]
+    compute: Callable[..., np.ndarray]
+
+    def __call__(self, index: int) -> np.ndarray:
+        return self.compute(*self.read(index))
 
 
 def vlad_input(grid: np.ndarray, options: dict) -> np.ndarray:
@@ -80,10 +131,10 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
     height, width = features.attrs["image_size"]
     patch_size = int(features.attrs["patch_size"])
 
-    def describe(index: int) -> np.ndarray:
+    def compute(features: np.ndarray, masks: np.ndarray) -> np.ndarray:
         return image_segvlad(
-            vlad_input(read_features(index), options),
-            read_masks(index),
+            vlad_input(features, options),
+            masks,
             centres,
             (height, width),
             patch_size,
@@ -92,7 +143,7 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
             small_graph=options["small_graph"],
         )
 
-    return describe
+    return ImageDescriptor(lambda index: (read_features(index), read_masks(index)), compute)
 
 
 def anyloc_vlad_descriptor(options: dict, inputs: dict[str, str]):
@@ -102,11 +153,11 @@ def anyloc_vlad_descriptor(options: dict, inputs: dict[str, str]):
     read_features = FeatureReader(stores.open_store(inputs["features"]))
     centres = read_centres(inputs["vocabulary"])
 
-    def describe(index: int) -> np.ndarray:
-        grid = vlad_input(read_features(index), options)
+    def compute(grid: np.ndarray) -> np.ndarray:
+        grid = vlad_input(grid, options)
         return vlad(grid.reshape(-1, grid.shape[-1]), centres)
 
-    return describe
+    return ImageDescriptor(lambda index: (read_features(index),), compute)
 
 
 def snsm_descriptor(options: dict, inputs: dict[str, str]):
@@ -116,7 +167,9 @@ def snsm_descriptor(options: dict, inputs: dict[str, str]):
     read_features = FeatureReader(stores.open_store(inputs["features"]))
     keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
     settings = {k: options[k] for k in keys}
-    return lambda index: snsm(read_features(index), **settings)
+    return ImageDescriptor(
+        lambda index: (read_features(index),), lambda grid: snsm(grid, **settings)
+    )
 
 
 def pooled_descriptor(options: dict, inputs: dict[str, str]):
@@ -131,4 +184,7 @@ def pooled_descriptor(options: dict, inputs: dict[str, str]):
         "average": pooling.average_pool,
         "max": pooling.max_pool,
     }[options["aggregator"]]
-    return lambda index: pool(normalize_tokens(read_features(index), options["normalization"]))
+    return ImageDescriptor(
+        lambda index: (read_features(index),),
+        lambda grid: pool(normalize_tokens(grid, options["normalization"])),
+    )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
 from vprflow import stores
@@ -28,14 +29,17 @@ def fit_pca_stage(inputs: dict[str, str], params: dict, out: str) -> None:
     # Filled in place: for DINOv2-G this is 50,000 x 49,152 floats (10 GB), one copy only.
     sample = None
     filled = 0
-    for i in tqdm(range(dataset.n_reference), desc="pca sample", unit="image"):
-        rows = chosen[(chosen >= offsets[i]) & (chosen < offsets[i + 1])] - offsets[i]
-        if len(rows):
-            vectors = describe(i)
-            if sample is None:
-                sample = np.empty((len(chosen), vectors.shape[1]), dtype=np.float32)
-            sample[filled : filled + len(rows)] = vectors[rows]
-            filled += len(rows)
+    # One BLAS thread, as the descriptors stage computes them: the same vectors, bit
+    # for bit, whatever the rule's thread count.
+    with threadpool_limits(limits=1):
+        for i in tqdm(range(dataset.n_reference), desc="pca sample", unit="image"):
+            rows = chosen[(chosen >= offsets[i]) & (chosen < offsets[i + 1])] - offsets[i]
+            if len(rows):
+                vectors = describe(i)
+                if sample is None:
+                    sample = np.empty((len(chosen), vectors.shape[1]), dtype=np.float32)
+                sample[filled : filled + len(rows)] = vectors[rows]
+                filled += len(rows)
     if sample is None:
         raise ValueError(f"{segments_path}: the reference images have no segments to fit PCA on")
     fitted = fit_pca(sample, spec["dim"], spec["whiten"], spec["seed"], solver=spec["solver"])
