@@ -386,6 +386,7 @@ def test_missing_17places_images_say_where_to_put_them(tmp_path):
     from workflow_helpers import repo_config
 
     config["datasets"] = repo_config()["datasets"]
+    config["targets"] = []
     result = snakemake(
         tmp_path, write_config(tmp_path, config), "results/recall_17places.csv", "-n", check=False
     )
