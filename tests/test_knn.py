@@ -289,7 +289,7 @@ def test_group_max_bounds_every_group(dtype):
     values[1, 4] = -0.0
     values[1, 5] = torch.tensor([-0.0, 0.0, -1.0, -3.0, -0.0, -2.0, -5.0, -0.5])
     values = values.to(dtype)
-    peak = knn._group_max(values)
+    peak = knn._group_max(values, -1)
     assert peak.dtype == dtype
     expected = values.float().amax(-1).clamp(min=0)
     assert torch.equal(peak.float(), expected)
@@ -312,8 +312,10 @@ def test_select_leaves_out_only_keys_above_threshold(candidate_dtype):
         query = knn._side(torch.from_numpy(unit_vectors(rng, 30, 24)), low)
         raw, factor, _ = knn._product(query, ref)
         key = knn._keys(raw.clone(), factor, col_sq)
+        kept = raw.clone()
         cand, threshold, full = knn._select(raw, factor, col_sq, 9)
         assert full is None  # the grouped path: 1203 // 16 groups >= 4 * 9
+        assert torch.equal(raw, kept)  # widening passes key rows of raw later
         assert all(len(set(row.tolist())) == 9 for row in cand)
         left_out = torch.ones_like(key, dtype=torch.bool).scatter_(1, cand, False)
         assert torch.all(torch.where(left_out, key, torch.inf) >= threshold[:, None])
@@ -334,7 +336,7 @@ def test_grouped_selection_is_exact(monkeypatch, candidate_dtype, margin):
     calls = []
     group_max = knn._group_max
     monkeypatch.setattr(knn, "GROUP", 3)
-    monkeypatch.setattr(knn, "_group_max", lambda g: calls.append(g.shape) or group_max(g))
+    monkeypatch.setattr(knn, "_group_max", lambda g, d: calls.append(g.shape) or group_max(g, d))
     rng = np.random.default_rng(43)
     centres = unit_vectors(rng, 5, 40)
     database = clustered(rng, 700, 40, centres) * rng.uniform(0.5, 2, (700, 1)).astype(np.float32)
