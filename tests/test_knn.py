@@ -313,7 +313,7 @@ def test_select_leaves_out_only_keys_above_threshold(candidate_dtype):
         raw, factor, _ = knn._product(query, ref)
         key = knn._keys(raw.clone(), factor, col_sq)
         kept = raw.clone()
-        cand, threshold, full = knn._select(raw, factor, col_sq, 9)
+        cand, _, threshold, full = knn._select(raw, factor, col_sq, 9)
         assert full is None  # the grouped path: 1203 // 16 groups >= 4 * 9
         assert torch.equal(raw, kept)  # widening passes key rows of raw later
         assert all(len(set(row.tolist())) == 9 for row in cand)
@@ -372,3 +372,20 @@ def test_grouped_selection_duplicates_tie_to_the_lowest_index(monkeypatch):
     np.testing.assert_array_equal(distances[0], np.zeros(12, np.float32))
     np.testing.assert_array_equal(indices[0], np.arange(100, 112))
     check_against_float64(distances[1:], indices[1:], database, queries[1:], 12)
+
+
+def test_second_step_rescores_only_rows_that_need_it():
+    """Candidates beyond k + margin / 2 are re-scored only for rows whose certificate needs
+    them: here some rows take them, most do not, none is widened, and the result is exact."""
+    rng = np.random.default_rng(53)
+    centres = unit_vectors(rng, 6, 64)
+    database, queries = clustered(rng, 600, 64, centres), clustered(rng, 60, 64, centres)
+    k, margin, block = 12, 16, 300
+    stats = {}
+    distances, indices = exact_knn(
+        database, queries, k, device="cpu", block_database=block, margin=margin, stats=stats
+    )
+    passes = len(queries) * len(database) // block
+    assert stats["widened"] == 0
+    assert passes * (k + margin // 2) < stats["rescored"] < passes * (k + margin)
+    check_against_float64(distances, indices, database, queries, k)

@@ -307,15 +307,31 @@ def _search_block(
     # Columns of `raw` are the rows of ref.low: in ref.order when the block was reordered.
     col_sq = ref.sq_norm if ref.order is None else ref.sq_norm[ref.order]
     # Every item left out of `cand` has a key of at least `threshold` [nq].
-    cand, threshold, key = _select(raw, factor, col_sq, count)
+    cand, cand_key, threshold, key = _select(raw, factor, col_sq, count)
+    # Re-scored in two steps: first the k + margin / 2 best candidates by key, then the rest
+    # only for the rows whose certificate needs them (most need fewer than k + margin).
+    first = min(count, k + margin // 2)
+    rest = None
+    if first < count:
+        sorted_key, by_key = torch.sort(cand_key, dim=1)
+        cand = cand.gather(1, by_key)
+        cand, rest, rest_threshold = cand[:, :first], cand[:, first:], threshold
+        threshold = torch.minimum(threshold, sorted_key[:, first])
+        del sorted_key, by_key
+    del cand_key
+    done = first  # items of the block re-scored so far for the rows in `pending`
     best_d = best_i = run_d  # replaced by the first pass, which covers every row
     pending = None  # None: all rows
+    carried = None  # (distances, indices) re-scored in the first step, for the rows in `pending`
     while True:
         # Candidates in index order: _merge's tie rule needs it, and the gather is more local.
         cand = torch.sort(cand if ref.order is None else ref.order[cand], dim=1).values
         rows_q = query.x if pending is None else query.x[pending]
         cand_d = _rescore(rows_q, ref.x, cand)
         counters["rescored"] += cand.numel()
+        if carried is not None:
+            cand, position = torch.sort(torch.cat([carried[1], cand], 1), dim=1)
+            cand_d = torch.cat([carried[0], cand_d], 1).gather(1, position)
         prev_d = run_d if pending is None else run_d[pending]
         prev_i = run_i if pending is None else run_i[pending]
         merged_d, merged_i = _merge(prev_d, prev_i, cand_d, cand + offset, k)
@@ -323,13 +339,13 @@ def _search_block(
             best_d, best_i = merged_d, merged_i
         else:
             best_d[pending], best_i[pending] = merged_d, merged_i
-        if count == n_block:
+        if done == n_block:
             break
         # An item left out has key_j >= threshold, so its float32 distance is at least
         # |q|^2 + key_floor(threshold) - bound. If that exceeds the k-th distance kept
         # (which later blocks only lower), nothing left out can enter the top-k, not even as
-        # a tie. Otherwise take, for those rows, every item whose floor does not clear it:
-        # one more pass, sized exactly, instead of guessing.
+        # a tie. Otherwise those rows take the rest of their candidates and, if still not
+        # clear, every item whose floor does not clear it: one more pass, sized exactly.
         sq = query.sq_norm if pending is None else query.sq_norm[pending]
         limit = bound if pending is None else bound[pending]
         need_key = merged_d[:, k - 1] - sq + limit  # items need key_floor(key) > need_key
@@ -338,11 +354,16 @@ def _search_block(
             break
         where = torch.nonzero(unsafe).squeeze(1)
         pending = where if pending is None else pending[where]
+        if rest is not None:  # the first step covered every row: `pending` indexes `rest`
+            carried = (cand_d[where], cand[where])
+            cand, threshold, done, rest = rest[pending], rest_threshold[pending], count, None
+            continue
+        carried = None  # from scratch: the new candidates include those re-scored before
         counters["widened"] += len(pending)
         rows_key = key[pending] if key is not None else _keys(raw[pending], factor, col_sq)
         unclear = (key_floor(rows_key) <= need_key[where, None]).sum(1).max()
-        count = min(n_block, max(int(unclear) + 1, count + 1))
-        cand_key, cand = torch.topk(rows_key, count, dim=1, largest=False, sorted=False)
+        done = min(n_block, max(int(unclear) + 1, done + 1))
+        cand_key, cand = torch.topk(rows_key, done, dim=1, largest=False, sorted=False)
         threshold = cand_key.amax(1)
         del rows_key, cand_key
     return best_d, best_i
@@ -350,11 +371,11 @@ def _search_block(
 
 def _select(
     raw: torch.Tensor, factor: float, sq_norm: torch.Tensor, count: int
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
-    """The ``count`` items of smallest key per row of the raw product ``[n, m]``:
-    ``(columns [n, count], threshold [n], key)``, every item left out having a key of at
-    least ``threshold``; ``key`` is the full ``[n, m]`` key matrix when it was built, else
-    None.
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor | None]:
+    """``count`` candidates of small key per row of the raw product ``[n, m]``:
+    ``(columns [n, count], their keys [n, count], threshold [n], key)``, every item left
+    out having a key of at least ``threshold``; ``key`` is the full ``[n, m]`` key matrix
+    when it was built, else None.
 
     Blocks with many columns per candidate are cut into groups of :data:`GROUP` columns.
     A group's largest raw value keyed with its smallest ``|r|^2`` bounds every key in the
@@ -368,7 +389,7 @@ def _select(
     if groups < 4 * count or raw.element_size() not in _SIGNED:
         key = _keys(raw, factor, sq_norm)
         cand_key, cand = torch.topk(key, count, dim=1, largest=False, sorted=False)
-        return cand, cand_key.amax(1), key
+        return cand, cand_key, cand_key.amax(1), key
     whole = groups * GROUP
     # Group j is the columns j + t * groups, t < GROUP: strided, so the max-reduction runs
     # along contiguous rows (3x faster than over short contiguous runs).
@@ -394,7 +415,7 @@ def _select(
         cand = torch.cat([cand, tail], 1).gather(1, position)
     # Left out: items of other groups (keys >= their bounds >= the largest bound chosen)
     # and items keyed here but not kept (keys >= the largest key kept).
-    return cand, torch.minimum(low_bounds.amax(1), cand_key.amax(1)), None
+    return cand, cand_key, torch.minimum(low_bounds.amax(1), cand_key.amax(1)), None
 
 
 # Floating-point dtypes' bit patterns as signed integers of the same width.
