@@ -65,7 +65,8 @@ CANDIDATE_DTYPES = {"bfloat16": torch.bfloat16, "float16": torch.float16, "float
 
 # Extra candidates per block beyond k, per candidate dtype. Correctness does not depend on
 # it (the cut-off is certified, and rows it does not cover get one exactly sized extra
-# pass); it trades re-scoring ~margin extra candidates per row against that pass. Measured
+# pass); it trades re-scoring up to margin extra candidates per row (margin / 2 for every
+# row, the rest only for rows that need them) against that pass. Measured
 # k = 50 on 20,000-row blocks of 1024-d unit vectors, 200 queries, the fewest candidates the
 # certificate accepts: bf16 random data median 77 / max 100, clustered 68 / 83; float32 at
 # most 59. So bf16 takes 64 extra; float32 (bound ~10x smaller) 16; float16 (8x finer input
