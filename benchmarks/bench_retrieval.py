@@ -18,11 +18,12 @@ raised it over the resident size after loading and warm-up, i.e. the method's ow
 memory and outputs. tracemalloc would miss both torch's and faiss's native allocations.
 
 Columns: ``time s`` is wall-clock time, ``cpu s`` the process's CPU time over all its
-threads (both the fastest repeat; on a shared machine CPU time is the steadier of the two,
-as long as the methods use the same threads); ``/ faiss`` is each over faiss flat's;
-``agree@k`` is the mean fraction of
-each query's top-k set shared with faiss flat (:func:`vprflow.knn.topk_agreement`; below 1
-only through near-ties within float32 rounding). Voting is
+threads (both the fastest repeat); ``/ faiss`` is each over faiss flat's. On a machine
+shared with other jobs both mislead: threads waiting at barriers burn CPU time, and the
+torch path (many short multi-threaded steps) suffers more than faiss (one long GEMM), so
+compare methods on an idle machine. ``agree@k`` is the mean fraction of each query's top-k
+set shared with faiss flat (:func:`vprflow.knn.topk_agreement`; below 1 only through
+near-ties within float32 rounding). Voting is
 :func:`vprflow.retrieval.vote_ranking` on faiss flat's lists with 85 segments per image;
 its note gives the fraction of query images whose top-50 ranking is identical when voted
 from the exact bf16 lists instead.

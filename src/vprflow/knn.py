@@ -41,6 +41,11 @@ least the largest bound expanded, which the certificate uses like the largest ke
 (:func:`_select`). Database blocks whose norms differ are reordered by norm, so that a
 group's bound stays close to its items' keys. Candidates are re-scored in two steps: the
 ``k + margin / 2`` best by key, then the rest only for rows the certificate does not clear.
+On one Zen 4 core (34,510 x 4,096 1024-d unit vectors, k 50, runs interleaved with faiss
+flat) bf16 candidates took 1.48 CPU s against faiss flat's 2.73 (1.90 s before these
+changes): 0.8 s of product (about 360 GFLOP/s per core), the rest selection, 87-91
+re-scored candidates per query and merging. The bf16 product alone bounds the speed-up over
+faiss flat's float32 GEMM (about 100 GFLOP/s per core) at about 3.5x.
 
 int8 candidates (``torch._int_mm``, about 1.45x the bf16 GEMM per core on an AVX512-VNNI
 Zen 4) were measured and left out: symmetric per-row int8 rounding leaves residuals about
