@@ -17,9 +17,13 @@ the process's ``ru_maxrss`` (inputs included); ``search`` is how much the first 
 raised it over the resident size after loading and warm-up, i.e. the method's own working
 memory and outputs. tracemalloc would miss both torch's and faiss's native allocations.
 
-Columns: ``/ faiss`` is the time over faiss flat's; ``agree@k`` is the mean fraction of
-each query's top-k set shared with faiss flat (:func:`vprflow.knn.topk_agreement`; below 1
-only through near-ties within float32 rounding). Voting is
+Columns: ``time s`` is wall-clock time, ``cpu s`` the process's CPU time over all its
+threads (both the fastest repeat); ``/ faiss`` is each over faiss flat's. On a machine
+shared with other jobs both mislead: threads waiting at barriers burn CPU time, and the
+torch path (many short multi-threaded steps) suffers more than faiss (one long GEMM), so
+compare methods on an idle machine. ``agree@k`` is the mean fraction of each query's top-k
+set shared with faiss flat (:func:`vprflow.knn.topk_agreement`; below 1 only through
+near-ties within float32 rounding). Voting is
 :func:`vprflow.retrieval.vote_ranking` on faiss flat's lists with 85 segments per image;
 its note gives the fraction of query images whose top-50 ranking is identical when voted
 from the exact bf16 lists instead.
@@ -87,17 +91,19 @@ def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
 
     search(database[:2000], queries[:64], {})  # warm-up: thread pools, kernels, faiss init
     base = max_rss_mib()
-    times = []
+    times, cpu = [], []
     for _ in range(args.repeat):
         stats: dict = {}
-        start = time.perf_counter()
+        start, start_cpu = time.perf_counter(), time.process_time()
         distances, indices = search(database, queries, stats)
         times.append(time.perf_counter() - start)
+        cpu.append(time.process_time() - start_cpu)
         if len(times) == 1:
             peak = max_rss_mib()  # repeats reuse the memory; the first shows what it takes
     np.save(folder / f"{method}_distances.npy", distances)
     np.save(folder / f"{method}_indices.npy", indices)
     report = {"seconds": min(times), "median": float(np.median(times)), "search_mib": peak - base}
+    report["cpu_seconds"] = min(cpu)
     report["stats"] = stats
     (folder / f"{method}.json").write_text(json.dumps(report))
 
@@ -176,7 +182,7 @@ def main() -> None:
         f"exact path on {args.device}), faiss {faiss.__version__} "
         f"({faiss.omp_get_max_threads()} threads)\n"
     )
-    header = f"{'method':<34}{'time s':>9}{'/ faiss':>9}{'agree@k':>10}"
+    header = f"{'method':<34}{'time s':>9}{'/ faiss':>9}{'cpu s':>9}{'/ faiss':>9}{'agree@k':>10}"
     header += f"{'search MiB':>12}{'peak MiB':>10}  notes"
     print(header)
     print("-" * len(header))
@@ -194,13 +200,15 @@ def main() -> None:
         if stats:
             per_row = stats["rescored"] / args.query_segments
             notes += f"; {per_row:.0f} re-scored/query, {stats['widened']} rows widened"
+        cpu = report["cpu_seconds"]
         print(
             f"{names[method]:<34}{seconds:>9.2f}{seconds / reference['seconds']:>9.2f}"
+            f"{cpu:>9.2f}{cpu / reference['cpu_seconds']:>9.2f}"
             f"{agreement:>10.5f}{report['search_mib']:>12.0f}{report['peak_mib']:>10.0f}  {notes}"
         )
     same = float(np.mean(np.all(ranking == ranking_exact, axis=1)))
     print(
-        f"{'vote_ranking (faiss lists)':<34}{vote_seconds:>9.2f}{'':>41}  {n_query:,} x "
+        f"{'vote_ranking (faiss lists)':<34}{vote_seconds:>9.2f}{'':>59}  {n_query:,} x "
         f"{n_ref:,} images, top {VOTE_TOP}; {same:.2%} of rankings equal with exact bf16 lists"
     )
 

@@ -156,7 +156,8 @@ def test_certified_error_bound_holds(candidate_dtype):
     ):
         data = torch.from_numpy(data.astype(np.float32))
         ref, query = knn._side(data[:200], low), knn._side(data[200:], low)
-        product, unit = knn._product(query, ref)
+        raw, factor, unit = knn._product(query, ref)
+        product = raw.float() * factor  # s~
         approx = query.sq_norm[:, None] + ref.sq_norm[None, :] - 2 * product
         exact = ((data[200:, None, :] - data[None, :200, :]) ** 2).sum(-1)
         bound = knn._error_bound(query, ref)[:, None] + 2 * unit / (1 - unit) * product.abs()
@@ -274,3 +275,117 @@ def test_topk_agreement():
     assert topk_agreement(np.array([[1], [2]]), np.array([[2], [1]])) == 0.0
     with pytest.raises(ValueError):
         topk_agreement(a, a[:, :2])
+
+
+@pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.float32])
+def test_group_max_bounds_every_group(dtype):
+    """Bit-pattern group maxima: the largest value where it is positive, else zero."""
+    from vprflow import knn
+
+    rng = np.random.default_rng(37)
+    values = torch.from_numpy(rng.standard_normal((6, 40, 8)).astype(np.float32))
+    values[0, :3] = -values[0, :3].abs()  # all negative
+    values[1, 3] = 0.0
+    values[1, 4] = -0.0
+    values[1, 5] = torch.tensor([-0.0, 0.0, -1.0, -3.0, -0.0, -2.0, -5.0, -0.5])
+    values = values.to(dtype)
+    peak = knn._group_max(values, -1)
+    assert peak.dtype == dtype
+    expected = values.float().amax(-1).clamp(min=0)
+    assert torch.equal(peak.float(), expected)
+
+
+@pytest.mark.parametrize("candidate_dtype", ["bfloat16", "float32"])
+def test_select_leaves_out_only_keys_above_threshold(candidate_dtype):
+    """_select by column groups (with a partial last group): distinct candidates, and every
+    item left out has a key of at least the threshold, for unit and unnormalised rows (the
+    latter reordered by norm, as exact_knn does)."""
+    from vprflow import knn
+
+    rng = np.random.default_rng(41)
+    low = knn.CANDIDATE_DTYPES[candidate_dtype]
+    scaled = unit_vectors(rng, 1203, 24) * rng.uniform(0.2, 3.0, (1203, 1)).astype(np.float32)
+    for ref_data in (unit_vectors(rng, 1203, 24), scaled):
+        ref = knn._by_norm(knn._side(torch.from_numpy(ref_data), low))
+        assert (ref.order is None) == (ref_data is not scaled)
+        col_sq = ref.sq_norm if ref.order is None else ref.sq_norm[ref.order]
+        query = knn._side(torch.from_numpy(unit_vectors(rng, 30, 24)), low)
+        raw, factor, _ = knn._product(query, ref)
+        key = knn._keys(raw.clone(), factor, col_sq)
+        kept = raw.clone()
+        cand, _, threshold, full = knn._select(raw, factor, col_sq, 9)
+        assert full is None  # the grouped path: 1203 // 16 groups >= 4 * 9
+        assert torch.equal(raw, kept)  # widening passes key rows of raw later
+        assert all(len(set(row.tolist())) == 9 for row in cand)
+        left_out = torch.ones_like(key, dtype=torch.bool).scatter_(1, cand, False)
+        assert torch.all(torch.where(left_out, key, torch.inf) >= threshold[:, None])
+        # Not vacuous: the threshold is about the 9th smallest key, as a full top-k's is.
+        # Unit rows: up to the float32 spread of |r|^2 within a group; unnormalised ones
+        # lose a little more (a group's smallest |r|^2 with its largest product).
+        ninth = key.kthvalue(9, dim=1).values
+        assert torch.all(threshold >= ninth - (0.05 if ref.order is not None else 1e-6))
+
+
+@pytest.mark.parametrize("candidate_dtype", ["bfloat16", "float32"])
+@pytest.mark.parametrize("margin", [0, 4])
+def test_grouped_selection_is_exact(monkeypatch, candidate_dtype, margin):
+    """Blocks wide enough for selection by column groups (small groups here): exact against
+    float64 on clustered, unnormalised data with ragged blocks, widening included."""
+    from vprflow import knn
+
+    calls = []
+    group_max = knn._group_max
+    monkeypatch.setattr(knn, "GROUP", 3)
+    monkeypatch.setattr(knn, "_group_max", lambda g, d: calls.append(g.shape) or group_max(g, d))
+    rng = np.random.default_rng(43)
+    centres = unit_vectors(rng, 5, 40)
+    database = clustered(rng, 700, 40, centres) * rng.uniform(0.5, 2, (700, 1)).astype(np.float32)
+    queries = clustered(rng, 50, 40, centres)
+    stats = {}
+    distances, indices = exact_knn(
+        database,
+        queries,
+        8,
+        device="cpu",
+        block_queries=32,
+        block_database=400,
+        candidate_dtype=candidate_dtype,
+        margin=margin,
+        stats=stats,
+    )
+    assert calls  # the grouped path ran
+    if margin == 0:
+        assert stats["widened"] > 0
+    check_against_float64(distances, indices, database, queries, 8)
+
+
+def test_grouped_selection_duplicates_tie_to_the_lowest_index(monkeypatch):
+    from vprflow import knn
+
+    monkeypatch.setattr(knn, "GROUP", 2)
+    rng = np.random.default_rng(47)
+    others = unit_vectors(rng, 300, 16)
+    target = unit_vectors(rng, 1, 16)
+    database = np.concatenate([others[:100], np.repeat(target, 30, axis=0), others[100:]])
+    queries = np.concatenate([target, unit_vectors(rng, 3, 16)])
+    distances, indices = exact_knn(database, queries, 12, device="cpu", margin=3)
+    np.testing.assert_array_equal(distances[0], np.zeros(12, np.float32))
+    np.testing.assert_array_equal(indices[0], np.arange(100, 112))
+    check_against_float64(distances[1:], indices[1:], database, queries[1:], 12)
+
+
+def test_second_step_rescores_only_rows_that_need_it():
+    """Candidates beyond k + margin / 2 are re-scored only for rows whose certificate needs
+    them: here some rows take them, most do not, none is widened, and the result is exact."""
+    rng = np.random.default_rng(53)
+    centres = unit_vectors(rng, 6, 64)
+    database, queries = clustered(rng, 600, 64, centres), clustered(rng, 60, 64, centres)
+    k, margin, block = 12, 16, 300
+    stats = {}
+    distances, indices = exact_knn(
+        database, queries, k, device="cpu", block_database=block, margin=margin, stats=stats
+    )
+    passes = len(queries) * len(database) // block
+    assert stats["widened"] == 0
+    assert passes * (k + margin // 2) < stats["rescored"] < passes * (k + margin)
+    check_against_float64(distances, indices, database, queries, k)
