@@ -21,7 +21,10 @@ import numpy as np
 import zarr
 import zarr.codecs
 
-COMPRESSOR = zarr.codecs.ZstdCodec(level=3)
+# Level 1: on descriptor arrays it compresses within 3% of level 3 at a third of the
+# time (2.08 vs 2.13 on sparse VLAD rows, 91 vs 262 ms per 26 MB), which bounded the
+# per-image speed of stages writing ~400 KB per image. Values are the same at any level.
+COMPRESSOR = zarr.codecs.ZstdCodec(level=1)
 
 # RowWriter's background writes not yet waited for: a failing stage waits for them
 # before it deletes its temporary store, so that none lands in a deleted directory.
