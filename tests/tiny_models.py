@@ -1,9 +1,9 @@
-"""Tiny randomly initialised DINOv2, DINO, SAM, SAM-HQ and SAM 2 checkpoints, saved like
-real ones.
+"""Tiny randomly initialised DINOv2, DINOv3, DINO, SAM, SAM-HQ and SAM 2 checkpoints,
+saved like real ones.
 
 No weights can be downloaded here; these exercise the real loaders end to end.
-``tiny_vit`` (DINOv2, DINOv2 with registers, DINO), ``tiny_sam``, ``tiny_sam_hq`` and
-``tiny_sam2`` return the model;
+``tiny_vit`` (DINOv2, DINOv2 with registers, DINOv3, DINO), ``tiny_sam``, ``tiny_sam_hq``
+and ``tiny_sam2`` return the model;
 the ``save_tiny_*`` wrappers save it to ``path`` and return the path. Every size is a
 keyword, so ``tiny_vit`` also makes the real-size architectures that
 ``benchmarks/bench_backbones.py`` times.
@@ -27,6 +27,8 @@ from transformers import (
     Dinov2Model,
     Dinov2WithRegistersConfig,
     Dinov2WithRegistersModel,
+    DINOv3ViTConfig,
+    DINOv3ViTModel,
     Sam2Config,
     Sam2Model,
     SamConfig,
@@ -69,7 +71,7 @@ def _initialise(
 
 
 # kind: (layers, patch side) of the tiny default
-_TINY_VIT = {"dinov2": (3, 14), "dino": (2, 8)}
+_TINY_VIT = {"dinov2": (3, 14), "dinov3": (3, 16), "dino": (2, 8)}
 
 
 def tiny_vit(
@@ -88,15 +90,17 @@ def tiny_vit(
     bias_offset: float = 0.0,
     **config: Any,
 ) -> torch.nn.Module:
-    """A ``kind="dinov2"`` model (DINOv2-with-registers if ``registers > 0``) or a
-    ``kind="dino"`` one (a ViT without pooler, MLP ``mlp_ratio * hidden_size`` wide).
+    """A ``kind="dinov2"`` model (DINOv2-with-registers if ``registers > 0``), a
+    ``kind="dinov3"`` one (``registers`` register tokens, MLP ``mlp_ratio * hidden_size``
+    wide, RoPE) or a ``kind="dino"`` one (a ViT without pooler, MLP as DINOv3's).
 
-    ``num_layers`` and ``patch_size`` default to 3 and 14 (DINOv2) or 2 and 8 (DINO);
+    ``num_layers`` and ``patch_size`` default to 3 and 14 (DINOv2), 3 and 16 (DINOv3) or
+    2 and 8 (DINO);
     ``config`` holds further config keys (e.g. ``use_swiglu_ffn``).
     """
     layers, patch = _TINY_VIT[kind]
-    if registers and kind != "dinov2":
-        raise ValueError(f"register tokens need kind='dinov2', not {kind!r}")
+    if registers and kind == "dino":
+        raise ValueError("register tokens need kind='dinov2' or 'dinov3', not 'dino'")
     config.update(
         hidden_size=hidden_size,
         num_hidden_layers=num_layers or layers,
@@ -107,6 +111,11 @@ def tiny_vit(
     if kind == "dino":
         vit = ViTConfig(intermediate_size=mlp_ratio * hidden_size, **config)
         build = partial(ViTModel, vit, add_pooling_layer=False)
+    elif kind == "dinov3":
+        vit = DINOv3ViTConfig(
+            intermediate_size=mlp_ratio * hidden_size, num_register_tokens=registers, **config
+        )
+        build = partial(DINOv3ViTModel, vit)
     elif registers:
         vit = Dinov2WithRegistersConfig(
             mlp_ratio=mlp_ratio, num_register_tokens=registers, **config
@@ -224,6 +233,11 @@ def tiny_sam2(
 
 def save_tiny_dinov2(path: Path, **kwargs: Any) -> Path:
     tiny_vit("dinov2", **kwargs).save_pretrained(path)
+    return path
+
+
+def save_tiny_dinov3(path: Path, **kwargs: Any) -> Path:
+    tiny_vit("dinov3", **kwargs).save_pretrained(path)
     return path
 
 

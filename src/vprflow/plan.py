@@ -379,7 +379,8 @@ def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> 
 
     Hub ids stand for themselves; local model directories and imported HDF5 files are
     hashed by content (memoised by path, size and modification time, because a
-    ViT-G checkpoint takes seconds to hash and the plan is built on every run).
+    ViT-G checkpoint takes seconds to hash and the plan is built on every run), as are
+    the kind's ``model_files`` in a local directory and a backbone's ``checkpoint`` file.
     ``where`` is the entry's config key (``backbones.<name>``), named in errors.
     """
     kind = model_kind(stage, entry)
@@ -390,7 +391,11 @@ def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> 
 
         model = entry["model"]
         if not is_local_model(model):
-            return {"model": model, "weights": f"hf:{model}"}
+            return {
+                "model": model,
+                "weights": f"hf:{model}",
+                **_checkpoint_fingerprint(entry, memo, where),
+            }
         if not Path(model).expanduser().exists():
             from vprflow.models import model_not_found
 
@@ -399,8 +404,21 @@ def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> 
                 + str(model_not_found(model, f"local directory {model!r} does not exist", None))
             )
         weights = _memoised(model, memo, weights_fingerprint, f"{where}.model")
-        return {"model": model, "weights": weights}
+        found = {"model": model, "weights": weights}
+        for name in kind.model_files:  # e.g. a DINOv3 directory's preprocessor_config.json
+            path = Path(model).expanduser() / name
+            if path.is_file():
+                found[name] = _memoised(path, memo, file_digest, f"{where}.model")
+        return {**found, **_checkpoint_fingerprint(entry, memo, where)}
     return {}
+
+
+def _checkpoint_fingerprint(entry: dict, memo: dict, where: str) -> dict:
+    """A backbone's ``checkpoint`` file (weights replacing the model's), hashed."""
+    if entry.get("checkpoint") is None:
+        return {}
+    sha = _memoised(entry["checkpoint"], memo, file_digest, f"{where}.checkpoint")
+    return {"checkpoint_sha256": sha}
 
 
 def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str | None:

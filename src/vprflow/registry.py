@@ -32,7 +32,9 @@ class ModelKind:
     ``defaults`` are filled into every config entry of this kind before hashing, so a
     key records what ran. ``weights`` says what identifies the model's output beyond
     its parameters: ``"model"`` (hub id, or a local directory hashed by content),
-    ``"file"`` (the imported file, hashed) or ``"none"`` (weight-free).
+    ``"file"`` (the imported file, hashed) or ``"none"`` (weight-free). ``model_files``:
+    files of a local model directory besides ``config.json`` and the weights that change
+    the output (hashed into the key when present).
     """
 
     name: str
@@ -41,6 +43,7 @@ class ModelKind:
     defaults: dict = field(default_factory=dict)
     weights: str = "none"
     uses_gpu: bool = False
+    model_files: tuple[str, ...] = ()
 
     def load(self, params: dict, device: str = "auto"):
         if self.loader is None:
@@ -73,6 +76,22 @@ BACKBONES: dict[str, ModelKind] = {
             {"model": "facebook/dinov2-giant", "layer": 31, **_VIT},
             weights="model",
             uses_gpu=True,
+        ),
+        # DINOv3 ViT-L/16 (24 blocks): block 18 (0-based) runs 19 of 24, the depth of
+        # AnyLoc's 31 of 40 (32 of 40 run); RoPE, so no pos_embed_interpolation. Its
+        # mean/std come from preprocessor_config.json when the directory has one.
+        ModelKind(
+            "dinov3",
+            "backbone",
+            "vprflow.vit:load_vit",
+            {
+                "model": "facebook/dinov3-vitl16-pretrain-lvd1689m",
+                "layer": 18,
+                **{k: v for k, v in _VIT.items() if k != "pos_embed_interpolation"},
+            },
+            weights="model",
+            uses_gpu=True,
+            model_files=("preprocessor_config.json",),
         ),
         # DINO v1: the last block (-1 counts from the end).
         ModelKind(

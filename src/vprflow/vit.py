@@ -1,25 +1,35 @@
-"""Dense patch features from DINOv2 / DINO (v1) vision transformers via transformers.
+"""Dense patch features from DINOv2 / DINOv3 / DINO (v1) vision transformers via transformers.
 
 ``load_vit(params, device)`` returns a :class:`VitBackbone` whose ``features`` maps a
 float image batch ``[B, H, W, 3]`` in ``[0, 1]`` to patch descriptors ``[B, h, w, D]``:
 
 1. centre-crop H, W down to multiples of the patch size (same offsets as torchvision's
    ``CenterCrop``, which AnyLoc uses: ``round((H - h*p) / 2)``);
-2. ImageNet mean/std normalisation;
+2. mean/std normalisation: ImageNet's, except for DINOv3, whose mean/std come from the
+   model directory's ``preprocessor_config.json`` (``image_mean`` / ``image_std``) when
+   it has one (the satellite ``*-sat493m`` models use other statistics) and are
+   ImageNet's otherwise (the web ``*-lvd1689m`` models' processor defaults);
 3. forward pass up to block ``layer`` (blocks after it are dropped from the loaded
    model, so DINOv2-G at layer 31 runs 32 of its 40 blocks);
 4. a forward hook takes the facet: ``query`` / ``key`` / ``value`` are the outputs of
    the block's attention q / k / v projections, which transformers applies to the
    block's normed input ``norm1(hidden)`` (the three thirds of the original ``qkv``
-   Linear); ``token`` is the block's output hidden state, optionally followed by the
-   model's final LayerNorm (``final_norm``, what SNSM uses on DINO's last block);
+   Linear). For DINOv3 these are taken before RoPE: the rotation transformers applies
+   afterwards to the patch tokens' queries and keys is not in the facet, so ``query`` /
+   ``key`` are the projections' outputs exactly as for DINOv2 (and position-independent
+   linear maps of the normed input); ``token`` is the block's output hidden state,
+   optionally followed by the model's final LayerNorm (``final_norm``, what SNSM uses
+   on DINO's last block, and SegVLAD-FineT on its fine-tuned DINOv2's);
 5. prefix tokens (CLS and any register tokens) are dropped: the patch tokens are the
    last ``h*w`` tokens of the sequence;
 6. optional per-patch L2 normalisation over channels (``normalize``).
 
-Position embeddings are interpolated for any input size: DINOv2 models always do it,
-``ViTModel`` (DINO v1) is called with ``interpolate_pos_encoding=True``. The rule is
-chosen by ``pos_embed_interpolation`` (``POS_EMBED_INTERPOLATIONS``):
+DINOv3 has no learned position embeddings: RoPE is computed for each input's patch
+grid, so ``pos_embed_interpolation`` does not apply and a DINOv3 entry that sets it is
+refused. Otherwise position embeddings are interpolated for any input size: DINOv2
+models always do it, ``ViTModel`` (DINO v1) is called with
+``interpolate_pos_encoding=True``. The rule is chosen by ``pos_embed_interpolation``
+(``POS_EMBED_INTERPOLATIONS``):
 
 - ``"original"`` (default): as the original facebookresearch/dinov2 and dino code does
   it. The stored ``M x M`` grid of patch position embeddings (``M = sqrt(N)``) is
@@ -39,8 +49,10 @@ chosen by ``pos_embed_interpolation`` (``POS_EMBED_INTERPOLATIONS``):
 from __future__ import annotations
 
 import inspect
+import json
 import math
 import types
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -54,7 +66,13 @@ from .registry import with_defaults
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 # AnyLoc / SegVLAD use block 31 (0-based) of DINOv2 ViT-G/14's 40 blocks.
-MODEL_TYPES = {"dinov2": ("dinov2", "dinov2_with_registers"), "dino": ("vit",)}
+MODEL_TYPES = {
+    "dinov2": ("dinov2", "dinov2_with_registers"),
+    "dinov3": ("dinov3_vit",),
+    "dino": ("vit",),
+}
+# Backbones whose positions come from RoPE: no position embeddings to interpolate.
+ROPE_BACKBONES = ("dinov3",)
 FACETS = ("query", "key", "value", "token")
 # Submodule names of the q/k/v projections: transformers >= 5 ("q_proj") and the
 # older layout ("attention.attention.query") that transformers 4.x builds.
@@ -63,7 +81,10 @@ _FACET_LINEARS = {
     "key": ("k_proj", "key"),
     "value": ("v_proj", "value"),
 }
-_BLOCK_LISTS = ("encoder.layer", "layers", "encoder.layers")
+_BLOCK_LISTS = ("encoder.layer", "layers", "encoder.layers", "model.layer")
+# The final LayerNorm: Dinov2Model / ViTModel call it `layernorm`, DINOv3ViTModel `norm`.
+_FINAL_NORMS = ("layernorm", "norm")
+PREPROCESSOR_CONFIG = "preprocessor_config.json"
 POS_EMBED_INTERPOLATIONS = ("original", "transformers")
 # Model types whose transformers interpolation differs from the original repositories'
 # (and gets replaced under "original"); "dinov2_with_registers" already matches.
@@ -178,7 +199,8 @@ class VitBackbone:
 
     Attributes: ``patch_size`` (pixels per patch side), ``layer`` (0-based block),
     ``facet``, ``dim`` (descriptor length D), ``device``, ``dtype``,
-    ``pos_embed_interpolation``. ``"original"`` replaces the interpolation method of
+    ``pos_embed_interpolation`` (``None`` for RoPE models), ``mean`` / ``std`` (the
+    per-channel normalisation). ``"original"`` replaces the interpolation method of
     ``model``'s embeddings module in place.
     """
 
@@ -192,10 +214,14 @@ class VitBackbone:
         final_norm: bool,
         device: torch.device,
         dtype: torch.dtype,
-        pos_embed_interpolation: str = "original",
+        pos_embed_interpolation: str | None = "original",
+        mean: tuple[float, float, float] = IMAGENET_MEAN,
+        std: tuple[float, float, float] = IMAGENET_STD,
     ):
-        self.pos_embed_interpolation = _check_pos_embed_interpolation(pos_embed_interpolation)
-        _set_pos_embed_interpolation(model, self.pos_embed_interpolation)
+        self.pos_embed_interpolation = None
+        if pos_embed_interpolation is not None:
+            self.pos_embed_interpolation = _check_pos_embed_interpolation(pos_embed_interpolation)
+            _set_pos_embed_interpolation(model, self.pos_embed_interpolation)
         parent, attribute, blocks = _find_blocks(model)
         # Blocks after `layer` never influence the tapped output: drop them to save
         # time and memory (this model object is private to the backbone).
@@ -205,9 +231,10 @@ class VitBackbone:
         self.tap = block if facet == "token" else _find_projection(block, facet)
         self.norm = None
         if final_norm:
-            self.norm = getattr(model, "layernorm", None)
-            if not isinstance(self.norm, nn.LayerNorm):
-                raise ValueError(f"{type(model).__name__} has no final `layernorm`")
+            norms = (getattr(model, name, None) for name in _FINAL_NORMS)
+            self.norm = next((n for n in norms if isinstance(n, nn.LayerNorm)), None)
+            if self.norm is None:
+                raise ValueError(f"{type(model).__name__} has no final LayerNorm {_FINAL_NORMS}")
         patch = model.config.patch_size
         self.patch_size = int(patch[0] if isinstance(patch, list | tuple) else patch)
         self.layer, self.facet, self.normalize = layer, facet, normalize
@@ -219,8 +246,9 @@ class VitBackbone:
         self._forward_kwargs = (
             {"interpolate_pos_encoding": True} if "interpolate_pos_encoding" in accepts else {}
         )
-        self._mean = torch.tensor(IMAGENET_MEAN, device=device).view(1, 3, 1, 1)
-        self._std = torch.tensor(IMAGENET_STD, device=device).view(1, 3, 1, 1)
+        self.mean, self.std = tuple(mean), tuple(std)
+        self._mean = torch.tensor(self.mean, device=device).view(1, 3, 1, 1)
+        self._std = torch.tensor(self.std, device=device).view(1, 3, 1, 1)
 
     def features(self, batch: np.ndarray) -> np.ndarray:
         """float32 ``[B, H, W, 3]`` in ``[0, 1]`` -> float32 ``[B, H//p, W//p, D]``."""
@@ -256,19 +284,49 @@ class VitBackbone:
             handle.remove()
 
 
+def _read_normalisation(source: str, model_name: str) -> tuple[tuple, tuple]:
+    """``(mean, std)`` from ``source``'s ``preprocessor_config.json``, ImageNet's when the
+    directory has none (or it names neither)."""
+    path = Path(source) / PREPROCESSOR_CONFIG
+    if not path.is_file():
+        return IMAGENET_MEAN, IMAGENET_STD
+    try:
+        processor = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise ValueError(f"model {model_name!r}: cannot read {path}: {error}") from error
+    values = []
+    for name, default in (("image_mean", IMAGENET_MEAN), ("image_std", IMAGENET_STD)):
+        value = processor.get(name, default)
+        if not (
+            isinstance(value, list | tuple)
+            and len(value) == 3
+            and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+            and (name == "image_mean" or all(v > 0 for v in value))
+        ):
+            raise ValueError(
+                f"model {model_name!r}: {path} has {name} {value!r}; expected 3 numbers"
+            )
+        values.append(tuple(float(v) for v in value))
+    return values[0], values[1]
+
+
 def load_vit(params: dict, device: str = "auto") -> VitBackbone:
-    """Load a DINOv2 (``Dinov2Model``) or DINO (``ViTModel``) backbone.
+    """Load a DINOv2 (``Dinov2Model``), DINOv3 (``DINOv3ViTModel``) or DINO
+    (``ViTModel``) backbone.
 
     ``params`` keys (others are ignored; ``batch_size`` is the caller's business):
-    ``backbone`` ``"dinov2"`` | ``"dino"``; ``model`` hub id or local directory
-    (defaults ``facebook/dinov2-giant`` / ``facebook/dino-vitb8``); ``cache_dir``;
-    ``layer`` 0-based block, negative counts from the end (default 31 for dinov2,
-    the last block for dino); ``facet`` ``"query"|"key"|"value"|"token"`` (default
-    ``"value"``); ``normalize`` per-patch L2 over channels (default ``True``);
-    ``final_norm`` final LayerNorm on the token facet (default ``False``); ``dtype``
-    ``"float32"|"bfloat16"|"float16"`` (default ``"float32"``);
-    ``pos_embed_interpolation`` ``"original"|"transformers"`` (default ``"original"``,
-    see the module docstring).
+    ``backbone`` ``"dinov2"`` | ``"dinov3"`` | ``"dino"``; ``model`` hub id or local
+    directory (defaults ``facebook/dinov2-giant`` /
+    ``facebook/dinov3-vitl16-pretrain-lvd1689m`` / ``facebook/dino-vitb8``);
+    ``cache_dir``; ``layer`` 0-based block, negative counts from the end (default 31 for
+    dinov2, 18 for dinov3, the last block for dino); ``facet``
+    ``"query"|"key"|"value"|"token"`` (default ``"value"``); ``normalize`` per-patch L2
+    over channels (default ``True``); ``final_norm`` final LayerNorm on the token facet
+    (default ``False``); ``dtype`` ``"float32"|"bfloat16"|"float16"`` (default
+    ``"float32"``); ``pos_embed_interpolation`` ``"original"|"transformers"`` (default
+    ``"original"``, see the module docstring; not for dinov3, which uses RoPE);
+    ``checkpoint`` (dinov2 only) a torch-hub-layout state dict file whose weights replace
+    the model's (:mod:`vprflow.checkpoints`, e.g. SegVLAD-FineT).
     Raises :class:`vprflow.models.ModelNotFoundError` when the weights are unavailable.
     """
     from transformers import AutoConfig, AutoModel
@@ -285,7 +343,18 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
     final_norm = bool(params["final_norm"])
     if final_norm and facet != "token":
         raise ValueError(f"final_norm applies to the 'token' facet only, not {facet!r}")
-    interpolation = _check_pos_embed_interpolation(params["pos_embed_interpolation"])
+    if backbone in ROPE_BACKBONES:
+        if params.get("pos_embed_interpolation") is not None:
+            raise ValueError(
+                f"pos_embed_interpolation does not apply to {backbone!r}: its positions are "
+                "RoPE, computed for every input's patch grid; remove the key"
+            )
+        interpolation = None
+    else:
+        interpolation = _check_pos_embed_interpolation(params["pos_embed_interpolation"])
+    checkpoint = params.get("checkpoint")
+    if checkpoint is not None and backbone != "dinov2":
+        raise ValueError(f"checkpoint applies to the 'dinov2' backbone only, not {backbone!r}")
     torch_device = resolve_device(device)
     dtype = resolve_dtype(params["dtype"], torch_device)
 
@@ -316,9 +385,16 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
             f"of the {type(model).__name__} architecture, e.g. {missing[:3]}; it does not "
             "match this transformers version or model type"
         )
+    if checkpoint is not None:
+        from .checkpoints import load_hub_checkpoint
+
+        load_hub_checkpoint(model, str(checkpoint))
     model = model.to(torch_device)
     _, _, blocks = _find_blocks(model)
     layer = _resolve_layer(params["layer"], len(blocks))
+    mean, std = IMAGENET_MEAN, IMAGENET_STD
+    if backbone == "dinov3":
+        mean, std = _read_normalisation(source, str(model_name))
     return VitBackbone(
         model,
         layer=layer,
@@ -328,4 +404,6 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
         device=torch_device,
         dtype=dtype,
         pos_embed_interpolation=interpolation,
+        mean=mean,
+        std=std,
     )
