@@ -82,13 +82,18 @@ CASES = {
         (480, 640),
         {"backbone": "dinov2", "layer": 31, "facet": "value"},
     ),
+    "dinov2-vitg14-bf16": (
+        "dinov2-vitg14",
+        (480, 640),
+        {"backbone": "dinov2", "layer": 31, "facet": "value", "dtype": "bfloat16"},
+    ),
     "dinov2-vitg14-eager": (
         "dinov2-vitg14",
         (480, 640),
         {"backbone": "dinov2", "layer": 31, "facet": "value", "attention": "eager"},
     ),
 }
-GIANT_CASES = ["dinov2-vitg14", "dinov2-vitg14-eager"]
+GIANT_CASES = ["dinov2-vitg14", "dinov2-vitg14-bf16", "dinov2-vitg14-eager"]
 DEFAULT_CASES = [
     name for name in CASES if name not in GIANT_CASES and name != "dinov3-vitl16-eager"
 ]
