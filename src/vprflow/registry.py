@@ -59,6 +59,21 @@ _VIT = {
     "cache_dir": None,
 }
 
+# Segment Anything's automatic mask generator defaults (segment-anything's
+# SamAutomaticMaskGenerator), shared by the SAM-family segmenters unless noted.
+_SAM_GENERATOR = {
+    "cache_dir": None,
+    "points_per_side": 32,
+    "points_per_batch": 64,
+    "pred_iou_thresh": 0.88,
+    "stability_score_thresh": 0.95,
+    "stability_score_offset": 1.0,
+    "box_nms_thresh": 0.7,
+    "min_mask_region_area": 0,
+    "mask_threshold": 0.0,
+    "dtype": "float32",
+}
+
 BACKBONES: dict[str, ModelKind] = {
     kind.name: kind
     for kind in (
@@ -126,19 +141,7 @@ SEGMENTERS: dict[str, ModelKind] = {
             "sam",
             "segmenter",
             "vprflow.sam:load_sam",
-            {
-                "model": "facebook/sam-vit-huge",
-                "cache_dir": None,
-                "points_per_side": 32,
-                "points_per_batch": 64,
-                "pred_iou_thresh": 0.88,
-                "stability_score_thresh": 0.95,
-                "stability_score_offset": 1.0,
-                "box_nms_thresh": 0.7,
-                "min_mask_region_area": 0,
-                "mask_threshold": 0.0,
-                "dtype": "float32",
-            },
+            {"model": "facebook/sam-vit-huge", **_SAM_GENERATOR},
             weights="model",
             uses_gpu=True,
         ),
@@ -148,20 +151,7 @@ SEGMENTERS: dict[str, ModelKind] = {
             "sam_hq",
             "segmenter",
             "vprflow.sam:load_sam_hq",
-            {
-                "model": "syscv-community/sam-hq-vit-huge",
-                "cache_dir": None,
-                "points_per_side": 32,
-                "points_per_batch": 64,
-                "pred_iou_thresh": 0.88,
-                "stability_score_thresh": 0.95,
-                "stability_score_offset": 1.0,
-                "box_nms_thresh": 0.7,
-                "min_mask_region_area": 0,
-                "mask_threshold": 0.0,
-                "hq_token_only": False,
-                "dtype": "float32",
-            },
+            {"model": "syscv-community/sam-hq-vit-huge", **_SAM_GENERATOR, "hq_token_only": False},
             weights="model",
             uses_gpu=True,
         ),
@@ -171,19 +161,7 @@ SEGMENTERS: dict[str, ModelKind] = {
             "sam2",
             "segmenter",
             "vprflow.sam:load_sam2",
-            {
-                "model": "facebook/sam2.1-hiera-large",
-                "cache_dir": None,
-                "points_per_side": 32,
-                "points_per_batch": 64,
-                "pred_iou_thresh": 0.8,
-                "stability_score_thresh": 0.95,
-                "stability_score_offset": 1.0,
-                "box_nms_thresh": 0.7,
-                "min_mask_region_area": 0,
-                "mask_threshold": 0.0,
-                "dtype": "float32",
-            },
+            {"model": "facebook/sam2.1-hiera-large", **_SAM_GENERATOR, "pred_iou_thresh": 0.8},
             weights="model",
             uses_gpu=True,
         ),
