@@ -38,6 +38,8 @@ import zipfile
 from collections.abc import Iterator
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
+from vprflow.files import write_text_atomic
+
 log = logging.getLogger("vprflow")
 
 # What `snakemake <RECORD>` builds: the record written once the dataset folder is in place.
@@ -381,8 +383,4 @@ def download_dataset(
 
 def write_record(record: dict, path: str | Path) -> None:
     """Write the record as JSON, atomically (temporary file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(record, indent=1, sort_keys=True) + "\n")
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(record, indent=1, sort_keys=True) + "\n")

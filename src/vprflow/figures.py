@@ -11,13 +11,13 @@ PNG to a temporary name first, so an interrupted job leaves no complete-looking 
 from __future__ import annotations
 
 import colorsys
-import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from vprflow.files import atomic_path
 from vprflow.images import resize_image
 
 CORRECT = (0.0, 0.75, 0.0)  # frame of a retrieved reference that is a true positive
@@ -168,12 +168,11 @@ def _pyplot():
 
 def save_figure(figure, path: str | Path, dpi: int = 100) -> None:
     """Write ``figure`` as a PNG at ``path`` via a temporary file, then close it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    figure.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
-    _pyplot().close(figure)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        try:
+            figure.savefig(tmp, format="png", dpi=dpi, bbox_inches="tight")
+        finally:
+            _pyplot().close(figure)
 
 
 def recall_curve_figure(curves: dict[str, np.ndarray], title: str, marks: Sequence[int] = ()):

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS
+from vprflow.files import write_text_atomic
 from vprflow.registry import SEARCH_INDEXES, aggregator, model_kind, prefixed
 
 CACHE = "results/cache"
@@ -112,11 +113,7 @@ def load_fingerprints(path: str | Path = FINGERPRINTS) -> dict:
 
 def save_fingerprints(memo: dict, path: str | Path = FINGERPRINTS) -> None:
     """Write the memo atomically, so a concurrent or killed run never leaves half a file."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f"{path.name}.{os.getpid()}.tmp")
-    tmp.write_text(json.dumps(memo, indent=1, sort_keys=True))
-    os.replace(tmp, path)
+    write_text_atomic(path, json.dumps(memo, indent=1, sort_keys=True))
 
 
 def store_path(stage: str, key: str) -> str:
@@ -330,12 +327,9 @@ def write_index(plan: Plan, root: str = "") -> Path:
             tmp.symlink_to(target, target_is_directory=True)
             os.replace(tmp, link)
     index = Path(root) / INDEX
-    index.parent.mkdir(parents=True, exist_ok=True)
     text = "\n".join(lines) + "\n"
     if not index.exists() or index.read_text() != text:
-        tmp = index.with_name(f"{index.name}.{os.getpid()}.tmp")
-        tmp.write_text(text)
-        os.replace(tmp, index)
+        write_text_atomic(index, text)
     return index
 
 

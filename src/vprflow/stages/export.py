@@ -15,12 +15,10 @@ stores").
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 
 from vprflow import stores
+from vprflow.files import atomic_path
 from vprflow.stages.dataset import Dataset
 
 
@@ -40,7 +38,5 @@ def export_descriptors(
     }
     if group.attrs["kind"] == "segments":
         arrays["offsets"] = np.asarray(group["descriptors_offsets"][...])
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(out).with_name(f".{Path(out).name}.tmp.npz")
-    np.savez(tmp, **arrays)
-    os.replace(tmp, out)
+    with atomic_path(out, suffix=".npz") as tmp:  # np.savez appends .npz otherwise
+        np.savez(tmp, **arrays)

@@ -13,6 +13,7 @@ import logging
 import numpy as np
 
 from vprflow import figures, stores
+from vprflow.files import write_text_atomic
 from vprflow.images import read_image
 from vprflow.stages.dataset import Dataset
 
@@ -55,7 +56,6 @@ def plot_recall(
 def write_recall_table(dataset_name: str, csv_path: str, out: str) -> None:
     """The results table as an HTML page the report displays (the CSV is a download)."""
     import csv
-    import os
     from pathlib import Path
 
     with open(csv_path, newline="") as f:
@@ -69,11 +69,7 @@ def write_recall_table(dataset_name: str, csv_path: str, out: str) -> None:
         "the largest N (SegVLAD ranks only voted images); a missing rank is a miss.",
         f"Every method parameter is a column of {Path(csv_path).name}.",
     ]
-    text = figures.recall_table_html(rows, f"{dataset_name}: Recall@N", notes)
-    Path(out).parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(out).with_name(f".{Path(out).name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, out)
+    write_text_atomic(out, figures.recall_table_html(rows, f"{dataset_name}: Recall@N", notes))
 
 
 def sampled_queries(

@@ -4,12 +4,11 @@ per-query top references with scores."""
 from __future__ import annotations
 
 import csv
-import os
-from pathlib import Path
 
 import numpy as np
 
 from vprflow import stores
+from vprflow.files import atomic_path
 from vprflow.stages.dataset import Dataset
 
 
@@ -88,13 +87,10 @@ def write_predictions(
 
 def _write_csv(path: str, header: list[str], rows: list[list]) -> None:
     """Write via a temporary file, so an interrupted job leaves no complete-looking table."""
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(path).with_name(f".{Path(path).name}.tmp")
-    with open(tmp, "w", newline="") as f:
+    with atomic_path(path) as tmp, open(tmp, "w", newline="") as f:
         writer = csv.writer(f, lineterminator="\n")
         writer.writerow(header)
         writer.writerows(rows)
-    os.replace(tmp, path)
 
 
 def _metric_cells(values: dict, columns: list[int]) -> list[str]:
