@@ -81,6 +81,11 @@ class Dataset:
         self.paths = [str(root / p) if root else p for p in relative]
         self.names = stores.read_strings(self.group, "names")
 
+    @property
+    def has_ground_truth(self) -> bool:
+        """False for ``ground_truth: {kind: none}``: rankings, but nothing to judge them by."""
+        return self.group.attrs["ground_truth_rule"] != "none"
+
     def truth(self) -> list[np.ndarray]:
         refs = np.asarray(self.group["truth"][...])
         offsets = np.asarray(self.group["truth_offsets"][...])

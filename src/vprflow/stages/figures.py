@@ -20,14 +20,10 @@ from vprflow.stages.dataset import Dataset
 log = logging.getLogger("vprflow")
 
 
-def _has_truth(dataset: Dataset) -> bool:
-    return dataset.group.attrs["ground_truth_rule"] != "none"
-
-
 def _with_positives(dataset: Dataset) -> np.ndarray:
     """Queries with at least one positive (every query when there is no ground truth:
     then any query can be shown, none judged)."""
-    if not _has_truth(dataset):
+    if not dataset.has_ground_truth:
         return np.ones(dataset.n_query, dtype=bool)
     return np.array([len(t) > 0 for t in dataset.truth()], dtype=bool)
 
@@ -39,10 +35,11 @@ def plot_recall(
     from vprflow.recall import counted_queries
 
     dataset = Dataset(dataset_path)
+    truth = dataset.truth()
     curves, marks, denominators = {}, set(), set()
     for method, path in zip(methods, recall_paths, strict=True):
         result = stores.open_store(path)
-        counted = counted_queries(dataset.truth(), result.attrs["denominator"])
+        counted = counted_queries(truth, result.attrs["denominator"])
         denominators.add((result.attrs["denominator"], int(counted.sum())))
         recall_at = sorted(int(n) for n in result.attrs["recall"])
         marks.update(recall_at)
@@ -78,7 +75,7 @@ def sampled_queries(
     """The queries a figure shows: ``count`` of those with a positive (only those wrong at
     rank 1 when ``settings["wrong_only"]``), chosen by ``settings["seed"]``."""
     candidates = np.flatnonzero(_with_positives(dataset))
-    if settings["wrong_only"] and _has_truth(dataset):
+    if settings["wrong_only"] and dataset.has_ground_truth:
         candidates = candidates[np.asarray(first_correct)[candidates] != 0]
     return figures.sample_queries(candidates, count, settings["seed"])
 
@@ -92,7 +89,7 @@ def draw_retrievals(
     result = stores.open_store(inputs["recall"])
     ranking = np.asarray(result["ranking"][...])
     first = np.asarray(result["first_correct"][...])
-    truth, judged = dataset.truth(), _has_truth(dataset)
+    truth, judged = dataset.truth(), dataset.has_ground_truth
     queries = sampled_queries(dataset, first, settings, settings["queries"])
     rows = []
     for q in queries:
@@ -185,7 +182,7 @@ def draw_segment_matches(
                 matches,
                 f"query {dataset.names[image]} -> {dataset.names[top1]}: {n_matched} of "
                 f"{len(matches)} query segments matched a segment of it",
-                bool(np.isin(top1, truth[q])) if _has_truth(dataset) else None,
+                bool(np.isin(top1, truth[q])) if dataset.has_ground_truth else None,
             )
         )
     if not explanations:
@@ -222,7 +219,7 @@ def draw_support_maps(
 
     rows = []
     for q in sampled_queries(dataset, first, settings, settings["explained_queries"]):
-        reference = int(truth[q][0]) if _has_truth(dataset) else int(top1[q])
+        reference = int(truth[q][0]) if dataset.has_ground_truth else int(top1[q])
         image = dataset.n_reference + q
         rows.append(
             (
@@ -234,7 +231,7 @@ def draw_support_maps(
                 support(reference),
             )
         )
-    which = "true" if _has_truth(dataset) else "top-1"
+    which = "true" if dataset.has_ground_truth else "top-1"
     title = f"{method}: support maps of sampled queries and their {which} references"
     figures.save_figure(figures.support_map_figure(rows, title), out)
 

@@ -39,7 +39,7 @@ def evaluate(
     n_ref, n_query = dataset.n_reference, dataset.n_query
     top_k = min(spec["top_k"], n_ref)
     truth = dataset.truth()
-    has_truth = dataset.group.attrs["ground_truth_rule"] != "none"
+    has_truth = dataset.has_ground_truth
     denominator = spec["denominator"]
     recall_exact = None
     if group.attrs["kind"] == "segments":
