@@ -150,3 +150,24 @@ def test_a_16_bit_grayscale_image_keeps_its_range_in_a_thumbnail(tmp_path):
     # Read as 16-bit (not clipped to 8-bit white): dark on the left, bright on the right.
     assert thumb[:, 0].max() < 0.05 and thumb[:, -1].min() > 0.95
     assert np.all(np.diff(thumb[12, :, 0]) >= -1e-6)
+
+
+@pytest.mark.parametrize(
+    ("denominator", "said", "not_said"),
+    [
+        ("with_positives", "the others are left out", "is a miss)"),
+        ("all", "is a miss)", "left out"),
+    ],
+)
+def test_recall_table_page_states_which_queries_were_counted(tmp_path, denominator, said, not_said):
+    from vprflow.stages.figures import write_recall_table
+
+    table = tmp_path / "recall_d.csv"
+    table.write_text(
+        "dataset,method,aggregator,ground_truth,denominator,n_queries,recall@1\n"
+        f"d,m,gem,pairs,{denominator},4,0.500000\n"
+    )
+    write_recall_table("d", str(table), str(tmp_path / "page.html"))
+    page = (tmp_path / "page.html").read_text()
+    assert said in page and not_said not in page
+    assert "ground-truth rule pairs" in page and "recall_d.csv" in page

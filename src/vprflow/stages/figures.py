@@ -58,15 +58,22 @@ def write_recall_table(dataset_name: str, csv_path: str, out: str) -> None:
     with open(csv_path, newline="") as f:
         rows = list(csv.DictReader(f))
     rules = sorted({row["ground_truth"] for row in rows})
+    counted = {
+        "with_positives": "the queries with at least one positive (the others are left out)",
+        "all": "all queries (one without a positive is a miss)",
+    }
+    denominators = sorted({row["denominator"] for row in rows})
     notes = [
         f"Positives by the ground-truth rule {', '.join(rules)}.",
-        "Recall@N: the fraction of queries with at least one positive whose first N "
-        "retrieved references include one (queries without a positive are not counted; "
-        "n_queries says how many are). n_short_rankings: queries that ranked fewer references than "
-        "the largest N (SegVLAD ranks only voted images); a missing rank is a miss.",
+        "Recall@N: the fraction of the counted queries whose first N retrieved references "
+        "include a positive; mAP@N as Revisit-Anything computes it (docs/methods.md §8). "
+        f"Counted: {'; '.join(counted[d] for d in denominators)}; n_queries says how many. "
+        "n_short_rankings: queries that ranked fewer references than the largest N "
+        "(SegVLAD ranks only voted images); a missing rank is a miss.",
         f"Every method parameter is a column of {Path(csv_path).name}.",
     ]
-    write_text_atomic(out, figures.recall_table_html(rows, f"{dataset_name}: Recall@N", notes))
+    title = f"{dataset_name}: Recall@N and mAP@N"
+    write_text_atomic(out, figures.recall_table_html(rows, title, notes))
 
 
 def sampled_queries(
