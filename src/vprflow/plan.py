@@ -264,24 +264,28 @@ def dataset_outputs(plan: Plan, dataset: str) -> list[str]:
     return outputs
 
 
+def method_run(plan: Plan, dataset: str, method: str) -> MethodRun:
+    """The row of ``method`` in ``dataset``'s table; an unknown one is named."""
+    runs = {run.method: run for run in plan.runs.get(dataset, [])}
+    if method not in runs:
+        raise PlanError(f"no method {method!r} on dataset {dataset!r}; its methods: {sorted(runs)}")
+    return runs[method]
+
+
 def method_stores(plan: Plan, dataset: str, method: str) -> dict[str, str]:
     """The stores of one method on one dataset by name: ``dataset``, ``features``,
     ``descriptors``, ``recall`` and, as the method has them, ``segments``,
     ``vocabulary``, ``pca``, ``search``."""
-    runs = {run.method: run for run in plan.runs.get(dataset, [])}
-    if method not in runs:
-        raise PlanError(f"no method {method!r} on dataset {dataset!r}; its methods: {sorted(runs)}")
-    recall = plan.get("recall", runs[method].recall_key)
+    recall = plan.get("recall", method_run(plan, dataset, method).recall_key)
     descriptors = plan.get(*recall.inputs["descriptors"])
     return {**descriptors.input_paths(), **recall.input_paths(), "recall": recall.path}
 
 
 def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[str, str]:
     """The stores one method's figure reads, by name (see :data:`FIGURES`)."""
-    stores = method_stores(plan, dataset, method)
-    run = next(run for run in plan.runs[dataset] if run.method == method)
-    if figure not in run.figures:
+    if figure not in method_run(plan, dataset, method).figures:
         raise PlanError(f"no figure {figure!r} of method {method!r} on dataset {dataset!r}")
+    stores = method_stores(plan, dataset, method)
     return {name: stores[name] for name in FIGURES[figure]}
 
 
