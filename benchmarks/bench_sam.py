@@ -15,6 +15,14 @@ case).
     python benchmarks/bench_sam.py --models sam-vit-h sam-hq-vit-h sam2-large \
         --points-per-side 32 --dtypes float32 bfloat16 --filters library
 
+    python benchmarks/bench_sam.py --decoders [--prompts 256] [--points-per-batch 64]
+
+``--decoders`` times prompt decoding alone, at the published decoder sizes (256
+channels, 64 x 64 embedding; SAM-HQ with ViT-H's 1280-channel early features) on random
+embeddings: vprflow's shared-image decoder (``vprflow.sam_decoder``) against a call of
+the transformers model, per 1,024 prompts (one 32 x 32 grid), with peak memory growth
+(CUDA: peak allocated).
+
 Columns: ``encoder s`` = image embedding only; ``first s`` = the first full call;
 ``best s`` = fastest of the repeats (the first call when ``--repeats 0``); ``img/s`` =
 1 / best; ``RSS MiB`` = process peak resident memory, ``+gen MiB`` = its growth during
@@ -184,6 +192,97 @@ def run_one(
     }
 
 
+def decoder_one(
+    kind: str, dtype_name: str, decoder: str, prompts: int, batch: int, device: str
+) -> dict:
+    """Time decoding ``prompts`` random points in batches of ``batch`` (this process)."""
+    import torch
+    import transformers
+
+    from vprflow.devices import resolve_device
+    from vprflow.sam import SAM_KINDS
+
+    torch_device = resolve_device(device)
+    cuda = torch_device.type == "cuda"
+
+    torch.manual_seed(0)
+    dtype = getattr(torch, dtype_name)
+    class_name, adapter_class = SAM_KINDS[kind]
+    # Smallest vision encoders (never run); decoders and prompt encoders at full size.
+    tiny_vit = {"hidden_size": 32, "num_hidden_layers": 1, "num_attention_heads": 2}
+    tiny_vit |= {"global_attn_indexes": [0], "mlp_dim": 64}
+    if kind == "sam2":
+        config = transformers.Sam2Config()
+    elif kind == "sam_hq":
+        config = transformers.SamHQConfig(
+            vision_config=tiny_vit, mask_decoder_config={"vit_dim": 1280}
+        )
+    else:
+        config = transformers.SamConfig(vision_config=tiny_vit)
+    model = getattr(transformers, class_name)._from_config(config, attn_implementation="sdpa")
+    model = model.to(device=torch_device, dtype=dtype).eval()
+    adapter = adapter_class(model, torch_device, dtype, shared_decoder=decoder == "shared")
+    g = torch.Generator().manual_seed(1)
+
+    def rand(*shape):
+        return torch.randn(*shape, generator=g).to(device=torch_device, dtype=dtype)
+
+    if kind == "sam2":
+        embedding = [rand(1, 32, 256, 256), rand(1, 64, 128, 128), rand(1, 256, 64, 64)]
+    else:
+        embedding = rand(1, 256, 64, 64)
+        if kind == "sam_hq":
+            embedding = (embedding, [rand(1, 64, 64, 1280)])
+    points = torch.from_numpy(np.random.default_rng(0).random((prompts, 2)) * 1024.0)
+    with torch.inference_mode():
+        adapter.decode(embedding, points[:batch])  # warm-up
+        rss_before = _rss_mib()
+        if cuda:
+            torch.cuda.synchronize()
+            torch.cuda.reset_peak_memory_stats()
+        start = time.perf_counter()
+        for first in range(0, prompts, batch):
+            adapter.decode(embedding, points[first : first + batch])
+        if cuda:
+            torch.cuda.synchronize()
+        elapsed = time.perf_counter() - start
+    memory = torch.cuda.max_memory_allocated() / 2**20 if cuda else _rss_mib() - rss_before
+    return {
+        "kind": kind,
+        "dtype": dtype_name,
+        "decoder": decoder,
+        "batch": batch,
+        "s_per_1024": elapsed * 1024 / prompts,
+        "ms_per_prompt": 1000 * elapsed / prompts,
+        "gen_mib": memory,
+    }
+
+
+def decoders_table(args) -> None:
+    print(f"SAM prompt decoding on {args.device}, random weights, per 1,024 prompts")
+    header = f"{'kind':7} {'dtype':8} {'decoder':12} {'batch':>5} {'s/1024':>7} {'ms/prompt':>9}"
+    header += f" {'+mem MiB':>8}"
+    print(header)
+    print("-" * len(header))
+    for kind in args.kinds:
+        for dtype in args.dtypes:
+            for batch in args.points_per_batch:
+                for decoder in ("transformers", "shared"):
+                    command = [sys.executable, __file__, "--decoder-one", kind, dtype, decoder]
+                    command += [str(args.prompts), str(batch), "--device", args.device]
+                    output = subprocess.run(command, capture_output=True, text=True)
+                    if output.returncode:
+                        error = (output.stderr.strip().splitlines() or ["?"])[-1]
+                        print(f"{kind:7} {dtype:8} {decoder:12} failed: {error}")
+                        continue
+                    row = json.loads(output.stdout.strip().splitlines()[-1])
+                    print(
+                        f"{kind:7} {dtype:8} {decoder:12} {batch:>5} {row['s_per_1024']:>7.2f} "
+                        f"{row['ms_per_prompt']:>9.2f} {row['gen_mib']:>8.0f}",
+                        flush=True,
+                    )
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     choices = [*MODELS, *LARGE]
@@ -194,7 +293,21 @@ def main() -> None:
     parser.add_argument("--dtypes", nargs="+", default=["float32"])
     parser.add_argument("--filters", nargs="+", default=list(FILTERS), choices=list(FILTERS))
     parser.add_argument("--one", nargs=4, metavar=("MODEL", "SIDE", "FILTERS", "DTYPE"))
+    parser.add_argument("--decoders", action="store_true", help="time prompt decoding only")
+    parser.add_argument("--kinds", nargs="+", default=["sam", "sam_hq", "sam2"])
+    parser.add_argument("--prompts", type=int, default=256, help="prompts timed (--decoders)")
+    parser.add_argument("--points-per-batch", type=int, nargs="+", default=[64])
+    parser.add_argument("--decoder-one", nargs=5, help=argparse.SUPPRESS)
     args = parser.parse_args()
+
+    if args.decoder_one:
+        kind, dtype, decoder, prompts, batch = args.decoder_one
+        row = decoder_one(kind, dtype, decoder, int(prompts), int(batch), args.device)
+        print(json.dumps(row))
+        return
+    if args.decoders:
+        decoders_table(args)
+        return
 
     if args.one:
         model, side, filters, dtype = args.one

@@ -5,8 +5,9 @@ through the real loader. Three kinds of check:
 
 - end to end: every kind returns boolean masks of the image's size;
 - adapters: the low-res logits and IoUs the generator decodes from (embedding computed
-  once, prompts in batches) equal one direct call of the transformers model on the same
-  pixels and prompts;
+  once, prompts in batches through ``vprflow.sam_decoder``) equal one direct call of the
+  transformers model on the same pixels and prompts (SAM-HQ: of the original decoder,
+  written with the model's modules; see ``test_sam_decoder``);
 - shared post-processing: with the adapter's decoder replaced by synthetic low-res
   logits, the generator's output equals a float64 reference that follows each original
   library (SAM / SAM-HQ: upscale to the padded input, crop, resize; SAM 2: one resize;
@@ -21,6 +22,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 from test_sam import mask_box, reference_generate
+from test_sam_decoder import hq_original
 from tiny_models import tiny_sam, tiny_sam2, tiny_sam_hq
 
 from vprflow.registry import SEGMENTERS
@@ -118,19 +120,28 @@ def test_loaded_with_sdpa_attention(saved):
 
 
 def _direct(kind, model, pixels, points):
-    """One transformers call on pixels and all points -> (logits [P, M, h, w], iou [P, M])."""
+    """One call on pixels and all points -> (logits [P, M, h, w], iou [P, M]): the
+    transformers model for SAM and SAM 2; for SAM-HQ the original library's decoder
+    written with the model's modules (transformers' differs: see test_sam_decoder)."""
     count = points.shape[0]
     prompts = {
         "input_points": points.float().reshape(1, count, 1, 2),
         "input_labels": torch.ones((1, count, 1), dtype=torch.int64),
-        "multimask_output": True,
     }
     with torch.no_grad():
-        out = model(pixel_values=pixels, **prompts)
-    logits, iou = out.pred_masks[0], out.iou_scores[0]
-    if kind == "sam_hq":  # sorted by IoU, each plus the HQ logits: the first is SAM-HQ's
-        logits, iou = logits[:, :1], iou[:, :1]
-    return logits, iou
+        if kind == "sam_hq":
+            embedding, intermediate = model.get_image_embeddings(pixels)
+            sparse, dense = model.prompt_encoder(**prompts, input_boxes=None, input_masks=None)
+            inputs = {
+                "embedding": embedding,
+                "intermediate": intermediate,
+                "image_pe": model.get_image_wide_positional_embeddings(),
+                "sparse": sparse,
+                "dense": dense,
+            }
+            return hq_original(model.mask_decoder, inputs, hq_token_only=False)
+        out = model(pixel_values=pixels, **prompts, multimask_output=True)
+    return out.pred_masks[0], out.iou_scores[0]
 
 
 def test_adapter_decode_equals_a_direct_model_call(saved):

@@ -44,7 +44,9 @@ FIGURES = {
 FORMAT_VERSIONS = {
     "dataset": 2,  # 2: paths relative to data_root, contents in the key
     "features": 3,  # 2: crop offsets round like torchvision; 3: published resize, pos-embed
-    "segments": 2,  # 2: published (OpenCV INTER_LINEAR) resize
+    # 2: published (OpenCV INTER_LINEAR) resize; 3: SAM prompts through sam_decoder
+    # (float32 rounding differs; SAM-HQ masks upscaled from the transformer's output)
+    "segments": 3,
     "vocabulary": 3,  # 2: `centres` (plain cluster means by default); 3: numpy assignment
     "pca": 3,  # 2: exact solver by default, capped at the numerical rank; 3: numpy VLAD
     # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm; 4: VLAD in

@@ -42,6 +42,12 @@ Deviations from the original, all deliberate:
   takes ``uint8`` images (8-bit inputs are reproduced exactly).
 - Connected components for the small-region clean-up come from ``scipy.ndimage.label``
   (8-connectivity) instead of OpenCV.
+- Prompts are decoded by :mod:`vprflow.sam_decoder` (the same function with the image-
+  side work shared across a batch's prompts; logits agree with transformers' decoder
+  to float32 rounding). For SAM-HQ it follows the original ``MaskDecoderHQ``, which
+  upscales the two-way transformer's output: transformers' ``SamHQMaskDecoder``
+  upscales the embedding from before the transformer (``shared_decoder=False`` keeps
+  transformers' behaviour, for comparison only).
 """
 
 from __future__ import annotations
@@ -52,6 +58,7 @@ import numpy as np
 import torch
 from PIL import Image
 
+from vprflow import sam_decoder
 from vprflow.registry import SEGMENTERS, with_defaults
 
 # The original automatic mask generator's defaults (ViT-H), stated in the registry.
@@ -265,14 +272,24 @@ def remove_small_regions(
 class SamAdapter:
     """transformers ``SamModel``: longest side resized to the model size with PIL
     bilinear, SAM's mean/std, zero padding; three masks per point; logits upscaled to
-    the padded input, cropped, then resized (the original ``postprocess_masks``)."""
+    the padded input, cropped, then resized (the original ``postprocess_masks``).
+
+    Prompts are decoded by :mod:`vprflow.sam_decoder` (the image-side work shared by a
+    batch's prompts); ``shared_decoder=False`` calls the transformers model instead (for
+    SAM and SAM 2 the same function, float32 rounding apart; for SAM-HQ transformers'
+    decoder differs from the original: see the module docstring). For benchmarks.
+    """
 
     masks_per_point = 3
 
-    def __init__(self, model, device: torch.device, dtype: torch.dtype):
+    def __init__(
+        self, model, device: torch.device, dtype: torch.dtype, shared_decoder: bool = True
+    ):
         self.model = model
         self.device = torch.device(device)
         self.dtype = dtype
+        self.shared_decoder = bool(shared_decoder)
+        self._image_pe = None
         self.model_size = int(model.config.vision_config.image_size)
         prompt_size = int(model.config.prompt_encoder_config.image_size)
         if prompt_size != self.model_size:
@@ -295,13 +312,30 @@ class SamAdapter:
         return {
             "input_points": points.to(self.device, torch.float32).reshape(1, count, 1, 2),
             "input_labels": torch.ones((1, count, 1), dtype=torch.int64, device=self.device),
-            "multimask_output": True,
         }
+
+    def _prompt_embeddings(self, points: torch.Tensor):
+        """Points ``[P, 2]`` -> the prompt encoder's sparse ``[1, P, S, C]`` and dense
+        ``[1, C, h, w]`` embeddings, and the image-wide positional encoding."""
+        if self._image_pe is None:
+            self._image_pe = self.model.get_image_wide_positional_embeddings()
+        sparse, dense = self.model.prompt_encoder(
+            **self._prompts(points), input_boxes=None, input_masks=None
+        )
+        return sparse, dense, self._image_pe
 
     def decode(self, embedding, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Points ``[P, 2]`` in model-input pixels -> low-res logits ``[P, M, h, w]`` and
         predicted IoUs ``[P, M]`` (``M = masks_per_point``), float32, on the device."""
-        output = self.model(image_embeddings=embedding, **self._prompts(points))
+        if self.shared_decoder:
+            sparse, dense, image_pe = self._prompt_embeddings(points)
+            logits, iou = sam_decoder.decode_sam(
+                self.model.mask_decoder, embedding, image_pe, sparse, dense
+            )
+            return logits.float(), iou.float()
+        output = self.model(
+            image_embeddings=embedding, **self._prompts(points), multimask_output=True
+        )
         return output.pred_masks[0].float(), output.iou_scores[0].float()
 
     def upscaler(
@@ -323,8 +357,8 @@ class SamHQAdapter(SamAdapter):
 
     masks_per_point = 1
 
-    def __init__(self, model, device, dtype, hq_token_only: bool = False):
-        super().__init__(model, device, dtype)
+    def __init__(self, model, device, dtype, hq_token_only: bool = False, shared_decoder=True):
+        super().__init__(model, device, dtype, shared_decoder)
         self.hq_token_only = bool(hq_token_only)
 
     def embed(self, pixels):
@@ -335,10 +369,23 @@ class SamHQAdapter(SamAdapter):
 
     def decode(self, embedding, points):
         final, intermediate = embedding
+        if self.shared_decoder:
+            sparse, dense, image_pe = self._prompt_embeddings(points)
+            logits, iou = sam_decoder.decode_sam_hq(
+                self.model.mask_decoder,
+                final,
+                intermediate,
+                image_pe,
+                sparse,
+                dense,
+                self.hq_token_only,
+            )
+            return logits.float(), iou.float()
         output = self.model(
             image_embeddings=final,
             intermediate_embeddings=intermediate,
             hq_token_only=self.hq_token_only,
+            multimask_output=True,
             **self._prompts(points),
         )
         return output.pred_masks[0, :, :1].float(), output.iou_scores[0, :, :1].float()
@@ -374,10 +421,12 @@ class Sam2Adapter(SamAdapter):
     resolution ones feed the decoder's upsampling); three masks per point; low-res logits
     resized straight to the image size (SAM 2's ``postprocess_masks``: no padding)."""
 
-    def __init__(self, model, device, dtype):
+    def __init__(self, model, device, dtype, shared_decoder: bool = True):
         self.model = model
         self.device = torch.device(device)
         self.dtype = dtype
+        self.shared_decoder = bool(shared_decoder)
+        self._image_pe = None
         self.model_size = int(model.config.prompt_encoder_config.image_size)
         vision = model.config.vision_config.backbone_config.image_size
         vision = [vision, vision] if isinstance(vision, int) else list(vision)
@@ -386,6 +435,15 @@ class Sam2Adapter(SamAdapter):
                 f"Sam2Model config mismatch: backbone image_size {vision} != prompt encoder "
                 f"image_size {self.model_size}"
             )
+
+    def decode(self, embedding, points):
+        if self.shared_decoder:
+            sparse, dense, image_pe = self._prompt_embeddings(points)
+            logits, iou = sam_decoder.decode_sam2(
+                self.model.mask_decoder, embedding, image_pe, sparse, dense
+            )
+            return logits.float(), iou.float()
+        return super().decode(embedding, points)
 
     def preprocess(self, image):
         return preprocess_image_sam2(image, self.model_size)
