@@ -15,7 +15,14 @@ case).
     python benchmarks/bench_sam.py --models sam-vit-h sam-hq-vit-h sam2-large \
         --points-per-side 32 --dtypes float32 bfloat16 --filters library
 
+    python benchmarks/bench_sam.py --models sam-vit-h --dtypes bfloat16 --filters library \
+        --points-per-side 32 --repeats 0 --image-batches 1 2 4 8
     python benchmarks/bench_sam.py --decoders [--prompts 256] [--points-per-batch 64]
+
+``--image-batches`` adds, per configuration, the image encoder's time per image on
+batches of B images (``SamSegmenter.generate_batch`` embeds a batch in one pass, then
+decodes prompts image by image): a whole image then costs encoder(B)/B plus the decoding
+time measured on the single image, with the process's peak memory after that batch.
 
 ``--decoders`` times prompt decoding alone, at the published decoder sizes (256
 channels, 64 x 64 embedding; SAM-HQ with ViT-H's 1280-channel early features) on random
@@ -137,7 +144,13 @@ def _large_segmenter(model: str, params: dict, device: str, dtype_name: str):
 
 
 def run_one(
-    model: str, side: int, filters: str, device: str, repeats: int, dtype: str = "float32"
+    model: str,
+    side: int,
+    filters: str,
+    device: str,
+    repeats: int,
+    dtype: str = "float32",
+    image_batches: tuple[int, ...] = (),
 ) -> dict:
     """One configuration in this process -> measurements (printed as JSON by main)."""
     import torch
@@ -176,6 +189,21 @@ def run_one(
         times.append(time.perf_counter() - start)
     rss_after = _rss_mib()
     best = min(times[1:] or times)
+
+    # Encoder passes over B images (generate_batch's first step; prompts are then
+    # decoded image by image, so a whole image costs encoder(B) / B + the decoding).
+    batches = {}
+    pixels, _ = segmenter.adapter.preprocess(image)
+    for size in image_batches:
+        if cuda:
+            torch.cuda.reset_peak_memory_stats()
+        with torch.inference_mode():
+            start = time.perf_counter()
+            segmenter.adapter.embed(pixels.repeat(size, 1, 1, 1))
+            sync()
+            elapsed = time.perf_counter() - start
+        peak = torch.cuda.max_memory_allocated() / 2**20 if cuda else _rss_mib()
+        batches[size] = {"encoder_s": elapsed / size, "peak_mib": peak}
     return {
         "model": model,
         "side": side,
@@ -189,6 +217,7 @@ def run_one(
         "images_per_s": 1.0 / best,
         "rss_mib": rss_after,
         "gen_mib": (torch.cuda.max_memory_allocated() / 2**20) if cuda else rss_after - rss_before,
+        "batches": batches,
     }
 
 
@@ -293,6 +322,13 @@ def main() -> None:
     parser.add_argument("--dtypes", nargs="+", default=["float32"])
     parser.add_argument("--filters", nargs="+", default=list(FILTERS), choices=list(FILTERS))
     parser.add_argument("--one", nargs=4, metavar=("MODEL", "SIDE", "FILTERS", "DTYPE"))
+    parser.add_argument(
+        "--image-batches",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also time the image encoder on batches of these many images",
+    )
     parser.add_argument("--decoders", action="store_true", help="time prompt decoding only")
     parser.add_argument("--kinds", nargs="+", default=["sam", "sam_hq", "sam2"])
     parser.add_argument("--prompts", type=int, default=256, help="prompts timed (--decoders)")
@@ -311,7 +347,10 @@ def main() -> None:
 
     if args.one:
         model, side, filters, dtype = args.one
-        print(json.dumps(run_one(model, int(side), filters, args.device, args.repeats, dtype)))
+        row = run_one(
+            model, int(side), filters, args.device, args.repeats, dtype, tuple(args.image_batches)
+        )
+        print(json.dumps(row))
         return
 
     header = (
@@ -328,6 +367,7 @@ def main() -> None:
                 for filters in args.filters:
                     command = [sys.executable, __file__, "--one", model, str(side), filters, dtype]
                     command += ["--device", args.device, "--repeats", str(args.repeats)]
+                    command += ["--image-batches", *map(str, args.image_batches)]
                     output = subprocess.run(command, capture_output=True, text=True)
                     if output.returncode:
                         error = (output.stderr.strip().splitlines() or ["?"])[-1]
@@ -342,6 +382,18 @@ def main() -> None:
                         f"{row['gen_mib']:>8.0f}",
                         flush=True,
                     )
+                    decode = row["best_s"] - row["batches"].get("1", {}).get(
+                        "encoder_s", row["encoder_s"]
+                    )
+                    for size, batch in row["batches"].items():
+                        whole = batch["encoder_s"] + decode
+                        print(
+                            f"{'':12}   image batch {size:>2}: "
+                            f"encoder {batch['encoder_s']:.2f} s/img,"
+                            f" decoding {decode:.2f} s/img -> {whole:.2f} s/img"
+                            f" ({1 / whole:.3f} img/s), peak {batch['peak_mib']:.0f} MiB",
+                            flush=True,
+                        )
 
 
 if __name__ == "__main__":

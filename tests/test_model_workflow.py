@@ -35,6 +35,7 @@ def test_corridor_with_tiny_dinov2_and_tiny_sam(tmp_path, data_root):
         points_per_side=6,
         pred_iou_thresh=0.0,
         stability_score_thresh=0.0,
+        batch_size=3,  # images per encoder pass through the rule (ragged last batch)
     )
     config["datasets"]["corridor"]["defaults"] = {
         "features": "dinov2_vitg14",

@@ -74,25 +74,16 @@ def _inputs(kind: str, dtype: torch.dtype, channels: int = 256):
     return inputs
 
 
-def _shared(kind, decoder, x, hq_token_only=False):
+def _shared(kind, decoder, x, hq_token_only=False, chunk=None):
+    common = {"image_pe": x["image_pe"], "sparse": x["sparse"], "dense": x["dense"]}
+    common["chunk"] = chunk
     with torch.no_grad():
         if kind == "sam":
-            return sam_decoder.decode_sam(
-                decoder, x["embedding"], x["image_pe"], x["sparse"], x["dense"]
-            )
+            return sam_decoder.decode_sam(decoder, x["embedding"], **common)
         if kind == "sam2":
-            embeddings = [*x["high_res"], x["embedding"]]
-            return sam_decoder.decode_sam2(
-                decoder, embeddings, x["image_pe"], x["sparse"], x["dense"]
-            )
+            return sam_decoder.decode_sam2(decoder, [*x["high_res"], x["embedding"]], **common)
         return sam_decoder.decode_sam_hq(
-            decoder,
-            x["embedding"],
-            x["intermediate"],
-            x["image_pe"],
-            x["sparse"],
-            x["dense"],
-            hq_token_only,
+            decoder, x["embedding"], x["intermediate"], hq_token_only=hq_token_only, **common
         )
 
 
@@ -159,12 +150,13 @@ def _reference(kind, decoder, x, hq_token_only=False):
     return _transformers(kind, decoder, x)
 
 
+@pytest.mark.parametrize("chunk", [None, 2])  # 2: chunks of 2, 2 and 1 prompts
 @pytest.mark.parametrize("kind", ["sam", "sam2", "sam_hq"])
-def test_float64_equals_the_direct_decoder(kind):
+def test_float64_equals_the_direct_decoder(kind, chunk):
     decoder = _decoder(kind, torch.float64)
     x = _inputs(kind, torch.float64)
     for hq_token_only in [False, True] if kind == "sam_hq" else [False]:
-        logits, iou = _shared(kind, decoder, x, hq_token_only)
+        logits, iou = _shared(kind, decoder, x, hq_token_only, chunk)
         expected_logits, expected_iou = _reference(kind, decoder, x, hq_token_only)
         per_point = 1 if kind == "sam_hq" else 3
         h, w = GRID

@@ -271,3 +271,27 @@ def test_shared_post_processing_on_synthetic_logits(saved, iou_thresh, stab_thre
     np.testing.assert_allclose(
         result.points[:, 1], (point // SIDE + 0.5) / SIDE * height, atol=1e-4
     )
+
+
+def test_generate_batch_equals_one_image_at_a_time(saved):
+    """One encoder pass over images of different sizes gives each image's own masks.
+
+    In float64 (model cast after loading) the batched encoder's rounding differs from
+    the single-image one by ~1e-15, far below any decision the generator makes.
+    """
+    kind, path, _ = saved
+    segmenter = _load(kind, path, pred_iou_thresh=0.0, stability_score_thresh=0.0)
+    segmenter.adapter.model.double()
+    segmenter.adapter.dtype = torch.float64
+    images = [_image(48, 80, seed=1), _image(70, 30, seed=2), _image(48, 80, seed=3)]
+    batched = segmenter.generate_batch(images)
+    assert len(batched) == 3
+    for image, result in zip(images, batched, strict=True):
+        alone = segmenter.generate(image)
+        assert result.masks.shape[1:] == image.shape[:2] and len(result.masks) > 0
+        assert result.candidate.tolist() == alone.candidate.tolist()
+        np.testing.assert_array_equal(result.masks, alone.masks)
+        np.testing.assert_allclose(result.iou_preds, alone.iou_preds, rtol=0, atol=1e-6)
+    # masks_batch is the masks of generate_batch.
+    for masks, result in zip(segmenter.masks_batch(images[:2]), batched, strict=False):
+        np.testing.assert_array_equal(masks, result.masks)

@@ -61,8 +61,8 @@ class Runner:
                         inputs["dataset"], params, shard, self.data_root, "cpu", 2, start, stop
                     )
                 elif stage.stage == "segments":
-                    compute_segments(
-                        inputs["dataset"], params, shard, self.data_root, "cpu", start, stop
+                    compute_segments(  # batch of 4: a ragged last batch in each shard
+                        inputs["dataset"], params, shard, self.data_root, "cpu", 4, start, stop
                     )
                 else:
                     compute_descriptors(inputs, params, shard, start, stop)

@@ -578,7 +578,11 @@ def _plan_method(
                     params,
                     {"dataset": ds},
                     dataset_name,
-                    {**execution, "uses_gpu": model_kind("segments", segmenter).uses_gpu},
+                    {
+                        **execution,
+                        "batch_size": segmenter.get("batch_size", 1),
+                        "uses_gpu": model_kind("segments", segmenter).uses_gpu,
+                    },
                 ),
             )
             row.update(segmenter=segmenter_name, **_prefixed("segmenter", segmenter))

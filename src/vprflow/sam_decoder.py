@@ -61,20 +61,27 @@ def _softmax(scores: torch.Tensor, dtype: torch.dtype, dim: int = -1) -> torch.T
     return torch.softmax(scores.to(wide), dim=dim).to(dtype)
 
 
-def token_to_image(attention, queries_pe, keys_pe, keys) -> torch.Tensor:
+def image_projections(attention, keys_pe, keys) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keys and values of a token->image attention over one image's ``[N, C]`` tokens ->
+    ``([H, N, d], [H, N, d])`` (computed once per image, whatever the prompts)."""
+    heads = attention.num_attention_heads
+    return _heads(attention.k_proj(keys_pe), heads), _heads(attention.v_proj(keys), heads)
+
+
+def token_to_image(attention, queries_pe, keys_pe, keys, projected=None) -> torch.Tensor:
     """Prompt tokens attending to the image -> the attention's output ``[P, T, C]``.
 
     ``queries_pe`` ``[P, T, C]``; ``keys_pe`` (keys plus positional encoding) and ``keys``
-    are ``[N, C]`` (the same for every prompt: projected once) or ``[P, N, C]``
-    (projections re-associated onto the ``T`` query tokens).
+    are ``[N, C]`` (the same for every prompt: projected once, or pass ``projected`` from
+    :func:`image_projections`) or ``[P, N, C]`` (projections re-associated onto the
+    ``T`` query tokens).
     """
     heads = attention.num_attention_heads
     query = _heads(attention.q_proj(queries_pe), heads) * attention.scaling  # [P, H, T, d]
     prompts, _, tokens, dim = query.shape
     if keys.dim() == 2:
         # All prompts' tokens against the one image: [H, P*T, d] x [H, d, N].
-        key = _heads(attention.k_proj(keys_pe), heads)  # [H, N, d]
-        value = _heads(attention.v_proj(keys), heads)
+        key, value = projected or image_projections(attention, keys_pe, keys)
         stacked = query.transpose(0, 1).reshape(heads, prompts * tokens, dim)
         weights = _softmax(stacked @ key.transpose(1, 2), query.dtype)  # [H, P*T, N]
         mixed = (weights @ value).view(heads, prompts, tokens, dim).transpose(0, 1)
@@ -124,25 +131,31 @@ def image_to_token(attention, keys_pe, queries_pe, queries, residual) -> torch.T
     return residual.baddbmm_(weights.mT, projected)
 
 
-def two_way_transformer(transformer, image, image_pe, tokens):
+def _self_attention(attention, query, value) -> torch.Tensor:
+    """transformers' attention module on one image's ``[P, T, C]`` tokens."""
+    return attention(query=query[None], key=query[None], value=value[None])[0][0]
+
+
+def two_way_transformer(transformer, image, image_pe, tokens, projected=None):
     """SAM's two-way transformer for ``P`` prompts on one image.
 
     ``image`` and ``image_pe`` ``[N, C]`` (embedding plus dense prompt, positional
     encoding); ``tokens`` ``[P, T, C]`` (output tokens then sparse prompt embeddings)
     -> ``(queries [P, T, C], keys [P, N, C])`` as ``transformer(...)`` returns them.
+    ``projected``: the first block's :func:`image_projections`, when already computed.
     """
     queries, keys = tokens, image
     for layer in transformer.layers:
         if layer.skip_first_layer_pe:
-            queries = layer.self_attn(query=queries[None], key=queries[None], value=queries[None])[
-                0
-            ][0]
+            queries = _self_attention(layer.self_attn, queries, queries)
         else:
-            query = (queries + tokens)[None]
-            queries = queries + layer.self_attn(query=query, key=query, value=queries[None])[0][0]
+            queries = queries + _self_attention(layer.self_attn, queries + tokens, queries)
         queries = _layer_norm(queries, layer.layer_norm1)
         keys_pe = keys + image_pe
-        attended = token_to_image(layer.cross_attn_token_to_image, queries + tokens, keys_pe, keys)
+        attended = token_to_image(
+            layer.cross_attn_token_to_image, queries + tokens, keys_pe, keys, projected
+        )
+        projected = None  # keys differ per prompt from here on
         queries = _layer_norm(queries + attended, layer.layer_norm2)
         queries = _layer_norm(queries + layer.mlp(queries), layer.layer_norm3)
         keys = image_to_token(
@@ -153,6 +166,24 @@ def two_way_transformer(transformer, image, image_pe, tokens):
         transformer.final_attn_token_to_image, queries + tokens, keys + image_pe, keys
     )
     return _layer_norm(queries + attended, transformer.layer_norm_final_attn), keys
+
+
+def _chunked(decode_tokens, transformer, image, image_pe, tokens, chunk):
+    """``decode_tokens(queries, keys)`` over the prompts ``chunk`` at a time (all at once
+    for ``None``) -> its outputs concatenated.
+
+    On a CPU small chunks keep one chunk's image-sized intermediates (~17 MB per prompt
+    in float32) in the last-level cache; the first block's image projections are shared
+    by all chunks.
+    """
+    first = transformer.layers[0].cross_attn_token_to_image
+    projected = image_projections(first, image + image_pe, image)
+    step = chunk or tokens.shape[0]
+    outputs = [
+        decode_tokens(*two_way_transformer(transformer, image, image_pe, part, projected))
+        for part in tokens.split(step)
+    ]
+    return tuple(torch.cat(parts) for parts in zip(*outputs, strict=True))
 
 
 def blocked(feature: torch.Tensor, levels: int) -> torch.Tensor:
@@ -220,6 +251,12 @@ def _masks(upscaled: torch.Tensor, hyper: torch.Tensor, height: int, width: int)
     return unblocked(values.view(prompts, size, 16, -1), height, width)
 
 
+def _tokens(output: torch.Tensor, sparse: torch.Tensor, dtype) -> torch.Tensor:
+    """Output tokens ``[O, C]`` and sparse prompts ``[1, P, S, C]`` -> ``[P, O + S, C]``."""
+    sparse = sparse[0]
+    return torch.cat([output.expand(sparse.shape[0], -1, -1), sparse], dim=1).to(dtype)
+
+
 def _image_tokens(embedding: torch.Tensor, dense: torch.Tensor, image_pe: torch.Tensor):
     """``[1, C, h, w]`` embedding, dense prompt and positional encoding -> ``[N, C]`` twice."""
     if embedding.shape[0] != 1 or dense.shape[0] != 1 or image_pe.shape[0] != 1:
@@ -228,26 +265,29 @@ def _image_tokens(embedding: torch.Tensor, dense: torch.Tensor, image_pe: torch.
     return image, image_pe[0].flatten(1).transpose(0, 1).to(image.dtype)
 
 
-def decode_sam(decoder, embedding, image_pe, sparse, dense):
+def decode_sam(decoder, embedding, image_pe, sparse, dense, chunk=None):
     """``SamMaskDecoder`` with ``multimask_output=True``, one image.
 
     ``embedding`` ``[1, C, h, w]``, ``image_pe`` ``[1, C, h, w]``, ``sparse`` ``[1, P, S, C]``,
     ``dense`` ``[1, C, h, w]`` -> low-res logits ``[P, 3, 4h, 4w]`` and IoUs ``[P, 3]``.
+    ``chunk``: prompts per pass (``None``: all).
     """
     height, width = embedding.shape[-2:]
     image, pe = _image_tokens(embedding, dense, image_pe)
-    sparse = sparse[0]
     output = torch.cat([decoder.iou_token.weight, decoder.mask_tokens.weight])
-    tokens = torch.cat([output.expand(sparse.shape[0], -1, -1), sparse], dim=1).to(image.dtype)
-    queries, keys = two_way_transformer(decoder.transformer, image, pe, tokens)
-    mask_tokens = queries[:, 1 : 1 + decoder.num_mask_tokens]
+    tokens = _tokens(output, sparse, image.dtype)
     selected = range(1, decoder.num_mask_tokens)
-    upscaled = upscale(decoder, keys, height, width)
-    masks = _masks(upscaled, _hyper(decoder, mask_tokens, selected), height, width)
-    return masks, decoder.iou_prediction_head(queries[:, 0])[:, 1:]
+
+    def decode_tokens(queries, keys):
+        mask_tokens = queries[:, 1 : 1 + decoder.num_mask_tokens]
+        upscaled = upscale(decoder, keys, height, width)
+        masks = _masks(upscaled, _hyper(decoder, mask_tokens, selected), height, width)
+        return masks, decoder.iou_prediction_head(queries[:, 0])[:, 1:]
+
+    return _chunked(decode_tokens, decoder.transformer, image, pe, tokens, chunk)
 
 
-def decode_sam2(decoder, embeddings, image_pe, sparse, dense):
+def decode_sam2(decoder, embeddings, image_pe, sparse, dense, chunk=None):
     """``Sam2MaskDecoder`` with ``multimask_output=True``, one image.
 
     ``embeddings``: the model's ``get_image_embeddings`` list (high-resolution levels
@@ -259,20 +299,24 @@ def decode_sam2(decoder, embeddings, image_pe, sparse, dense):
     image, pe = _image_tokens(embedding, dense, image_pe)
     feat_s0, feat_s1 = high_res
     blocked_high_res = (blocked(feat_s0[0], 2), blocked(feat_s1[0], 1))
-    sparse = sparse[0]
     output = torch.cat(
         [decoder.obj_score_token.weight, decoder.iou_token.weight, decoder.mask_tokens.weight]
     )
-    tokens = torch.cat([output.expand(sparse.shape[0], -1, -1), sparse], dim=1).to(image.dtype)
-    queries, keys = two_way_transformer(decoder.transformer, image, pe, tokens)
-    mask_tokens = queries[:, 2 : 2 + decoder.num_mask_tokens]
+    tokens = _tokens(output, sparse, image.dtype)
     selected = range(1, decoder.num_mask_tokens)
-    upscaled = upscale(decoder, keys, height, width, blocked_high_res)
-    masks = _masks(upscaled, _hyper(decoder, mask_tokens, selected), height, width)
-    return masks, decoder.iou_prediction_head(queries[:, 1])[:, 1:]
+
+    def decode_tokens(queries, keys):
+        mask_tokens = queries[:, 2 : 2 + decoder.num_mask_tokens]
+        upscaled = upscale(decoder, keys, height, width, blocked_high_res)
+        masks = _masks(upscaled, _hyper(decoder, mask_tokens, selected), height, width)
+        return masks, decoder.iou_prediction_head(queries[:, 1])[:, 1:]
+
+    return _chunked(decode_tokens, decoder.transformer, image, pe, tokens, chunk)
 
 
-def decode_sam_hq(decoder, embedding, intermediate, image_pe, sparse, dense, hq_token_only):
+def decode_sam_hq(
+    decoder, embedding, intermediate, image_pe, sparse, dense, hq_token_only, chunk=None
+):
     """``SamHQMaskDecoder`` with ``multimask_output=True``, one image, as SAM-HQ's
     automatic generator reads it: the best of SAM's three masks (highest predicted IoU)
     plus the HQ mask (or the HQ mask alone) -> logits ``[P, 1, 4h, 4w]``, IoUs ``[P, 1]``.
@@ -280,6 +324,8 @@ def decode_sam_hq(decoder, embedding, intermediate, image_pe, sparse, dense, hq_
     ``intermediate``: the model's early ViT features (``get_image_embeddings``' second
     output). The HQ branch's 3x3 convolutions run on image-layout features per prompt
     (they are most of its cost and cannot be shared); its image-only features once.
+    Masks are upscaled from the two-way transformer's output, as the original
+    ``MaskDecoderHQ`` (transformers' ``SamHQMaskDecoder`` upscales its input instead).
     """
     height, width = embedding.shape[-2:]
     vit = intermediate[0].permute(0, 3, 1, 2)
@@ -292,24 +338,28 @@ def decode_sam_hq(decoder, embedding, intermediate, image_pe, sparse, dense, hq_
     hq_features = encoded + compressed  # [1, C/8, 4h, 4w]
 
     image, pe = _image_tokens(embedding, dense, image_pe)
-    sparse = sparse[0]
     output = torch.cat(
         [decoder.iou_token.weight, decoder.mask_tokens.weight, decoder.hq_token.weight]
     )
-    tokens = torch.cat([output.expand(sparse.shape[0], -1, -1), sparse], dim=1).to(image.dtype)
-    queries, keys = two_way_transformer(decoder.transformer, image, pe, tokens)
+    tokens = _tokens(output, sparse, image.dtype)
     sam_tokens = decoder.num_mask_tokens - 1  # transformers counts the HQ token in
-    iou = decoder.iou_prediction_head(queries[:, 0])[:, 1:sam_tokens]  # [P, 3]
-    best_iou, best = iou.max(dim=1)
-    upscaled = upscale(decoder, keys, height, width)
-    image_layout = unblocked(upscaled, height, width)  # [P, C/8, 4h, 4w]
-    hq = decoder.mask_conv2(decoder.activation(decoder.mask_norm(decoder.mask_conv1(image_layout))))
-    hq = hq + hq_features
-    hq_hyper = decoder.hq_mask_mlp(queries[:, 1 + sam_tokens])  # [P, C/8]
-    masks = torch.einsum("pc,pchw->phw", hq_hyper, hq)[:, None]
-    if not hq_token_only:
-        mask_tokens = queries[:, 1 : 1 + sam_tokens]
-        hypers = _hyper(decoder, mask_tokens, range(1, sam_tokens))  # [P, 3, C/8]
-        chosen = hypers[torch.arange(len(best), device=best.device), best][:, None]
-        masks = masks + _masks(upscaled, chosen, height, width)
-    return masks, best_iou[:, None]
+
+    def decode_tokens(queries, keys):
+        iou = decoder.iou_prediction_head(queries[:, 0])[:, 1:sam_tokens]  # [P, 3]
+        best_iou, best = iou.max(dim=1)
+        upscaled = upscale(decoder, keys, height, width)
+        image_layout = unblocked(upscaled, height, width)  # [P, C/8, 4h, 4w]
+        hq = decoder.mask_conv2(
+            decoder.activation(decoder.mask_norm(decoder.mask_conv1(image_layout)))
+        )
+        hq = hq + hq_features
+        hq_hyper = decoder.hq_mask_mlp(queries[:, 1 + sam_tokens])  # [P, C/8]
+        masks = torch.einsum("pc,pchw->phw", hq_hyper, hq)[:, None]
+        if not hq_token_only:
+            mask_tokens = queries[:, 1 : 1 + sam_tokens]
+            hypers = _hyper(decoder, mask_tokens, range(1, sam_tokens))  # [P, 3, C/8]
+            chosen = hypers[torch.arange(len(best), device=best.device), best][:, None]
+            masks = masks + _masks(upscaled, chosen, height, width)
+        return masks, best_iou[:, None]
+
+    return _chunked(decode_tokens, decoder.transformer, image, pe, tokens, chunk)

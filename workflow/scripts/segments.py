@@ -10,6 +10,7 @@ run_stage(
         sm.output[0],
         data_root=sm.params.data_root,
         device=sm.params.run["device"],
+        batch_size=sm.params.run["batch_size"],
         start=int(sm.wildcards.start),
         stop=int(sm.wildcards.stop),
     ),

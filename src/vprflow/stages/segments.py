@@ -23,18 +23,21 @@ def compute_segments(
     out: str,
     data_root: str,
     device: str = "auto",
+    batch_size: int = 1,
     start: int | None = None,
     stop: int | None = None,
 ) -> None:
-    """Bit-packed masks per image at the segmentation resolution (ragged ``masks``)."""
+    """Bit-packed masks per image at the segmentation resolution (ragged ``masks``).
+
+    ``batch_size`` images share one image-encoder pass (SAM kinds; others run one by one).
+    """
     spec = params["params"]
     dataset, images = open_shard(dataset_path, data_root, start, stop)
     segment = _mask_source(spec, device)
     attrs = {**stage_attrs("segments", params, images), "sources": resolved_sources(spec)}
     with stores.atomic_store(out, attrs) as group:
         writer, shape = None, None
-        for i in tqdm(images, desc="segments", unit="image"):
-            masks = segment(dataset.paths[i])
+        for i, masks in _segmented(segment, dataset.paths, images, batch_size):
             if shape is None:
                 shape = masks.shape[1:]
                 group.attrs.update(mask_height=shape[0], mask_width=shape[1])
@@ -52,22 +55,39 @@ def compute_segments(
         writer.close()
 
 
+def _segmented(segment, paths, images, batch_size: int):
+    """``(index, masks)`` of each image in order, ``segment`` called on lists of up to
+    ``batch_size`` paths, with a progress bar over images."""
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be >= 1, got {batch_size}")
+    with tqdm(total=len(images), desc="segments", unit="image") as progress:
+        for first in range(0, len(images), batch_size):
+            batch = images[first : first + batch_size]
+            yield from zip(batch, segment([paths[i] for i in batch]), strict=True)
+            progress.update(len(batch))
+
+
 def _mask_source(spec: dict, device: str):
-    """``path -> bool [S, Hm, Wm]`` for the configured segmenter.
+    """``[path, ...] -> [bool [S, Hm, Wm], ...]`` for the configured segmenter.
 
     ``segmenter: import`` reads the authors' published HDF5 masks
-    (``<image file name>/masks/<j>/segmentation``) at their own resolution.
+    (``<image file name>/masks/<j>/segmentation``) at their own resolution. Segmenters
+    with ``masks_batch`` (SAM kinds) take a list of images in one call.
     """
     kind = model_kind("segments", spec)
     if kind.loader is None:
         from vprflow.published import read_masks_h5
 
-        return lambda path: read_masks_h5(spec["file"], Path(path).name)
+        return lambda paths: [read_masks_h5(spec["file"], Path(path).name) for path in paths]
     segmenter = kind.load(spec, device)
     width, height = spec["resolution"]
-    return lambda path: segmenter.masks(
-        resize_image(read_image(path), width, height, spec["resize"])
-    )
+
+    def images(paths):
+        return [resize_image(read_image(path), width, height, spec["resize"]) for path in paths]
+
+    if hasattr(segmenter, "masks_batch"):
+        return lambda paths: segmenter.masks_batch(images(paths))
+    return lambda paths: [segmenter.masks(image) for image in images(paths)]
 
 
 def read_masks(group, index: int) -> np.ndarray:
