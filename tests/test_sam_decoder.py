@@ -206,6 +206,9 @@ def test_blocked_layout_round_trip():
     blocked = sam_decoder.blocked(image, 2)
     assert blocked.shape == (h * w, 16, 5)
     torch.testing.assert_close(sam_decoder.unblocked(blocked[None], h, w)[0], image, rtol=0, atol=0)
+    last = sam_decoder.unblocked(blocked[None], h, w, channels_last=True)
+    assert last.is_contiguous(memory_format=torch.channels_last)
+    torch.testing.assert_close(last[0], image, rtol=0, atol=0)
     # One level: pixel (2y + i, 2x + j) is sub-pixel 2i + j of low-res pixel y*w + x.
     half = torch.randn(3, 2 * h, 2 * w, generator=generator)
     one = sam_decoder.blocked(half, 1)

@@ -297,13 +297,19 @@ class SamAdapter:
         self.shared_decoder = bool(shared_decoder)
         self._image_pe = None
         self.prompts_per_pass = CPU_PROMPTS_PER_PASS if self.device.type == "cpu" else None
-        self.model_size = int(model.config.vision_config.image_size)
-        prompt_size = int(model.config.prompt_encoder_config.image_size)
-        if prompt_size != self.model_size:
+        self.model_size = self._model_size(model.config)
+
+    @staticmethod
+    def _model_size(config) -> int:
+        """The square input side of the model, checked against the prompt encoder's."""
+        size = int(config.vision_config.image_size)
+        prompt_size = int(config.prompt_encoder_config.image_size)
+        if prompt_size != size:
             raise ValueError(
-                f"{type(model).__name__} config mismatch: vision image_size "
-                f"{self.model_size} != prompt encoder image_size {prompt_size}"
+                f"SAM config mismatch: vision image_size {size} != prompt encoder "
+                f"image_size {prompt_size}"
             )
+        return size
 
     def preprocess(self, image: np.ndarray) -> tuple[torch.Tensor, tuple[int, int]]:
         """Image ``[H, W, 3]`` in ``[0, 1]`` -> model input ``[1, 3, L, L]`` (float32, on
@@ -437,21 +443,17 @@ class Sam2Adapter(SamAdapter):
     resolution ones feed the decoder's upsampling); three masks per point; low-res logits
     resized straight to the image size (SAM 2's ``postprocess_masks``: no padding)."""
 
-    def __init__(self, model, device, dtype, shared_decoder: bool = True):
-        self.model = model
-        self.device = torch.device(device)
-        self.dtype = dtype
-        self.shared_decoder = bool(shared_decoder)
-        self._image_pe = None
-        self.prompts_per_pass = CPU_PROMPTS_PER_PASS if self.device.type == "cpu" else None
-        self.model_size = int(model.config.prompt_encoder_config.image_size)
-        vision = model.config.vision_config.backbone_config.image_size
+    @staticmethod
+    def _model_size(config) -> int:
+        size = int(config.prompt_encoder_config.image_size)
+        vision = config.vision_config.backbone_config.image_size
         vision = [vision, vision] if isinstance(vision, int) else list(vision)
-        if vision != [self.model_size, self.model_size]:
+        if vision != [size, size]:
             raise ValueError(
                 f"Sam2Model config mismatch: backbone image_size {vision} != prompt encoder "
-                f"image_size {self.model_size}"
+                f"image_size {size}"
             )
+        return size
 
     def decode(self, embedding, points):
         if self.shared_decoder:

