@@ -7,8 +7,8 @@ generation (1,024 single-point prompts per image) that repetition is most of the
 after the image encoder. This module computes the same function with the products
 re-associated so that nothing image-sized is repeated before it has to differ:
 
-- the first block's token->image keys and values and image->token queries are
-  projected once per image, not per prompt;
+- the first block's token->image keys and values are projected once per image, not per
+  prompt (its image->token queries are folded, as below);
 - an attention whose ``N = h*w`` image tokens differ per prompt never projects them:
   with ``T`` prompt tokens and ``H`` heads, ``softmax(q (x W_k + b_k)^T) (x W_v + b_v)``
   is computed as ``softmax((q W_k) x^T) x W_v + b_v`` (``q b_k`` is constant along the
@@ -55,10 +55,10 @@ def _merge_heads(x: torch.Tensor) -> torch.Tensor:
     return x.transpose(-3, -2).reshape(*lead, tokens, heads * dim)
 
 
-def _softmax(scores: torch.Tensor, dtype: torch.dtype, dim: int = -1) -> torch.Tensor:
+def _softmax(scores: torch.Tensor, dim: int = -1) -> torch.Tensor:
     # At least float32 inside, cast back (as transformers' eager attention for bf16).
     wide = torch.promote_types(scores.dtype, torch.float32)
-    return torch.softmax(scores.to(wide), dim=dim).to(dtype)
+    return torch.softmax(scores.to(wide), dim=dim).to(scores.dtype)
 
 
 def image_projections(attention, keys_pe, keys) -> tuple[torch.Tensor, torch.Tensor]:
@@ -83,14 +83,14 @@ def token_to_image(attention, queries_pe, keys_pe, keys, projected=None) -> torc
         # All prompts' tokens against the one image: [H, P*T, d] x [H, d, N].
         key, value = projected or image_projections(attention, keys_pe, keys)
         stacked = query.transpose(0, 1).reshape(heads, prompts * tokens, dim)
-        weights = _softmax(stacked @ key.transpose(1, 2), query.dtype)  # [H, P*T, N]
+        weights = _softmax(stacked @ key.transpose(1, 2))  # [H, P*T, N]
         mixed = (weights @ value).view(heads, prompts, tokens, dim).transpose(0, 1)
     else:
         channels = keys.shape[-1]
         w_key = attention.k_proj.weight.view(heads, -1, channels)  # [H, d, C]
         w_value = attention.v_proj.weight.view(heads, -1, channels)
         folded = (query @ w_key).reshape(prompts, heads * tokens, channels)  # [P, H*T, C]
-        weights = _softmax(folded @ keys_pe.transpose(1, 2), query.dtype)  # [P, H*T, N]
+        weights = _softmax(folded @ keys_pe.transpose(1, 2))  # [P, H*T, N]
         pooled = (weights @ keys).view(prompts, heads, tokens, channels)
         mixed = pooled @ w_value.transpose(1, 2) + attention.v_proj.bias.view(heads, 1, -1)
     return _out_projection(attention)(_merge_heads(mixed))
@@ -121,7 +121,7 @@ def image_to_token(attention, keys_pe, queries_pe, queries, residual) -> torch.T
         scores = folded @ keys_pe.transpose(1, 2)
     scores += offset
     size = scores.shape[-1]
-    weights = _softmax(scores.view(prompts, heads, tokens, size), scores.dtype, dim=2)
+    weights = _softmax(scores.view(prompts, heads, tokens, size), dim=2)
     weights = weights.view(prompts, heads * tokens, size)
     value = _heads(attention.v_proj(queries), heads)  # [P, H, T, d]
     w_out = out.weight.view(channels, heads, -1).permute(1, 2, 0)  # [H, d, C]
@@ -136,26 +136,35 @@ def _self_attention(attention, query, value) -> torch.Tensor:
     return attention(query=query[None], key=query[None], value=value[None])[0][0]
 
 
-def two_way_transformer(transformer, image, image_pe, tokens, projected=None):
+def image_side(transformer, image, image_pe):
+    """What the first block reads of the image alone, computed once per image:
+    ``(image + image_pe [N, C], its token->image attention's keys and values)``."""
+    keys_pe = image + image_pe
+    attention = transformer.layers[0].cross_attn_token_to_image
+    return keys_pe, image_projections(attention, keys_pe, image)
+
+
+def two_way_transformer(transformer, image, image_pe, tokens, first=None):
     """SAM's two-way transformer for ``P`` prompts on one image.
 
     ``image`` and ``image_pe`` ``[N, C]`` (embedding plus dense prompt, positional
     encoding); ``tokens`` ``[P, T, C]`` (output tokens then sparse prompt embeddings)
     -> ``(queries [P, T, C], keys [P, N, C])`` as ``transformer(...)`` returns them.
-    ``projected``: the first block's :func:`image_projections`, when already computed.
+    ``first``: the image's :func:`image_side`, when already computed.
     """
     queries, keys = tokens, image
+    keys_pe, projected = first or image_side(transformer, image, image_pe)
     for layer in transformer.layers:
         if layer.skip_first_layer_pe:
             queries = _self_attention(layer.self_attn, queries, queries)
         else:
             queries = queries + _self_attention(layer.self_attn, queries + tokens, queries)
         queries = _layer_norm(queries, layer.layer_norm1)
-        keys_pe = keys + image_pe
+        if keys.dim() == 3:  # keys differ per prompt from the first block's output on
+            keys_pe, projected = keys + image_pe, None
         attended = token_to_image(
             layer.cross_attn_token_to_image, queries + tokens, keys_pe, keys, projected
         )
-        projected = None  # keys differ per prompt from here on
         queries = _layer_norm(queries + attended, layer.layer_norm2)
         queries = _layer_norm(queries + layer.mlp(queries), layer.layer_norm3)
         keys = image_to_token(
@@ -173,14 +182,12 @@ def _chunked(decode_tokens, transformer, image, image_pe, tokens, chunk):
     for ``None``) -> its outputs concatenated.
 
     On a CPU small chunks keep one chunk's image-sized intermediates (~17 MB per prompt
-    in float32) in the last-level cache; the first block's image projections are shared
-    by all chunks.
+    in float32) in the last-level cache; :func:`image_side` is shared by all chunks.
     """
-    first = transformer.layers[0].cross_attn_token_to_image
-    projected = image_projections(first, image + image_pe, image)
+    first = image_side(transformer, image, image_pe)
     step = chunk or tokens.shape[0]
     outputs = [
-        decode_tokens(*two_way_transformer(transformer, image, image_pe, part, projected))
+        decode_tokens(*two_way_transformer(transformer, image, image_pe, part, first))
         for part in tokens.split(step)
     ]
     return tuple(torch.cat(parts) for parts in zip(*outputs, strict=True))
