@@ -350,14 +350,21 @@ class SamAdapter:
         predicted IoUs ``[P, M]`` (``M = masks_per_point``), float32, on the device."""
         if self.shared_decoder:
             sparse, dense, image_pe = self._prompt_embeddings(points)
-            logits, iou = sam_decoder.decode_sam(
-                self.model.mask_decoder, embedding, image_pe, sparse, dense, self.prompts_per_pass
-            )
-            return logits.float(), iou.float()
+            logits, iou = self._shared_decode(embedding, image_pe, sparse, dense)
+        else:
+            logits, iou = self._transformers_decode(embedding, points)
+        return logits.float(), iou.float()
+
+    def _shared_decode(self, embedding, image_pe, sparse, dense):
+        return sam_decoder.decode_sam(
+            self.model.mask_decoder, embedding, image_pe, sparse, dense, self.prompts_per_pass
+        )
+
+    def _transformers_decode(self, embedding, points):
         output = self.model(
             image_embeddings=embedding, **self._prompts(points), multimask_output=True
         )
-        return output.pred_masks[0].float(), output.iou_scores[0].float()
+        return output.pred_masks[0], output.iou_scores[0]
 
     def upscaler(
         self, low_res: tuple[int, int], input_size: tuple[int, int], original_size: tuple[int, int]
@@ -388,21 +395,21 @@ class SamHQAdapter(SamAdapter):
         )
         return embedding, intermediate
 
-    def decode(self, embedding, points):
+    def _shared_decode(self, embedding, image_pe, sparse, dense):
         final, intermediate = embedding
-        if self.shared_decoder:
-            sparse, dense, image_pe = self._prompt_embeddings(points)
-            logits, iou = sam_decoder.decode_sam_hq(
-                self.model.mask_decoder,
-                final,
-                intermediate,
-                image_pe,
-                sparse,
-                dense,
-                self.hq_token_only,
-                self.prompts_per_pass,
-            )
-            return logits.float(), iou.float()
+        return sam_decoder.decode_sam_hq(
+            self.model.mask_decoder,
+            final,
+            intermediate,
+            image_pe,
+            sparse,
+            dense,
+            self.hq_token_only,
+            self.prompts_per_pass,
+        )
+
+    def _transformers_decode(self, embedding, points):
+        final, intermediate = embedding
         output = self.model(
             image_embeddings=final,
             intermediate_embeddings=intermediate,
@@ -410,7 +417,7 @@ class SamHQAdapter(SamAdapter):
             multimask_output=True,
             **self._prompts(points),
         )
-        return output.pred_masks[0, :, :1].float(), output.iou_scores[0, :, :1].float()
+        return output.pred_masks[0, :, :1], output.iou_scores[0, :, :1]
 
 
 # SAM 2's normalisation (SAM2Transforms; = transformers' Sam2ImageProcessor), 0..1 units.
@@ -455,14 +462,10 @@ class Sam2Adapter(SamAdapter):
             )
         return size
 
-    def decode(self, embedding, points):
-        if self.shared_decoder:
-            sparse, dense, image_pe = self._prompt_embeddings(points)
-            logits, iou = sam_decoder.decode_sam2(
-                self.model.mask_decoder, embedding, image_pe, sparse, dense, self.prompts_per_pass
-            )
-            return logits.float(), iou.float()
-        return super().decode(embedding, points)
+    def _shared_decode(self, embedding, image_pe, sparse, dense):
+        return sam_decoder.decode_sam2(
+            self.model.mask_decoder, embedding, image_pe, sparse, dense, self.prompts_per_pass
+        )
 
     def preprocess(self, image):
         return preprocess_image_sam2(image, self.model_size)
