@@ -92,7 +92,7 @@ def reference_model(tmp_path_factory):
     return path, model
 
 
-def _image(height: int = 48, width: int = 80, seed: int = 0) -> np.ndarray:
+def sample_image(height: int = 48, width: int = 80, seed: int = 0) -> np.ndarray:
     """A non-square float image with a few flat regions plus noise."""
     rng = np.random.default_rng(seed)
     image = np.full((height, width, 3), 0.2, dtype=np.float32)
@@ -236,7 +236,7 @@ def threshold_in_gap(lo: np.ndarray, hi: np.ndarray, target: float) -> float:
 def reference(reference_model):
     """Test image, float64 reference logits ``[N, H, W]`` and predicted IoUs ``[N]``."""
     _, model = reference_model
-    image = _image()
+    image = sample_image()
     logits, ious = reference_candidates(copy.deepcopy(model).double(), image, SIDE)
     return image, logits, ious
 
@@ -259,7 +259,7 @@ def test_masks_shape_dtype_and_nonempty_with_zero_thresholds(sam_model):
     path, _ = sam_model
     segmenter = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.0)
     for height, width in [(48, 80), (70, 30)]:
-        masks = segmenter.masks(_image(height, width))
+        masks = segmenter.masks(sample_image(height, width))
         assert masks.dtype == bool
         assert masks.ndim == 3 and masks.shape[1:] == (height, width)
         assert masks.shape[0] > 1
@@ -382,17 +382,17 @@ def test_stricter_thresholds_give_a_subset(reference_model, reference):
 def test_generation_is_deterministic(sam_model):
     path, _ = sam_model
     segmenter = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.5)
-    first, second = segmenter.masks(_image()), segmenter.masks(_image())
+    first, second = segmenter.masks(sample_image()), segmenter.masks(sample_image())
     assert first.shape == second.shape and (first == second).all()
 
 
 def test_min_mask_region_area_removes_small_islands_and_holes(sam_model):
     path, _ = sam_model
     area = 30
-    raw = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.0).masks(_image())
+    raw = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.0).masks(sample_image())
     cleaned = _load(
         path, pred_iou_thresh=0.0, stability_score_thresh=0.0, min_mask_region_area=area
-    ).masks(_image())
+    ).masks(sample_image())
     assert len(cleaned) > 0
     eight = np.ones((3, 3), dtype=bool)
 
@@ -408,7 +408,7 @@ def test_min_mask_region_area_removes_small_islands_and_holes(sam_model):
 def test_bfloat16_runs_on_cpu(sam_model):
     path, _ = sam_model
     masks = _load(path, pred_iou_thresh=0.0, stability_score_thresh=0.0, dtype="bfloat16").masks(
-        _image()
+        sample_image()
     )
     assert masks.shape[1:] == (48, 80) and masks.dtype == bool and len(masks) > 0
 
@@ -440,7 +440,7 @@ def test_preprocess_resizes_longest_side_normalises_and_pads():
     assert preprocess_shape(240, 320, 1024) == (768, 1024)
     assert preprocess_shape(320, 240, 1024) == (1024, 768)
     assert preprocess_shape(100, 333, 1024) == (308, 1024)  # 307.5 rounds up
-    image = _image(30, 50)
+    image = sample_image(30, 50)
     pixels, (new_h, new_w) = preprocess_image(image, 64)
     assert pixels.shape == (1, 3, 64, 64) and (new_h, new_w) == (38, 64)
     resized = Image.fromarray(np.rint(image * 255).astype(np.uint8)).resize(

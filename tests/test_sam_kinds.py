@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from test_sam import mask_box, reference_generate
+from test_sam import mask_box, reference_generate, sample_image
 from test_sam_decoder import hq_original
 from tiny_models import tiny_sam, tiny_sam2, tiny_sam_hq
 
@@ -45,15 +45,6 @@ SCALE = 0.3
 # Bilinear weights here are dyadic / small-denominator rationals, never 5/13, 4/13 or
 # 6/13, so no upscaled logit lands on 0 or +-1 (checked in the test).
 INSIDE, OUTSIDE = 8.0, 5.0
-
-
-def _image(height: int = 48, width: int = 80, seed: int = 0) -> np.ndarray:
-    rng = np.random.default_rng(seed)
-    image = np.full((height, width, 3), 0.2, dtype=np.float32)
-    image[5 : height // 2, 8 : width // 3] = (0.9, 0.1, 0.1)
-    image[height // 3 :, width // 2 :] = (0.1, 0.8, 0.3)
-    image += rng.normal(0, 0.05, image.shape).astype(np.float32)
-    return np.clip(image, 0, 1)
 
 
 @pytest.fixture(scope="module", params=KINDS)
@@ -97,20 +88,20 @@ def test_masks_end_to_end(saved):
     segmenter = _load(kind, path, pred_iou_thresh=0.0, stability_score_thresh=0.0)
     assert segmenter.adapter.masks_per_point == (1 if kind == "sam_hq" else 3)
     for height, width in [(48, 80), (70, 30)]:
-        result = segmenter.generate(_image(height, width))
+        result = segmenter.generate(sample_image(height, width))
         masks = result.masks
         assert masks.dtype == bool and masks.shape[1:] == (height, width)
         assert len(masks) > 0 and masks.reshape(len(masks), -1).any(1).all()
         assert (result.candidate < SIDE * SIDE * segmenter.adapter.masks_per_point).all()
     # The library thresholds run too (with random weights few or no masks survive).
-    default = _load(kind, path).masks(_image())
+    default = _load(kind, path).masks(sample_image())
     assert default.dtype == bool and default.shape[1:] == (48, 80)
 
 
 def test_bfloat16_runs(saved):
     kind, path, _ = saved
     segmenter = _load(kind, path, pred_iou_thresh=0.0, stability_score_thresh=0.0, dtype="bfloat16")
-    masks = segmenter.masks(_image())
+    masks = segmenter.masks(sample_image())
     assert masks.dtype == bool and masks.shape[1:] == (48, 80)
 
 
@@ -147,7 +138,7 @@ def _direct(kind, model, pixels, points):
 def test_adapter_decode_equals_a_direct_model_call(saved):
     kind, path, model = saved
     segmenter = _load(kind, path, points_per_batch=7)
-    image = _image()
+    image = sample_image()
     embedding, input_size = segmenter.image_embedding(image)
     _, model_points = segmenter.prompt_points(48, 80, input_size)
     points = torch.from_numpy(model_points)
@@ -167,7 +158,7 @@ def test_adapter_decode_equals_a_direct_model_call(saved):
 
 
 def test_sam2_preprocessing_stretches_and_normalises():
-    image = _image(30, 50)
+    image = sample_image(30, 50)
     pixels, size = preprocess_image_sam2(image, 64)
     assert pixels.shape == (1, 3, 64, 64) and size == (64, 64)
     flat = np.full((20, 10, 3), 0.5, dtype=np.float32)
@@ -259,7 +250,7 @@ def test_shared_post_processing_on_synthetic_logits(saved, iou_thresh, stab_thre
     expected = reference_generate(
         logits, iou.flatten().double(), iou_thresh, stab_thresh, nms_thresh
     )
-    result = segmenter.generate(_image(height, width))
+    result = segmenter.generate(sample_image(height, width))
     assert result.candidate.tolist() == expected
     assert len(expected) >= 2
     reference_masks = (logits[expected] > 0).numpy()
@@ -283,7 +274,11 @@ def test_generate_batch_equals_one_image_at_a_time(saved):
     segmenter = _load(kind, path, pred_iou_thresh=0.0, stability_score_thresh=0.0)
     segmenter.adapter.model.double()
     segmenter.adapter.dtype = torch.float64
-    images = [_image(48, 80, seed=1), _image(70, 30, seed=2), _image(48, 80, seed=3)]
+    images = [
+        sample_image(48, 80, seed=1),
+        sample_image(70, 30, seed=2),
+        sample_image(48, 80, seed=3),
+    ]
     batched = segmenter.generate_batch(images)
     assert len(batched) == 3
     for image, result in zip(images, batched, strict=True):
