@@ -287,6 +287,17 @@ def decoder_one(
     }
 
 
+def _child(arguments: list[str], label: str) -> dict | None:
+    """Run this script with ``arguments`` in a fresh process (its own peak memory) -> the
+    JSON row it prints last, or ``None`` after printing ``label`` and its error."""
+    output = subprocess.run([sys.executable, __file__, *arguments], capture_output=True, text=True)
+    if output.returncode:
+        error = (output.stderr.strip().splitlines() or ["?"])[-1]
+        print(f"{label} failed: {error}")
+        return None
+    return json.loads(output.stdout.strip().splitlines()[-1])
+
+
 def decoders_table(args) -> None:
     print(f"SAM prompt decoding on {args.device}, random weights, per 1,024 prompts")
     header = f"{'kind':7} {'dtype':8} {'decoder':12} {'batch':>5} {'s/1024':>7} {'ms/prompt':>9}"
@@ -297,14 +308,11 @@ def decoders_table(args) -> None:
         for dtype in args.dtypes:
             for batch in args.points_per_batch:
                 for decoder in ("transformers", "shared"):
-                    command = [sys.executable, __file__, "--decoder-one", kind, dtype, decoder]
-                    command += [str(args.prompts), str(batch), "--device", args.device]
-                    output = subprocess.run(command, capture_output=True, text=True)
-                    if output.returncode:
-                        error = (output.stderr.strip().splitlines() or ["?"])[-1]
-                        print(f"{kind:7} {dtype:8} {decoder:12} failed: {error}")
+                    arguments = ["--decoder-one", kind, dtype, decoder, str(args.prompts)]
+                    arguments += [str(batch), "--device", args.device]
+                    row = _child(arguments, f"{kind:7} {dtype:8} {decoder:12}")
+                    if row is None:
                         continue
-                    row = json.loads(output.stdout.strip().splitlines()[-1])
                     print(
                         f"{kind:7} {dtype:8} {decoder:12} {batch:>5} {row['s_per_1024']:>7.2f} "
                         f"{row['ms_per_prompt']:>9.2f} {row['gen_mib']:>8.0f}",
@@ -365,15 +373,12 @@ def main() -> None:
         for side in args.sides:
             for dtype in args.dtypes:
                 for filters in args.filters:
-                    command = [sys.executable, __file__, "--one", model, str(side), filters, dtype]
-                    command += ["--device", args.device, "--repeats", str(args.repeats)]
-                    command += ["--image-batches", *map(str, args.image_batches)]
-                    output = subprocess.run(command, capture_output=True, text=True)
-                    if output.returncode:
-                        error = (output.stderr.strip().splitlines() or ["?"])[-1]
-                        print(f"{model:12} {side:>4} {filters:8} {dtype:8} failed: {error}")
+                    arguments = ["--one", model, str(side), filters, dtype]
+                    arguments += ["--device", args.device, "--repeats", str(args.repeats)]
+                    arguments += ["--image-batches", *map(str, args.image_batches)]
+                    row = _child(arguments, f"{model:12} {side:>4} {filters:8} {dtype:8}")
+                    if row is None:
                         continue
-                    row = json.loads(output.stdout.strip().splitlines()[-1])
                     print(
                         f"{row['model']:12} {row['side']:>4} {row['filters']:8} "
                         f"{row['dtype']:8} {row['device']:6} {row['masks']:>5} "
