@@ -1,4 +1,8 @@
-"""``resize_image``: OpenCV INTER_LINEAR ("linear") and PIL bilinear ("antialias").
+"""Reading, finding and resizing images.
+
+``resize_image``: OpenCV INTER_LINEAR ("linear") and PIL bilinear ("antialias", equal to
+PIL's 8-bit result on 8-bit images). ``read_image``: the EXIF orientation as
+``cv2.imread`` applies it. ``scan_images``: links, unread formats and the order of names.
 
 The reference for "linear" is a slow float64 double loop over output pixels written
 from OpenCV's documented rule (``resize.cpp``): source position
@@ -10,12 +14,21 @@ takes the last pixel, otherwise two taps ``floor(s)``, ``floor(s) + 1`` with wei
 from __future__ import annotations
 
 import math
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
 from PIL import Image
 
-from vprflow.images import RESIZE_METHODS, resize_image
+from vprflow.images import (
+    RESIZE_METHODS,
+    ImageReadError,
+    natural_key,
+    read_image,
+    resize_image,
+    scan_images,
+)
 
 # (in_height, in_width, out_height, out_width)
 SHAPES = {
@@ -119,3 +132,135 @@ def test_unknown_method_is_refused():
     image = np.zeros((4, 4, 3), np.float32)
     with pytest.raises(ValueError, match=r"'cubic'.*'linear', 'antialias'"):
         resize_image(image, 2, 2, method="cubic")
+
+
+def test_antialias_on_8bit_images_equals_pil_on_the_8bit_image_bit_for_bit():
+    # SNSM's reader: PIL.Image.open(...).convert("RGB"), then torchvision Resize on the
+    # PIL image, which is Image.resize(..., BILINEAR) in PIL's 8-bit arithmetic.
+    rng = np.random.default_rng(7)
+    for in_h, in_w, out_h, out_w in SHAPES.values():
+        pixels = rng.integers(0, 256, (in_h, in_w, 3), dtype=np.uint8)
+        published = Image.fromarray(pixels, "RGB").resize((out_w, out_h), Image.Resampling.BILINEAR)
+        ours = resize_image(pixels.astype(np.float32) / 255.0, out_w, out_h, method="antialias")
+        np.testing.assert_array_equal(ours * 255.0, np.asarray(published, dtype=np.float32))
+
+
+# ------------------------------------------------------------------ reading
+
+
+def exif_rotated(pixels: np.ndarray, path, orientation: int = 6) -> None:
+    """Save ``pixels`` as a phone does for a portrait photo: the pixels turned 90 degrees
+    (stored as a landscape image) and an EXIF Orientation tag saying how to turn back."""
+    stored = np.rot90(pixels, k=1)  # orientation 6 = rotate 90 degrees clockwise to view
+    exif = Image.Exif()
+    exif[0x0112] = orientation
+    Image.fromarray(np.ascontiguousarray(stored)).save(path, exif=exif.tobytes())
+
+
+def test_exif_orientation_is_applied_by_default_and_ignored_on_request(tmp_path):
+    pixels = np.random.default_rng(3).integers(0, 256, (6, 10, 3), dtype=np.uint8)
+    exif_rotated(pixels, tmp_path / "photo.png")
+    upright = read_image(tmp_path / "photo.png")
+    np.testing.assert_array_equal(upright, pixels.astype(np.float32) / 255.0)
+    stored = read_image(tmp_path / "photo.png", exif_orientation="ignore")
+    np.testing.assert_array_equal(stored, np.rot90(pixels, k=1).astype(np.float32) / 255.0)
+
+
+def test_exif_orientation_matches_cv2_imread(tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    pixels = np.random.default_rng(4).integers(0, 256, (16, 24, 3), dtype=np.uint8)
+    for orientation in range(1, 9):
+        path = tmp_path / f"o{orientation}.jpg"
+        exif = Image.Exif()
+        exif[0x0112] = orientation
+        Image.fromarray(pixels).save(path, exif=exif.tobytes(), quality=95)
+        published = cv2.imread(str(path))[:, :, ::-1]  # BGR -> RGB, EXIF applied
+        np.testing.assert_array_equal(read_image(path) * 255.0, published.astype(np.float32))
+
+
+def test_a_decompression_bomb_names_the_file_and_the_remedy(tmp_path, monkeypatch):
+    Image.fromarray(np.zeros((40, 40, 3), np.uint8)).save(tmp_path / "huge.png")
+    monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 100)  # 40 x 40 > 2 x 100
+    with pytest.raises(ImageReadError, match=r"huge\.png: .*decompression bomb.*downscale it"):
+        read_image(tmp_path / "huge.png")
+
+
+# ------------------------------------------------------------------ discovery
+
+
+def write_pngs(folder: Path, names: list[str]) -> None:
+    for name in names:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(folder / name)
+
+
+def test_a_link_out_of_the_folder_is_refused_unless_links_are_followed(tmp_path):
+    write_pngs(tmp_path / "ds", ["ref/1.png", "query/1.png", "query/2.png"])
+    (tmp_path / "ds/ref/loop").symlink_to("..")  # would read every query as a reference
+    with pytest.raises(ImageReadError, match=r"ref/loop is a link to .*outside .*follow_links"):
+        scan_images(tmp_path / "ds/ref", recursive=True)
+    # Followed, the dataset folder is read once: its ref/ is the folder itself again.
+    with pytest.raises(ImageReadError, match=r"ref/loop/ref is the folder .*ref again"):
+        scan_images(tmp_path / "ds/ref", recursive=True, follow_links=True)
+
+
+def test_a_link_to_an_image_folder_elsewhere_is_read_when_asked(tmp_path):
+    write_pngs(tmp_path / "elsewhere", ["1.png", "2.png"])
+    (tmp_path / "ref").mkdir()
+    (tmp_path / "ref/run1").symlink_to(tmp_path / "elsewhere")
+    scan = scan_images(tmp_path / "ref", recursive=True, follow_links=True)
+    assert [p.relative_to(tmp_path / "ref").as_posix() for p in scan.paths] == [
+        "run1/1.png",
+        "run1/2.png",
+    ]
+    # A linked role folder is the folder itself: nothing inside leaves it.
+    (tmp_path / "linked").symlink_to(tmp_path / "elsewhere")
+    assert len(scan_images(tmp_path / "linked", recursive=True).paths) == 2
+
+
+def test_links_to_the_folder_itself_stay_linear_and_are_named(tmp_path):
+    # Two links to "." used to multiply the paths at every level until memory ran out.
+    write_pngs(tmp_path / "q", ["1.png"])
+    (tmp_path / "q/a").symlink_to(".")
+    (tmp_path / "q/b").symlink_to(".")
+    with pytest.raises(ImageReadError, match=r"q/a is the folder .*q again.*q/b is the folder"):
+        scan_images(tmp_path / "q", recursive=True)
+
+
+def test_an_image_linked_twice_in_one_folder_is_refused(tmp_path):
+    write_pngs(tmp_path / "ref", ["1.png"])
+    (tmp_path / "ref/2.png").symlink_to("1.png")
+    with pytest.raises(ImageReadError, match=r"ref/2\.png is the file .*ref/1\.png again"):
+        scan_images(tmp_path / "ref")
+
+
+@pytest.mark.parametrize(
+    "name, content, found",
+    [
+        ("0003.gif", b"GIF89a\x01\x00\x01\x00", "GIF"),
+        ("0003.heic", b"\x00\x00\x00\x18ftypheic\x00\x00", "HEIF/AVIF"),
+        ("0003.jpg.bak", b"\xff\xd8\xff\xe0\x00\x10JFIF", "JPEG"),
+        ("0003", b"\x89PNG\r\n\x1a\n\x00\x00", "PNG"),
+    ],
+)
+def test_an_image_in_a_format_not_read_is_named_never_skipped(tmp_path, name, content, found):
+    # Skipped, it would shift every later query against the ground truth.
+    write_pngs(tmp_path / "query", ["0001.png", "0002.png", "0004.png"])
+    (tmp_path / "query" / name).write_bytes(content)
+    (tmp_path / "query/notes.txt").write_text("GIF89a is a format")  # text: skipped
+    with pytest.raises(ImageReadError, match=rf"query/{re.escape(name)} is a {found} image"):
+        scan_images(tmp_path / "query")
+
+
+def test_the_order_is_a_total_order_of_names_whatever_the_file_system_lists_first(tmp_path):
+    names = ["B.png", "a.png", "A.png", "b.png", "01.png", "1.png", "x²1.png", "x٣.png"]
+    orders = []
+    for trial, listing in enumerate((names, names[::-1])):
+        folder = tmp_path / str(trial)
+        write_pngs(folder, listing)  # creation order differs between the two copies
+        orders.append([p.name for p in scan_images(folder).paths])
+    assert orders[0] == orders[1]
+    assert orders[0][:2] == ["01.png", "1.png"]
+    assert orders[0].index("A.png") + 1 == orders[0].index("a.png")
+    # Decomposed (macOS) and composed spellings of a name sort alike.
+    assert natural_key("e\u0301.png")[0] == natural_key("\u00e9.png")[0]

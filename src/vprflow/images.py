@@ -1,8 +1,10 @@
-"""Reading and resizing images of any bit depth into one float RGB representation.
+"""Finding, reading and resizing images of any bit depth into one float RGB representation.
 
 Every stage sees images as float32 arrays ``[H, W, 3]`` in ``[0, 1]``: grayscale
 (thermal) images are repeated to three channels, 16-bit images are scaled by 65535,
-alpha channels are dropped.
+alpha channels are dropped. The EXIF Orientation tag is applied by default (as
+``cv2.imread`` in SegVLAD's and AnyLoc's readers): phone photos store their pixels
+rotated and say so in that tag (``EXIF_ORIENTATIONS``).
 
 ``resize_image`` resizes in one of two ways (``RESIZE_METHODS``):
 
@@ -16,19 +18,27 @@ alpha channels are dropped.
   result; OpenCV on 8-bit images rounds its weights to 11-bit fixed point and is
   within one grey level of it.
 - ``"antialias"``: PIL's bilinear filter, which widens its support when shrinking
-  (antialiasing); what vprflow used before it matched the published code.
+  (antialiasing): SNSM's reader (torchvision ``Resize`` on a PIL image). An image whose
+  values are all 8-bit levels (every 8-bit file) is resized as PIL resizes the 8-bit
+  image, so the pixels equal the authors' bit for bit; others in float.
 """
 
 from __future__ import annotations
 
+import io
 import os
+import re
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, UnidentifiedImageError
+from PIL import Image, ImageOps, UnidentifiedImageError
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp")
+# apply = rotate/flip the pixels as the EXIF Orientation tag says (cv2.imread, published
+# SegVLAD/AnyLoc); ignore = the stored pixels (PIL without exif_transpose, SNSM's reader).
+EXIF_ORIENTATIONS = ("apply", "ignore")
 
 
 class ImageReadError(ValueError):
@@ -57,7 +67,7 @@ def _to_float(array: np.ndarray, path: Path) -> np.ndarray:
     raise ImageReadError(f"{path}: unsupported pixel type {array.dtype}")
 
 
-def read_image(path: str | Path) -> np.ndarray:
+def read_image(path: str | Path, exif_orientation: str = "apply") -> np.ndarray:
     """Read an image file as float32 RGB ``[H, W, 3]`` in ``[0, 1]``.
 
     Accepts 8- and 16-bit, grayscale, palette, RGB and RGBA files. Raises
@@ -65,11 +75,31 @@ def read_image(path: str | Path) -> np.ndarray:
     """
     path = Path(path)
     try:
-        with Image.open(path) as image:
+        data = path.read_bytes()
+    except OSError as error:
+        raise ImageReadError(f"cannot read image {path}: {error}") from error
+    return decode_image(data, path, exif_orientation)
+
+
+def decode_image(data: bytes, path: str | Path, exif_orientation: str = "apply") -> np.ndarray:
+    """:func:`read_image` of a file's bytes ``data`` (``path`` names it in errors)."""
+    if exif_orientation not in EXIF_ORIENTATIONS:
+        raise ValueError(f"exif_orientation must be one of {EXIF_ORIENTATIONS}")
+    path = Path(path)
+    try:
+        with Image.open(io.BytesIO(data)) as image:
             image.load()
+            if exif_orientation == "apply":
+                image = ImageOps.exif_transpose(image)
             if image.mode in ("P", "PA", "CMYK", "YCbCr", "LAB", "HSV", "1"):
                 image = image.convert("RGBA" if "A" in image.mode else "RGB")
             array = np.asarray(image)
+    except Image.DecompressionBombError as error:
+        raise ImageReadError(
+            f"{path}: {error} Pillow refuses it as a possible decompression bomb; if the "
+            "file is genuine, downscale it (every image is resized to the dataset's "
+            "resolution anyway)"
+        ) from error
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
         raise ImageReadError(f"cannot read image {path}: {error}") from error
     pixels = _to_float(array, path)
@@ -137,7 +167,15 @@ def _resize_linear(image: np.ndarray, width: int, height: int) -> np.ndarray:
 
 
 def _resize_antialias(image: np.ndarray, width: int, height: int) -> np.ndarray:
-    """PIL bilinear in float mode, one channel at a time."""
+    """PIL bilinear: on the 8-bit image when every value is an 8-bit level (as SNSM
+    resizes the decoded 8-bit file, with PIL's fixed-point arithmetic), else in float
+    mode one channel at a time."""
+    levels = np.rint(np.asarray(image, dtype=np.float32) * 255.0)
+    if image.shape[2] == 3 and np.array_equal(levels / np.float32(255.0), image):
+        resized = Image.fromarray(levels.astype(np.uint8), "RGB").resize(
+            (width, height), Image.Resampling.BILINEAR
+        )
+        return np.asarray(resized, dtype=np.float32) / np.float32(255.0)
     channels = [
         np.asarray(
             Image.fromarray(np.ascontiguousarray(image[:, :, c], dtype=np.float32)).resize(
@@ -159,29 +197,127 @@ class ImageScan:
     skipped_other: int = 0
 
 
-def scan_images(folder: str | Path, recursive: bool = False) -> ImageScan:
-    """Image files inside ``folder`` (and its subfolders when ``recursive``), in natural
-    order of their path relative to ``folder`` (``2.jpg`` before ``10.jpg``, ``a/9.jpg``
-    before ``b/1.jpg``). Hidden files and folders (``.name``) are skipped, as are files
-    without an image suffix; both are counted.
+# Leading bytes of image formats, to tell an image with an unread suffix (a .gif, a
+# .heic, a .jpg renamed .dat) from a file that is not an image.
+_SIGNATURES = (
+    (b"\xff\xd8\xff", "JPEG"),
+    (b"\x89PNG\r\n\x1a\n", "PNG"),
+    (b"GIF87a", "GIF"),
+    (b"GIF89a", "GIF"),
+    (b"II*\x00", "TIFF"),
+    (b"MM\x00*", "TIFF"),
+    (b"II+\x00", "BigTIFF"),
+    (b"\x00\x00\x00\x0cjP  \r\n\x87\n", "JPEG 2000"),
+    (b"\xffO\xffQ", "JPEG 2000"),
+    (b"8BPS", "Photoshop"),
+    (b"v/1\x01", "OpenEXR"),
+    (b"\x00\x00\x01\x00", "ICO"),
+)
+_HEIF_BRANDS = {b"heic", b"heix", b"heim", b"heis", b"mif1", b"msf1", b"avif", b"avis"}
 
-    An entry with an image suffix that is not a readable file (a broken symbolic link,
-    a folder named ``x.jpg``) is an error naming it: skipping it would shift every later
-    index against the ground truth.
+
+def image_format(head: bytes) -> str | None:
+    """The image format the leading bytes of a file announce, or None."""
+    for signature, name in _SIGNATURES:
+        if head.startswith(signature):
+            return name
+    if head[:4] == b"RIFF" and head[8:12] == b"WEBP":
+        return "WebP"
+    if head[:2] == b"BM" and head[6:10] == b"\x00\x00\x00\x00":
+        return "BMP"
+    if re.match(rb"P[1-7][ \t\r\n]", head):
+        return "Netpbm"
+    if head[4:8] == b"ftyp" and head[8:12] in _HEIF_BRANDS:
+        return "HEIF/AVIF"
+    return None
+
+
+def _sniff(path: Path) -> str | None:
+    try:
+        with open(path, "rb") as f:
+            return image_format(f.read(16))
+    except OSError:
+        return None
+
+
+def _inside(path: str, folder: str) -> bool:
+    return path == folder or path.startswith(folder.rstrip(os.sep) + os.sep)
+
+
+def scan_images(
+    folder: str | Path, recursive: bool = False, follow_links: bool = False
+) -> ImageScan:
+    """Image files inside ``folder`` (and its subfolders when ``recursive``), in the
+    :func:`natural_key` order of their path relative to ``folder`` (``2.jpg`` before
+    ``10.jpg``, ``a/9.jpg`` before ``b/1.jpg``). Hidden entries (``.name``) are skipped,
+    as are files that are not images; both are counted.
+
+    Never skipped, since skipping shifts every later index against the ground truth;
+    each is an :class:`ImageReadError` naming it:
+
+    - an entry with an image suffix that is not a readable file (a broken link, a
+      folder named ``x.jpg``);
+    - a file whose content is an image in a format not read here (a ``.gif``), or an
+      image under another suffix;
+    - a symbolic link out of ``folder`` (unless ``follow_links``), and a folder or file
+      reached twice (a link to a parent, or to a sibling): each real folder is visited
+      once, so discovery stays linear in the number of entries.
     """
     folder = Path(folder)
+    top = os.path.realpath(folder)
     candidates, hidden, other = [], 0, 0
+    seen_dirs = {top: folder}
+    seen_files: dict[str, Path] = {}
+    refused: list[str] = []
     pending = [folder]
     while pending:
         current = pending.pop()
-        for entry in current.iterdir():
+        for entry in sorted(current.iterdir(), key=lambda e: natural_key(e.name)):
             if entry.name.startswith("."):
                 hidden += 1
-            elif entry.suffix.lower() in IMAGE_SUFFIXES:
+                continue
+            is_image = entry.suffix.lower() in IMAGE_SUFFIXES
+            followed = is_image or (recursive and entry.is_dir())
+            if followed and entry.is_symlink() and not follow_links:
+                target = os.path.realpath(entry)
+                # A broken link is reported below, as unreadable.
+                if os.path.exists(target) and not _inside(target, top):
+                    refused.append(
+                        f"{entry} is a link to {target}, outside {folder} (set the "
+                        "dataset's follow_links: true to read images through it)"
+                    )
+                    continue
+            if is_image:
+                real = os.path.realpath(entry)
+                if entry.is_file() and real in seen_files:
+                    refused.append(
+                        f"{entry} is the file {seen_files[real]} again (a link): it "
+                        "would count as two images; remove the link"
+                    )
+                    continue
+                seen_files.setdefault(real, entry)
                 candidates.append(entry)
-            elif recursive and entry.is_dir():
+                continue
+            if entry.is_dir():
+                real = os.path.realpath(entry)
+                if not recursive:
+                    continue
+                if real in seen_dirs:
+                    refused.append(
+                        f"{entry} is the folder {seen_dirs[real]} again (a link): its "
+                        "images would be read twice; remove the link"
+                    )
+                    continue
+                seen_dirs[real] = entry
                 pending.append(entry)
-            elif not entry.is_dir():
+                continue
+            found = _sniff(entry) if entry.is_file() else None
+            if found:
+                refused.append(
+                    f"{entry} is a {found} image, but only {', '.join(IMAGE_SUFFIXES)} "
+                    "files are read: convert it to one of them, or move it out of the folder"
+                )
+            else:
                 other += 1
     unreadable = [p for p in candidates if not p.is_file() or not os.access(p, os.R_OK)]
     if unreadable:
@@ -189,6 +325,12 @@ def scan_images(folder: str | Path, recursive: bool = False) -> ImageScan:
         raise ImageReadError(
             f"{len(unreadable)} entr{'y' if len(unreadable) == 1 else 'ies'} in {folder} "
             f"look like images but are not readable files (broken link? folder?): {names}"
+        )
+    if refused:
+        more = f" (and {len(refused) - 5} more)" if len(refused) > 5 else ""
+        raise ImageReadError(
+            f"{len(refused)} entr{'y' if len(refused) == 1 else 'ies'} in {folder} cannot "
+            f"be read as the dataset's images: " + "; ".join(refused[:5]) + more
         )
     ordered = sorted(candidates, key=lambda p: natural_key(p.relative_to(folder).as_posix()))
     return ImageScan(ordered, hidden, other)
@@ -199,9 +341,22 @@ def list_images(folder: str | Path, recursive: bool = False) -> list[Path]:
     return scan_images(folder, recursive).paths
 
 
-def natural_key(name: str) -> tuple:
-    """Sort key that orders embedded integers numerically."""
-    import re
+_DIGITS = re.compile(r"([0-9]+)")
 
-    parts = re.split(r"(\d+)", name)
-    return tuple((0, int(part), part) if part.isdigit() else (1, 0, part.lower()) for part in parts)
+
+def natural_key(name: str) -> tuple:
+    """Sort key that orders embedded (ASCII) integers numerically: a total order of the
+    names alone, the same on every machine and file system.
+
+    Names are compared in Unicode NFC (macOS file systems return decomposed names),
+    text case-insensitively; ties (``a.jpg`` and ``A.jpg``, ``01`` and ``1``) are broken
+    by the exact name, never by the order the file system lists them in.
+    """
+    name = unicodedata.normalize("NFC", name)
+    parts = _DIGITS.split(name)
+    key = tuple(
+        (0, int(part), "") if i % 2 else (1, 0, part.casefold())
+        for i, part in enumerate(parts)
+        if part
+    )
+    return (key, name)
