@@ -423,3 +423,49 @@ def test_real_17places_needs_drop_out_of_range(data_root):
     truth = vprbench_ground_truth(path, 406, 406, drop_out_of_range=True)
     assert len(truth) == 406 and max(int(t.max()) for t in truth) == 405
     assert_truth_equal(truth, [set(t.tolist()) for t in frame_window_ground_truth(406, 406, 2)])
+
+
+# ------------------------------------------------------------------ roles and pairs
+
+
+def write_pngs(folder, names):
+    for name in names:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(folder / name)
+
+
+def test_references_and_queries_that_are_the_same_files_are_refused(tmp_path):
+    write_pngs(tmp_path / "ds/ref", ["1.png", "2.png"])
+    same_folder = {**SPEC, "query": "ref"}
+    with pytest.raises(DatasetError, match=r"2 query image\(s\) are also reference images"):
+        list_dataset(tmp_path, "toy", same_folder)
+    (tmp_path / "ds/query").mkdir()
+    (tmp_path / "ds/query/9.png").symlink_to(tmp_path / "ds/ref/2.png")
+    with pytest.raises(DatasetError, match=r"query/9\.png = .*ref/2\.png"):
+        list_dataset(tmp_path, "toy", {**SPEC, "follow_links": True})
+
+
+def test_pairs_are_matched_by_relative_path_not_by_sort_order(tmp_path):
+    # The suffixes make the visible and thermal names sort in different orders.
+    write_pngs(tmp_path / "ds/vi", ["a.png", "a.m.png"])  # a.m.png sorts first
+    write_pngs(tmp_path / "ds/ir", ["a.jpg", "a.m.jpg"])  # a.jpg sorts first
+    spec = {**SPEC, "reference": "vi", "query": "ir", "paired": True}
+    files = list_dataset(tmp_path, "toy", spec)
+    pairs = [(r.name, q.name) for r, q in zip(files.reference, files.query, strict=True)]
+    assert pairs == [("a.m.png", "a.m.jpg"), ("a.png", "a.jpg")]
+
+
+def test_pairs_in_subfolders_need_partners_in_the_same_subfolders(tmp_path):
+    write_pngs(tmp_path / "ds/vi", ["day/1.png", "night/1.png"])
+    write_pngs(tmp_path / "ds/ir", ["1.png", "2.png"])  # same stems, flat: not partners
+    spec = {**SPEC, "reference": "vi", "query": "ir", "paired": True}
+    with pytest.raises(DatasetError, match=r"no partner of the same relative path.*day/1\.png"):
+        list_dataset(tmp_path, "toy", spec)
+
+
+def test_a_name_with_two_suffixes_makes_pairs_ambiguous(tmp_path):
+    write_pngs(tmp_path / "ds/vi", ["1.png", "1.jpg", "2.png"])
+    write_pngs(tmp_path / "ds/ir", ["1.png", "2.png", "3.png"])
+    spec = {**SPEC, "reference": "vi", "query": "ir", "paired": True}
+    with pytest.raises(DatasetError, match=r"two suffixes.*vi/1\.jpg and .*vi/1\.png"):
+        list_dataset(tmp_path, "toy", spec)

@@ -22,6 +22,7 @@ reference indices that count as correct. The kinds:
 
 from __future__ import annotations
 
+import os
 import pickle
 from dataclasses import dataclass
 from pathlib import Path
@@ -75,17 +76,49 @@ def list_dataset(data_root: str | Path, name: str, spec: dict) -> DatasetFiles:
             continue
         if not entry.is_dir():
             raise DatasetError(f"dataset '{name}': {role} folder {entry} does not exist.{hint}")
-        scans[role] = scan_images(entry, spec.get("recursive", True))
+        scans[role] = scan_images(
+            entry, spec.get("recursive", True), spec.get("follow_links", False)
+        )
         if not scans[role].paths:
             raise DatasetError(f"dataset '{name}': {role} folder {entry} contains no images")
-    files = DatasetFiles(
-        reference=scans["reference"].paths,
-        query=scans["query"].paths,
+    reference, query = scans["reference"].paths, scans["query"].paths
+    check_disjoint(name, reference, query)
+    if spec.get("paired"):
+        query = paired_queries(
+            name,
+            reference,
+            query,
+            _role_base(root, spec, "reference", reference),
+            _role_base(root, spec, "query", query),
+        )
+    return DatasetFiles(
+        reference=reference,
+        query=query,
         skipped={r: (s.skipped_hidden, s.skipped_other) for r, s in scans.items()},
     )
-    if spec.get("paired"):
-        check_pairs(name, files)
-    return files
+
+
+def _role_base(root: Path, spec: dict, role: str, paths: list[Path]) -> Path:
+    """What a role's images are named relative to when pairing: its folder, or for a
+    list file the folder its images have in common (``vi/`` of ``vi/1.jpg``)."""
+    entry = root / spec[role]
+    if entry.suffix.lower() != ".txt":
+        return entry
+    return Path(os.path.commonpath([p.parent for p in paths]))
+
+
+def check_disjoint(name: str, reference: list[Path], query: list[Path]) -> None:
+    """References and queries must be different files: a query that is also a
+    reference (the same folder twice, a link, an overlapping list) is its own top-1."""
+    real = {os.path.realpath(p): p for p in reference}
+    shared = [(real[r], q) for q in query if (r := os.path.realpath(q)) in real]
+    if shared:
+        examples = ", ".join(f"{q} = {ref}" for ref, q in shared[:5])
+        raise DatasetError(
+            f"dataset '{name}': {len(shared)} query image(s) are also reference images "
+            f"(e.g. {examples}); each query would find itself at rank 1. Use separate "
+            "reference and query images"
+        )
 
 
 def read_image_list(list_file: Path, root: Path, what: str) -> ImageScan:
@@ -114,18 +147,62 @@ def read_image_list(list_file: Path, root: Path, what: str) -> ImageScan:
     return ImageScan(paths)
 
 
-def check_pairs(name: str, files: DatasetFiles) -> None:
-    """Paired layouts need the same file names (up to suffix) in both folders."""
-    ref = {p.stem: p for p in files.reference}
-    query = {p.stem: p for p in files.query}
-    only_ref = sorted(set(ref) - set(query))
-    only_query = sorted(set(query) - set(ref))
+def paired_queries(
+    name: str, reference: list[Path], query: list[Path], ref_base: Path, query_base: Path
+) -> list[Path]:
+    """The queries in the order of their partner references (query ``i`` pairs with
+    reference ``i``). Partners have the same path relative to their role's folder, up
+    to the suffix (``a/1.jpg`` and ``a/1.png``): matched by name, never by sort order.
+    A name twice in one role (``1.jpg`` and ``1.png``) or without a partner is an error
+    naming examples."""
+    keyed = []
+    for role, paths, base in (("reference", reference, ref_base), ("query", query, query_base)):
+        by_key: dict[str, Path] = {}
+        clashes = []
+        for path in paths:
+            key = path.relative_to(base).with_suffix("").as_posix()
+            if key in by_key:
+                clashes.append(f"{by_key[key]} and {path}")
+            by_key[key] = path
+        if clashes:
+            raise DatasetError(
+                f"dataset '{name}' is paired, but {len(clashes)} {role} name(s) occur with "
+                f"two suffixes, so partners are ambiguous: {'; '.join(clashes[:5])}"
+            )
+        keyed.append(by_key)
+    refs, queries = keyed
+    only_ref = [refs[k] for k in refs if k not in queries]
+    only_query = [queries[k] for k in queries if k not in refs]
     if only_ref or only_query:
-        problems = [str(ref[s]) for s in only_ref[:5]] + [str(query[s]) for s in only_query[:5]]
+        problems = [str(p) for p in only_ref[:5] + only_query[:5]]
         raise DatasetError(
             f"dataset '{name}' is paired but {len(only_ref) + len(only_query)} file(s) have "
-            f"no partner in the other folder, e.g. {', '.join(problems)}"
+            f"no partner of the same relative path (suffix aside) in the other folder, "
+            f"e.g. {', '.join(problems)}"
         )
+    return [queries[path.relative_to(ref_base).with_suffix("").as_posix()] for path in reference]
+
+
+def contents_digest(files: DatasetFiles, data_root: str | Path, spec: dict, file_hash) -> str:
+    """SHA-256 over every image's and the ground-truth file's name and content hash:
+    what a dataset's key covers. ``file_hash(path, where) -> hex sha256``, ``where`` a
+    config key (``reference``, ``query``, ``ground_truth.file``) to name in errors."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    root = dataset_folder(data_root, spec)
+    for role, paths in (("reference", files.reference), ("query", files.query)):
+        # Named relative to the role's folder (a list file's: the dataset folder), so a
+        # flat folder hashes its file names and a nested one its relative paths.
+        base = root / spec[role] if (root / spec[role]).is_dir() else root
+        for path in paths:
+            label = path.relative_to(base).as_posix()
+            digest.update(f"{role}/{label}:{file_hash(path, role)}\n".encode())
+    for path in ground_truth_files(data_root, spec):
+        if path.exists():
+            sha = file_hash(path, "ground_truth.file")
+            digest.update(f"truth/{path.name}:{sha}\n".encode())
+    return digest.hexdigest()[:32]
 
 
 # ---------------------------------------------------------------- ground truth
