@@ -243,8 +243,20 @@ def stale_reports(plan: Plan, root: str = "") -> list[Path]:
 def withdraw_stale_reports(plan: Plan, root: str = "") -> list[Path]:
     """Rename every stale table to ``<name>.stale`` so that a failed run never leaves a
     table that looks current; returns the new paths."""
+    return _withdraw(stale_reports(plan, root))
+
+
+def withdraw_reports(root: str = "", dataset: str = "*") -> list[Path]:
+    """Withdraw every table of ``dataset`` (all datasets by default) regardless of age:
+    for failures before a plan exists (a config that cannot be planned, a dataset that
+    cannot be listed), where none of them describes the current config."""
+    shown = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
+    return _withdraw([t for p in shown for t in Path(root or ".").glob(p.format(dataset=dataset))])
+
+
+def _withdraw(tables: list[Path]) -> list[Path]:
     moved = []
-    for table in stale_reports(plan, root):
+    for table in tables:
         target = table.with_name(table.name + ".stale")
         table.replace(target)
         moved.append(target)
@@ -422,37 +434,33 @@ def _checkpoint_fingerprint(entry: dict, memo: dict, where: str) -> dict:
 
 
 def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str | None:
-    """SHA-256 over every image's and the ground-truth file's name and content hash, or
-    ``None`` while the dataset cannot be listed (its stage then fails, naming why).
+    """:func:`vprflow.datasets.contents_digest` of a dataset, or ``None`` while the
+    dataset cannot be listed (its stage then fails, naming why).
 
     Each file's hash is memoised by path, size, mtime and ctime, so re-planning reads no
     image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
     ``rsync -a`` or ``tar`` (which restore an older mtime).
     """
-    from vprflow.datasets import DatasetError, dataset_folder, ground_truth_files, list_dataset
+    from vprflow.datasets import DatasetError, contents_digest, list_dataset
     from vprflow.images import ImageReadError
 
     try:
         files = list_dataset(data_root, name, spec)
     except (DatasetError, ImageReadError):
         return None
-    digest = hashlib.sha256()
-    root = dataset_folder(data_root, spec)
-    for role, paths in (("reference", files.reference), ("query", files.query)):
-        # Named relative to the role's folder (a list file's: the dataset folder), so a
-        # flat folder hashes its file names and a nested one its relative paths.
-        base = root / spec[role] if (root / spec[role]).is_dir() else root
-        for path in paths:
-            where = f"datasets.{name}.{role}"
-            label = path.relative_to(base).as_posix()
-            digest.update(f"{role}/{label}:{_memoised(path, memo, file_digest, where)}\n".encode())
-    for path in ground_truth_files(data_root, spec):
-        if path.exists():
-            where = f"datasets.{name}.ground_truth.file"
-            digest.update(
-                f"truth/{path.name}:{_memoised(path, memo, file_digest, where)}\n".encode()
-            )
-    return digest.hexdigest()[:32]
+    return contents_digest(
+        files,
+        data_root,
+        spec,
+        lambda path, where: _memoised(path, memo, file_digest, f"datasets.{name}.{where}"),
+    )
+
+
+def memo_key(path: str | Path, st: os.stat_result | None = None) -> str:
+    """The memo's key of a file: its absolute path, size, mtime and ctime."""
+    st = st or os.stat(path)
+    stamp = f"{os.path.basename(path)}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}"
+    return f"{os.path.abspath(path)}|{stamp}"
 
 
 def _memoised(path: str | Path, memo: dict, digest, where: str) -> str:
@@ -465,13 +473,13 @@ def _memoised(path: str | Path, memo: dict, digest, where: str) -> str:
     if stat.S_ISDIR(st.st_mode):
         entries = sorted(os.scandir(path), key=lambda e: e.name)
         stamps = [(e.name, e.stat()) for e in entries if e.is_file()]
+        stamp = "|".join(f"{n}:{s.st_size}:{s.st_mtime_ns}:{s.st_ctime_ns}" for n, s in stamps)
+        key = f"{os.path.abspath(path)}|{stamp}"
     else:
-        stamps = [(os.path.basename(path), st)]
-    stamp = "|".join(f"{n}:{s.st_size}:{s.st_mtime_ns}:{s.st_ctime_ns}" for n, s in stamps)
-    memo_key = f"{os.path.abspath(path)}|{stamp}"
-    if memo_key not in memo:
-        memo[memo_key] = digest(str(path))
-    return memo[memo_key]
+        key = memo_key(path, st)
+    if key not in memo:
+        memo[key] = digest(str(path))
+    return memo[key]
 
 
 def build_plan(config: dict, memo: dict | None = None) -> Plan:
@@ -486,7 +494,17 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
     for dataset_name, dataset in sorted(config["datasets"].items()):
         dataset_params = {
             "name": dataset_name,
-            **{k: dataset[k] for k in ("path", "reference", "query", "paired", "ground_truth")},
+            **{
+                k: dataset[k]
+                for k in (
+                    "path",
+                    "reference",
+                    "query",
+                    "paired",
+                    "ground_truth",
+                    "exif_orientation",
+                )
+            },
             # What the images and ground truth hold, not where they are: replaced images
             # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
             "contents": dataset_contents(config["data_root"], dataset_name, dataset, memo),
@@ -530,6 +548,10 @@ def _plan_method(
     agg = aggregator(method["aggregator"])
     features_name = method["features"]
     backbone = _named_entry(config, "backbones", features_name, method_name)
+    if backbone.get("resize") == "method":
+        # The published pipeline's reader: one backbone entry serves SegVLAD (OpenCV)
+        # and SNSM (PIL) faithfully, as two features stores.
+        backbone = {**backbone, "resize": agg.resize}
     ds = ("dataset", dataset_key)
     features_params = {
         **_hashed(backbone),

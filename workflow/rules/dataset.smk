@@ -14,5 +14,7 @@ rule dataset:
         cfg=stage_params("dataset"),
         name=lambda wildcards: planned("dataset", wildcards).dataset,
         data_root=data_root_param,
+        # The plan's memo of file hashes: names a file that changed after planning.
+        fingerprints=PREFIX + FINGERPRINTS,
     script:
         "../scripts/dataset.py"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from pathlib import Path
 
@@ -9,24 +10,45 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow import datasets, stores
-from vprflow.images import read_image
+from vprflow.datasets import DatasetError
+from vprflow.images import ImageReadError, decode_image
+from vprflow.plan import file_digest
 from vprflow.stages.base import shard_range
 
 log = logging.getLogger("vprflow")
 
 
-def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
+def build_dataset(
+    name: str, params: dict, data_root: str, out: str, fingerprints: str | None = None
+) -> None:
     """List and decode every image once (so a corrupt file fails here, by name) and
-    store paths (relative to ``data_root``, so the data folder may move), sizes and
-    ground truth. The absolute folder read is logged and kept in the attributes."""
+    store paths (relative to ``data_root``, so the data folder may move), sizes (after
+    the EXIF orientation), each image's SHA-256 and the ground truth. The absolute
+    folder read is logged and kept in the attributes.
+
+    What is read must be what the key covers: the contents hash of the files as read
+    here must equal the plan's (``params["params"]["contents"]``), else a file changed
+    after planning, and it is named (with ``fingerprints``, the plan's memo of hashes
+    by file stamp). Queries byte-identical to a reference are refused.
+    """
     spec = params["params"]
     files = datasets.list_dataset(data_root, name, spec)
     folder = datasets.dataset_folder(data_root, spec)
-    truth = datasets.ground_truth(files, spec["ground_truth"], folder)
     paths = files.reference + files.query
     sizes = np.zeros((len(paths), 2), dtype=np.int64)
+    digests = []
     for i, path in enumerate(tqdm(paths, desc=f"checking {name} images")):
-        sizes[i] = read_image(path).shape[:2]
+        data = _read_bytes(path)
+        digests.append(hashlib.sha256(data).hexdigest())
+        sizes[i] = decode_image(data, path, spec["exif_orientation"]).shape[:2]
+    by_path = dict(zip(paths, digests, strict=True))
+    contents = datasets.contents_digest(
+        files, data_root, spec, lambda p, _: by_path.get(p) or file_digest(p)
+    )
+    if contents != spec["contents"]:
+        raise DatasetError(_changed_since_planning(name, paths, by_path, fingerprints))
+    _check_distinct(name, files, digests)
+    truth = datasets.ground_truth(files, spec["ground_truth"], folder)
     counts = np.array([len(t) for t in truth], dtype=np.int64)
     with stores.atomic_store(out, {"stage": "dataset", "params": params}) as group:
         group.attrs.update(
@@ -36,6 +58,7 @@ def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
             n_query=len(files.query),
             ground_truth_rule=datasets.ground_truth_rule(spec["ground_truth"]),
             n_queries_with_positives=int((counts > 0).sum()),
+            exif_orientation=spec["exif_orientation"],
         )
         stores.write_array(
             group, "paths", np.array([p.relative_to(data_root).as_posix() for p in paths])
@@ -44,6 +67,7 @@ def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
         stores.write_array(
             group, "names", np.array([p.relative_to(folder).as_posix() for p in paths])
         )
+        stores.write_array(group, "sha256", np.array(digests))
         stores.write_array(group, "image_sizes", sizes)
         stores.write_array(
             group, "truth", np.concatenate(truth) if truth else np.zeros(0, np.int64)
@@ -67,12 +91,57 @@ def build_dataset(name: str, params: dict, data_root: str, out: str) -> None:
     )
 
 
+def _read_bytes(path: Path) -> bytes:
+    try:
+        return Path(path).read_bytes()
+    except OSError as error:
+        raise ImageReadError(f"cannot read image {path}: {error}") from error
+
+
+def _changed_since_planning(
+    name: str, paths: list[Path], digests: dict[Path, str], fingerprints: str | None
+) -> str:
+    """The message for files that differ from what the plan hashed: those whose stamp
+    (size, mtime, ctime) or hash is not in the plan's memo."""
+    from vprflow.plan import load_fingerprints, memo_key
+
+    memo = load_fingerprints(fingerprints) if fingerprints else {}
+    changed = [p for p in paths if memo.get(memo_key(p)) != digests[p]] if memo else []
+    which = f": {', '.join(str(p) for p in changed[:5])}" if changed else ""
+    return (
+        f"dataset '{name}': files changed after this run planned it, so its key no longer "
+        f"describes them{which}. Run snakemake again: it re-plans, and rebuilds what "
+        "depends on the changed files"
+    )
+
+
+def _check_distinct(name: str, files: datasets.DatasetFiles, digests: list[str]) -> None:
+    """A query byte-identical to a reference (a copied folder) finds itself at rank 1."""
+    n_ref = len(files.reference)
+    first_ref: dict[str, int] = {}
+    for i, digest in enumerate(digests[:n_ref]):
+        first_ref.setdefault(digest, i)
+    same = [
+        (files.query[q], files.reference[first_ref[digest]])
+        for q, digest in enumerate(digests[n_ref:])
+        if digest in first_ref
+    ]
+    if same:
+        examples = ", ".join(f"{q} = {r}" for q, r in same[:5])
+        raise DatasetError(
+            f"dataset '{name}': {len(same)} query image(s) are byte-identical copies of "
+            f"reference images (e.g. {examples}); each would find itself at rank 1. Use "
+            "separate reference and query images"
+        )
+
+
 class Dataset:
     """Read-side view of a dataset store. ``paths`` are the image files under
     ``data_root`` (relative to it when none is given)."""
 
     def __init__(self, path: str, data_root: str | None = None):
         self.group = stores.open_store(path)
+        self._sha256: list[str] | None = None
         self.n_reference = int(self.group.attrs["n_reference"])
         self.n_query = int(self.group.attrs["n_query"])
         self.n_images = self.n_reference + self.n_query
@@ -80,6 +149,24 @@ class Dataset:
         root = Path(data_root) if data_root is not None else None
         self.paths = [str(root / p) if root else p for p in relative]
         self.names = stores.read_strings(self.group, "names")
+        self.exif_orientation = self.group.attrs["exif_orientation"]
+
+    def read_image(self, index: int) -> np.ndarray:
+        """Image ``index`` as :func:`vprflow.images.read_image` decodes it, with the
+        dataset's EXIF orientation, after checking that the file still holds what the
+        dataset stage hashed: an image changed during a run must fail, naming it, not
+        be computed under the key of its old content."""
+        path = self.paths[index]
+        data = _read_bytes(Path(path))
+        if self._sha256 is None:
+            self._sha256 = stores.read_strings(self.group, "sha256")
+        if hashlib.sha256(data).hexdigest() != self._sha256[index]:
+            raise DatasetError(
+                f"{path} changed after the dataset stage read it (its SHA-256 differs), so "
+                "results computed now would be stored under its old content's key. Run "
+                "snakemake again: it re-plans and rebuilds what depends on the image"
+            )
+        return decode_image(data, path, self.exif_orientation)
 
     @property
     def has_ground_truth(self) -> bool:

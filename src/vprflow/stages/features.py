@@ -9,7 +9,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow import stores
-from vprflow.images import read_image, resize_image
+from vprflow.images import resize_image
 from vprflow.registry import model_kind
 from vprflow.stages.base import resolved_sources, stage_attrs
 from vprflow.stages.dataset import open_shard
@@ -31,14 +31,14 @@ def compute_features(
     spec = params["params"]
     dataset, images = open_shard(dataset_path, data_root, start, stop)
     width, height = spec["resolution"]
-    store_dtype = np.dtype(spec.get("store_dtype", "float16"))
-    extract, patch_size = _feature_extractor(spec, device, width, height)
+    store_dtype = np.dtype(spec["store_dtype"])
+    extract, patch_size = _feature_extractor(spec, device, width, height, dataset)
     attrs = {**stage_attrs("features", params, images), "sources": resolved_sources(spec)}
     with stores.atomic_store(out, attrs) as group:
         array = None
         batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
         for batch in tqdm(batches, desc="features", unit="batch"):
-            grids = extract([dataset.paths[i] for i in batch])
+            grids = extract(batch)
             if array is None:
                 h, w, dim = grids.shape[1:]
                 array = group.create_array(
@@ -62,8 +62,9 @@ def compute_features(
             array[start_row : start_row + len(batch)] = stored
 
 
-def _feature_extractor(spec: dict, device: str, width: int, height: int):
-    """``(paths -> float32 [B, h, w, D], patch size)`` for the configured backbone.
+def _feature_extractor(spec: dict, device: str, width: int, height: int, dataset):
+    """``(image indices -> float32 [B, h, w, D], patch size)`` for the configured
+    backbone, reading ``dataset``'s images.
 
     A kind without a loader (``backbone: import``) reads the authors' published HDF5
     features instead of running a model (``<image file name>/ift_dino``).
@@ -73,16 +74,18 @@ def _feature_extractor(spec: dict, device: str, width: int, height: int):
         from vprflow.arrays import l2_normalize
         from vprflow.published import read_features_h5
 
-        def read(paths):
-            grids = np.stack([read_features_h5(spec["file"], Path(p).name) for p in paths])
+        def read(indices):
+            grids = np.stack(
+                [read_features_h5(spec["file"], Path(dataset.paths[i]).name) for i in indices]
+            )
             return l2_normalize(grids) if spec.get("normalize", True) else grids
 
         return read, spec["patch_size"]
     backbone = kind.load(spec, device)
 
-    def run(paths):
+    def run(indices):
         pixels = np.stack(
-            [resize_image(read_image(p), width, height, spec["resize"]) for p in paths]
+            [resize_image(dataset.read_image(i), width, height, spec["resize"]) for i in indices]
         )
         return backbone.features(pixels)
 

@@ -14,7 +14,6 @@ import numpy as np
 
 from vprflow import figures, stores
 from vprflow.files import write_text_atomic
-from vprflow.images import read_image
 from vprflow.stages.dataset import Dataset
 
 log = logging.getLogger("vprflow")
@@ -103,9 +102,9 @@ def draw_retrievals(
         top = [int(r) for r in ranking[q, : settings["top"]] if r >= 0]
         rows.append(
             figures.RetrievalRow(
-                query=read_image(dataset.paths[dataset.n_reference + q]),
+                query=dataset.read_image(dataset.n_reference + q),
                 query_name=dataset.names[dataset.n_reference + q],
-                references=[read_image(dataset.paths[r]) for r in top],
+                references=[dataset.read_image(r) for r in top],
                 reference_names=[dataset.names[r] for r in top],
                 correct=[bool(np.isin(r, truth[q])) if judged else None for r in top],
             )
@@ -182,9 +181,9 @@ def draw_segment_matches(
         n_matched = sum(m.reference_segment is not None for m in matches)
         explanations.append(
             figures.SegmentExplanation(
-                read_image(dataset.paths[image]),
+                dataset.read_image(image),
                 masks(image),
-                read_image(dataset.paths[top1]),
+                dataset.read_image(top1),
                 masks(top1),
                 matches,
                 f"query {dataset.names[image]} -> {dataset.names[top1]}: {n_matched} of "
@@ -231,10 +230,10 @@ def draw_support_maps(
         rows.append(
             (
                 dataset.names[image],
-                read_image(dataset.paths[image]),
+                dataset.read_image(image),
                 support(image),
                 dataset.names[reference],
-                read_image(dataset.paths[reference]),
+                dataset.read_image(reference),
                 support(reference),
             )
         )

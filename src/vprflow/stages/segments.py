@@ -9,7 +9,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow import stores
-from vprflow.images import read_image, resize_image
+from vprflow.images import resize_image
 from vprflow.registry import model_kind
 from vprflow.stages.base import resolved_sources, stage_attrs
 from vprflow.stages.dataset import open_shard
@@ -33,11 +33,11 @@ def compute_segments(
     """
     spec = params["params"]
     dataset, images = open_shard(dataset_path, data_root, start, stop)
-    segment = _mask_source(spec, device)
+    segment = _mask_source(spec, device, dataset)
     attrs = {**stage_attrs("segments", params, images), "sources": resolved_sources(spec)}
     with stores.atomic_store(out, attrs) as group:
         writer, shape = None, None
-        for i, masks in _segmented(segment, dataset.paths, images, batch_size):
+        for i, masks in _segmented(segment, images, batch_size):
             if shape is None:
                 shape = masks.shape[1:]
                 group.attrs.update(mask_height=shape[0], mask_width=shape[1])
@@ -55,20 +55,21 @@ def compute_segments(
         writer.close()
 
 
-def _segmented(segment, paths, images, batch_size: int):
+def _segmented(segment, images, batch_size: int):
     """``(index, masks)`` of each image in order, ``segment`` called on lists of up to
-    ``batch_size`` paths, with a progress bar over images."""
+    ``batch_size`` image indices, with a progress bar over images."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     with tqdm(total=len(images), desc="segments", unit="image") as progress:
         for first in range(0, len(images), batch_size):
             batch = images[first : first + batch_size]
-            yield from zip(batch, segment([paths[i] for i in batch]), strict=True)
+            yield from zip(batch, segment(list(batch)), strict=True)
             progress.update(len(batch))
 
 
-def _mask_source(spec: dict, device: str):
-    """``[path, ...] -> [bool [S, Hm, Wm], ...]`` for the configured segmenter.
+def _mask_source(spec: dict, device: str, dataset):
+    """``[image index, ...] -> [bool [S, Hm, Wm], ...]`` for the configured segmenter,
+    reading ``dataset``'s images.
 
     ``segmenter: import`` reads the authors' published HDF5 masks
     (``<image file name>/masks/<j>/segmentation``) at their own resolution. Segmenters
@@ -78,16 +79,18 @@ def _mask_source(spec: dict, device: str):
     if kind.loader is None:
         from vprflow.published import read_masks_h5
 
-        return lambda paths: [read_masks_h5(spec["file"], Path(path).name) for path in paths]
+        return lambda indices: [
+            read_masks_h5(spec["file"], Path(dataset.paths[i]).name) for i in indices
+        ]
     segmenter = kind.load(spec, device)
     width, height = spec["resolution"]
 
-    def images(paths):
-        return [resize_image(read_image(path), width, height, spec["resize"]) for path in paths]
+    def images(indices):
+        return [resize_image(dataset.read_image(i), width, height, spec["resize"]) for i in indices]
 
     if hasattr(segmenter, "masks_batch"):
-        return lambda paths: segmenter.masks_batch(images(paths))
-    return lambda paths: [segmenter.masks(image) for image in images(paths)]
+        return lambda indices: segmenter.masks_batch(images(indices))
+    return lambda indices: [segmenter.masks(image) for image in images(indices)]
 
 
 def read_masks(group, index: int) -> np.ndarray:
