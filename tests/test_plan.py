@@ -118,7 +118,7 @@ def test_omitted_method_sections_take_the_schema_defaults(config):
     filled = validate_config(raw, SCHEMA)
     for section in ("vocabulary", "vlad", "pca", "segvlad", "retrieval", "snsm", "pooling"):
         assert filled[section] == config[section], section
-    assert filled["backbones"]["daisy"]["resize"] == "linear"
+    assert filled["backbones"]["daisy"]["resize"] == "method"
 
 
 def test_segmenter_reaches_segments_pca_descriptors_recall(config):
@@ -168,8 +168,30 @@ def test_snsm_parameters_reach_only_its_descriptors(config):
     a = keys_of(config, "roadscene", "snsm")
     b = keys_of(changed, "roadscene", "snsm")
     assert {s for s in a if a[s] != b[s]} == {"descriptors", "recall"}
-    # and SegVLAD on the same dataset shares its features
-    assert keys_of(config, "roadscene", "segvlad")["features"] == a["features"]
+    # and its pooling baselines on the same dataset share its features
+    assert keys_of(config, "roadscene", "gem")["features"] == a["features"]
+
+
+def test_resize_method_follows_each_methods_published_reader(config):
+    # One backbone entry (resize: method) read as SNSM's code reads (PIL bilinear) for
+    # SNSM and its baselines, and as SegVLAD's and AnyLoc's (OpenCV) for theirs.
+    plan = build_plan(config)
+    resize = {}
+    for method in ("snsm", "gem", "segvlad", "anyloc_vlad"):
+        key = keys_of(config, "roadscene", method)["features"]
+        resize[method] = plan.stages["features"][key].params["params"]["resize"]
+    assert resize == {
+        "snsm": "antialias",
+        "gem": "antialias",
+        "segvlad": "linear",
+        "anyloc_vlad": "linear",
+    }
+    fixed = copy.deepcopy(config)
+    fixed["backbones"]["daisy"]["resize"] = "linear"
+    assert (
+        keys_of(fixed, "roadscene", "snsm")["features"]
+        == keys_of(fixed, "roadscene", "segvlad")["features"]
+    )
 
 
 def test_vocabulary_file_is_keyed_by_its_content(config, tmp_path):

@@ -210,6 +210,10 @@ class Aggregator:
     callable ``image index -> [dim] or [S, dim]`` split into store reads and arithmetic.
     ``explanation``: the report's figure of how the method decided, besides the
     retrievals every method gets (a name in :data:`vprflow.plan.FIGURES`), or None.
+    ``resize``: how the published pipeline resizes images before the backbone (a
+    :data:`vprflow.images.RESIZE_METHODS` name), the default of a backbone's
+    ``resize: method``: SegVLAD's and AnyLoc's readers use OpenCV, SNSM's (and its
+    pooling baselines') torchvision on PIL images.
     """
 
     name: str
@@ -219,6 +223,7 @@ class Aggregator:
     columns: Callable[[dict], dict]
     image_descriptor: str
     explanation: str | None = None
+    resize: str = "linear"
 
     def descriptor_function(self, options: dict, inputs: dict[str, str]):
         return resolve(self.image_descriptor)(options, inputs)
@@ -254,6 +259,7 @@ def _pooling(name: str) -> Aggregator:
         lambda m: {"p" if k == "gem_p" else k: m["pooling"][k] for k in keys},
         lambda m: prefixed("pooling", {k: m["pooling"][k] for k in keys}),
         f"{_DESCRIPTORS}:pooled_descriptor",
+        resize="antialias",
     )
 
 
@@ -285,6 +291,7 @@ AGGREGATORS: dict[str, Aggregator] = {
             lambda m: prefixed("snsm", m["snsm"]),
             f"{_DESCRIPTORS}:snsm_descriptor",
             explanation="support_maps",
+            resize="antialias",
         ),
         *(_pooling(name) for name in ("gem", "average", "max")),
     )

@@ -24,6 +24,7 @@ from vprflow.plan import (
     shard_pattern,
     store_path,
     store_pattern,
+    withdraw_reports,
     withdraw_stale_reports,
     write_index,
 )
@@ -35,16 +36,24 @@ configfile: "config/config.yaml"
 # Found next to this file (not via workflow.basedir), so that a host workflow that
 # imports vprflow as a module validates against vprflow's schema.
 SCHEMA = Path(workflow.current_basedir).parent / "schemas" / "config.schema.yaml"
-CONFIG = validate_config(config, SCHEMA)
-# Content hashes of images, local model weights and imported files, memoised between runs.
 # A host workflow that imports vprflow as a module with a `prefix` finds every output
 # under it; the few paths this file opens itself (not via rules) follow.
 _modifier = getattr(workflow.modifier, "path_modifier", None)
 PREFIX = getattr(_modifier, "prefix", None) or ""
-# Content hashes of images, local model weights and imported files, memoised between runs.
-_memo = load_fingerprints(PREFIX + FINGERPRINTS)
-_memo_size = len(_memo)
-PLAN = build_plan(CONFIG, _memo)
+try:
+    CONFIG = validate_config(config, SCHEMA)
+    # Content hashes of images, local model weights and imported files, memoised
+    # between runs.
+    _memo = load_fingerprints(PREFIX + FINGERPRINTS)
+    _memo_size = len(_memo)
+    PLAN = build_plan(CONFIG, _memo)
+except Exception:
+    # `onerror` does not run for a failure here: withdraw the tables now, since none
+    # of them describes a config that cannot be planned.
+    if workflow.is_main_process:
+        for _table in withdraw_reports(PREFIX):
+            print(f"vprflow: {_table} withdrawn: the config could not be planned")
+    raise
 if len(_memo) != _memo_size:
     save_fingerprints(_memo, PREFIX + FINGERPRINTS)
 # A map of every store to its dataset and methods, and log links by method. Written
@@ -104,7 +113,14 @@ def dataset_spec(name):
 
 @cache
 def dataset_files(name):
-    return list_dataset(CONFIG["data_root"], name, dataset_spec(name))
+    try:
+        return list_dataset(CONFIG["data_root"], name, dataset_spec(name))
+    except Exception:
+        # Raised while Snakemake builds the DAG, where `onerror` does not run.
+        if workflow.is_main_process:
+            for table in withdraw_reports(PREFIX, name):
+                print(f"vprflow: {table} withdrawn: dataset {name!r} cannot be listed")
+        raise
 
 
 def data_root_param(wildcards, output):
