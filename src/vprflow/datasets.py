@@ -174,15 +174,59 @@ def load_object_npy(path: str | Path) -> np.ndarray:
     return np.load(path, allow_pickle=False)
 
 
+def _short_repr(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _as_index(value, where: str) -> int:
+    """``value`` as an index: an integer (Python or numpy) or an integral float.
+
+    A fractional float used to be truncated (2.5 -> 2) and a boolean read as 0 or 1;
+    either gives a believable but wrong ground truth, so both are refused. ``where``
+    names the file, row and field (``"<file> row 4: reference index"``).
+    """
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    # bool is an int and timedelta64 a numpy integer, but neither is an index.
+    if isinstance(value, (bool, np.bool_)):
+        raise DatasetError(f"{where} {value!r} is a boolean, not an integer")
+    if isinstance(value, (int, np.integer)) and not isinstance(value, np.timedelta64):
+        return int(value)
+    if isinstance(value, (float, np.floating)) and float(value).is_integer():
+        return int(value)
+    raise DatasetError(f"{where} {_short_repr(value)} is not an integer")
+
+
+def _reference_indices(refs, where: str) -> list[int]:
+    """The positives of one row: a list, tuple or 1-D array of indices, or one index."""
+    if isinstance(refs, np.ndarray) and refs.ndim > 1:
+        raise DatasetError(
+            f"{where} positives are a {refs.ndim}-D array of shape {refs.shape}; "
+            "expected a flat list of reference indices"
+        )
+    if isinstance(refs, (list, tuple)) or (isinstance(refs, np.ndarray) and refs.ndim == 1):
+        items = list(refs)
+    elif isinstance(refs, (np.ndarray, int, float, np.number, np.bool_)):
+        items = [refs]  # a single index, as the old reshape(-1) read it
+    else:
+        raise DatasetError(
+            f"{where} positives {_short_repr(refs)}: expected a list of reference indices"
+        )
+    return [_as_index(item, f"{where} reference index") for item in items]
+
+
 def vprbench_ground_truth(
     path: str | Path, n_query: int, n_ref: int, drop_out_of_range: bool = False
 ) -> list[np.ndarray]:
     """Per-query reference indices from a VPR-Bench ``ground_truth_new.npy``.
 
-    Rows are ``[query_index, [ref indices]]``. The number of rows must equal the
-    number of query images. Reference indices beyond the reference set are an error
-    unless ``drop_out_of_range`` (the published 17places file lists references 406
-    and 407 of a 406-image set).
+    Rows are ``[query_index, [ref indices]]``: integers or integral floats, positives
+    a list, tuple, 1-D array or single index; anything else (fractions, booleans,
+    strings, nested lists) is an error naming the row. The number of rows must equal
+    the number of query images. Reference indices beyond the reference set are an
+    error unless ``drop_out_of_range`` (the published 17places file lists references
+    406 and 407 of a 406-image set).
     """
     path = Path(path)
     if not path.is_file():
@@ -196,7 +240,9 @@ def vprbench_ground_truth(
         raise DatasetError(
             f"{path} has {len(table)} ground-truth rows but the dataset has {n_query} query images"
         )
-    query_indices = [int(q) for q in table[:, 0]]
+    query_indices = [
+        _as_index(q, f"{path} row {row}: query index") for row, q in enumerate(table[:, 0])
+    ]
     outside = [(row, q) for row, q in enumerate(query_indices) if not 0 <= q < n_query]
     if outside:
         row, q = outside[0]
@@ -213,16 +259,16 @@ def vprbench_ground_truth(
             f"queries with no row: {missing[:10]}. Each query must have exactly one row."
         )
     truth: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * n_query
-    for query_index, refs in table:
-        q = int(query_index)
-        refs = np.asarray(refs, dtype=np.int64).reshape(-1)
-        bad = refs[(refs < 0) | (refs >= n_ref)]
-        if len(bad) and not drop_out_of_range:
+    for row, (q, refs) in enumerate(zip(query_indices, table[:, 1], strict=True)):
+        indices = _reference_indices(refs, f"{path} row {row}:")
+        # Checked as Python ints: an index such as 1e30 would overflow int64.
+        bad = [r for r in indices if not 0 <= r < n_ref]
+        if bad and not drop_out_of_range:
             raise DatasetError(
-                f"{path}: query {q} lists reference indices {bad.tolist()} but the dataset has "
+                f"{path}: query {q} lists reference indices {bad} but the dataset has "
                 f"{n_ref} reference images (set ground_truth.drop_out_of_range: true to drop them)"
             )
-        truth[q] = np.unique(refs[(refs >= 0) & (refs < n_ref)])
+        truth[q] = np.unique(np.array([r for r in indices if 0 <= r < n_ref], dtype=np.int64))
     return truth
 
 
