@@ -256,6 +256,19 @@ def test_utm_from_name():
         utm_from_name("db/000123.jpg")
 
 
+@pytest.mark.parametrize(("easting", "northing"), [("nan", "4.1e6"), ("585313.9", "inf")])
+def test_utm_name_with_nan_or_infinity_is_refused_naming_the_file_and_value(
+    tmp_path, easting, northing
+):
+    # Today scipy's KD-tree fails with "'x' must be finite", naming no file.
+    name = f"@{easting}@{northing}@17@T@x.jpg"
+    reference = [tmp_path / utm_name(585313.9, 4.1e6, "r0"), tmp_path / name]
+    query = [tmp_path / utm_name(585313.9, 4.1e6, "q0")]
+    bad = easting if easting == "nan" else northing
+    with pytest.raises(DatasetError, match=rf"{name}: UTM \w+ '{bad}' in the file name is not"):
+        utm_ground_truth(reference, query, 25.0)
+
+
 def test_pairs_ground_truth():
     assert_truth_equal(pairs_ground_truth(5, 5), [{i} for i in range(5)])
     with pytest.raises(DatasetError, match="5 vs 4"):

@@ -293,11 +293,18 @@ def utm_from_name(path: str | Path) -> tuple[float, float]:
     """``(easting, northing)`` from a file name of the form ``@easting@northing@...``."""
     parts = Path(path).name.split("@")
     try:
-        return float(parts[1]), float(parts[2])
+        easting, northing = float(parts[1]), float(parts[2])
     except (IndexError, ValueError) as error:
         raise DatasetError(
             f"{path}: file name has no '@easting@northing@' UTM coordinates"
         ) from error
+    # float() reads 'nan' and 'inf'; left in, the distance search fails without a name.
+    for axis, text, value in (("easting", parts[1], easting), ("northing", parts[2], northing)):
+        if not np.isfinite(value):
+            raise DatasetError(
+                f"{path}: UTM {axis} {text!r} in the file name is not a finite number"
+            )
+    return easting, northing
 
 
 def utm_ground_truth(
