@@ -162,6 +162,48 @@ def test_a_coordinate_file_without_coordinate_columns_names_what_it_found(tmp_pa
         read_positions(path, NAMES)
 
 
+def test_a_repeated_column_name_is_refused_naming_it(tmp_path):
+    # Today the last 'lat' column silently wins, whichever one the user meant.
+    path = write_coordinates(
+        tmp_path / "c.csv",
+        [["ref/a.jpg", 1, 2, 5], ["ref/b.jpg", 3, 4, 6], ["query/q.jpg", 1, 2, 7]],
+        header=("image", "lat", "lon", "lat"),
+    )
+    with pytest.raises(DatasetError, match=r"c\.csv: column\(s\) \['lat'\] appear more than once"):
+        read_positions(path, NAMES)
+
+
+def test_a_utf8_byte_order_mark_is_read(tmp_path):
+    # Spreadsheet programs write one; it used to hide the 'image' column.
+    path = tmp_path / "c.csv"
+    path.write_bytes(
+        b"\xef\xbb\xbfimage,lat,lon\r\nref/a.jpg,1,2\r\nref/b.jpg,3,4\r\nquery/q.jpg,5,6\r\n"
+    )
+    positions = read_positions(path, NAMES)
+    assert positions.x.tolist() == [1, 3, 5] and positions.y.tolist() == [2, 4, 6]
+
+
+@pytest.mark.parametrize(("separator", "named"), [(";", "';'"), ("\t", "tabs")])
+def test_a_semicolon_or_tab_separated_file_names_its_delimiter(tmp_path, separator, named):
+    # Read as CSV its header is one column, which used to be reported only as missing.
+    path = tmp_path / "c.csv"
+    path.write_text(
+        "\n".join(
+            separator.join(row) for row in [["image", "lat", "lon"], ["ref/a.jpg", "1,5", "2"]]
+        )
+    )
+    message = rf"c\.csv: the header .* separates columns with {named}; the file must be comma-"
+    with pytest.raises(DatasetError, match=message):
+        read_positions(path, NAMES)
+
+
+def test_a_coordinate_file_that_is_not_utf8_names_the_line(tmp_path):
+    path = tmp_path / "c.csv"
+    path.write_bytes("image,lat,lon\nref/a.jpg,1,2\nref/caf\u00e9.jpg,3,4\n".encode("latin-1"))
+    with pytest.raises(DatasetError, match=r"c\.csv line 3: not UTF-8 text \(byte 0xe9"):
+        read_positions(path, NAMES)
+
+
 def gps_jpeg(path: Path, lat: tuple, lat_ref: str, lon: tuple, lon_ref: str) -> Path:
     exif = Image.Exif()
     exif[0x8825] = {1: lat_ref, 2: lat, 3: lon_ref, 4: lon}

@@ -352,13 +352,42 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
     """Positions of ``names`` (image paths relative to the dataset folder) from a CSV
     with an ``image`` column and ``lat``/``lon`` or ``easting``/``northing`` columns
     (and optionally ``heading``). Errors name the file and the line at fault."""
+    import codecs
     import csv
+    import io
 
     if not csv_path.is_file():
         raise DatasetError(f"coordinates file {csv_path} does not exist")
-    with open(csv_path, newline="") as f:
+    data = csv_path.read_bytes()
+    try:
+        # utf-8-sig: spreadsheet programs write a byte-order mark, which would otherwise
+        # stick to the first column's name ('\ufeffimage') and hide it.
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        start = error.start + (len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0)
+        line = data.count(b"\n", 0, start) + 1
+        raise DatasetError(
+            f"{csv_path} line {line}: not UTF-8 text (byte "
+            f"{data[start]:#04x} at offset {start}); save the file as UTF-8"
+        ) from None
+    header = text.partition("\n")[0].rstrip("\r")
+    found = [name for sep, name in ((";", "';'"), ("\t", "tabs")) if sep in header]
+    if "," not in header and found:
+        # Read as CSV such a header is one column, reported as missing without a reason.
+        raise DatasetError(
+            f"{csv_path}: the header {header!r} separates columns with {' and '.join(found)}; "
+            "the file must be comma-separated"
+        )
+    with io.StringIO(text, newline="") as f:
         reader = csv.DictReader(f)
         columns = reader.fieldnames or []
+        # DictReader keeps the last of two equal names: the other column would be ignored.
+        repeated = sorted({c for c in columns if c and columns.count(c) > 1})
+        if repeated:
+            raise DatasetError(
+                f"{csv_path}: column(s) {repeated} appear more than once in the header "
+                f"{columns}; each column name must be unique"
+            )
         if {"lat", "lon"} <= set(columns):
             keys, geographic = ("lat", "lon"), True
         elif {"easting", "northing"} <= set(columns):
