@@ -271,7 +271,7 @@ def test_utm_name_with_nan_or_infinity_is_refused_naming_the_file_and_value(
 
 def test_pairs_ground_truth():
     assert_truth_equal(pairs_ground_truth(5, 5), [{i} for i in range(5)])
-    with pytest.raises(DatasetError, match="5 vs 4"):
+    with pytest.raises(DatasetError, match="has 5 query images and 4 reference images"):
         pairs_ground_truth(5, 4)
 
 
@@ -337,6 +337,50 @@ def test_broken_link_or_folder_with_an_image_name_is_an_error_naming_it(tmp_path
     (tmp_path / "ds/ref/2.jpg").mkdir()
     with pytest.raises(ImageReadError, match=r"ref/2\.jpg"):
         list_dataset(tmp_path, "toy", SPEC)
+
+
+SUBFOLDERS = "; images in subfolders are found too unless the dataset sets recursive: false"
+
+
+def test_vprbench_row_count_mismatch_names_the_subfolder_holding_the_extra_queries(tmp_path):
+    # The recursive search also finds query/extra/: the count alone does not say where.
+    touch_images(tmp_path / "ds/ref", ["1.jpg", "2.jpg", "3.jpg"])
+    touch_images(tmp_path / "ds/query", ["1.jpg", "2.jpg", "3.jpg"])
+    touch_images(tmp_path / "ds/query/extra", ["1.jpg", "2.jpg"])
+    write_vprbench(tmp_path / "ds/gt.npy", [(q, [q]) for q in range(3)])
+    files = list_dataset(tmp_path, "toy", SPEC)
+    with pytest.raises(DatasetError) as error:
+        ground_truth(files, {"kind": "vprbench", "file": "gt.npy"}, tmp_path / "ds")
+    assert str(error.value).endswith(
+        f"gt.npy has 3 ground-truth rows but the dataset has 5 query images "
+        f"(query/: 3, query/extra/: 2{SUBFOLDERS})"
+    )
+
+
+def test_vprbench_reference_out_of_range_names_the_folders_of_the_references(tmp_path):
+    touch_images(tmp_path / "ds/ref/a", ["1.jpg", "2.jpg"])
+    touch_images(tmp_path / "ds/ref/b", ["1.jpg"])
+    touch_images(tmp_path / "ds/query", ["1.jpg", "2.jpg"])
+    write_vprbench(tmp_path / "ds/gt.npy", [(0, [0]), (1, [3])])
+    files = list_dataset(tmp_path, "toy", SPEC)
+    # Side by side, neither folder inside the other: no word about subfolders.
+    message = r"query 1 lists reference indices \[3\] but the dataset has 3 reference images "
+    with pytest.raises(DatasetError, match=message + r"\(ref/a/: 2, ref/b/: 1\) \(set"):
+        ground_truth(files, {"kind": "vprbench", "file": "gt.npy"}, tmp_path / "ds")
+
+
+def test_pairs_count_mismatch_names_the_subfolder_holding_the_extra_images(tmp_path):
+    # ir/old/a.png has a partner by name, so only the counts differ.
+    spec = dict(SPEC, reference="vi", query="ir", paired=True)
+    touch_images(tmp_path / "ds/vi", ["a.png", "b.png"])
+    touch_images(tmp_path / "ds/ir", ["a.png", "b.png"])
+    touch_images(tmp_path / "ds/ir/old", ["a.png"])
+    files = list_dataset(tmp_path, "toy", spec)
+    with pytest.raises(DatasetError) as error:
+        ground_truth(files, {"kind": "pairs"}, tmp_path / "ds")
+    assert str(error.value).endswith(
+        f"has 3 query images (ir/: 2, ir/old/: 1{SUBFOLDERS}) and 2 reference images"
+    )
 
 
 def test_paired_dataset_names_unpaired_files(tmp_path):

@@ -156,6 +156,21 @@ def test_bad_coordinate_files_name_the_row(tmp_path, rows, message):
         read_positions(path, NAMES)
 
 
+def test_images_without_a_row_in_a_subfolder_are_named_with_their_folder(tmp_path):
+    # The recursive search found query/extra/, which the file does not cover.
+    path = write_coordinates(
+        tmp_path / "c.csv", [["ref/a.jpg", 1, 2], ["ref/b.jpg", 1, 2], ["query/q.jpg", 1, 2]]
+    )
+    names = [*NAMES, "query/extra/1.jpg", "query/extra/2.jpg"]
+    with pytest.raises(DatasetError) as error:
+        read_positions(path, names)
+    assert str(error.value).endswith(
+        "2 image(s) of the dataset have no row, e.g. query/extra/1.jpg, query/extra/2.jpg "
+        "(query/extra/: 2; images in subfolders are found too unless the dataset sets "
+        "recursive: false)"
+    )
+
+
 def test_a_coordinate_file_without_coordinate_columns_names_what_it_found(tmp_path):
     path = write_coordinates(tmp_path / "c.csv", [["ref/a.jpg", 1]], header=("image", "x"))
     with pytest.raises(DatasetError, match=r"'lat'/'lon' or 'easting'/'northing'.*'x'"):

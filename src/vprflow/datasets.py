@@ -28,7 +28,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vprflow.images import IMAGE_SUFFIXES, ImageScan, scan_images
+from vprflow.images import IMAGE_SUFFIXES, ImageScan, natural_key, scan_images
 
 
 class DatasetError(ValueError):
@@ -216,8 +216,57 @@ def _reference_indices(refs, where: str) -> list[int]:
     return [_as_index(item, f"{where} reference index") for item in items]
 
 
+def _folder_of(name: str) -> str:
+    parent = name.rpartition("/")[0]
+    return parent + "/" if parent else ""
+
+
+def folder_counts(names: list[str], among: list[str] | None = None) -> str:
+    """``" (query/: 111, query/extra/: 9; ...)"``: how many of ``names`` (image paths
+    relative to the dataset folder) lie in each folder, for errors about counts.
+
+    When one of those folders lies inside another folder holding images of ``among``
+    (default ``names``), the recursive search found them, the usual source of extra
+    images; the text then says how to switch it off.
+    """
+    counts: dict[str, int] = {}
+    for folder in map(_folder_of, names):
+        counts[folder] = counts.get(folder, 0) + 1
+    # The dataset folder itself ("") holds only listed images: it is no search root.
+    holding = {_folder_of(name) for name in (names if among is None else among)} - {""}
+    nested = any(
+        "/".join(parts[:depth]) + "/" in holding
+        for parts in (folder.split("/") for folder in counts)
+        for depth in range(1, len(parts) - 1)
+    )
+    ordered = sorted(counts.items(), key=lambda item: natural_key(item[0]))
+    listing = ", ".join(f"{folder or './'}: {count}" for folder, count in ordered[:8])
+    if len(ordered) > 8:
+        listing += f", ... ({len(ordered) - 8} more folders)"
+    if nested:
+        listing += "; images in subfolders are found too unless the dataset sets recursive: false"
+    return f" ({listing})"
+
+
+def _role_folders(paths: list[Path], folder: Path) -> str:
+    """:func:`folder_counts` of one role's images when they lie in more than one folder;
+    empty when they share one, since the count then says all there is."""
+    prefix = str(folder).rstrip("/") + "/"
+    # String prefixes, not Path.relative_to: this runs over every image of a dataset.
+    names = [text[len(prefix) :] if text.startswith(prefix) else text for text in map(str, paths)]
+    if len({_folder_of(name) for name in names}) < 2:
+        return ""
+    return folder_counts(names)
+
+
 def vprbench_ground_truth(
-    path: str | Path, n_query: int, n_ref: int, drop_out_of_range: bool = False
+    path: str | Path,
+    n_query: int,
+    n_ref: int,
+    drop_out_of_range: bool = False,
+    *,
+    query_folders: str = "",
+    reference_folders: str = "",
 ) -> list[np.ndarray]:
     """Per-query reference indices from a VPR-Bench ``ground_truth_new.npy``.
 
@@ -226,7 +275,8 @@ def vprbench_ground_truth(
     strings, nested lists) is an error naming the row. The number of rows must equal
     the number of query images. Reference indices beyond the reference set are an
     error unless ``drop_out_of_range`` (the published 17places file lists references
-    406 and 407 of a 406-image set).
+    406 and 407 of a 406-image set). ``query_folders`` and ``reference_folders``
+    (:func:`folder_counts`) follow the image counts in errors.
     """
     path = Path(path)
     if not path.is_file():
@@ -238,7 +288,8 @@ def vprbench_ground_truth(
         )
     if len(table) != n_query:
         raise DatasetError(
-            f"{path} has {len(table)} ground-truth rows but the dataset has {n_query} query images"
+            f"{path} has {len(table)} ground-truth rows but the dataset has {n_query} query "
+            f"images{query_folders}"
         )
     query_indices = [
         _as_index(q, f"{path} row {row}: query index") for row, q in enumerate(table[:, 0])
@@ -266,7 +317,8 @@ def vprbench_ground_truth(
         if bad and not drop_out_of_range:
             raise DatasetError(
                 f"{path}: query {q} lists reference indices {bad} but the dataset has "
-                f"{n_ref} reference images (set ground_truth.drop_out_of_range: true to drop them)"
+                f"{n_ref} reference images{reference_folders} (set "
+                "ground_truth.drop_out_of_range: true to drop them)"
             )
         truth[q] = np.unique(np.array([r for r in indices if 0 <= r < n_ref], dtype=np.int64))
     return truth
@@ -280,11 +332,16 @@ def frame_window_ground_truth(n_query: int, n_ref: int, radius: int) -> list[np.
     ]
 
 
-def pairs_ground_truth(n_query: int, n_ref: int) -> list[np.ndarray]:
-    """Query ``i`` matches reference ``i`` (aligned pairs)."""
+def pairs_ground_truth(
+    n_query: int, n_ref: int, *, query_folders: str = "", reference_folders: str = ""
+) -> list[np.ndarray]:
+    """Query ``i`` matches reference ``i`` (aligned pairs). ``query_folders`` and
+    ``reference_folders`` (:func:`folder_counts`) follow the image counts in errors."""
     if n_query != n_ref:
         raise DatasetError(
-            f"pairs ground truth needs as many queries as references ({n_query} vs {n_ref})"
+            "pairs ground truth needs as many queries as references, but the dataset has "
+            f"{n_query} query images{query_folders} and {n_ref} reference "
+            f"images{reference_folders}"
         )
     return [np.array([i], dtype=np.int64) for i in range(n_query)]
 
@@ -435,7 +492,7 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
     if missing:
         raise DatasetError(
             f"{csv_path}: {len(missing)} image(s) of the dataset have no row, "
-            f"e.g. {', '.join(missing[:5])}"
+            f"e.g. {', '.join(missing[:5])}{folder_counts(missing, names)}"
         )
     table = np.array([rows[name][1] for name in names], dtype=np.float64)
     heading = table[:, 2] if with_heading else None
@@ -522,14 +579,24 @@ def ground_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarr
         return [np.zeros(0, dtype=np.int64) for _ in range(n_query)]
     if kind == "vprbench":
         truth = vprbench_ground_truth(
-            folder / spec["file"], n_query, n_ref, spec.get("drop_out_of_range", False)
+            folder / spec["file"],
+            n_query,
+            n_ref,
+            spec.get("drop_out_of_range", False),
+            query_folders=_role_folders(files.query, folder),
+            reference_folders=_role_folders(files.reference, folder),
         )
     elif kind == "frame_window":
         truth = frame_window_ground_truth(n_query, n_ref, int(spec["radius"]))
     elif kind == "utm":
         truth = utm_ground_truth(files.reference, files.query, float(spec.get("radius", 25.0)))
     elif kind == "pairs":
-        truth = pairs_ground_truth(n_query, n_ref)
+        truth = pairs_ground_truth(
+            n_query,
+            n_ref,
+            query_folders=_role_folders(files.query, folder),
+            reference_folders=_role_folders(files.reference, folder),
+        )
     elif kind == "coordinates":
         reference, query = _positions(files, spec, folder)
         truth = coordinates_ground_truth(
