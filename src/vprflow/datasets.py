@@ -205,6 +205,8 @@ def _reference_indices(refs, where: str) -> list[int]:
             f"{where} positives are a {refs.ndim}-D array of shape {refs.shape}; "
             "expected a flat list of reference indices"
         )
+    if isinstance(refs, np.ndarray) and refs.ndim == 1 and refs.dtype.kind in "iu":
+        return refs.tolist()  # valid as a whole: spares long arrays the loop below
     if isinstance(refs, (list, tuple)) or (isinstance(refs, np.ndarray) and refs.ndim == 1):
         items = list(refs)
     elif isinstance(refs, (np.ndarray, int, float, np.number, np.bool_)):
@@ -251,9 +253,12 @@ def folder_counts(names: list[str], among: list[str] | None = None) -> str:
 def _role_folders(paths: list[Path], folder: Path) -> str:
     """:func:`folder_counts` of one role's images when they lie in more than one folder;
     empty when they share one, since the count then says all there is."""
-    prefix = str(folder).rstrip("/") + "/"
+    prefix = folder.as_posix().rstrip("/") + "/"
     # String prefixes, not Path.relative_to: this runs over every image of a dataset.
-    names = [text[len(prefix) :] if text.startswith(prefix) else text for text in map(str, paths)]
+    names = [
+        text[len(prefix) :] if text.startswith(prefix) else text
+        for text in map(Path.as_posix, paths)
+    ]
     if len({_folder_of(name) for name in names}) < 2:
         return ""
     return folder_counts(names)
