@@ -64,10 +64,16 @@ def test_vprbench_ground_truth_matches_file_rows(tmp_path):
         refs = [int(r) for r in rng.choice(n_ref, rng.integers(0, 5), replace=False)]
         rows.append((int(q), refs))
     rows[0] = (rows[0][0], [np.int64(3), np.int64(3), np.int64(1)])  # numpy ints, duplicate
+    # Other legitimate forms: integral floats, a tuple, 1-D arrays, a single index, none.
+    rows[1] = (float(rows[1][0]), (np.float64(4.0), 2.0, np.uint8(7)))
+    rows[2] = (np.int32(rows[2][0]), np.array([5, 6], dtype=np.int16))
+    rows[3] = (np.float32(rows[3][0]), np.array([8.0, 9.0]))
+    rows[4] = (rows[4][0], np.int64(11))
+    rows[5] = (rows[5][0], [])
     path = write_vprbench(tmp_path / "gt.npy", rows)
     expected = [None] * n_query
     for q, refs in rows:
-        expected[q] = {int(r) for r in refs}
+        expected[int(q)] = {int(r) for r in np.reshape(refs, -1)}
     assert_truth_equal(vprbench_ground_truth(path, n_query, n_ref), expected)
 
 
@@ -95,6 +101,60 @@ def test_vprbench_bad_query_index_and_missing_file(tmp_path):
     (tmp_path / "junk.npy").write_bytes(b"not a numpy file at all")
     with pytest.raises(DatasetError, match="junk.npy"):
         vprbench_ground_truth(tmp_path / "junk.npy", 2, 2)
+
+
+def ragged(*lists):
+    """A 1-D object array of lists (what ``np.array`` makes of rows of unequal length)."""
+    array = np.empty(len(lists), dtype=object)
+    for i, item in enumerate(lists):
+        array[i] = item
+    return array
+
+
+@pytest.mark.parametrize(
+    ("row", "message"),
+    [
+        ((1, [0, 2.5]), r"reference index 2\.5 is not an integer"),
+        ((1, [np.float64(2.5)]), r"reference index np\.float64\(2\.5\) is not an integer"),
+        ((1, [0, float("nan")]), r"reference index nan is not an integer"),
+        ((1, np.array([0.0, np.inf])), r"reference index np\.float64\(inf\) is not an integer"),
+        ((1, [0, True]), r"reference index True is a boolean"),
+        ((1, np.array([False, True])), r"reference index np\.False_ is a boolean"),
+        ((1, True), r"reference index True is a boolean"),
+        ((1.5, [0]), r"query index 1\.5 is not an integer"),
+        ((True, [0]), r"query index True is a boolean"),
+    ],
+)
+def test_vprbench_fractional_nan_or_boolean_indices_are_refused_naming_row_and_value(
+    tmp_path, row, message
+):
+    # Today 2.5 is truncated to 2 (every positive off by one) and True read as 1.
+    path = write_vprbench(tmp_path / "gt.npy", [(0, [1]), row])
+    with pytest.raises(DatasetError, match=rf"gt\.npy row 1: {message}"):
+        vprbench_ground_truth(path, 2, 5)
+
+
+@pytest.mark.parametrize(
+    ("row", "message"),
+    [
+        ((None, [0]), r"query index None is not an integer"),
+        (("1", [0]), r"query index '1' is not an integer"),
+        ((1, None), r"positives None: expected a list of reference indices"),
+        ((1, "0 1"), r"positives '0 1': expected a list"),
+        ((1, b"01"), r"positives b'01': expected a list"),
+        ((1, {0: 1}), r"positives \{0: 1\}: expected a list"),
+        ((1, ["0"]), r"reference index '0' is not an integer"),
+        ((1, [0, [1, 2]]), r"reference index \[1, 2\] is not an integer"),
+        ((1, ragged([1, 2], [3])), r"reference index \[1, 2\] is not an integer"),
+        ((1, np.array([[0, 1]])), r"positives are a 2-D array of shape \(1, 2\)"),
+    ],
+)
+def test_vprbench_values_that_are_not_indices_are_refused_naming_row_field_and_value(
+    tmp_path, row, message
+):
+    path = write_vprbench(tmp_path / "gt.npy", [(0, [1]), row])
+    with pytest.raises(DatasetError, match=rf"gt\.npy row 1: {message}"):
+        vprbench_ground_truth(path, 2, 5)
 
 
 def test_vprbench_duplicate_query_rows_are_rejected_with_rows_and_gaps(tmp_path):
@@ -196,9 +256,22 @@ def test_utm_from_name():
         utm_from_name("db/000123.jpg")
 
 
+@pytest.mark.parametrize(("easting", "northing"), [("nan", "4.1e6"), ("585313.9", "inf")])
+def test_utm_name_with_nan_or_infinity_is_refused_naming_the_file_and_value(
+    tmp_path, easting, northing
+):
+    # Today scipy's KD-tree fails with "'x' must be finite", naming no file.
+    name = f"@{easting}@{northing}@17@T@x.jpg"
+    reference = [tmp_path / utm_name(585313.9, 4.1e6, "r0"), tmp_path / name]
+    query = [tmp_path / utm_name(585313.9, 4.1e6, "q0")]
+    bad = easting if easting == "nan" else northing
+    with pytest.raises(DatasetError, match=rf"{name}: UTM \w+ '{bad}' in the file name is not"):
+        utm_ground_truth(reference, query, 25.0)
+
+
 def test_pairs_ground_truth():
     assert_truth_equal(pairs_ground_truth(5, 5), [{i} for i in range(5)])
-    with pytest.raises(DatasetError, match="5 vs 4"):
+    with pytest.raises(DatasetError, match="has 5 query images and 4 reference images"):
         pairs_ground_truth(5, 4)
 
 
@@ -264,6 +337,50 @@ def test_broken_link_or_folder_with_an_image_name_is_an_error_naming_it(tmp_path
     (tmp_path / "ds/ref/2.jpg").mkdir()
     with pytest.raises(ImageReadError, match=r"ref/2\.jpg"):
         list_dataset(tmp_path, "toy", SPEC)
+
+
+SUBFOLDERS = "; images in subfolders are found too unless the dataset sets recursive: false"
+
+
+def test_vprbench_row_count_mismatch_names_the_subfolder_holding_the_extra_queries(tmp_path):
+    # The recursive search also finds query/extra/: the count alone does not say where.
+    touch_images(tmp_path / "ds/ref", ["1.jpg", "2.jpg", "3.jpg"])
+    touch_images(tmp_path / "ds/query", ["1.jpg", "2.jpg", "3.jpg"])
+    touch_images(tmp_path / "ds/query/extra", ["1.jpg", "2.jpg"])
+    write_vprbench(tmp_path / "ds/gt.npy", [(q, [q]) for q in range(3)])
+    files = list_dataset(tmp_path, "toy", SPEC)
+    with pytest.raises(DatasetError) as error:
+        ground_truth(files, {"kind": "vprbench", "file": "gt.npy"}, tmp_path / "ds")
+    assert str(error.value).endswith(
+        f"gt.npy has 3 ground-truth rows but the dataset has 5 query images "
+        f"(query/: 3, query/extra/: 2{SUBFOLDERS})"
+    )
+
+
+def test_vprbench_reference_out_of_range_names_the_folders_of_the_references(tmp_path):
+    touch_images(tmp_path / "ds/ref/a", ["1.jpg", "2.jpg"])
+    touch_images(tmp_path / "ds/ref/b", ["1.jpg"])
+    touch_images(tmp_path / "ds/query", ["1.jpg", "2.jpg"])
+    write_vprbench(tmp_path / "ds/gt.npy", [(0, [0]), (1, [3])])
+    files = list_dataset(tmp_path, "toy", SPEC)
+    # Side by side, neither folder inside the other: no word about subfolders.
+    message = r"query 1 lists reference indices \[3\] but the dataset has 3 reference images "
+    with pytest.raises(DatasetError, match=message + r"\(ref/a/: 2, ref/b/: 1\) \(set"):
+        ground_truth(files, {"kind": "vprbench", "file": "gt.npy"}, tmp_path / "ds")
+
+
+def test_pairs_count_mismatch_names_the_subfolder_holding_the_extra_images(tmp_path):
+    # ir/old/a.png has a partner by name, so only the counts differ.
+    spec = dict(SPEC, reference="vi", query="ir", paired=True)
+    touch_images(tmp_path / "ds/vi", ["a.png", "b.png"])
+    touch_images(tmp_path / "ds/ir", ["a.png", "b.png"])
+    touch_images(tmp_path / "ds/ir/old", ["a.png"])
+    files = list_dataset(tmp_path, "toy", spec)
+    with pytest.raises(DatasetError) as error:
+        ground_truth(files, {"kind": "pairs"}, tmp_path / "ds")
+    assert str(error.value).endswith(
+        f"has 3 query images (ir/: 2, ir/old/: 1{SUBFOLDERS}) and 2 reference images"
+    )
 
 
 def test_paired_dataset_names_unpaired_files(tmp_path):

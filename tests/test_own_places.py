@@ -156,9 +156,66 @@ def test_bad_coordinate_files_name_the_row(tmp_path, rows, message):
         read_positions(path, NAMES)
 
 
+def test_images_without_a_row_in_a_subfolder_are_named_with_their_folder(tmp_path):
+    # The recursive search found query/extra/, which the file does not cover.
+    path = write_coordinates(
+        tmp_path / "c.csv", [["ref/a.jpg", 1, 2], ["ref/b.jpg", 1, 2], ["query/q.jpg", 1, 2]]
+    )
+    names = [*NAMES, "query/extra/1.jpg", "query/extra/2.jpg"]
+    with pytest.raises(DatasetError) as error:
+        read_positions(path, names)
+    assert str(error.value).endswith(
+        "2 image(s) of the dataset have no row, e.g. query/extra/1.jpg, query/extra/2.jpg "
+        "(query/extra/: 2; images in subfolders are found too unless the dataset sets "
+        "recursive: false)"
+    )
+
+
 def test_a_coordinate_file_without_coordinate_columns_names_what_it_found(tmp_path):
     path = write_coordinates(tmp_path / "c.csv", [["ref/a.jpg", 1]], header=("image", "x"))
     with pytest.raises(DatasetError, match=r"'lat'/'lon' or 'easting'/'northing'.*'x'"):
+        read_positions(path, NAMES)
+
+
+def test_a_repeated_column_name_is_refused_naming_it(tmp_path):
+    # Today the last 'lat' column silently wins, whichever one the user meant.
+    path = write_coordinates(
+        tmp_path / "c.csv",
+        [["ref/a.jpg", 1, 2, 5], ["ref/b.jpg", 3, 4, 6], ["query/q.jpg", 1, 2, 7]],
+        header=("image", "lat", "lon", "lat"),
+    )
+    with pytest.raises(DatasetError, match=r"c\.csv: column\(s\) \['lat'\] appear more than once"):
+        read_positions(path, NAMES)
+
+
+def test_a_utf8_byte_order_mark_is_read(tmp_path):
+    # Spreadsheet programs write one; it used to hide the 'image' column.
+    path = tmp_path / "c.csv"
+    path.write_bytes(
+        b"\xef\xbb\xbfimage,lat,lon\r\nref/a.jpg,1,2\r\nref/b.jpg,3,4\r\nquery/q.jpg,5,6\r\n"
+    )
+    positions = read_positions(path, NAMES)
+    assert positions.x.tolist() == [1, 3, 5] and positions.y.tolist() == [2, 4, 6]
+
+
+@pytest.mark.parametrize(("separator", "named"), [(";", "';'"), ("\t", "tabs")])
+def test_a_semicolon_or_tab_separated_file_names_its_delimiter(tmp_path, separator, named):
+    # Read as CSV its header is one column, which used to be reported only as missing.
+    path = tmp_path / "c.csv"
+    path.write_text(
+        "\n".join(
+            separator.join(row) for row in [["image", "lat", "lon"], ["ref/a.jpg", "1,5", "2"]]
+        )
+    )
+    message = rf"c\.csv: the header .* separates columns with {named}; the file must be comma-"
+    with pytest.raises(DatasetError, match=message):
+        read_positions(path, NAMES)
+
+
+def test_a_coordinate_file_that_is_not_utf8_names_the_line(tmp_path):
+    path = tmp_path / "c.csv"
+    path.write_bytes("image,lat,lon\nref/a.jpg,1,2\nref/caf\u00e9.jpg,3,4\n".encode("latin-1"))
+    with pytest.raises(DatasetError, match=r"c\.csv line 3: not UTF-8 text \(byte 0xe9"):
         read_positions(path, NAMES)
 
 

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vprflow.images import IMAGE_SUFFIXES, ImageScan, scan_images
+from vprflow.images import IMAGE_SUFFIXES, ImageScan, natural_key, scan_images
 
 
 class DatasetError(ValueError):
@@ -251,15 +251,114 @@ def load_object_npy(path: str | Path) -> np.ndarray:
     return np.load(path, allow_pickle=False)
 
 
+def _short_repr(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _as_index(value, where: str) -> int:
+    """``value`` as an index: an integer (Python or numpy) or an integral float.
+
+    A fractional float used to be truncated (2.5 -> 2) and a boolean read as 0 or 1;
+    either gives a believable but wrong ground truth, so both are refused. ``where``
+    names the file, row and field (``"<file> row 4: reference index"``).
+    """
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    # bool is an int and timedelta64 a numpy integer, but neither is an index.
+    if isinstance(value, (bool, np.bool_)):
+        raise DatasetError(f"{where} {value!r} is a boolean, not an integer")
+    if isinstance(value, (int, np.integer)) and not isinstance(value, np.timedelta64):
+        return int(value)
+    if isinstance(value, (float, np.floating)) and float(value).is_integer():
+        return int(value)
+    raise DatasetError(f"{where} {_short_repr(value)} is not an integer")
+
+
+def _reference_indices(refs, where: str) -> list[int]:
+    """The positives of one row: a list, tuple or 1-D array of indices, or one index."""
+    if isinstance(refs, np.ndarray) and refs.ndim > 1:
+        raise DatasetError(
+            f"{where} positives are a {refs.ndim}-D array of shape {refs.shape}; "
+            "expected a flat list of reference indices"
+        )
+    if isinstance(refs, np.ndarray) and refs.ndim == 1 and refs.dtype.kind in "iu":
+        return refs.tolist()  # valid as a whole: spares long arrays the loop below
+    if isinstance(refs, (list, tuple)) or (isinstance(refs, np.ndarray) and refs.ndim == 1):
+        items = list(refs)
+    elif isinstance(refs, (np.ndarray, int, float, np.number, np.bool_)):
+        items = [refs]  # a single index, as the old reshape(-1) read it
+    else:
+        raise DatasetError(
+            f"{where} positives {_short_repr(refs)}: expected a list of reference indices"
+        )
+    return [_as_index(item, f"{where} reference index") for item in items]
+
+
+def _folder_of(name: str) -> str:
+    parent = name.rpartition("/")[0]
+    return parent + "/" if parent else ""
+
+
+def folder_counts(names: list[str], among: list[str] | None = None) -> str:
+    """``" (query/: 111, query/extra/: 9; ...)"``: how many of ``names`` (image paths
+    relative to the dataset folder) lie in each folder, for errors about counts.
+
+    When one of those folders lies inside another folder holding images of ``among``
+    (default ``names``), the recursive search found them, the usual source of extra
+    images; the text then says how to switch it off.
+    """
+    counts: dict[str, int] = {}
+    for folder in map(_folder_of, names):
+        counts[folder] = counts.get(folder, 0) + 1
+    # The dataset folder itself ("") holds only listed images: it is no search root.
+    holding = {_folder_of(name) for name in (names if among is None else among)} - {""}
+    nested = any(
+        "/".join(parts[:depth]) + "/" in holding
+        for parts in (folder.split("/") for folder in counts)
+        for depth in range(1, len(parts) - 1)
+    )
+    ordered = sorted(counts.items(), key=lambda item: natural_key(item[0]))
+    listing = ", ".join(f"{folder or './'}: {count}" for folder, count in ordered[:8])
+    if len(ordered) > 8:
+        listing += f", ... ({len(ordered) - 8} more folders)"
+    if nested:
+        listing += "; images in subfolders are found too unless the dataset sets recursive: false"
+    return f" ({listing})"
+
+
+def _role_folders(paths: list[Path], folder: Path) -> str:
+    """:func:`folder_counts` of one role's images when they lie in more than one folder;
+    empty when they share one, since the count then says all there is."""
+    prefix = folder.as_posix().rstrip("/") + "/"
+    # String prefixes, not Path.relative_to: this runs over every image of a dataset.
+    names = [
+        text[len(prefix) :] if text.startswith(prefix) else text
+        for text in map(Path.as_posix, paths)
+    ]
+    if len({_folder_of(name) for name in names}) < 2:
+        return ""
+    return folder_counts(names)
+
+
 def vprbench_ground_truth(
-    path: str | Path, n_query: int, n_ref: int, drop_out_of_range: bool = False
+    path: str | Path,
+    n_query: int,
+    n_ref: int,
+    drop_out_of_range: bool = False,
+    *,
+    query_folders: str = "",
+    reference_folders: str = "",
 ) -> list[np.ndarray]:
     """Per-query reference indices from a VPR-Bench ``ground_truth_new.npy``.
 
-    Rows are ``[query_index, [ref indices]]``. The number of rows must equal the
-    number of query images. Reference indices beyond the reference set are an error
-    unless ``drop_out_of_range`` (the published 17places file lists references 406
-    and 407 of a 406-image set).
+    Rows are ``[query_index, [ref indices]]``: integers or integral floats, positives
+    a list, tuple, 1-D array or single index; anything else (fractions, booleans,
+    strings, nested lists) is an error naming the row. The number of rows must equal
+    the number of query images. Reference indices beyond the reference set are an
+    error unless ``drop_out_of_range`` (the published 17places file lists references
+    406 and 407 of a 406-image set). ``query_folders`` and ``reference_folders``
+    (:func:`folder_counts`) follow the image counts in errors.
     """
     path = Path(path)
     if not path.is_file():
@@ -271,9 +370,12 @@ def vprbench_ground_truth(
         )
     if len(table) != n_query:
         raise DatasetError(
-            f"{path} has {len(table)} ground-truth rows but the dataset has {n_query} query images"
+            f"{path} has {len(table)} ground-truth rows but the dataset has {n_query} query "
+            f"images{query_folders}"
         )
-    query_indices = [int(q) for q in table[:, 0]]
+    query_indices = [
+        _as_index(q, f"{path} row {row}: query index") for row, q in enumerate(table[:, 0])
+    ]
     outside = [(row, q) for row, q in enumerate(query_indices) if not 0 <= q < n_query]
     if outside:
         row, q = outside[0]
@@ -290,16 +392,17 @@ def vprbench_ground_truth(
             f"queries with no row: {missing[:10]}. Each query must have exactly one row."
         )
     truth: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * n_query
-    for query_index, refs in table:
-        q = int(query_index)
-        refs = np.asarray(refs, dtype=np.int64).reshape(-1)
-        bad = refs[(refs < 0) | (refs >= n_ref)]
-        if len(bad) and not drop_out_of_range:
+    for row, (q, refs) in enumerate(zip(query_indices, table[:, 1], strict=True)):
+        indices = _reference_indices(refs, f"{path} row {row}:")
+        # Checked as Python ints: an index such as 1e30 would overflow int64.
+        bad = [r for r in indices if not 0 <= r < n_ref]
+        if bad and not drop_out_of_range:
             raise DatasetError(
-                f"{path}: query {q} lists reference indices {bad.tolist()} but the dataset has "
-                f"{n_ref} reference images (set ground_truth.drop_out_of_range: true to drop them)"
+                f"{path}: query {q} lists reference indices {bad} but the dataset has "
+                f"{n_ref} reference images{reference_folders} (set "
+                "ground_truth.drop_out_of_range: true to drop them)"
             )
-        truth[q] = np.unique(refs[(refs >= 0) & (refs < n_ref)])
+        truth[q] = np.unique(np.array([r for r in indices if 0 <= r < n_ref], dtype=np.int64))
     return truth
 
 
@@ -311,11 +414,16 @@ def frame_window_ground_truth(n_query: int, n_ref: int, radius: int) -> list[np.
     ]
 
 
-def pairs_ground_truth(n_query: int, n_ref: int) -> list[np.ndarray]:
-    """Query ``i`` matches reference ``i`` (aligned pairs)."""
+def pairs_ground_truth(
+    n_query: int, n_ref: int, *, query_folders: str = "", reference_folders: str = ""
+) -> list[np.ndarray]:
+    """Query ``i`` matches reference ``i`` (aligned pairs). ``query_folders`` and
+    ``reference_folders`` (:func:`folder_counts`) follow the image counts in errors."""
     if n_query != n_ref:
         raise DatasetError(
-            f"pairs ground truth needs as many queries as references ({n_query} vs {n_ref})"
+            "pairs ground truth needs as many queries as references, but the dataset has "
+            f"{n_query} query images{query_folders} and {n_ref} reference "
+            f"images{reference_folders}"
         )
     return [np.array([i], dtype=np.int64) for i in range(n_query)]
 
@@ -324,11 +432,18 @@ def utm_from_name(path: str | Path) -> tuple[float, float]:
     """``(easting, northing)`` from a file name of the form ``@easting@northing@...``."""
     parts = Path(path).name.split("@")
     try:
-        return float(parts[1]), float(parts[2])
+        easting, northing = float(parts[1]), float(parts[2])
     except (IndexError, ValueError) as error:
         raise DatasetError(
             f"{path}: file name has no '@easting@northing@' UTM coordinates"
         ) from error
+    # float() reads 'nan' and 'inf'; left in, the distance search fails without a name.
+    for axis, text, value in (("easting", parts[1], easting), ("northing", parts[2], northing)):
+        if not np.isfinite(value):
+            raise DatasetError(
+                f"{path}: UTM {axis} {text!r} in the file name is not a finite number"
+            )
+    return easting, northing
 
 
 def utm_ground_truth(
@@ -376,13 +491,42 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
     """Positions of ``names`` (image paths relative to the dataset folder) from a CSV
     with an ``image`` column and ``lat``/``lon`` or ``easting``/``northing`` columns
     (and optionally ``heading``). Errors name the file and the line at fault."""
+    import codecs
     import csv
+    import io
 
     if not csv_path.is_file():
         raise DatasetError(f"coordinates file {csv_path} does not exist")
-    with open(csv_path, newline="") as f:
+    data = csv_path.read_bytes()
+    try:
+        # utf-8-sig: spreadsheet programs write a byte-order mark, which would otherwise
+        # stick to the first column's name ('\ufeffimage') and hide it.
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        start = error.start + (len(codecs.BOM_UTF8) if data.startswith(codecs.BOM_UTF8) else 0)
+        line = data.count(b"\n", 0, start) + 1
+        raise DatasetError(
+            f"{csv_path} line {line}: not UTF-8 text (byte "
+            f"{data[start]:#04x} at offset {start}); save the file as UTF-8"
+        ) from None
+    header = text.partition("\n")[0].rstrip("\r")
+    found = [name for sep, name in ((";", "';'"), ("\t", "tabs")) if sep in header]
+    if "," not in header and found:
+        # Read as CSV such a header is one column, reported as missing without a reason.
+        raise DatasetError(
+            f"{csv_path}: the header {header!r} separates columns with {' and '.join(found)}; "
+            "the file must be comma-separated"
+        )
+    with io.StringIO(text, newline="") as f:
         reader = csv.DictReader(f)
         columns = reader.fieldnames or []
+        # DictReader keeps the last of two equal names: the other column would be ignored.
+        repeated = sorted({c for c in columns if c and columns.count(c) > 1})
+        if repeated:
+            raise DatasetError(
+                f"{csv_path}: column(s) {repeated} appear more than once in the header "
+                f"{columns}; each column name must be unique"
+            )
         if {"lat", "lon"} <= set(columns):
             keys, geographic = ("lat", "lon"), True
         elif {"easting", "northing"} <= set(columns):
@@ -430,7 +574,7 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
     if missing:
         raise DatasetError(
             f"{csv_path}: {len(missing)} image(s) of the dataset have no row, "
-            f"e.g. {', '.join(missing[:5])}"
+            f"e.g. {', '.join(missing[:5])}{folder_counts(missing, names)}"
         )
     table = np.array([rows[name][1] for name in names], dtype=np.float64)
     heading = table[:, 2] if with_heading else None
@@ -517,14 +661,24 @@ def ground_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarr
         return [np.zeros(0, dtype=np.int64) for _ in range(n_query)]
     if kind == "vprbench":
         truth = vprbench_ground_truth(
-            folder / spec["file"], n_query, n_ref, spec.get("drop_out_of_range", False)
+            folder / spec["file"],
+            n_query,
+            n_ref,
+            spec.get("drop_out_of_range", False),
+            query_folders=_role_folders(files.query, folder),
+            reference_folders=_role_folders(files.reference, folder),
         )
     elif kind == "frame_window":
         truth = frame_window_ground_truth(n_query, n_ref, int(spec["radius"]))
     elif kind == "utm":
         truth = utm_ground_truth(files.reference, files.query, float(spec.get("radius", 25.0)))
     elif kind == "pairs":
-        truth = pairs_ground_truth(n_query, n_ref)
+        truth = pairs_ground_truth(
+            n_query,
+            n_ref,
+            query_folders=_role_folders(files.query, folder),
+            reference_folders=_role_folders(files.reference, folder),
+        )
     elif kind == "coordinates":
         reference, query = _positions(files, spec, folder)
         truth = coordinates_ground_truth(
