@@ -13,6 +13,7 @@ from workflow_helpers import toy_config
 
 from vprflow import stores
 from vprflow.config import validate_config
+from vprflow.datasets import DatasetError
 from vprflow.images import read_image, resize_image
 from vprflow.plan import build_plan
 from vprflow.stages.dataset import Dataset, build_dataset
@@ -367,3 +368,80 @@ def test_a_method_has_the_figures_of_its_aggregator(pipeline):
     assert "results/figures/toy/segment_matches/segvlad.png" in outputs
     with pytest.raises(PlanError, match="segment_matches.*'gem'"):
         figure_inputs(plan, "toy", "gem", "segment_matches")
+
+
+# ------------------------------------------------------------------ what the key covers
+
+
+def small_plan(root: Path, memo: dict | None = None, make: bool = True):
+    """A validated plan of one global method on a 3-place toy dataset (made fresh)."""
+    if make:
+        make_dataset(root / "data" / "toy", n_places=3, width=32, height=24)
+    config = toy_config(root / "data", resolution=[32, 24], methods=["gem"])
+    return build_plan(validate_config(config, SCHEMA), memo)
+
+
+def test_an_image_changed_after_the_dataset_stage_fails_the_stage_reading_it(tmp_path):
+    plan = small_plan(tmp_path)
+    dataset_stage = plan.get("dataset", plan.dataset_keys["toy"])
+    dataset_path = str(tmp_path / "dataset.zarr")
+    build_dataset("toy", dataset_stage.params, str(tmp_path / "data"), dataset_path)
+    features = next(iter(plan.stages["features"].values()))
+    changed = tmp_path / "data/toy/query/0001.jpg"
+    changed.write_bytes((tmp_path / "data/toy/query/0002.jpg").read_bytes())
+    out = tmp_path / "features.zarr"
+    with pytest.raises(DatasetError, match=r"query/0001\.jpg changed after the dataset stage"):
+        compute_features(dataset_path, features.params, str(out), str(tmp_path / "data"), "cpu")
+    assert not out.exists()
+
+
+def test_an_image_changed_after_planning_fails_the_dataset_stage_naming_it(tmp_path):
+    from vprflow.plan import save_fingerprints
+
+    memo = {}
+    plan = small_plan(tmp_path, memo=memo)
+    save_fingerprints(memo, tmp_path / "fingerprints.json")
+    changed = tmp_path / "data/toy/ref/0002.png"
+    changed.write_bytes((tmp_path / "data/toy/ref/0000.png").read_bytes())
+    stage = plan.get("dataset", plan.dataset_keys["toy"])
+    out = tmp_path / "dataset.zarr"
+    with pytest.raises(DatasetError, match=r"changed after this run planned it.*ref/0002\.png"):
+        build_dataset(
+            "toy",
+            stage.params,
+            str(tmp_path / "data"),
+            str(out),
+            str(tmp_path / "fingerprints.json"),
+        )
+    assert not out.exists()
+
+
+def test_a_query_that_is_a_copy_of_a_reference_is_refused(tmp_path):
+    small_plan(tmp_path)
+    toy = tmp_path / "data/toy"
+    (toy / "query/0001.jpg").unlink()
+    (toy / "query/0001.png").write_bytes((toy / "ref/0001.png").read_bytes())
+    plan = small_plan(tmp_path, make=False)
+    stage = plan.get("dataset", plan.dataset_keys["toy"])
+    with pytest.raises(DatasetError, match=r"byte-identical.*query/0001\.png = .*ref/0001\.png"):
+        build_dataset("toy", stage.params, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
+
+
+def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_path):
+    from PIL import Image
+
+    make_dataset(tmp_path / "data" / "toy", n_places=3, width=32, height=24)
+    toy = tmp_path / "data/toy"
+    upright = np.asarray(Image.open(toy / "ref/0001.png"))
+    exif = Image.Exif()
+    exif[0x0112] = 6  # stored turned; "rotate 90 degrees clockwise to view"
+    Image.fromarray(np.ascontiguousarray(np.rot90(upright, k=1))).save(
+        toy / "ref/0001.png", exif=exif.tobytes()
+    )
+    plan = small_plan(tmp_path, make=False)
+    stage = plan.get("dataset", plan.dataset_keys["toy"])
+    build_dataset("toy", stage.params, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
+    dataset = Dataset(str(tmp_path / "d.zarr"), str(tmp_path / "data"))
+    np.testing.assert_array_equal(dataset.read_image(1), upright.astype(np.float32) / 255.0)
+    sizes = np.asarray(dataset.group["image_sizes"][...])
+    assert sizes[1].tolist() == [24, 32]  # height, width after the orientation

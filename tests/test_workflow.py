@@ -465,3 +465,67 @@ def test_pca_beyond_the_sample_rank_is_capped_and_reported(tmp_path):
     assert int(row["descriptor_dim"]) == int(pca.attrs["dim"]) < n_samples < 1024
     assert np.isfinite(np.asarray(pca["explained_variance"][...])).all()
     assert "capped" in "".join(p.read_text() for p in (tmp_path / "logs/pca").glob("*/*.log"))
+
+
+# ------------------------------------------------------------------ inputs you can trust
+
+
+def recall_columns(path: Path) -> list[dict]:
+    return [
+        {k: v for k, v in row.items() if k.startswith(("method", "recall@", "map@"))}
+        for row in read_rows(path)
+    ]
+
+
+def test_queries_stored_rotated_with_an_exif_tag_give_the_upright_table(tmp_path):
+    """Phone photos: pixels stored turned, with an Orientation tag (as cv2.imread reads)."""
+    from PIL import Image
+
+    tables = []
+    for name, tagged in (("upright", False), ("tagged", True)):
+        root = tmp_path / name
+        toy = make_dataset(root / "data" / "toy", n_places=5)
+        for path in sorted((toy / "query").iterdir()):
+            pixels = np.asarray(Image.open(path))
+            path.unlink()
+            exif = Image.Exif()
+            if tagged:
+                exif[0x0112] = 6  # stored turned: "rotate 90 degrees clockwise to view"
+                pixels = np.ascontiguousarray(np.rot90(pixels, k=1))
+            Image.fromarray(pixels).save(path.with_suffix(".png"), exif=exif.tobytes())
+        config = toy_config(root / "data")
+        config["datasets"]["toy"]["methods"] = ["anyloc_vlad", "segvlad_o0_nopca"]
+        snakemake(root, write_config(root, config), TARGET)
+        tables.append(recall_columns(root / TARGET))
+    assert tables[0] == tables[1]
+
+
+def test_a_config_that_cannot_be_planned_withdraws_the_previous_tables(tmp_path):
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = toy_config(tmp_path / "data")
+    config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
+    snakemake(tmp_path, write_config(tmp_path, config), TARGET)
+    # A local model directory that does not exist fails while common.smk plans.
+    config["backbones"]["mine"] = {"backbone": "dinov2", "model": str(tmp_path / "no-model")}
+    config["methods"]["mine"] = {"aggregator": "anyloc_vlad", "features": "mine"}
+    config["datasets"]["toy"]["methods"] = ["anyloc_vlad", "mine"]
+    result = snakemake(tmp_path, write_config(tmp_path, config), TARGET, check=False)
+    assert result.returncode != 0
+    assert "backbones.mine.model" in result.stdout + result.stderr
+    assert not (tmp_path / TARGET).exists()
+    assert (tmp_path / (TARGET + ".stale")).exists()
+
+
+def test_a_dataset_that_cannot_be_listed_withdraws_its_tables(tmp_path):
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = toy_config(tmp_path / "data")
+    config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
+    snakemake(tmp_path, write_config(tmp_path, config), TARGET)
+    # An image in a format that is not read: never skipped (it would shift the queries).
+    gif = tmp_path / "data/toy/query/0001b.gif"
+    gif.write_bytes(b"GIF89a\x01\x00\x01\x00\x00\x00\x00;")
+    result = snakemake(tmp_path, write_config(tmp_path, config), TARGET, check=False)
+    assert result.returncode != 0
+    assert "0001b.gif is a GIF image" in result.stdout + result.stderr
+    assert not (tmp_path / TARGET).exists()
+    assert (tmp_path / (TARGET + ".stale")).exists()
