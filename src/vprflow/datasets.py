@@ -107,17 +107,25 @@ def _role_base(root: Path, spec: dict, role: str, paths: list[Path]) -> Path:
     return Path(os.path.commonpath([p.parent for p in paths]))
 
 
-def check_disjoint(name: str, reference: list[Path], query: list[Path]) -> None:
-    """References and queries must be different files: a query that is also a
-    reference (the same folder twice, a link, an overlapping list) is its own top-1."""
-    real = {os.path.realpath(p): p for p in reference}
-    shared = [(real[r], q) for q in query if (r := os.path.realpath(q)) in real]
+def check_disjoint(
+    name: str,
+    reference: list[Path],
+    query: list[Path],
+    identity=os.path.realpath,
+    same: str = "are also reference images",
+) -> None:
+    """References and queries must be different images: a query that is also a
+    reference (the same folder twice, a link, an overlapping list; with ``identity`` a
+    content hash, a copied file) is its own top-1. ``same`` says how they are the same."""
+    first: dict[str, Path] = {}
+    for path in reference:
+        first.setdefault(identity(path), path)
+    shared = [(first[key], q) for q in query if (key := identity(q)) in first]
     if shared:
         examples = ", ".join(f"{q} = {ref}" for ref, q in shared[:5])
         raise DatasetError(
-            f"dataset '{name}': {len(shared)} query image(s) are also reference images "
-            f"(e.g. {examples}); each query would find itself at rank 1. Use separate "
-            "reference and query images"
+            f"dataset '{name}': {len(shared)} query image(s) {same} (e.g. {examples}); "
+            "each query would find itself at rank 1. Use separate reference and query images"
         )
 
 

@@ -47,7 +47,10 @@ def build_dataset(
     )
     if contents != spec["contents"]:
         raise DatasetError(_changed_since_planning(name, paths, by_path, fingerprints))
-    _check_distinct(name, files, digests)
+    # A copied folder: the same images under other names.
+    datasets.check_disjoint(
+        name, files.reference, files.query, by_path.get, "are byte-identical copies of references"
+    )
     truth = datasets.ground_truth(files, spec["ground_truth"], folder)
     counts = np.array([len(t) for t in truth], dtype=np.int64)
     with stores.atomic_store(out, {"stage": "dataset", "params": params}) as group:
@@ -113,26 +116,6 @@ def _changed_since_planning(
         f"describes them{which}. Run snakemake again: it re-plans, and rebuilds what "
         "depends on the changed files"
     )
-
-
-def _check_distinct(name: str, files: datasets.DatasetFiles, digests: list[str]) -> None:
-    """A query byte-identical to a reference (a copied folder) finds itself at rank 1."""
-    n_ref = len(files.reference)
-    first_ref: dict[str, int] = {}
-    for i, digest in enumerate(digests[:n_ref]):
-        first_ref.setdefault(digest, i)
-    same = [
-        (files.query[q], files.reference[first_ref[digest]])
-        for q, digest in enumerate(digests[n_ref:])
-        if digest in first_ref
-    ]
-    if same:
-        examples = ", ".join(f"{q} = {r}" for q, r in same[:5])
-        raise DatasetError(
-            f"dataset '{name}': {len(same)} query image(s) are byte-identical copies of "
-            f"reference images (e.g. {examples}); each would find itself at rank 1. Use "
-            "separate reference and query images"
-        )
 
 
 class Dataset:
