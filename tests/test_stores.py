@@ -2,16 +2,22 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
 from vprflow import stores
 from vprflow.stores import (
+    COMPRESSOR,
     RaggedWriter,
+    StoreCorruptError,
+    array_items,
     atomic_store,
     open_store,
     pack_masks,
     read_ragged,
+    read_strings,
     temporary_path,
     unpack_masks,
     write_array,
@@ -160,3 +166,128 @@ def test_ragged_reader_returns_each_image_in_any_order(tmp_path, block_bytes):
     reader = stores.RaggedReader(stores.open_store(tmp_path / "r.zarr"), "rows", block_bytes)
     for index in [0, 1, 2, 3, 4, 5, 2, 0, 5]:
         np.testing.assert_array_equal(reader(index), blocks[index])
+
+
+# ------------------------------------------------------------------ corrupted stores
+
+
+def _sample_store(path):
+    """A store like a stage's: ragged float rows in 4 chunks, strings, integers."""
+    rows = np.random.default_rng(0).standard_normal((14, 8)).astype(np.float32)
+    with atomic_store(path, attrs={"stage": "descriptors"}) as group:
+        writer = RaggedWriter(group, "descriptors", (8,), np.float32, chunk_rows=4)
+        for block in np.split(rows, [3, 7, 12]):
+            writer.append(block)
+        writer.close()
+        write_array(group, "names", np.array(["ref/a.jpg", "ref/b.jpg", "query/c.jpg"]))
+    return rows
+
+
+def _flip_byte(path, position):
+    data = bytearray(path.read_bytes())
+    data[position] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+def _corrupt_message(path, array=None):
+    """What a StoreCorruptError must say: the store, the array, the remedy."""
+    named = re.escape(f"store {path}: ") + (f"array '{array}' .*" if array else ".*")
+    return named + re.escape(f"rm -r {path}) and run snakemake again")
+
+
+def test_every_array_carries_a_checksum_and_plain_zarr_reads_the_store_exactly(tmp_path):
+    import zarr
+
+    out = tmp_path / "d.zarr"
+    rows = _sample_store(out)
+    plain = zarr.open_group(str(out), mode="r")
+    for name, array in array_items(plain):
+        assert type(array.compressors[-1]).__name__ == "Crc32cCodec", name
+    np.testing.assert_array_equal(plain["descriptors"][...], rows)
+    checked = open_store(out)
+    np.testing.assert_array_equal(np.asarray(checked["descriptors"]), rows)
+    np.testing.assert_array_equal(checked["descriptors"][5:9], rows[5:9])
+    assert read_strings(checked, "names") == ["ref/a.jpg", "ref/b.jpg", "query/c.jpg"]
+    assert len(checked["descriptors"]) == 14 and "names" in checked and "x" not in checked
+    with pytest.raises(IndexError):  # a selection mistake is not called corruption
+        checked["descriptors"][1.5]
+
+
+@pytest.mark.parametrize("position", [0, 40, -1])
+def test_a_flipped_byte_in_a_float_chunk_is_an_error_naming_store_and_array(tmp_path, position):
+    out = tmp_path / "d.zarr"
+    _sample_store(out)
+    chunk = out / "descriptors" / "c" / "1" / "0"
+    _flip_byte(chunk, position)
+    store = open_store(out)  # the metadata is intact: the chunk fails when read
+    assert store["descriptors"][:4].shape == (4, 8)  # the other chunks still read
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "descriptors")):
+        store["descriptors"][...]
+    with pytest.raises(StoreCorruptError, match="checksum"):
+        np.asarray(store["descriptors"])
+
+
+def test_a_flipped_byte_in_a_string_chunk_is_an_error_naming_store_and_array(tmp_path):
+    out = tmp_path / "d.zarr"
+    _sample_store(out)
+    _flip_byte(out / "names" / "c" / "0", 10)
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "names")):
+        read_strings(open_store(out), "names")
+
+
+def test_a_truncated_group_zarr_json_is_an_error_naming_the_store(tmp_path):
+    out = tmp_path / "d.zarr"
+    _sample_store(out)
+    metadata = out / "zarr.json"
+    metadata.write_text(metadata.read_text()[:30])
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out)) as raised:
+        open_store(out)
+    assert "group metadata zarr.json cannot be read" in str(raised.value)
+
+
+def test_a_truncated_array_zarr_json_is_an_error_naming_the_array(tmp_path):
+    out = tmp_path / "d.zarr"
+    _sample_store(out)
+    metadata = out / "descriptors" / "zarr.json"
+    metadata.write_text(metadata.read_text()[:30])
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "descriptors")) as raised:
+        open_store(out)
+    assert "descriptors/zarr.json" in str(raised.value)
+
+
+def test_a_missing_array_zarr_json_is_an_error_not_a_missing_array(tmp_path):
+    out = tmp_path / "d.zarr"
+    _sample_store(out)
+    (out / "names" / "zarr.json").unlink()
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "names")) as raised:
+        open_store(out)
+    assert "names/zarr.json is missing" in str(raised.value)
+
+
+def test_a_deleted_chunk_file_is_an_error_counting_the_chunks(tmp_path):
+    out = tmp_path / "d.zarr"
+    _sample_store(out)
+    (out / "descriptors" / "c" / "2" / "0").unlink()
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "descriptors")) as raised:
+        open_store(out)
+    assert "array 'descriptors' has 3 chunk files, 4 were written" in str(raised.value)
+
+
+def test_a_store_without_checksums_is_refused_as_older_than_checksums(tmp_path):
+    import zarr
+
+    out = tmp_path / "old.zarr"
+    old = zarr.open_group(str(out), mode="w")  # what vprflow wrote before checksums
+    old.attrs.update({"stage": "descriptors"})
+    old.create_array("descriptors", data=np.ones((4, 2), np.float32), compressors=COMPRESSOR)
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "descriptors")) as raised:
+        open_store(out)
+    assert "predates checksums" in str(raised.value)
+
+
+def test_an_array_created_without_the_checksum_is_refused_when_the_store_is_finished(tmp_path):
+    out = tmp_path / "d.zarr"
+    with pytest.raises(ValueError, match="array 'raw' was created without stores.COMPRESSORS"):
+        with atomic_store(out) as group:
+            group.create_array("raw", data=np.ones(3), compressors=COMPRESSOR)
+    assert not out.exists()

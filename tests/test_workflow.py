@@ -24,6 +24,7 @@ from workflow_helpers import (
     write_config,
 )
 
+from vprflow.plan import PREDICTIONS_CSV, RECALL_CSV, RECALL_PLOT, RECALL_TABLE
 from vprflow.stores import array_items
 
 pytestmark = pytest.mark.workflow
@@ -251,6 +252,39 @@ def test_export_writes_a_methods_descriptors_to_one_npz(toy_run):
 def read_rows_tsv(path: Path) -> list[dict]:
     with open(path) as f:
         return list(csv.DictReader(f, delimiter="\t"))
+
+
+def test_a_flipped_byte_in_a_descriptors_store_stops_the_recall_naming_the_store(toy_run, tmp_path):
+    """A cached descriptors chunk damaged on disk: the recall stage that reads it fails
+    with an error naming the store and the remedy, and no table is written (it used to
+    rank whatever the chunk decoded to, NaN included)."""
+    source, config = toy_run
+    workdir = tmp_path / "run"
+    shutil.copytree(source, workdir, symlinks=True)  # mtimes kept: nothing else is stale
+    config_path = write_config(workdir, config)
+    store = next(
+        r["store"]
+        for r in read_rows_tsv(workdir / "results" / "cache" / "index.tsv")
+        if r["stage"] == "descriptors" and "anyloc_vlad" in r["methods"].split(",")
+    )
+    chunks = sorted((workdir / store / "descriptors" / "c").rglob("*"))
+    chunk = next(p for p in chunks if p.is_file())
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    shutil.rmtree(workdir / "results" / "cache" / "recall")
+    for table in (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT):
+        (workdir / table.format(dataset="toy")).unlink(missing_ok=True)
+    result = snakemake(workdir, config_path, TARGET, check=False)
+    assert result.returncode != 0
+    named = f"StoreCorruptError: store {store}: array 'descriptors' cannot be decoded"
+    remedy = f"Delete the store (rm -r {store}) and run snakemake again to rebuild it"
+    output = result.stdout + result.stderr
+    assert named in output and remedy in output, output[-3000:]
+    logs = [p.read_text() for p in (workdir / "logs" / "recall").glob("*/*.log")]
+    assert any(named in log and remedy in log for log in logs)
+    assert not (workdir / TARGET).exists()
+    assert not (workdir / PREDICTIONS_CSV.format(dataset="toy")).exists()
 
 
 def test_a_dataset_without_ground_truth_gets_predictions_and_figures_not_a_table(tmp_path):

@@ -203,6 +203,7 @@ class Plan:
         record = {
             "stage": stage,
             "version": FORMAT_VERSIONS[stage],
+            "store_format": 2,  # 2: crc32c checksums on every chunk
             "params": params,
             "inputs": {name: key for name, (_, key) in sorted(inputs.items())},
         }

@@ -46,7 +46,7 @@ def compute_features(
                     shape=(len(images), h, w, dim),
                     chunks=(1, h, w, dim),
                     dtype=store_dtype,
-                    compressors=stores.COMPRESSOR,
+                    compressors=stores.COMPRESSORS,
                 )
                 group.attrs.update(
                     grid=[h, w], dim=dim, patch_size=patch_size, image_size=[height, width]

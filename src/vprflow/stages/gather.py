@@ -24,7 +24,8 @@ def gather(shard_paths: list[str], params: dict, out: str) -> None:
     attrs["shards"] = len(shards)
     if len(shards) == 1:
         # One shard is the whole store: rename it instead of copying every array. Its
-        # attributes are rewritten first, so `out` appears complete or not at all.
+        # attributes are rewritten first, so `out` appears complete or not at all. Only the
+        # group's: each array keeps the chunk count atomic_store recorded for open_store.
         zarr.open_group(shard_paths[0], mode="r+").attrs.put(attrs)
         stores.replace_store(shard_paths[0], out)
         return
@@ -39,7 +40,7 @@ def gather(shard_paths: list[str], params: dict, out: str) -> None:
                 shape=(0, *source.shape[1:]),
                 chunks=chunks,
                 dtype=source.dtype,
-                compressors=stores.COMPRESSOR,
+                compressors=stores.COMPRESSORS,
             )
             for shard in tqdm(shards, desc=f"gather {name}", unit="shard"):
                 if shard[name].shape[0]:
