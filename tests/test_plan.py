@@ -70,9 +70,8 @@ def test_order_refits_pca_but_never_features_segments_or_vocabulary(config):
     changed = copy.deepcopy(config)
     changed["segvlad"]["order"] = 2
     assert changed_stages(config, changed) == {"pca", "descriptors", "search", "recall"}
-    assert (
-        build_plan(changed).get("pca", keys_of(changed)["pca"]).params["params"]["fit_order"] == 2
-    )
+    pca = build_plan(changed).get("pca", keys_of(changed)["pca"])
+    assert pca.params["params"]["fit_on"]["order"] == 2
 
 
 def test_fixed_fit_order_keeps_pca_when_the_order_changes(config):
@@ -91,8 +90,8 @@ def test_fixed_fit_order_keeps_pca_when_the_order_changes(config):
         ("vocabulary", "centres", "unit", {"vocabulary", "pca", "descriptors", "search", "recall"}),
         ("vlad", "normalize_descriptors", False, {"pca", "descriptors", "search", "recall"}),
         ("pca", "solver", "randomized", {"pca", "descriptors", "search", "recall"}),
-        ("segvlad", "vote_ranking", "all_images", {"recall"}),
-        ("segvlad", "top_segments", 20, {"search", "recall"}),
+        ("voting", "vote_ranking", "all_images", {"recall"}),
+        ("voting", "top_segments", 20, {"search", "recall"}),
     ],
 )
 def test_published_default_options_reach_their_stages(config, section, name, value, reaches):

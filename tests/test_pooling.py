@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from vprflow.pooling import average_pool, gem, max_pool
+from vprflow.pooling import average_pool, gem, max_pool, segment_gem
 
 
 def tokens(shape=(4, 5, 6), seed=0):
@@ -189,3 +189,27 @@ def test_stage_vlad_normalises_each_patch_first(tmp_path):
     unit = flat / np.linalg.norm(flat, axis=1, keepdims=True)
     np.testing.assert_allclose(vector, direct_vlad(unit, centres), rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(raw, direct_vlad(flat, centres), rtol=1e-4, atol=1e-5)
+
+
+def test_segment_gem_is_gem_of_each_segments_tokens():
+    rng = np.random.default_rng(11)
+    tokens = rng.normal(size=(5, 7, 6))
+    membership = rng.random((9, 35)) < 0.3
+    membership[4] = False  # a segment covering no token
+    got = segment_gem(tokens, membership, p=3.0)
+    flat = tokens.reshape(35, 6)
+    for s in range(9):
+        rows = [flat[n] for n in range(35) if membership[s, n]]
+        if not rows:
+            np.testing.assert_array_equal(got[s], np.zeros(6))
+            continue
+        for d in range(6):  # direct float64 formula: sign(m) |m|^(1/p), m = mean x^3
+            m = sum(float(r[d]) ** 3 for r in rows) / len(rows)
+            want = math.copysign(abs(m) ** (1 / 3), m)
+            assert abs(float(got[s, d]) - want) <= 1e-6 * max(1.0, abs(want)), (s, d)
+    np.testing.assert_allclose(got[0], gem(flat[membership[0]], p=3.0), rtol=1e-6)
+
+
+def test_segment_gem_rejects_a_membership_of_another_size():
+    with pytest.raises(ValueError, match=r"membership must be \[S, 4\]"):
+        segment_gem(np.zeros((4, 3)), np.ones((2, 5), bool))

@@ -29,7 +29,7 @@ from vprflow.stages.vocabulary import fit_vocabulary, read_centres
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
-METHODS = ["anyloc_vlad", "segvlad", "gem", "snsm"]
+METHODS = ["anyloc_vlad", "segvlad", "gem", "snsm", "segment_gem"]
 N_PLACES = 6
 
 
@@ -182,6 +182,32 @@ def test_segvlad_descriptors_are_the_projected_segment_vlads(pipeline):
         np.testing.assert_allclose(stored, pca.transform(vectors), rtol=1e-5, atol=1e-5)
 
 
+def test_segment_gem_descriptors_are_each_segments_gem_projected(pipeline):
+    """A second per-segment aggregator on SegVLAD's segment path: its descriptors equal a
+    float64 GeM over each segment's patches (channel-normalised tokens), L2-normalised,
+    then its own PCA, per image; its recall comes from the segment search and voting."""
+    from vprflow.segvlad import mask_patch_membership
+
+    features = stores.open_store(stage_path(pipeline, "features", "segment_gem"))
+    segments = stores.open_store(stage_path(pipeline, "segments", "segment_gem"))
+    pca = read_pca(stage_path(pipeline, "pca", "segment_gem"))
+    group = stores.open_store(stage_path(pipeline, "descriptors", "segment_gem"))
+    offsets = np.asarray(group["descriptors_offsets"][...])
+    for index in (0, 2 * N_PLACES - 2):
+        grid = read_features(features, index).astype(np.float64)
+        tokens = (grid / (np.linalg.norm(grid, axis=(0, 1)) + 1e-10)).reshape(-1, grid.shape[2])
+        members = mask_patch_membership(read_masks(segments, index), (48, 64), (6, 8), 8)
+        expected = []
+        for member in members:
+            mean = (tokens[member] ** 3).mean(axis=0)
+            pooled = np.sign(mean) * np.abs(mean) ** (1 / 3)
+            expected.append(pooled / np.linalg.norm(pooled))
+        stored = np.asarray(group["descriptors"][offsets[index] : offsets[index + 1]])
+        np.testing.assert_allclose(stored, pca.transform(np.array(expected)), atol=2e-5)
+    recall = stores.open_store(stage_path(pipeline, "recall", "segment_gem"))
+    assert "search" in dict(recall.attrs["params"]["inputs"])
+
+
 def test_global_recall_matches_a_direct_ranking(pipeline):
     """Recall@N of a global method from a float64 brute-force L2 ranking in the test."""
     descriptors = np.asarray(
@@ -307,7 +333,11 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     probes every list is exhaustive too; with an approximate index, recall also reports
     the exact search's Recall@N, which equals the flat method's."""
     plan, runner, _, _ = pipeline
-    (search,) = plan.stages["search"].values()
+    (search,) = [
+        s
+        for s in plan.stages["search"].values()
+        if runner.path(*s.inputs["descriptors"]) == stage_path(pipeline, "descriptors", "segvlad")
+    ]
     inputs = {name: runner.path(*ref) for name, ref in search.inputs.items()}
     spec = {**search.params["params"], "index": index, "params": options}
     out = str(tmp_path / "search.zarr")
@@ -316,7 +346,11 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     flat_distances, flat_indices = read_search(stage_path(pipeline, "search"))
     np.testing.assert_array_equal(indices, flat_indices)
     np.testing.assert_allclose(distances, flat_distances, rtol=1e-5, atol=1e-5)
-    (recall,) = [s for s in plan.stages["recall"].values() if "search" in s.inputs]
+    (recall,) = [
+        s
+        for s in plan.stages["recall"].values()
+        if s.inputs.get("search") == ("search", search.key)
+    ]
     result = str(tmp_path / "recall.zarr")
     evaluate(inputs["dataset"], inputs["descriptors"], recall.params, result, out, out)
     attrs = stores.open_store(result).attrs
@@ -333,7 +367,12 @@ def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
 
 @pytest.mark.parametrize(
     ("method", "figure"),
-    [("anyloc_vlad", "retrievals"), ("segvlad", "segment_matches"), ("snsm", "support_maps")],
+    [
+        ("anyloc_vlad", "retrievals"),
+        ("segvlad", "segment_matches"),
+        ("segment_gem", "segment_matches"),
+        ("snsm", "support_maps"),
+    ],
 )
 def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure):
     from PIL import Image

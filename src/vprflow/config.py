@@ -31,6 +31,7 @@ METHOD_DEFAULT_SECTIONS = (
     "vlad",
     "pca",
     "segvlad",
+    "voting",
     "retrieval",
     "snsm",
     "pooling",

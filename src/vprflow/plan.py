@@ -627,15 +627,14 @@ def _plan_method(
             if not pca["enabled"]:
                 row["pca.enabled"] = False
                 continue
-            # Fitted on the aggregator's own descriptors; published: at the method's own
-            # neighbourhood order (one PCA per order).
-            fit_order = options["order"] if pca["fit_order"] == "method" else pca["fit_order"]
             params = {
-                **{k: v for k, v in pca.items() if k != "enabled"},
+                # fit_order is read by the aggregator into fit_on: `method` and the
+                # order it resolves to are one PCA.
+                **{k: v for k, v in pca.items() if k not in ("enabled", "fit_order")},
                 "aggregator": agg.name,
-                # Not the order (fit_order says which) nor how descriptors are stored.
-                **{k: v for k, v in options.items() if k not in ("order", "store_dtype")},
-                "fit_order": fit_order,
+                # What the PCA is fitted on, as the aggregator says (SegVLAD: one PCA
+                # per neighbourhood order).
+                "fit_on": agg.pca_descriptor_options(method, options),
             }
             inputs["pca"] = ("pca", plan.add("pca", params, dict(inputs), dataset_name))
             row.update(_prefixed("pca", pca))
@@ -655,10 +654,10 @@ def _plan_method(
     if agg.output == "segments":
         retrieval = method["retrieval"]
         search_inputs = {"dataset": ds, "descriptors": descriptors}
-        top_segments = method["segvlad"]["top_segments"]
+        voting = method["voting"]
 
         def search_stage(settings: dict) -> tuple[str, str]:
-            params = {"top_segments": top_segments, **settings}
+            params = {"top_segments": voting["top_segments"], **settings}
             run = {**execution, "uses_gpu": SEARCH_INDEXES[settings["index"]].uses_gpu}
             return ("search", plan.add("search", params, search_inputs, dataset_name, run))
 
@@ -667,8 +666,8 @@ def _plan_method(
             # The table states what the approximation costs: recall of an exact search
             # of the same descriptors, in the same run.
             recall_inputs["exact_search"] = search_stage({"index": "flat", "params": {}})
-        recall_params["vote_ranking"] = method["segvlad"]["vote_ranking"]
-        row.update(_prefixed("retrieval", retrieval))
+        recall_params["vote_ranking"] = voting["vote_ranking"]
+        row.update(_prefixed("retrieval", retrieval), **_prefixed("voting", voting))
     recall_key = plan.add("recall", recall_params, recall_inputs, dataset_name)
     return MethodRun(method_name, recall_key, _flat(row), agg.name)
 

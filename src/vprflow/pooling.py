@@ -90,3 +90,23 @@ def average_pool(tokens: np.ndarray, l2_normalize: bool = False) -> np.ndarray:
 def max_pool(tokens: np.ndarray, l2_normalize: bool = False) -> np.ndarray:
     """Global max pooling of ``[N, D]`` or ``[h, w, D]`` -> float32 ``[D]``."""
     return _finish(_as_tokens(tokens).max(axis=0), l2_normalize)
+
+
+def segment_gem(tokens: np.ndarray, membership: np.ndarray, p: float = 3.0) -> np.ndarray:
+    """GeM of each segment's tokens: ``tokens [N, D]`` or ``[h, w, D]``, ``membership``
+    bool ``[S, N]`` (which tokens each segment covers) -> float32 ``[S, D]``, each row
+    :func:`gem` (``negatives="signed"``) of its segment's tokens, not normalised.
+
+    A segment that covers no token gets a zero row (it then matches nothing better
+    than anything else, instead of a NaN that no stage may store).
+    """
+    x = _as_tokens(tokens)
+    member = np.asarray(membership, dtype=bool)
+    if member.ndim != 2 or member.shape[1] != x.shape[0]:
+        raise ValueError(f"membership must be [S, {x.shape[0]}], got shape {member.shape}")
+    if isinstance(p, bool) or not isinstance(p, numbers.Real) or not math.isfinite(p) or p <= 0:
+        raise ValueError(f"GeM power p must be a positive number, got {p!r}")
+    counts = member.sum(axis=1)
+    sums = member.astype(np.float64) @ (np.sign(x) * np.abs(x) ** p)
+    mean = sums / np.maximum(counts, 1)[:, None]
+    return (np.sign(mean) * np.abs(mean) ** (1.0 / p)).astype(np.float32)

@@ -210,6 +210,7 @@ class Aggregator:
     callable ``image index -> [dim] or [S, dim]`` split into store reads and arithmetic.
     ``explanation``: the report's figure of how the method decided, besides the
     retrievals every method gets (a name in :data:`vprflow.plan.FIGURES`), or None.
+    ``pca_fit``: see :meth:`pca_descriptor_options` (for aggregators with ``pca``).
     ``resize``: how the published pipeline resizes images before the backbone (a
     :data:`vprflow.images.RESIZE_METHODS` name), the default of a backbone's
     ``resize: method``: SegVLAD's and AnyLoc's readers use OpenCV, SNSM's (and its
@@ -224,6 +225,16 @@ class Aggregator:
     image_descriptor: str
     explanation: str | None = None
     resize: str = "linear"
+    pca_fit: Callable[[dict, dict], dict] | None = None
+
+    def pca_descriptor_options(self, method: dict, options: dict) -> dict:
+        """The descriptor options of the vectors a PCA is fitted on (the PCA stage
+        computes them with :meth:`descriptor_function`): the method's own, less how
+        they are stored, unless the aggregator's ``pca_fit(method, options)`` says
+        otherwise (SegVLAD: at ``pca.fit_order``)."""
+        if self.pca_fit is not None:
+            return self.pca_fit(method, options)
+        return {k: v for k, v in options.items() if k != "store_dtype"}
 
     def descriptor_function(self, options: dict, inputs: dict[str, str]):
         return resolve(self.image_descriptor)(options, inputs)
@@ -232,6 +243,14 @@ class Aggregator:
 def prefixed(section: str, values: dict) -> dict:
     """CSV columns ``<section>.<key>`` of a settings section."""
     return {f"{section}.{k}": v for k, v in values.items()}
+
+
+def _segvlad_pca_fit(method: dict, options: dict) -> dict:
+    """Published: one PCA per neighbourhood order, fitted on descriptors of the method's
+    own order; an integer ``pca.fit_order`` fixes the order instead."""
+    fit_order = method["pca"]["fit_order"]
+    order = options["order"] if fit_order == "method" else fit_order
+    return {**{k: v for k, v in options.items() if k != "store_dtype"}, "order": order}
 
 
 def _segvlad_options(method: dict) -> dict:
@@ -273,6 +292,16 @@ AGGREGATORS: dict[str, Aggregator] = {
             _segvlad_options,
             lambda m: {**prefixed("segvlad", m["segvlad"]), **prefixed("vlad", m["vlad"])},
             f"{_DESCRIPTORS}:segvlad_descriptors",
+            explanation="segment_matches",
+            pca_fit=_segvlad_pca_fit,
+        ),
+        Aggregator(
+            "segment_gem",
+            ("segments", "pca"),
+            "segments",
+            lambda m: {"p": m["pooling"]["gem_p"], "normalization": m["pooling"]["normalization"]},
+            lambda m: prefixed("pooling", {k: m["pooling"][k] for k in ("gem_p", "normalization")}),
+            f"{_DESCRIPTORS}:segment_gem_descriptors",
             explanation="segment_matches",
         ),
         Aggregator(

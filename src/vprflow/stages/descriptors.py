@@ -188,3 +188,28 @@ def pooled_descriptor(options: dict, inputs: dict[str, str]):
         lambda index: (read_features(index),),
         lambda grid: pool(normalize_tokens(grid, options["normalization"])),
     )
+
+
+def segment_gem_descriptors(options: dict, inputs: dict[str, str]):
+    """Per-segment GeM: each segment's patches (the published mask-to-patch mapping,
+    no neighbourhood) GeM-pooled after the pooling section's token normalisation, each
+    row L2-normalised for the segment search, ``[S, D]``. SegVLAD's segment path with
+    the simplest aggregation: a baseline for what VLAD and neighbourhoods add."""
+    from vprflow.pooling import segment_gem
+    from vprflow.segvlad import mask_patch_membership
+    from vprflow.snsm import normalize_tokens
+
+    features = stores.open_store(inputs["features"])
+    read_features = FeatureReader(features)
+    read_masks = MaskReader(stores.open_store(inputs["segments"]))
+    height, width = features.attrs["image_size"]
+    patch_size = int(features.attrs["patch_size"])
+
+    def compute(grid: np.ndarray, masks: np.ndarray) -> np.ndarray:
+        h, w, _ = grid.shape
+        membership = mask_patch_membership(masks, (height, width), (h, w), patch_size)
+        tokens = normalize_tokens(grid, options["normalization"])
+        pooled = segment_gem(tokens, membership, options["p"]).astype(np.float64)
+        return l2_normalize(pooled).astype(np.float32)
+
+    return ImageDescriptor(lambda index: (read_features(index), read_masks(index)), compute)

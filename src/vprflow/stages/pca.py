@@ -13,14 +13,13 @@ from vprflow.stages.dataset import Dataset
 
 def fit_pca_stage(inputs: dict[str, str], params: dict, out: str) -> None:
     """PCA fitted on a random sample of the reference images' segment descriptors,
-    computed by the method's aggregator at ``fit_order`` (docs/methods.md §5)."""
+    computed by the method's aggregator with the options ``fit_on`` (SegVLAD: at
+    ``pca.fit_order``, docs/methods.md §5)."""
     from vprflow.pca import fit_pca
 
     spec = params["params"]
     dataset = Dataset(inputs["dataset"])
-    describe = aggregator(spec["aggregator"]).descriptor_function(
-        {**spec, "order": spec["fit_order"]}, inputs
-    )
+    describe = aggregator(spec["aggregator"]).descriptor_function(spec["fit_on"], inputs)
     segments_path = inputs["segments"]
     offsets = np.asarray(stores.open_store(segments_path)["masks_offsets"][...])
     total = int(offsets[dataset.n_reference])
