@@ -484,3 +484,32 @@ def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_p
     np.testing.assert_array_equal(dataset.read_image(1), upright.astype(np.float32) / 255.0)
     sizes = np.asarray(dataset.group["image_sizes"][...])
     assert sizes[1].tolist() == [24, 32]  # height, width after the orientation
+
+
+def test_the_dataset_stage_lists_images_as_planned(tmp_path):
+    # follow_links and recursive reach the dataset stage (they are in its key): a linked
+    # image folder elsewhere is read when asked, and a nested folder left out when not.
+    make_dataset(tmp_path / "elsewhere" / "toy", n_places=3, width=32, height=24)
+    toy = tmp_path / "data" / "toy"
+    toy.mkdir(parents=True)
+    (toy / "ref").symlink_to(tmp_path / "elsewhere/toy/ref")
+    (toy / "query").mkdir()
+    (toy / "query/run1").symlink_to(tmp_path / "elsewhere/toy/query")
+    (toy / "ground_truth_new.npy").symlink_to(tmp_path / "elsewhere/toy/ground_truth_new.npy")
+    make_dataset(tmp_path / "nested" / "toy", n_places=3, width=32, height=24)
+    (tmp_path / "nested/toy/query/old").mkdir()
+    (tmp_path / "nested/toy/query/0000.jpg").rename(tmp_path / "nested/toy/query/old/0000.jpg")
+    for root, overrides in (
+        (tmp_path / "data", {"follow_links": True}),
+        (tmp_path / "nested", {"recursive": False, "ground_truth": {"kind": "none"}}),
+    ):
+        config = toy_config(root, resolution=[32, 24], methods=["gem"], **overrides)
+        plan = build_plan(validate_config(config, SCHEMA))
+        stage = plan.get("dataset", plan.dataset_keys["toy"])
+        out = tmp_path / f"{root.name}.zarr"
+        build_dataset("toy", stage.params, str(root), str(out))
+        names = Dataset(str(out)).names
+        expected = ["run1/0000.jpg", "run1/0001.jpg", "run1/0002.jpg"]
+        if root.name == "nested":
+            expected = ["0001.jpg", "0002.jpg"]
+        assert [n.removeprefix("query/") for n in names[3:]] == expected

@@ -56,6 +56,18 @@ FORMAT_VERSIONS = {
     "recall": 4,  # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP
 }
 
+# Dataset settings that do not shape the dataset store (later stages read them, or
+# they are for people): kept out of its key, so changing them rebuilds only what uses them.
+NOT_DATASET_STAGE = (
+    "methods",
+    "defaults",
+    "recall_at",
+    "denominator",
+    "resolution",
+    "source",
+    "download",
+)
+
 # Settings that change how a stage runs but not what it computes: kept out of keys.
 EXECUTION_ONLY = ("batch_size", "cache_dir")
 
@@ -495,17 +507,9 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
     for dataset_name, dataset in sorted(config["datasets"].items()):
         dataset_params = {
             "name": dataset_name,
-            **{
-                k: dataset[k]
-                for k in (
-                    "path",
-                    "reference",
-                    "query",
-                    "paired",
-                    "ground_truth",
-                    "exif_orientation",
-                )
-            },
+            # Every dataset setting but those read by later stages or by people only:
+            # one the stage reads (recursive, follow_links, ...) can never be left out.
+            **{k: v for k, v in dataset.items() if k not in NOT_DATASET_STAGE},
             # What the images and ground truth hold, not where they are: replaced images
             # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
             "contents": dataset_contents(config["data_root"], dataset_name, dataset, memo),
