@@ -15,6 +15,7 @@ largest batch so far), ``grid`` (h x w x D of the output).
 
 Usage: python benchmarks/bench_backbones.py [--repeats N] [--batch-sizes 1,2,4,8]
            [--giant] [--cases name,name]
+       python benchmarks/bench_backbones.py --smoke    # tiny-dinov2, batch 1, one repeat
 """
 
 from __future__ import annotations
@@ -211,9 +212,12 @@ def run_case(name: str, directory: str, repeats: int, batches: list[int]) -> lis
 
 
 def child(args: list[str]) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, __file__, *args], check=True, capture_output=True, text=True
-    )
+    run = subprocess.run([sys.executable, __file__, *args], capture_output=True, text=True)
+    if run.returncode:
+        # The child's traceback: CalledProcessError would only say that it failed.
+        sys.stderr.write(run.stderr)
+        sys.exit(f"{' '.join(args[:2])} failed (status {run.returncode})")
+    return run
 
 
 def main() -> None:
@@ -231,7 +235,13 @@ def main() -> None:
     parser.add_argument("--cases", help=f"comma-separated subset of {', '.join(CASES)}")
     parser.add_argument("--save", nargs=2, metavar=("ARCH", "DIR"), help=argparse.SUPPRESS)
     parser.add_argument("--run", nargs=2, metavar=("CASE", "DIR"), help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--smoke", action="store_true", help="tiny-dinov2 only, batch 1, one repeat"
+    )
     args = parser.parse_args()
+    if args.smoke:
+        # Each case starts two processes that import transformers (seconds each).
+        args.cases, args.batch_sizes, args.repeats = "tiny-dinov2", "1", 1
 
     if args.save:
         save_case(*args.save)

@@ -2,6 +2,10 @@
 
     python benchmarks/bench_descriptors.py --data ../shared/data [--images 256]
         [--threads 2] [--repeats 3] [--workdir /tmp/vprflow-bench-descriptors]
+    python benchmarks/bench_descriptors.py --smoke   # 8 images, anyloc_vlad and segvlad
+
+``--data`` defaults to ``$VPRFLOW_DATA`` (a smoke run without either is skipped, status
+77, as in bench_workflow.py).
 
 Builds the descriptors stage's inputs (dataset, DAISY features, SLIC segments,
 vocabulary, PCA) for a synthetic N-image set (the corridor images cycled, as
@@ -13,9 +17,9 @@ corridor config, in one process and under the rule's thread budget (``run_stage`
   inputs read beforehand (float32 features, unpacked masks), one image at a time, with
   one BLAS thread or the rule's threads, whichever is faster;
 - read: reading every image's inputs through the stage's readers alone;
-- job: a fresh Python process running the stage as the rule's script does (imports,
-  stage, store), as Snakemake's benchmark file would time it, less Snakemake's own
-  script preamble.
+- job: a fresh Python process running the rule's script (``workflow/scripts/
+  descriptors.py``: imports, stage, store), as Snakemake's benchmark file would time it,
+  less Snakemake's own script preamble.
 
 Each is the best of ``--repeats`` runs, in ms per image; "ratio" = stage / arithmetic,
 "job ratio" = job / arithmetic.
@@ -33,11 +37,10 @@ import tempfile
 import time
 from pathlib import Path
 
-import yaml
 from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_workflow import REPO, make_set  # noqa: E402
+from bench_workflow import REPO, cycled_config, data_folder, run_snakemake  # noqa: E402
 
 from vprflow import stores  # noqa: E402
 from vprflow.config import validate_config  # noqa: E402
@@ -45,16 +48,10 @@ from vprflow.plan import build_plan  # noqa: E402
 from vprflow.runner import run_stage  # noqa: E402
 
 
-def prepare(data: Path, workdir: Path, n_images: int):
-    """The corridor config on the cycled set, its plan, and the descriptors stages,
-    their inputs built by Snakemake in ``workdir``."""
-    make_set(data / "corridor", workdir / "data" / "cycled", n_images)
-    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    corridor = config["datasets"]["corridor"]
-    config["data_root"] = str(workdir / "data")
-    config["datasets"] = {"cycled": {**corridor, "path": "cycled"}}
-    config_path = workdir / "config.yaml"
-    config_path.write_text(yaml.safe_dump(config))
+def prepare(data: Path, workdir: Path, n_images: int, methods: list[str] | None = None):
+    """The corridor config on the cycled set (``methods`` of it, default all), its plan,
+    and the descriptors stages, their inputs built by Snakemake in ``workdir``."""
+    config, config_path = cycled_config(data, workdir, n_images, methods)
     config = validate_config(config, REPO / "workflow" / "schemas" / "config.schema.yaml")
     plan = build_plan(config)
     targets = sorted(
@@ -62,12 +59,11 @@ def prepare(data: Path, workdir: Path, n_images: int):
     )
     missing = [t for t in targets if not (workdir / t).exists()]
     if missing:
-        command = [
+        run_snakemake([
             sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "workflow" / "Snakefile"),
             "--directory", str(workdir), "--configfile", str(config_path), "--cores", "2",
             *missing,
-        ]  # fmt: skip
-        subprocess.run(command, check=True, capture_output=True)
+        ])  # fmt: skip
     return plan
 
 
@@ -88,12 +84,19 @@ def method_name(stage) -> str:
     return name
 
 
+# The rule's own script, run in a fresh process with the ``snakemake`` object it reads,
+# so that the job timed is the job the workflow runs.
 JOB = """
-import json, sys
-from vprflow.runner import run_stage
-from vprflow.stages.descriptors import compute_descriptors
-inputs, params, out, threads = json.loads(sys.argv[1])
-run_stage("/dev/null", lambda: compute_descriptors(inputs, params, out, threads=threads), threads)
+import json, runpy, sys
+from types import SimpleNamespace
+script, inputs, params, out, n, threads = json.loads(sys.argv[1])
+class Inputs(dict):
+    __getattr__ = dict.__getitem__
+snakemake = SimpleNamespace(
+    input=Inputs(inputs), params=SimpleNamespace(cfg=params), output=[out], log=["/dev/null"],
+    wildcards=SimpleNamespace(start="0", stop=str(n)), threads=threads,
+)
+runpy.run_path(script, init_globals={"snakemake": snakemake})
 """
 
 
@@ -140,24 +143,17 @@ def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ..
                 mask_reader(i)
 
     read_s = best_of(read, repeats)
-    job = json.dumps([inputs, stage.params, str(out), threads])
+    script = str(REPO / "workflow" / "scripts" / "descriptors.py")
+    job = json.dumps([script, inputs, stage.params, str(out), n, threads])
     job_s = best_of(lambda: subprocess.run([sys.executable, "-c", JOB, job], check=True), repeats)
     shutil.rmtree(out.parent)
     return stage_s / n, arithmetic_s / n, read_s / n, job_s / n
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, required=True, help="folder holding corridor/")
-    parser.add_argument("--images", type=int, default=256)
-    parser.add_argument("--threads", type=int, default=2, help="the rule's thread budget")
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--workdir", type=Path, default=Path("/tmp/vprflow-bench-descriptors"))
-    parser.add_argument("--methods", nargs="*", help="only these (e.g. 'segvlad order 3 + pca')")
-    args = parser.parse_args()
-    workdir = args.workdir.resolve() / str(args.images)
-    workdir.mkdir(parents=True, exist_ok=True)
-    plan = prepare(args.data.resolve(), workdir, args.images)
+def run(
+    args: argparse.Namespace, data: Path, workdir: Path, config_methods: list[str] | None = None
+) -> None:
+    plan = prepare(data, workdir, args.images, config_methods)
     stages = sorted(plan.stages["descriptors"].values(), key=method_name)
     rows = []
 
@@ -169,16 +165,44 @@ def main() -> None:
 
     run_stage(os.devnull, run_all, args.threads)
     print(f"{args.images} corridor images, {args.threads} threads, best of {args.repeats}")
-    print(
+    header = (
         f"{'method':<24} {'arith ms':>9} {'stage ms':>9} {'ratio':>6} {'read ms':>8} "
         f"{'job ms':>8} {'job ratio':>9}"
     )
+    print(header)
+    print("-" * len(header))
     for name, stage_s, arithmetic_s, read_s, job_s in rows:
         print(
             f"{name:<24} {arithmetic_s * 1e3:>9.2f} {stage_s * 1e3:>9.2f} "
             f"{stage_s / arithmetic_s:>6.2f} {read_s * 1e3:>8.2f} {job_s * 1e3:>8.2f} "
             f"{job_s / arithmetic_s:>9.2f}"
         )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, help="folder holding corridor/ ($VPRFLOW_DATA)")
+    parser.add_argument("--images", type=int, default=256)
+    parser.add_argument("--threads", type=int, default=2, help="the rule's thread budget")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--workdir", type=Path, default=Path("/tmp/vprflow-bench-descriptors"))
+    parser.add_argument("--methods", nargs="*", help="only these (e.g. 'segvlad order 3 + pca')")
+    parser.add_argument(
+        "--smoke",
+        action="store_true",
+        help="8 images, one repeat, anyloc_vlad and segvlad, a temporary workdir",
+    )
+    args = parser.parse_args()
+    data = data_folder(parser, args)
+    if not args.smoke:
+        workdir = args.workdir.resolve() / str(args.images)
+        workdir.mkdir(parents=True, exist_ok=True)
+        run(args, data, workdir)
+        return
+    # A global and a per-segment method: the stage's two kinds of output.
+    args.images, args.repeats = 8, 1
+    with tempfile.TemporaryDirectory(prefix="vprflow-bench-smoke-") as workdir:
+        run(args, data, Path(workdir), ["anyloc_vlad", "segvlad"])
 
 
 if __name__ == "__main__":

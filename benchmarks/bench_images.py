@@ -2,17 +2,20 @@
 
     python benchmarks/bench_images.py                  # corridor (if found) and synthetic sizes
     python benchmarks/bench_images.py --repeat 3 --sizes 640x480
+    python benchmarks/bench_images.py --smoke          # one pass, 4 synthetic 160 x 120 images
 
-Per image, median over ``--repeat`` passes, milliseconds:
+Per query image, median over ``--repeat`` passes, milliseconds:
 
 - ``decode``: ``images.read_image`` (PIL decode, EXIF orientation, float conversion);
 - ``sha256``: hashing the file's bytes, the check ``Dataset.read_image`` adds before it
   decodes (a file changed during a run must fail, not be computed under its old key);
-- ``checked``: ``Dataset.read_image`` as the stages call it (read, hash, decode);
-- ``scan``: ``images.scan_images`` of the folder, per image (links, formats, order).
+- ``checked``: ``Dataset.read_image`` as the stages call it (read, hash, decode), on a
+  dataset store the dataset stage built (``build_dataset``, as the ``dataset`` rule);
+- ``scan``: ``images.scan_images`` of the query folder, per image (links, formats, order).
 
 Images: the corridor dataset under ``$VPRFLOW_DATA`` when it is there, and synthetic
-JPEGs of ``--sizes`` (textured noise, quality 90) written to a temporary folder.
+JPEGs of ``--sizes`` (textured noise, quality 90) written to a temporary folder, with
+one reference image of other noise beside them (a dataset needs both roles).
 """
 
 from __future__ import annotations
@@ -26,23 +29,30 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 from PIL import Image
 
+from vprflow.config import validate_config
 from vprflow.images import read_image, scan_images
+from vprflow.plan import build_plan
+from vprflow.stages.dataset import Dataset, build_dataset
+
+REPO = Path(__file__).resolve().parents[1]
 
 
-def per_image_ms(function, paths: list[Path], repeat: int) -> float:
+def per_image_ms(function, items: list, repeat: int) -> float:
     times = []
     for _ in range(repeat):
         start = time.perf_counter()
-        for path in paths:
-            function(path)
-        times.append((time.perf_counter() - start) / len(paths) * 1e3)
+        for item in items:
+            function(item)
+        times.append((time.perf_counter() - start) / len(items) * 1e3)
     return statistics.median(times)
 
 
-def synthetic(folder: Path, width: int, height: int, count: int) -> list[Path]:
-    rng = np.random.default_rng(0)
+def synthetic(folder: Path, width: int, height: int, count: int, seed: int = 0) -> list[Path]:
+    folder.mkdir(parents=True)
+    rng = np.random.default_rng(seed)
     paths = []
     for i in range(count):
         noise = rng.integers(0, 256, (height // 8, width // 8, 3), dtype=np.uint8)
@@ -53,21 +63,28 @@ def synthetic(folder: Path, width: int, height: int, count: int) -> list[Path]:
     return paths
 
 
-def measure(name: str, paths: list[Path], repeat: int) -> tuple:
-    digests = {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in paths}
+def dataset_store(data_root: Path, folder: str, out: Path) -> Dataset:
+    """``data_root/folder/{ref,query}`` as the dataset stage stores it, opened as the
+    later stages open it: the shipped config with this folder as its one dataset."""
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    config["data_root"] = str(data_root)
+    config["targets"] = []
+    entry = {"path": folder, "reference": "ref", "query": "query", "resolution": [160, 120]}
+    entry |= {"ground_truth": {"kind": "none"}, "methods": [next(iter(config["methods"]))]}
+    config["datasets"] = {"bench": entry}
+    config = validate_config(config, REPO / "workflow" / "schemas" / "config.schema.yaml")
+    plan = build_plan(config)
+    stage = plan.stages["dataset"][plan.dataset_keys["bench"]]
+    build_dataset("bench", stage.params, str(data_root), str(out))
+    return Dataset(str(out), str(data_root))
 
-    def checked(path: Path) -> np.ndarray:
-        # What Dataset.read_image does: one read, a hash compared, a decode of the bytes.
-        from vprflow.images import decode_image
 
-        data = path.read_bytes()
-        if hashlib.sha256(data).hexdigest() != digests[path]:
-            raise AssertionError(path)
-        return decode_image(data, path)
-
+def measure(name: str, dataset: Dataset, repeat: int) -> tuple:
+    queries = list(dataset.indices("query"))
+    paths = [Path(dataset.paths[i]) for i in queries]
     decode = per_image_ms(read_image, paths, repeat)
     sha = per_image_ms(lambda p: hashlib.sha256(p.read_bytes()).hexdigest(), paths, repeat)
-    full = per_image_ms(checked, paths, repeat)
+    full = per_image_ms(dataset.read_image, queries, repeat)
     folder = paths[0].parent
     scan = per_image_ms(lambda _: scan_images(folder), [folder], repeat) / len(paths)
     size = np.mean([p.stat().st_size for p in paths]) / 1024
@@ -79,19 +96,26 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=5)
     parser.add_argument("--sizes", nargs="*", default=["160x120", "640x480", "4032x3024"])
     parser.add_argument("--count", type=int, default=20, help="synthetic images per size")
+    parser.add_argument(
+        "--smoke", action="store_true", help="one pass, corridor and 4 synthetic 160 x 120 images"
+    )
     args = parser.parse_args()
-    rows = []
+    if args.smoke:
+        args.repeat, args.sizes, args.count = 1, ["160x120"], 4
+    datasets = []
     data = os.environ.get("VPRFLOW_DATA")
-    corridor = Path(data) / "corridor" / "query" if data else None
-    if corridor and corridor.is_dir():
-        rows.append(measure("corridor query", scan_images(corridor).paths, args.repeat))
+    corridor = Path(data) / "corridor" if data else None
     with tempfile.TemporaryDirectory() as tmp:
+        if corridor and (corridor / "query").is_dir():
+            store = Path(tmp) / "corridor.zarr"
+            datasets.append(("corridor query", dataset_store(corridor.parent, "corridor", store)))
         for size in args.sizes:
             width, height = (int(v) for v in size.split("x"))
-            folder = Path(tmp) / size
-            folder.mkdir()
-            paths = synthetic(folder, width, height, args.count)
-            rows.append(measure(f"jpeg {size}", paths, args.repeat))
+            synthetic(Path(tmp) / size / "ref", width, height, 1, seed=1)
+            synthetic(Path(tmp) / size / "query", width, height, args.count)
+            store = Path(tmp) / f"{size}.zarr"
+            datasets.append((f"jpeg {size}", dataset_store(Path(tmp), size, store)))
+        rows = [measure(name, dataset, args.repeat) for name, dataset in datasets]
     header = "images | n | KiB/file | decode ms | sha256 ms | checked ms | check cost | scan ms"
     print(header)
     print("|".join(["---"] * 8))

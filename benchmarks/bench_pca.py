@@ -2,6 +2,7 @@
 
     python benchmarks/bench_pca.py                      # 20,000 x 49,152 -> 1024 (about 20 min)
     python benchmarks/bench_pca.py --n 3000 --d 6144 --dim 256   # a quick look
+    python benchmarks/bench_pca.py --smoke                       # 400 x 512 -> 32
 
 Data: VLAD-like synthetic descriptors in float32, ``latent`` directions with
 power-law scales (singular values ~ k^-1/2, so the spectrum decays smoothly through
@@ -114,7 +115,12 @@ def main() -> None:
     parser.add_argument("--fit", help=argparse.SUPPRESS)
     parser.add_argument("--data", help=argparse.SUPPRESS)
     parser.add_argument("--out", help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--smoke", action="store_true", help="400 x 512 -> 32, 64 latent directions (seconds)"
+    )
     args = parser.parse_args()
+    if args.smoke:
+        args.n, args.d, args.dim, args.latent = 400, 512, 32, 64
     if args.fit:
         fit_one(args.fit, args.data, args.dim, args.out)
         return

@@ -18,6 +18,7 @@ case).
     python benchmarks/bench_sam.py --models sam-vit-h --dtypes bfloat16 --filters library \
         --points-per-side 32 --repeats 0 --image-batches 1 2 4 8
     python benchmarks/bench_sam.py --decoders [--prompts 256] [--points-per-batch 64]
+    python benchmarks/bench_sam.py --smoke   # both tables at their smallest (tiny-64), CPU
 
 ``--image-batches`` adds, per configuration, the image encoder's time per image on
 batches of B images (``SamSegmenter.generate_batch`` embeds a batch in one pass, then
@@ -45,6 +46,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -111,6 +113,8 @@ LARGE = {
         },
     ),
 }
+# tests/tiny_models.py's SAM at a 64-pixel input (4 x 4 patches): what --smoke runs.
+SMOKE_MODEL = "tiny-64"
 FILTERS = {
     "library": {},
     "none": {"pred_iou_thresh": 0.0, "stability_score_thresh": 0.0},
@@ -164,7 +168,13 @@ def run_one(
     else:
         torch.manual_seed(0)
         with tempfile.TemporaryDirectory() as directory:
-            SamModel(SamConfig(**MODELS[model])).save_pretrained(directory)
+            if model == SMOKE_MODEL:
+                sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+                from tiny_models import tiny_sam
+
+                tiny_sam(model_size=64, scale=None).save_pretrained(directory)
+            else:
+                SamModel(SamConfig(**MODELS[model])).save_pretrained(directory)
             segmenter = load_sam({"model": directory, **params, "dtype": dtype}, device=device)
     image = np.random.default_rng(0).random((240, 320, 3), dtype=np.float32)
     cuda = segmenter.device.type == "cuda"
@@ -298,12 +308,14 @@ def _child(arguments: list[str], label: str) -> dict | None:
     return json.loads(output.stdout.strip().splitlines()[-1])
 
 
-def decoders_table(args) -> None:
+def decoders_table(args) -> int:
+    """Print the decoding table; returns how many measurements failed."""
     print(f"SAM prompt decoding on {args.device}, random weights, per 1,024 prompts")
     header = f"{'kind':7} {'dtype':8} {'decoder':12} {'batch':>5} {'s/1024':>7} {'ms/prompt':>9}"
     header += f" {'+mem MiB':>8}"
     print(header)
     print("-" * len(header))
+    failed = 0
     for kind in args.kinds:
         for dtype in args.dtypes:
             for batch in args.points_per_batch:
@@ -312,55 +324,18 @@ def decoders_table(args) -> None:
                     arguments += [str(batch), "--device", args.device]
                     row = _child(arguments, f"{kind:7} {dtype:8} {decoder:12}")
                     if row is None:
+                        failed += 1
                         continue
                     print(
                         f"{kind:7} {dtype:8} {decoder:12} {batch:>5} {row['s_per_1024']:>7.2f} "
                         f"{row['ms_per_prompt']:>9.2f} {row['gen_mib']:>8.0f}",
                         flush=True,
                     )
+    return failed
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    choices = [*MODELS, *LARGE]
-    parser.add_argument("--device", default="auto")
-    parser.add_argument("--repeats", type=int, default=2, help="timed calls after the first")
-    parser.add_argument("--sides", "--points-per-side", type=int, nargs="+", default=[16, 32])
-    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=choices)
-    parser.add_argument("--dtypes", nargs="+", default=["float32"])
-    parser.add_argument("--filters", nargs="+", default=list(FILTERS), choices=list(FILTERS))
-    parser.add_argument("--one", nargs=4, metavar=("MODEL", "SIDE", "FILTERS", "DTYPE"))
-    parser.add_argument(
-        "--image-batches",
-        type=int,
-        nargs="*",
-        default=[],
-        help="also time the image encoder on batches of these many images",
-    )
-    parser.add_argument("--decoders", action="store_true", help="time prompt decoding only")
-    parser.add_argument("--kinds", nargs="+", default=["sam", "sam_hq", "sam2"])
-    parser.add_argument("--prompts", type=int, default=256, help="prompts timed (--decoders)")
-    parser.add_argument("--points-per-batch", type=int, nargs="+", default=[64])
-    parser.add_argument("--decoder-one", nargs=5, help=argparse.SUPPRESS)
-    args = parser.parse_args()
-
-    if args.decoder_one:
-        kind, dtype, decoder, prompts, batch = args.decoder_one
-        row = decoder_one(kind, dtype, decoder, int(prompts), int(batch), args.device)
-        print(json.dumps(row))
-        return
-    if args.decoders:
-        decoders_table(args)
-        return
-
-    if args.one:
-        model, side, filters, dtype = args.one
-        row = run_one(
-            model, int(side), filters, args.device, args.repeats, dtype, tuple(args.image_batches)
-        )
-        print(json.dumps(row))
-        return
-
+def masks_table(args) -> int:
+    """Print the automatic-mask table; returns how many measurements failed."""
     header = (
         f"{'model':12} {'side':>4} {'filters':8} {'dtype':8} {'device':6} {'masks':>5} "
         f"{'encoder s':>9} {'first s':>8} {'best s':>7} {'img/s':>7} {'RSS MiB':>8} "
@@ -369,6 +344,7 @@ def main() -> None:
     print("SAM automatic masks, one 320x240 image, random weights")
     print(header)
     print("-" * len(header))
+    failed = 0
     for model in args.models:
         for side in args.sides:
             for dtype in args.dtypes:
@@ -378,6 +354,7 @@ def main() -> None:
                     arguments += ["--image-batches", *map(str, args.image_batches)]
                     row = _child(arguments, f"{model:12} {side:>4} {filters:8} {dtype:8}")
                     if row is None:
+                        failed += 1
                         continue
                     print(
                         f"{row['model']:12} {row['side']:>4} {row['filters']:8} "
@@ -399,6 +376,61 @@ def main() -> None:
                             f" ({1 / whole:.3f} img/s), peak {batch['peak_mib']:.0f} MiB",
                             flush=True,
                         )
+    return failed
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    choices = [*MODELS, *LARGE, SMOKE_MODEL]
+    parser.add_argument("--device", default="auto")
+    parser.add_argument("--repeats", type=int, default=2, help="timed calls after the first")
+    parser.add_argument("--sides", "--points-per-side", type=int, nargs="+", default=[16, 32])
+    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=choices)
+    parser.add_argument("--dtypes", nargs="+", default=["float32"])
+    parser.add_argument("--filters", nargs="+", default=list(FILTERS), choices=list(FILTERS))
+    parser.add_argument("--one", nargs=4, metavar=("MODEL", "SIDE", "FILTERS", "DTYPE"))
+    parser.add_argument(
+        "--image-batches",
+        type=int,
+        nargs="*",
+        default=[],
+        help="also time the image encoder on batches of these many images",
+    )
+    parser.add_argument("--decoders", action="store_true", help="time prompt decoding only")
+    parser.add_argument("--kinds", nargs="+", default=["sam", "sam_hq", "sam2"])
+    parser.add_argument("--prompts", type=int, default=256, help="prompts timed (--decoders)")
+    parser.add_argument("--points-per-batch", type=int, nargs="+", default=[64])
+    parser.add_argument("--decoder-one", nargs=5, help=argparse.SUPPRESS)
+    parser.add_argument(
+        "--smoke", action="store_true", help="both tables at their smallest, on the CPU"
+    )
+    args = parser.parse_args()
+
+    if args.decoder_one:
+        kind, dtype, decoder, prompts, batch = args.decoder_one
+        row = decoder_one(kind, dtype, decoder, int(prompts), int(batch), args.device)
+        print(json.dumps(row))
+        return
+    if args.one:
+        model, side, filters, dtype = args.one
+        row = run_one(
+            model, int(side), filters, args.device, args.repeats, dtype, tuple(args.image_batches)
+        )
+        print(json.dumps(row))
+        return
+    if args.smoke:
+        # Both tables, each at its smallest: the tiniest SAM (all filters off, so the box
+        # NMS has candidates; a batch of 2 images), then decoding 4 prompts.
+        args.device, args.models, args.sides = "cpu", [SMOKE_MODEL], [4]
+        args.dtypes, args.filters, args.repeats, args.image_batches = ["float32"], ["none"], 1, [2]
+        args.kinds, args.prompts, args.points_per_batch = ["sam"], 4, [4]
+        failed = masks_table(args)
+        print()
+        failed += decoders_table(args)
+    else:
+        failed = decoders_table(args) if args.decoders else masks_table(args)
+    if failed:
+        sys.exit(f"{failed} measurement(s) failed")
 
 
 if __name__ == "__main__":

@@ -9,7 +9,8 @@ Three implementations, all starting from the same random token grid and timed en
 - ``direct``: the plain transcription of the definition, shaped like the published code:
   a Python double loop over support-map cells, one numpy similarity per neighbour.
 
-Usage: python benchmarks/bench_snsm.py [--repeats N] [--seed S]
+Usage: python benchmarks/bench_snsm.py [--repeats N] [--direct-repeats N] [--seed S]
+       python benchmarks/bench_snsm.py --smoke     # one run of each
 """
 
 from __future__ import annotations
@@ -80,7 +81,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=5, help="vectorised runs (best kept)")
     parser.add_argument("--direct-repeats", type=int, default=2, help="direct-loop runs")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--smoke", action="store_true", help="one run of each (about 2 s)")
     args = parser.parse_args()
+    if args.smoke:
+        args.repeats = args.direct_repeats = 1
 
     rng = np.random.default_rng(args.seed)
     header = (

@@ -1,6 +1,7 @@
 """Per-image time of each numeric stage, on corridor-sized and DINOv2-G-shaped inputs.
 
     python benchmarks/bench_stages.py [--repeats 20]
+    python benchmarks/bench_stages.py --smoke   # corridor shapes only, small search
 
 Shapes: "corridor" = what the shipped config gives on corridor (daisy, 160 x 120,
 8-pixel patches: 15 x 20 patches x 104 channels, ~40 SLIC segments at 80 x 60);
@@ -124,14 +125,15 @@ def bench(name, grid, dim, n_segments, mask_size, patch, repeats, rng, daisy_ima
     print(f"\n{name}: {h} x {w} patches x {dim}, {n_segments} masks at {mask_size}, order 3")
     print(f"  mean patches per order-3 region: {regions.sum(1).mean():.0f} of {h * w}")
     print(f"  {'stage':32s} {'ms / image':>10s}")
+    print(f"  {'-' * 43}")
     for stage, ms in rows:
         print(f"  {stage:32s} {ms:10.2f}")
     print(f"  fast vs direct max |difference|: {error:.1e}")
     return fast
 
 
-def bench_retrieval(rng, repeats):
-    n_ref_images, n_query_images, per_image, dim = 406, 406, 85, 1024
+def bench_retrieval(rng, n_images: int = 406):
+    n_ref_images, n_query_images, per_image, dim = n_images, n_images, 85, 1024
     ref = l2_normalize(rng.standard_normal((n_ref_images * per_image, dim)).astype(np.float32))
     query = l2_normalize(rng.standard_normal((n_query_images * per_image, dim)).astype(np.float32))
     start = time.perf_counter()
@@ -142,7 +144,7 @@ def bench_retrieval(rng, repeats):
     query_owner = np.repeat(np.arange(n_query_images), per_image)
     vote_ranking(distances, indices, query_owner, owner, n_query_images, n_ref_images, 50)
     vote_s = time.perf_counter() - start
-    print("\nretrieval, 17places-sized (406 + 406 images x 85 segments, PCA 1024):")
+    print(f"\nretrieval ({n_images} + {n_images} images x 85 segments, PCA 1024):")
     print(f"  faiss top-50 search of {len(query)} segments: {search_s:.2f} s total")
     print(f"  sparse voting and ranking (top 50): {vote_s * 1000:.0f} ms total")
 
@@ -150,12 +152,17 @@ def bench_retrieval(rng, repeats):
 def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--repeats", type=int, default=20)
+    parser.add_argument(
+        "--smoke", action="store_true", help="corridor shapes, one repeat, 20 + 20 images searched"
+    )
     args = parser.parse_args()
     rng = np.random.default_rng(0)
     image = rng.uniform(0, 1, (120, 160, 3)).astype(np.float32)
-    bench("corridor", (15, 20), 104, 40, (60, 80), 8, args.repeats, rng, daisy_image=image)
-    bench("dinov2-g", (34, 45), 1536, 85, (240, 320), 14, args.repeats, rng)
-    bench_retrieval(rng, 1)
+    repeats = 1 if args.smoke else args.repeats
+    bench("corridor", (15, 20), 104, 40, (60, 80), 8, repeats, rng, daisy_image=image)
+    if not args.smoke:
+        bench("dinov2-g", (34, 45), 1536, 85, (240, 320), 14, repeats, rng)
+    bench_retrieval(rng, 20 if args.smoke else 406)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     print(f"\npeak resident memory of this script: {peak:.0f} MiB")
 

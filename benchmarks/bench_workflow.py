@@ -2,22 +2,28 @@
 timed per stage from Snakemake's ``benchmark:`` files.
 
     python benchmarks/bench_workflow.py --data ../shared/data [--images 2000]
-        [--shard 256] [--cores 2] [--workdir /tmp/vprflow-bench]
+        [--shard 256] [--cores 2] [--workdir /tmp/vprflow-bench] [--methods NAME ...]
+    python benchmarks/bench_workflow.py --smoke     # 8 images, shard 4, segvlad only
 
 Half the images are references, half queries (query i = reference i's corridor image
 with another index, so every query has one positive by construction: VPR-Bench ground
-truth listing reference i). The corridor config's five methods run at the corridor
-resolution. Prints, per stage: jobs, total seconds, seconds per image and the largest
-peak memory (max RSS) of any of its jobs; and the whole run's wall time.
+truth listing reference i). The corridor config's five methods (or ``--methods``) run
+at the corridor resolution. Prints, per stage: jobs, total seconds, seconds per image
+and the largest peak memory (max RSS) of any of its jobs; and the whole run's wall time.
+
+``--data`` defaults to ``$VPRFLOW_DATA``; with neither, ``--smoke`` exits with status 77
+(skipped, as automake and meson count it), anything else with an error.
 """
 
 from __future__ import annotations
 
 import argparse
 import csv
+import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -25,54 +31,89 @@ import numpy as np
 import yaml
 
 REPO = Path(__file__).resolve().parents[1]
+SKIPPED = 77  # the exit status test harnesses (automake, meson, tests/test_benchmarks.py) skip
 
 
 def make_set(source: Path, target: Path, n_images: int) -> None:
-    """``target/{ref,query}`` of symlinks cycling ``source/{ref,query}``, and a truth."""
+    """``target/{ref,query}`` of copies cycling ``source/{ref,query}``, and a truth.
+
+    Copies, not links: a dataset refuses links out of its folder, and a file reached
+    twice through links, which cycling makes (corridor has 111 images per side)."""
     refs = sorted((source / "ref").iterdir())
     queries = sorted((source / "query").iterdir())
     n_ref = n_query = n_images // 2
     for role, files, n in (("ref", refs, n_ref), ("query", queries, n_query)):
         (target / role).mkdir(parents=True, exist_ok=True)
         for i in range(n):
-            link = target / role / f"{i:06d}{files[i % len(files)].suffix}"
-            if not link.exists():
-                link.symlink_to(files[i % len(files)].resolve())
+            copy = target / role / f"{i:06d}{files[i % len(files)].suffix}"
+            if not copy.exists():
+                shutil.copyfile(files[i % len(files)], copy)
     truth = np.empty((n_query, 2), dtype=object)
     for q in range(n_query):
         truth[q, 0], truth[q, 1] = q, [q]
     np.save(target / "ground_truth_new.npy", truth, allow_pickle=True)
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--data", type=Path, required=True, help="folder holding corridor/")
-    parser.add_argument("--images", type=int, default=2000)
-    parser.add_argument("--shard", type=int, default=256)
-    parser.add_argument("--cores", type=int, default=2)
-    parser.add_argument("--workdir", type=Path, default=Path("/tmp/vprflow-bench"))
-    args = parser.parse_args()
-
-    if args.workdir.exists():
-        shutil.rmtree(args.workdir)
-    data = args.workdir / "data"
-    make_set(args.data / "corridor", data / "cycled", args.images)
+def cycled_config(
+    data: Path, workdir: Path, n_images: int, methods: list[str] | None = None, **settings
+) -> tuple[dict, Path]:
+    """The shipped config with its corridor entry as the only dataset, ``cycled``, over
+    ``n_images`` corridor images cycled under ``workdir/data``, with corridor's methods
+    or ``methods``; written to ``workdir/config.yaml``. ``settings`` are further
+    top-level keys."""
+    make_set(data / "corridor", workdir / "data" / "cycled", n_images)
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     corridor = config["datasets"]["corridor"]
-    config["data_root"] = str(data)
-    config["shard_size"] = args.shard
-    config["search_shard_size"] = args.shard
-    config["datasets"] = {"cycled": {**corridor, "path": "cycled"}}
+    config["data_root"] = str(workdir / "data")
+    config["datasets"] = {
+        "cycled": {**corridor, "path": "cycled", "methods": methods or corridor["methods"]}
+    }
     config["targets"] = ["cycled"]
-    config_path = args.workdir / "config.yaml"
+    config.update(settings)
+    config_path = workdir / "config.yaml"
     config_path.write_text(yaml.safe_dump(config))
+    return config, config_path
+
+
+def data_folder(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Path:
+    """``--data`` or ``$VPRFLOW_DATA``; without either, a smoke run is skipped."""
+    value = args.data or os.environ.get("VPRFLOW_DATA")
+    if not value or not (Path(value) / "corridor").is_dir():
+        message = f"needs the folder holding corridor/ (--data or $VPRFLOW_DATA; got {value!r})"
+        if args.smoke:
+            print(f"skipped: {message}")
+            sys.exit(SKIPPED)
+        parser.error(message)
+    return Path(value).resolve()
+
+
+def run_snakemake(command: list[str]) -> None:
+    """Run Snakemake quietly; on failure show the end of its output and exit with its
+    status (a CalledProcessError would drop the output that says why)."""
+    result = subprocess.run(command, capture_output=True, text=True)
+    if result.returncode:
+        print("\n".join((result.stdout + result.stderr).splitlines()[-40:]), file=sys.stderr)
+        sys.exit(f"snakemake failed (status {result.returncode})")
+
+
+def run(args: argparse.Namespace, data: Path) -> None:
+    if args.workdir.exists():
+        shutil.rmtree(args.workdir)
+    _, config_path = cycled_config(
+        data,
+        args.workdir,
+        args.images,
+        args.methods,
+        shard_size=args.shard,
+        search_shard_size=args.shard,
+    )
     command = [
         sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "workflow" / "Snakefile"),
         "--directory", str(args.workdir), "--configfile", str(config_path),
         "--cores", str(args.cores), "results/recall_cycled.csv",
     ]  # fmt: skip
     start = time.perf_counter()
-    subprocess.run(command, check=True, capture_output=True)
+    run_snakemake(command)
     wall = time.perf_counter() - start
 
     stats: dict[str, list[tuple[float, float]]] = {}
@@ -82,11 +123,36 @@ def main() -> None:
             row = next(csv.DictReader(f, delimiter="\t"))
         stats.setdefault(stage, []).append((float(row["s"]), float(row["max_rss"])))
     print(f"{args.images} images (shard {args.shard}, {args.cores} cores): {wall:.0f} s wall")
-    print(f"{'stage':<12} {'jobs':>5} {'seconds':>9} {'s/image':>9} {'peak MiB':>9}")
+    header = f"{'stage':<12} {'jobs':>5} {'seconds':>9} {'s/image':>9} {'peak MiB':>9}"
+    print(header)
+    print("-" * len(header))
     for stage, rows in sorted(stats.items()):
         total = sum(s for s, _ in rows)
         peak = max(m for _, m in rows)
         print(f"{stage:<12} {len(rows):>5} {total:>9.1f} {total / args.images:>9.4f} {peak:>9.0f}")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, help="folder holding corridor/ ($VPRFLOW_DATA)")
+    parser.add_argument("--images", type=int, default=2000)
+    parser.add_argument("--shard", type=int, default=256)
+    parser.add_argument("--cores", type=int, default=2)
+    parser.add_argument("--workdir", type=Path, default=Path("/tmp/vprflow-bench"))
+    parser.add_argument("--methods", nargs="+", help="of the config (default: corridor's)")
+    parser.add_argument(
+        "--smoke", action="store_true", help="8 images, shard 4, segvlad only, a temporary workdir"
+    )
+    args = parser.parse_args()
+    data = data_folder(parser, args)
+    if not args.smoke:
+        run(args, data)
+        return
+    # One method that runs every stage; each job costs a Python start-up.
+    args.images, args.shard, args.methods = 8, 4, ["segvlad"]
+    with tempfile.TemporaryDirectory(prefix="vprflow-bench-smoke-") as workdir:
+        args.workdir = Path(workdir)
+        run(args, data)
 
 
 if __name__ == "__main__":

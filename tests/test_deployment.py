@@ -1,0 +1,115 @@
+"""How the workflow is deployed stays in step with the package: the rules' conda
+environment (workflow/envs/vprflow.yaml) takes Python from requires-python's range and
+every other dependency from pyproject.toml, every rule that runs something uses it,
+and the catalog file and the profiles' README describe what is there."""
+
+from __future__ import annotations
+
+import ast
+import re
+import tomllib
+from pathlib import Path
+
+import yaml
+from packaging.specifiers import SpecifierSet
+
+from vprflow.plan import FORMAT_VERSIONS
+
+REPO = Path(__file__).resolve().parents[1]
+WORKFLOW = REPO / "workflow"
+ENV = WORKFLOW / "envs" / "vprflow.yaml"
+PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
+# Directives that make a rule run code (a rule with none, like `all`, only collects).
+ACTIONS = ("script", "shell", "run", "notebook", "wrapper", "cwl")
+RULE = re.compile(r"^(?:rule|checkpoint)\s+(\w+)\s*:")
+
+
+def rules() -> dict[str, tuple[Path, dict[str, str]]]:
+    """Every rule in the Snakefile and workflow/rules/*.smk -> (its file, its directives
+    as ``name: first value line``). snakefmt keeps rules in this layout."""
+    found = {}
+    for path in [WORKFLOW / "Snakefile", *sorted((WORKFLOW / "rules").glob("*.smk"))]:
+        name, directives, directive = None, {}, None
+        for line in [*path.read_text().splitlines(), "end:"]:
+            if line and not line[0].isspace() and not line.startswith("#"):
+                if name:
+                    found[name] = (path, directives)
+                match = RULE.match(line)
+                name, directives = (match.group(1), {}) if match else (None, {})
+                continue
+            if name is None or not line.strip():
+                continue
+            key = re.match(r"^    (\w+):\s*(.*)$", line)
+            if key:
+                directive = key.group(1)
+                directives[directive] = key.group(2).strip()
+            elif directive and not directives[directive]:
+                directives[directive] = line.strip()
+    return found
+
+
+def test_every_rule_that_runs_code_uses_the_one_environment():
+    parsed = rules()
+    # The parser found the rules: one per stage (named after it) at least.
+    assert set(FORMAT_VERSIONS) <= set(parsed), sorted(set(FORMAT_VERSIONS) - set(parsed))
+    running = {n: r for n, r in parsed.items() if set(r[1]) & set(ACTIONS)}
+    assert {n for n, (p, _) in parsed.items() if p.parent.name == "rules"} <= set(running)
+    for name, (path, directives) in running.items():
+        assert "conda" in directives, f"rule {name} ({path.name}) has no conda: environment"
+        env = (path.parent / ast.literal_eval(directives["conda"])).resolve()
+        assert env == ENV, f"rule {name} ({path.name}) uses {env}, not {ENV}"
+
+
+def environment() -> tuple[list[str], list[str]]:
+    """(conda dependencies, pip entries) of the rules' environment."""
+    spec = yaml.safe_load(ENV.read_text())
+    conda = [d for d in spec["dependencies"] if isinstance(d, str)]
+    pip = [entry for d in spec["dependencies"] if isinstance(d, dict) for entry in d["pip"]]
+    return conda, pip
+
+
+def test_the_environment_python_is_one_the_package_supports():
+    conda, _ = environment()
+    pythons = [d for d in conda if re.match(r"python\b", d)]
+    assert len(pythons) == 1, conda
+    version = re.fullmatch(r"python\s*=+\s*([\d.]+)\*?", pythons[0])
+    assert version, f"{pythons[0]!r}: pin a version, e.g. python=3.11"
+    supported = SpecifierSet(PYPROJECT["project"]["requires-python"])
+    assert version.group(1) in supported, (
+        f"{ENV.name} installs python {version.group(1)}, outside requires-python {supported}"
+    )
+
+
+def test_the_environment_installs_this_package_and_nothing_else():
+    """Dependencies live in pyproject.toml only: the environment installs the package
+    from this checkout (which pulls them in), so the two cannot list different ones."""
+    conda, pip = environment()
+    extra = [d for d in conda if not re.match(r"(python|pip)\b", d)]
+    assert not extra, f"{ENV.name} lists {extra}: add them to pyproject.toml instead"
+    assert "pip" in conda, conda
+    assert len(pip) == 1 and pip[0].startswith("-e "), pip
+    target = (ENV.parent / pip[0].removeprefix("-e ").strip()).resolve()
+    assert target == REPO, f"{ENV.name} installs {target}, not the repository {REPO}"
+    assert PYPROJECT["project"]["name"] == "vprflow"
+
+
+def test_the_catalog_file_describes_this_repository():
+    catalog = yaml.safe_load((REPO / ".snakemake-workflow-catalog.yml").read_text())
+    usage = catalog["usage"]
+    # conda: true promises `--sdm conda` works: the environment tests above make it so.
+    assert usage["software-stack-deployment"] == {"conda": True}
+    assert usage["report"] is (
+        re.search(r"^report:", (WORKFLOW / "Snakefile").read_text(), re.M) is not None
+    )
+    # The catalog shows config/README.md as the configuration's documentation.
+    assert (REPO / "config" / "README.md").is_file()
+    assert (REPO / "config" / "config.yaml").is_file()
+
+
+def test_the_profiles_readme_describes_every_profile():
+    readme = (WORKFLOW / "profiles" / "README.md").read_text()
+    profiles = [p for p in (WORKFLOW / "profiles").iterdir() if p.is_dir()]
+    assert profiles
+    for profile in profiles:
+        assert (profile / "config.yaml").is_file(), profile
+        assert f"`{profile.name}`" in readme, f"workflow/profiles/README.md omits {profile.name}"
