@@ -344,3 +344,25 @@ def test_retrieval_index_plans_its_search_and_an_exact_one_when_approximate(
     assert search.run_params["uses_gpu"] is gpu
     if searches == 2:
         assert plan.get(*recall.inputs["exact_search"]).params["params"]["index"] == "flat"
+
+
+def test_the_dataset_stage_lists_images_as_the_plan_did(tmp_path):
+    from PIL import Image
+    from synthetic import make_dataset
+    from workflow_helpers import toy_config
+
+    from vprflow.datasets import list_dataset
+
+    make_dataset(tmp_path / "toy", n_places=3)
+    extra = tmp_path / "toy" / "query" / "extra"
+    extra.mkdir()
+    Image.new("RGB", (96, 72), (10, 20, 30)).save(extra / "x.png")
+    config = validate_config(toy_config(tmp_path, recursive=False), SCHEMA)
+    plan = build_plan(config)
+    (dataset,) = plan.stages["dataset"].values()
+    assert dataset.params["params"]["contents"] is not None
+    # The stage lists from its hashed params alone; the plan listed from the config.
+    spec = config["datasets"]["toy"]
+    as_stage = list_dataset(tmp_path, "toy", dataset.params["params"])
+    assert as_stage == list_dataset(tmp_path, "toy", spec)
+    assert extra / "x.png" not in as_stage.query

@@ -500,6 +500,9 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
                     "path",
                     "reference",
                     "query",
+                    # How the stage lists the images: as the plan did for `contents`.
+                    "recursive",
+                    "follow_links",
                     "paired",
                     "ground_truth",
                     "exif_orientation",
