@@ -346,6 +346,9 @@ def test_retrieval_index_plans_its_search_and_an_exact_one_when_approximate(
         assert plan.get(*recall.inputs["exact_search"]).params["params"]["index"] == "flat"
 
 
+# ------------------------------------------------------------------ defaults in keys
+
+
 def test_the_dataset_stage_lists_images_as_the_plan_did(tmp_path):
     from PIL import Image
     from synthetic import make_dataset
@@ -366,3 +369,51 @@ def test_the_dataset_stage_lists_images_as_the_plan_did(tmp_path):
     as_stage = list_dataset(tmp_path, "toy", dataset.params["params"])
     assert as_stage == list_dataset(tmp_path, "toy", spec)
     assert extra / "x.png" not in as_stage.query
+
+
+def test_nested_defaults_are_filled_and_overrides_stay_partial(config):
+    # Defaults inside a dataset's ground truth and download, by ground-truth kind.
+    assert config["datasets"]["corridor"]["ground_truth"]["drop_out_of_range"] is False
+    assert "source" not in config["datasets"]["corridor"]["ground_truth"]
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    del raw["datasets"]["corridor"]["download"]["strip"]
+    raw["datasets"]["walk"] = {
+        **raw["datasets"]["corridor"],
+        "ground_truth": {"kind": "coordinates", "file": "gps.csv", "radius_m": 25},
+    }
+    filled = validate_config(raw, SCHEMA)
+    assert filled["datasets"]["corridor"]["download"]["strip"] == 0
+    assert filled["datasets"]["walk"]["ground_truth"]["source"] == "file"
+    assert "drop_out_of_range" not in filled["datasets"]["walk"]["ground_truth"]
+    # A method's sections and a dataset's `defaults` are merged over the filled top-level
+    # ones: filling them would undo the dataset's defaults.
+    assert filled["methods"]["segvlad_nopca"]["pca"] == {"enabled": False}
+    assert filled["datasets"]["corridor"]["defaults"] == {"pca": {"dim": 128, "whiten": False}}
+
+
+def test_the_utm_radius_default_is_the_schemas_and_reaches_the_dataset_key(config, tmp_path):
+    schema = yaml.safe_load(SCHEMA.read_text())
+    (utm,) = [
+        part["then"]["properties"]["radius"]["default"]
+        for part in schema["definitions"]["dataset"]["properties"]["ground_truth"]["allOf"]
+        if part["if"]["properties"]["kind"] == {"const": "utm"}
+    ]
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    raw["datasets"]["corridor"]["ground_truth"] = {"kind": "utm"}
+    assert validate_config(raw, SCHEMA)["datasets"]["corridor"]["ground_truth"]["radius"] == utm
+    for part in schema["definitions"]["dataset"]["properties"]["ground_truth"]["allOf"]:
+        if part["if"]["properties"]["kind"] == {"const": "utm"}:
+            part["then"]["properties"]["radius"]["default"] = utm + 5
+    other = tmp_path / "schema.yaml"
+    other.write_text(yaml.safe_dump(schema))
+    changed = validate_config(raw, other)
+    assert changed["datasets"]["corridor"]["ground_truth"]["radius"] == utm + 5
+    plan = build_plan(validate_config(raw, SCHEMA))
+    assert build_plan(changed).dataset_keys["corridor"] != plan.dataset_keys["corridor"]
+
+
+def test_a_planned_stage_missing_a_filled_setting_fails_with_key_error(config):
+    # Planning reads settings, it does not restate their defaults.
+    del config["backbones"]["daisy"]["batch_size"]
+    with pytest.raises(KeyError, match="batch_size"):
+        build_plan(config)

@@ -366,7 +366,7 @@ def _hashed(params: dict) -> dict:
 
 
 def _resolution(dataset: dict, profile: dict) -> list[int]:
-    if profile.get("resolution", "dataset") == "dataset":
+    if profile["resolution"] == "dataset":
         return list(dataset["resolution"])
     return list(profile["resolution"])
 
@@ -551,7 +551,7 @@ def _plan_method(
     agg = aggregator(method["aggregator"])
     features_name = method["features"]
     backbone = _named_entry(config, "backbones", features_name, method_name)
-    if backbone.get("resize") == "method":
+    if backbone["resize"] == "method":
         # The published pipeline's reader: one backbone entry serves SegVLAD (OpenCV)
         # and SNSM (PIL) faithfully, as two features stores.
         backbone = {**backbone, "resize": agg.resize}
@@ -565,7 +565,7 @@ def _plan_method(
     if patch and min(features_params["resolution"]) < patch:
         where = (
             f"datasets.{dataset_name}.resolution"
-            if backbone.get("resolution", "dataset") == "dataset"
+            if backbone["resolution"] == "dataset"
             else f"backbones.{features_name}.resolution"
         )
         raise PlanError(
@@ -579,7 +579,7 @@ def _plan_method(
         dataset_name,
         {
             **execution,
-            "batch_size": backbone.get("batch_size", 1),
+            "batch_size": backbone["batch_size"],
             "uses_gpu": model_kind("features", backbone).uses_gpu,
         },
     )
@@ -605,7 +605,7 @@ def _plan_method(
                     dataset_name,
                     {
                         **execution,
-                        "batch_size": segmenter.get("batch_size", 1),
+                        "batch_size": segmenter["batch_size"],
                         "uses_gpu": model_kind("segments", segmenter).uses_gpu,
                     },
                 ),
@@ -679,7 +679,7 @@ def _segment_resolution(dataset: dict, segmenter: dict) -> list[int]:
     if segmenter.get("resolution") not in (None, "dataset"):
         return list(segmenter["resolution"])
     width, height = dataset["resolution"]
-    scale = segmenter.get("resolution_scale", 0.5)
+    scale = segmenter["resolution_scale"]
     return [max(1, round(width * scale)), max(1, round(height * scale))]
 
 
