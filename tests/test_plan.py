@@ -8,6 +8,7 @@ import pytest
 import yaml
 from workflow_helpers import REPO
 
+from vprflow import registry
 from vprflow.config import ConfigError, validate_config
 from vprflow.plan import PlanError, build_plan, content_key
 
@@ -416,4 +417,43 @@ def test_a_planned_stage_missing_a_filled_setting_fails_with_key_error(config):
     # Planning reads settings, it does not restate their defaults.
     del config["backbones"]["daisy"]["batch_size"]
     with pytest.raises(KeyError, match="batch_size"):
+        build_plan(config)
+
+
+def search_stages(config: dict) -> dict[str, str]:
+    """``search`` (and ``exact_search`` when the index is approximate) -> key, of segvlad
+    on corridor, with the descriptors key they search."""
+    plan = build_plan(config)
+    recall = plan.get("recall", keys_of(config)["recall"])
+    return {name: key for name, (_, key) in recall.inputs.items() if name != "dataset"}
+
+
+@pytest.mark.parametrize("index", sorted(registry.SEARCH_INDEXES))
+def test_the_planned_search_params_contain_every_default_of_the_index(config, index):
+    config["retrieval"]["index"] = index
+    plan = build_plan(config)
+    search = plan.get("search", search_stages(config)["search"])
+    assert search.params["params"]["params"] == registry.SEARCH_INDEXES[index].defaults
+
+
+def test_changing_an_index_default_changes_the_search_key_and_nothing_upstream(config, monkeypatch):
+    config["retrieval"]["index"] = "hnsw"
+    before = search_stages(config)
+    monkeypatch.setitem(registry.SEARCH_INDEXES["hnsw"].defaults, "ef_search", 64)
+    after = search_stages(config)
+    assert before["search"] != after["search"]
+    assert before["exact_search"] == after["exact_search"]
+    assert before["descriptors"] == after["descriptors"]
+
+
+def test_an_index_default_written_out_gives_the_same_key_as_left_out(config):
+    config["retrieval"] = {"index": "ivf_flat", "params": {}}
+    left_out = search_stages(config)
+    config["retrieval"]["params"] = dict(registry.SEARCH_INDEXES["ivf_flat"].defaults)
+    assert search_stages(config) == left_out
+
+
+def test_a_parameter_the_index_does_not_take_is_refused_when_planning(config):
+    config["methods"]["segvlad"]["retrieval"] = {"index": "hnsw", "params": {"nprobe": 8}}
+    with pytest.raises(PlanError, match=r"method 'segvlad'.*\['nprobe'\].*index 'hnsw'"):
         build_plan(config)

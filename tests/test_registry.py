@@ -34,6 +34,17 @@ def test_every_search_index_is_one_the_search_stage_can_run():
     assert set(registry.SEARCH_INDEXES) == faiss_names | {"exact_fast"}
 
 
+def test_exact_knn_takes_its_keyword_defaults_from_the_registry_entry():
+    import inspect
+
+    from vprflow.knn import exact_knn
+
+    # exact_knn's keyword defaults are read from the registry, never written again.
+    keywords = inspect.signature(exact_knn).parameters
+    for name, value in registry.SEARCH_INDEXES["exact_fast"].defaults.items():
+        assert keywords[name].default == value, name
+
+
 @pytest.mark.parametrize(
     ("definition", "kinds"), [("backbone", registry.BACKBONES), ("segmenter", registry.SEGMENTERS)]
 )

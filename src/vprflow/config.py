@@ -7,7 +7,8 @@ entries of ``datasets``, ``backbones`` and ``segmenters``, and the ``then`` of a
 backbone and segmenter entry's kind defaults from :mod:`vprflow.registry`. Objects the
 schema marks ``x-partial`` (a method's overrides, a dataset's ``defaults``) stay as
 written: they are merged over the filled top-level sections
-(:func:`vprflow.plan.resolve_method`).
+(:func:`vprflow.plan.resolve_method`), and the plan fills the search index's parameter
+defaults into the merged ``retrieval`` (:func:`vprflow.registry.search_settings`).
 """
 
 from __future__ import annotations
@@ -164,8 +165,10 @@ anything is hashed, so a store's key and attributes record what ran.
 A method's settings are, later winning: the top-level sections (`vocabulary`, `vlad`,
 `pca`, `segvlad`, `retrieval`, `snsm`, `pooling`), then the dataset's `defaults`, then the method's
 own. Backbone and segmenter entries also get their kind's defaults from
-`src/vprflow/registry.py` (named in the descriptions below). A default followed by a
-condition in brackets applies only then. What the methods compute is in `docs/methods.md`.
+`src/vprflow/registry.py` (named in the descriptions below), and a method's
+`retrieval.params` its index's (listed under `retrieval.params by index`). A default
+followed by a condition in brackets applies only then. What the methods compute is in
+`docs/methods.md`.
 
 This file is generated from the schema's descriptions by
 `python scripts/write_config_readme.py`; `tests/test_registry.py` checks it is current.
@@ -228,9 +231,29 @@ def _conditional_defaults(definition: dict) -> dict[str, dict[str, list[str]]]:
     return found
 
 
+def _search_index_table() -> list[str]:
+    lines = [
+        "## `retrieval.params` by index",
+        "",
+        "Each index's parameters and their defaults (`src/vprflow/registry.py`), filled into "
+        "a method's `retrieval.params` before hashing; `null` = chosen by `vprflow.knn` "
+        "(`nlist`, `m`: from the data; `margin`: by `candidate_dtype`). An approximate "
+        "index's table also reports an exact search's recall.",
+        "",
+        "| index | exact | parameters (default) |",
+        "|---|---|---|",
+    ]
+    for index in SEARCH_INDEXES.values():
+        params = ", ".join(f"`{k}` (`{json.dumps(v)}`)" for k, v in index.defaults.items())
+        exact = "yes" if index.exact else "no"
+        lines.append(f"| `{index.name}` | {exact} | {params or 'none'} |")
+    return [*lines, ""]
+
+
 def config_readme(schema: dict) -> str:
     """``config/README.md``: every key of the schema, its allowed values, default and
-    meaning (from the schema's ``description``s)."""
+    meaning (from the schema's ``description``s), and each search index's parameter
+    defaults (from the registry)."""
     lines = [_README_HEAD, *_table("top level", schema)]
     for name, definition in schema["definitions"].items():
         if "properties" not in definition:
@@ -239,4 +262,6 @@ def config_readme(schema: dict) -> str:
         for sub, prop in definition["properties"].items():
             if "properties" in prop:
                 lines += _table(f"{name}.{sub}", prop)
+        if name == "retrieval":
+            lines += _search_index_table()
     return "\n".join(lines).rstrip() + "\n"

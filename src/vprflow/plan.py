@@ -22,7 +22,13 @@ from pathlib import Path
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS
 from vprflow.files import write_text_atomic
-from vprflow.registry import SEARCH_INDEXES, aggregator, model_kind, prefixed
+from vprflow.registry import (
+    SEARCH_INDEXES,
+    aggregator,
+    model_kind,
+    prefixed,
+    search_settings,
+)
 
 CACHE = "results/cache"
 # Per-dataset tables written by the report rule.
@@ -655,7 +661,12 @@ def _plan_method(
         "top_k": max(max(dataset["recall_at"]), 20),
     }
     if agg.output == "segments":
-        retrieval = method["retrieval"]
+        # The index's parameter defaults, filled only now: the index and its params may
+        # each come from another level of the merge.
+        try:
+            retrieval = search_settings(method["retrieval"])
+        except ValueError as error:
+            raise PlanError(f"method {method_name!r}: {error}") from None
         search_inputs = {"dataset": ds, "descriptors": descriptors}
         top_segments = method["segvlad"]["top_segments"]
 
@@ -668,7 +679,9 @@ def _plan_method(
         if not SEARCH_INDEXES[retrieval["index"]].exact:
             # The table states what the approximation costs: recall of an exact search
             # of the same descriptors, in the same run.
-            recall_inputs["exact_search"] = search_stage({"index": "flat", "params": {}})
+            recall_inputs["exact_search"] = search_stage(
+                search_settings({"index": "flat", "params": {}})
+            )
         recall_params["vote_ranking"] = method["segvlad"]["vote_ranking"]
         row.update(_prefixed("retrieval", retrieval))
     recall_key = plan.add("recall", recall_params, recall_inputs, dataset_name)
