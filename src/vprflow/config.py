@@ -164,11 +164,10 @@ anything is hashed, so a store's key and attributes record what ran.
 
 A method's settings are, later winning: the top-level sections (`vocabulary`, `vlad`,
 `pca`, `segvlad`, `retrieval`, `snsm`, `pooling`), then the dataset's `defaults`, then the method's
-own. Backbone and segmenter entries also get their kind's defaults from
-`src/vprflow/registry.py` (named in the descriptions below), and a method's
-`retrieval.params` its index's (listed under `retrieval.params by index`). A default
-followed by a condition in brackets applies only then. What the methods compute is in
-`docs/methods.md`.
+own. Backbone and segmenter entries also get their kind's defaults, and a method's
+`retrieval.params` its index's, from `src/vprflow/registry.py` (listed below by kind and
+by index). A default followed by a condition in brackets applies only then. What the
+methods compute is in `docs/methods.md`.
 
 This file is generated from the schema's descriptions by
 `python scripts/write_config_readme.py`; `tests/test_registry.py` checks it is current.
@@ -198,9 +197,13 @@ def _allowed(prop: dict) -> str:
 _BOUNDS = (("minimum", ">="), ("exclusiveMinimum", ">"), ("maximum", "<="))
 
 
-def _table(title: str, definition: dict) -> list[str]:
+def _table(title: str, definition: dict, kinds: dict | None = None) -> list[str]:
+    """A section's table; ``kinds``: the registry's kinds whose defaults its entries get."""
     required = set(definition.get("required", []))
     defaults = _conditional_defaults(definition)
+    for kind in (kinds or {}).values():
+        for name, value in kind.defaults.items():
+            defaults.setdefault(name, {}).setdefault(json.dumps(value), []).append(kind.name)
     lines = [f"## `{title}`", ""]
     if definition.get("description"):
         lines += [definition["description"], ""]
@@ -251,14 +254,15 @@ def _search_index_table() -> list[str]:
 
 
 def config_readme(schema: dict) -> str:
-    """``config/README.md``: every key of the schema, its allowed values, default and
-    meaning (from the schema's ``description``s), and each search index's parameter
-    defaults (from the registry)."""
+    """``config/README.md``: every key of the schema, its allowed values, default (the
+    schema's, its kind's from the registry) and meaning (the schema's ``description``s),
+    and each search index's parameter defaults."""
     lines = [_README_HEAD, *_table("top level", schema)]
+    kinds = {"backbone": BACKBONES, "segmenter": SEGMENTERS}
     for name, definition in schema["definitions"].items():
         if "properties" not in definition:
             continue
-        lines += _table(name, definition)
+        lines += _table(name, definition, kinds.get(name))
         for sub, prop in definition["properties"].items():
             if "properties" in prop:
                 lines += _table(f"{name}.{sub}", prop)
