@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
+from workflow_helpers import dataset_spec, truth_spec
 
 from vprflow.datasets import (
     DatasetError,
@@ -282,10 +283,10 @@ def test_ground_truth_dispatch(tmp_path):
     )
     write_vprbench(tmp_path / "gt.npy", [(0, [1]), (1, [0, 1])])
     cases = {
-        "vprbench": ({"kind": "vprbench", "file": "gt.npy"}, [{1}, {0, 1}]),
-        "frame_window": ({"kind": "frame_window", "radius": 0}, [{0}, {1}]),
-        "utm": ({"kind": "utm", "radius": 5}, [{0}, {1}]),
-        "pairs": ({"kind": "pairs"}, [{0}, {1}]),
+        "vprbench": (truth_spec(kind="vprbench", file="gt.npy"), [{1}, {0, 1}]),
+        "frame_window": (truth_spec(kind="frame_window", radius=0), [{0}, {1}]),
+        "utm": (truth_spec(kind="utm", radius=5), [{0}, {1}]),
+        "pairs": (truth_spec(kind="pairs"), [{0}, {1}]),
     }
     for spec, expected in cases.values():
         assert_truth_equal(ground_truth(files, spec, tmp_path), expected)
@@ -293,9 +294,41 @@ def test_ground_truth_dispatch(tmp_path):
         ground_truth(files, {"kind": "gps"}, tmp_path)
 
 
+@pytest.mark.parametrize(
+    ("spec", "missing"),
+    [
+        ({"kind": "utm"}, "radius"),
+        ({"kind": "vprbench", "file": "gt.npy"}, "drop_out_of_range"),
+    ],
+)
+def test_a_ground_truth_setting_left_unfilled_fails_with_key_error_not_a_restated_default(
+    tmp_path, spec, missing
+):
+    # The schema fills these before any stage runs; a spec that skipped it is a bug.
+    files = DatasetFiles(reference=[tmp_path / utm_name(0, 0, "r")], query=[tmp_path / "q"])
+    write_vprbench(tmp_path / "gt.npy", [(0, [0])])
+    with pytest.raises(KeyError, match=missing):
+        ground_truth(files, spec, tmp_path)
+
+
+def test_listing_a_dataset_whose_defaults_were_not_filled_fails_with_key_error(tmp_path):
+    touch_images(tmp_path / "ds/ref", ["1.jpg"])
+    touch_images(tmp_path / "ds/query", ["2.jpg"])
+    unfilled = {"path": "ds", "reference": "ref", "query": "query"}
+    with pytest.raises(KeyError, match="recursive"):
+        list_dataset(tmp_path, "toy", unfilled)
+
+
+def test_the_utm_radius_default_comes_from_the_schema():
+    assert truth_spec(kind="utm")["radius"] == 25
+    assert truth_spec(kind="utm", radius=7)["radius"] == 7
+    # frame_window requires its radius: the utm default never reaches it.
+    assert "radius" not in truth_spec(kind="frame_window")
+
+
 # ------------------------------------------------------------------ folders
 
-SPEC = {"path": "ds", "reference": "ref", "query": "query", "paired": False}
+SPEC = dataset_spec(path="ds", reference="ref", query="query", paired=False)
 
 
 def touch_images(folder, names):
@@ -350,7 +383,7 @@ def test_vprbench_row_count_mismatch_names_the_subfolder_holding_the_extra_queri
     write_vprbench(tmp_path / "ds/gt.npy", [(q, [q]) for q in range(3)])
     files = list_dataset(tmp_path, "toy", SPEC)
     with pytest.raises(DatasetError) as error:
-        ground_truth(files, {"kind": "vprbench", "file": "gt.npy"}, tmp_path / "ds")
+        ground_truth(files, truth_spec(kind="vprbench", file="gt.npy"), tmp_path / "ds")
     assert str(error.value).endswith(
         f"gt.npy has 3 ground-truth rows but the dataset has 5 query images "
         f"(query/: 3, query/extra/: 2{SUBFOLDERS})"
@@ -366,7 +399,7 @@ def test_vprbench_reference_out_of_range_names_the_folders_of_the_references(tmp
     # Side by side, neither folder inside the other: no word about subfolders.
     message = r"query 1 lists reference indices \[3\] but the dataset has 3 reference images "
     with pytest.raises(DatasetError, match=message + r"\(ref/a/: 2, ref/b/: 1\) \(set"):
-        ground_truth(files, {"kind": "vprbench", "file": "gt.npy"}, tmp_path / "ds")
+        ground_truth(files, truth_spec(kind="vprbench", file="gt.npy"), tmp_path / "ds")
 
 
 def test_pairs_count_mismatch_names_the_subfolder_holding_the_extra_images(tmp_path):
@@ -520,11 +553,11 @@ def test_resize_keeps_16bit_precision():
 
 @pytest.mark.data
 def test_real_corridor_ground_truth(data_root):
-    spec = {"path": "corridor", "reference": "ref", "query": "query", "paired": False}
+    spec = dataset_spec(path="corridor", reference="ref", query="query", paired=False)
     files = list_dataset(data_root, "corridor", spec)
     assert len(files.reference) == len(files.query) == 111
     truth = ground_truth(
-        files, {"kind": "vprbench", "file": "ground_truth_new.npy"}, data_root / "corridor"
+        files, truth_spec(kind="vprbench", file="ground_truth_new.npy"), data_root / "corridor"
     )
     assert len(truth) == 111
     # The corridor file is the +-2 frame rule.

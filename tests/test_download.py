@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 from synthetic import make_dataset
-from workflow_helpers import snakemake, toy_config, write_config
+from workflow_helpers import dataset_spec, snakemake, toy_config, write_config
 
 from vprflow.datasets import DatasetError, list_dataset
 from vprflow.download import (
@@ -135,7 +135,7 @@ def test_download_verifies_and_lays_out_the_dataset(tmp_path, server, toy_files,
     assert record["sha256"] == sha256(data) and record["bytes"] == len(data)
     assert record["files"] == {name: sha256(b) for name, b in toy_files.items()}
     assert list(tmp_path.joinpath("data").iterdir()) == [target]  # no temporary leftovers
-    spec = {"path": "toy", "reference": "ref", "query": "query"}
+    spec = dataset_spec(path="toy", reference="ref", query="query")
     files = list_dataset(tmp_path / "data", "toy", spec)
     assert len(files.reference) == len(files.query) == 10
     # An existing folder is left alone: nothing is fetched.
@@ -191,6 +191,20 @@ def test_layout_path_missing_from_the_archive_is_named(tmp_path, server, toy_fil
     spec = spec_for(f"{base}/toy.zip")
     spec["layout"]["images/night"] = "night"
     with pytest.raises(DownloadError, match=r"has no member \['images/night'\]"):
+        download_dataset("toy", spec, tmp_path / "data" / "toy")
+    assert not (tmp_path / "data" / "toy").exists()
+
+
+def test_a_download_entry_without_its_strip_filled_fails_with_key_error(
+    tmp_path, server, toy_files
+):
+    # The schema's default (0) is filled into every entry; none is restated here.
+    assert dataset_spec(download={"url": "x", "layout": {}})["download"]["strip"] == 0
+    folder, base = server
+    make_archive(folder / "toy.zip", toy_files)
+    spec = spec_for(f"{base}/toy.zip")
+    del spec["strip"]
+    with pytest.raises(KeyError, match="strip"):
         download_dataset("toy", spec, tmp_path / "data" / "toy")
     assert not (tmp_path / "data" / "toy").exists()
 

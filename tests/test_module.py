@@ -1,5 +1,6 @@
-"""vprflow imported as a Snakemake module by a host workflow, with a prefix, running the
-.test config (the corridor images) to a results table."""
+"""vprflow imported as a Snakemake module by a host workflow, with a prefix and renamed
+rules, running the .test config (the corridor images) to vprflow's default target: tables,
+recall plot and figures."""
 
 from __future__ import annotations
 
@@ -31,10 +32,11 @@ module vprflow:
 use rule * from vprflow as vpr_*
 
 
+# vprflow's own default target (its `all`, imported as vpr_all): tables and figures.
 rule all:
     default_target: True
     input:
-        "vpr/results/recall_corridor.csv",
+        rules.vpr_all.input,
 """
 
 
@@ -46,9 +48,18 @@ def test_host_workflow_runs_vprflow_as_a_prefixed_module(tmp_path, data_root):
     command = [sys.executable, "-m", "snakemake", "--cores", "2"]
     result = subprocess.run(command, cwd=tmp_path, capture_output=True, text=True)
     assert result.returncode == 0, result.stdout[-3000:] + result.stderr[-5000:]
+    # vprflow's default target, figures included, drawn by rules named vpr_*.
+    methods = config["datasets"]["corridor"]["methods"]
+    shown = [
+        "results/plots/recall_corridor.png",
+        "results/tables/recall_corridor.html",
+        *(f"results/figures/corridor/retrievals/{method}.png" for method in methods),
+        "results/figures/corridor/segment_matches/segvlad.png",
+    ]
+    assert [p for p in shown if not (tmp_path / "vpr" / p).is_file()] == []
     with open(tmp_path / "vpr" / "results" / "recall_corridor.csv") as f:
         rows = list(csv.DictReader(f))
-    assert [r["method"] for r in rows] == config["datasets"]["corridor"]["methods"]
+    assert [r["method"] for r in rows] == methods
     for row in rows:
         assert row["n_queries"] == "111"
         assert 0.1 < float(row["recall@10"]) <= 1.0, row["method"]

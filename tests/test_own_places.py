@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
+from workflow_helpers import dataset_spec
 
 from vprflow.datasets import (
     EARTH_RADIUS_M,
@@ -245,7 +246,7 @@ def test_exif_ground_truth_through_list_dataset(tmp_path):
     for i in range(5):
         gps_jpeg(root / "ref" / f"{i}.jpg", (50.0, 0.0, i * step * 3600), "N", (4.0, 0, 0), "E")
     gps_jpeg(root / "query" / "0.jpg", (50.0, 0.0, 2.2 * step * 3600), "N", (4.0, 0, 0), "E")
-    spec = {"path": "walk", "reference": "ref", "query": "query"}
+    spec = dataset_spec(path="walk", reference="ref", query="query")
     files = list_dataset(tmp_path, "walk", spec)
     truth_spec = {"kind": "coordinates", "source": "exif", "radius_m": 15}
     truth = ground_truth(files, truth_spec, root)
@@ -291,7 +292,7 @@ def test_image_list_files_keep_their_order_and_name_bad_lines(tmp_path):
     write_images(root, ["db/1.png", "db/2.png", "q/1.png"])
     (root / "ref.txt").write_text("# database\ndb/2.png\n\ndb/1.png\n")
     (root / "query.txt").write_text("q/1.png\n")
-    spec = {"path": "mine", "reference": "ref.txt", "query": "query.txt"}
+    spec = dataset_spec(path="mine", reference="ref.txt", query="query.txt")
     files = list_dataset(tmp_path, "mine", spec)
     assert [p.relative_to(root).as_posix() for p in files.reference] == ["db/2.png", "db/1.png"]
     for text, message in (

@@ -8,6 +8,7 @@ import pytest
 import yaml
 from workflow_helpers import REPO
 
+from vprflow import registry
 from vprflow.config import ConfigError, validate_config
 from vprflow.plan import PlanError, build_plan, content_key
 
@@ -343,3 +344,115 @@ def test_retrieval_index_plans_its_search_and_an_exact_one_when_approximate(
     assert search.run_params["uses_gpu"] is gpu
     if searches == 2:
         assert plan.get(*recall.inputs["exact_search"]).params["params"]["index"] == "flat"
+
+
+# ------------------------------------------------------------------ defaults in keys
+
+
+def test_the_dataset_stage_lists_images_as_the_plan_did(tmp_path):
+    from PIL import Image
+    from synthetic import make_dataset
+    from workflow_helpers import toy_config
+
+    from vprflow.datasets import list_dataset
+
+    make_dataset(tmp_path / "toy", n_places=3)
+    extra = tmp_path / "toy" / "query" / "extra"
+    extra.mkdir()
+    Image.new("RGB", (96, 72), (10, 20, 30)).save(extra / "x.png")
+    config = validate_config(toy_config(tmp_path, recursive=False), SCHEMA)
+    plan = build_plan(config)
+    (dataset,) = plan.stages["dataset"].values()
+    assert dataset.params["params"]["contents"] is not None
+    # The stage lists from its hashed params alone; the plan listed from the config.
+    spec = config["datasets"]["toy"]
+    as_stage = list_dataset(tmp_path, "toy", dataset.params["params"])
+    assert as_stage == list_dataset(tmp_path, "toy", spec)
+    assert extra / "x.png" not in as_stage.query
+
+
+def test_nested_defaults_are_filled_and_overrides_stay_partial(config):
+    # Defaults inside a dataset's ground truth and download, by ground-truth kind.
+    assert config["datasets"]["corridor"]["ground_truth"]["drop_out_of_range"] is False
+    assert "source" not in config["datasets"]["corridor"]["ground_truth"]
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    del raw["datasets"]["corridor"]["download"]["strip"]
+    raw["datasets"]["walk"] = {
+        **raw["datasets"]["corridor"],
+        "ground_truth": {"kind": "coordinates", "file": "gps.csv", "radius_m": 25},
+    }
+    filled = validate_config(raw, SCHEMA)
+    assert filled["datasets"]["corridor"]["download"]["strip"] == 0
+    assert filled["datasets"]["walk"]["ground_truth"]["source"] == "file"
+    assert "drop_out_of_range" not in filled["datasets"]["walk"]["ground_truth"]
+    # A method's sections and a dataset's `defaults` are merged over the filled top-level
+    # ones: filling them would undo the dataset's defaults.
+    assert filled["methods"]["segvlad_nopca"]["pca"] == {"enabled": False}
+    assert filled["datasets"]["corridor"]["defaults"] == {"pca": {"dim": 128, "whiten": False}}
+
+
+def test_the_utm_radius_default_is_the_schemas_and_reaches_the_dataset_key(config, tmp_path):
+    schema = yaml.safe_load(SCHEMA.read_text())
+    (utm,) = [
+        part["then"]["properties"]["radius"]["default"]
+        for part in schema["definitions"]["dataset"]["properties"]["ground_truth"]["allOf"]
+        if part["if"]["properties"]["kind"] == {"const": "utm"}
+    ]
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    raw["datasets"]["corridor"]["ground_truth"] = {"kind": "utm"}
+    assert validate_config(raw, SCHEMA)["datasets"]["corridor"]["ground_truth"]["radius"] == utm
+    for part in schema["definitions"]["dataset"]["properties"]["ground_truth"]["allOf"]:
+        if part["if"]["properties"]["kind"] == {"const": "utm"}:
+            part["then"]["properties"]["radius"]["default"] = utm + 5
+    other = tmp_path / "schema.yaml"
+    other.write_text(yaml.safe_dump(schema))
+    changed = validate_config(raw, other)
+    assert changed["datasets"]["corridor"]["ground_truth"]["radius"] == utm + 5
+    plan = build_plan(validate_config(raw, SCHEMA))
+    assert build_plan(changed).dataset_keys["corridor"] != plan.dataset_keys["corridor"]
+
+
+def test_a_planned_stage_missing_a_filled_setting_fails_with_key_error(config):
+    # Planning reads settings, it does not restate their defaults.
+    del config["backbones"]["daisy"]["batch_size"]
+    with pytest.raises(KeyError, match="batch_size"):
+        build_plan(config)
+
+
+def search_stages(config: dict) -> dict[str, str]:
+    """``search`` (and ``exact_search`` when the index is approximate) -> key, of segvlad
+    on corridor, with the descriptors key they search."""
+    plan = build_plan(config)
+    recall = plan.get("recall", keys_of(config)["recall"])
+    return {name: key for name, (_, key) in recall.inputs.items() if name != "dataset"}
+
+
+@pytest.mark.parametrize("index", sorted(registry.SEARCH_INDEXES))
+def test_the_planned_search_params_contain_every_default_of_the_index(config, index):
+    config["retrieval"]["index"] = index
+    plan = build_plan(config)
+    search = plan.get("search", search_stages(config)["search"])
+    assert search.params["params"]["params"] == registry.SEARCH_INDEXES[index].defaults
+
+
+def test_changing_an_index_default_changes_the_search_key_and_nothing_upstream(config, monkeypatch):
+    config["retrieval"]["index"] = "hnsw"
+    before = search_stages(config)
+    monkeypatch.setitem(registry.SEARCH_INDEXES["hnsw"].defaults, "ef_search", 64)
+    after = search_stages(config)
+    assert before["search"] != after["search"]
+    assert before["exact_search"] == after["exact_search"]
+    assert before["descriptors"] == after["descriptors"]
+
+
+def test_an_index_default_written_out_gives_the_same_key_as_left_out(config):
+    config["retrieval"] = {"index": "ivf_flat", "params": {}}
+    left_out = search_stages(config)
+    config["retrieval"]["params"] = dict(registry.SEARCH_INDEXES["ivf_flat"].defaults)
+    assert search_stages(config) == left_out
+
+
+def test_a_parameter_the_index_does_not_take_is_refused_when_planning(config):
+    config["methods"]["segvlad"]["retrieval"] = {"index": "hnsw", "params": {"nprobe": 8}}
+    with pytest.raises(PlanError, match=r"method 'segvlad'.*\['nprobe'\].*index 'hnsw'"):
+        build_plan(config)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import json
 from pathlib import Path
 
 import pytest
@@ -32,6 +33,28 @@ def test_every_search_index_is_one_the_search_stage_can_run():
     faiss_names = {"flat"} | {n for n, i in registry.SEARCH_INDEXES.items() if not i.exact}
     assert faiss_names <= set(FAISS_INDEXES)
     assert set(registry.SEARCH_INDEXES) == faiss_names | {"exact_fast"}
+
+
+def test_exact_knn_takes_its_keyword_defaults_from_the_registry_entry():
+    import inspect
+
+    from vprflow.knn import exact_knn
+
+    # exact_knn's keyword defaults are read from the registry, never written again.
+    keywords = inspect.signature(exact_knn).parameters
+    for name, value in registry.SEARCH_INDEXES["exact_fast"].defaults.items():
+        assert keywords[name].default == value, name
+
+
+def test_config_readme_states_the_kind_and_search_index_defaults_from_the_registry():
+    from vprflow.config import config_readme
+
+    readme = config_readme(SCHEMA)
+    for index in registry.SEARCH_INDEXES.values():
+        for name, value in index.defaults.items():
+            assert f"`{name}` (`{json.dumps(value)}`)" in readme, (index.name, name)
+    assert "| `layer` | integer | `31` (dinov2), `18` (dinov3), `-1` (dino) |" in readme
+    assert "| `radius` | number, >= 0 | `25` (kind utm) |" in readme
 
 
 @pytest.mark.parametrize(

@@ -12,6 +12,25 @@ import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 SNAKEFILE = REPO / "workflow" / "Snakefile"
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+
+
+def with_schema_defaults(definition: str, **instance) -> dict:
+    """``instance`` with every default the schema's ``definition`` declares filled in, as
+    the workflow fills a config before a stage sees it: ``"dataset"``, or
+    ``"dataset/properties/ground_truth"`` for a ground-truth spec."""
+    from vprflow.config import fill_defaults
+
+    schema = yaml.safe_load(SCHEMA.read_text())
+    return fill_defaults(instance, schema, f"#/definitions/{definition}")
+
+
+def dataset_spec(**spec) -> dict:
+    return with_schema_defaults("dataset", **spec)
+
+
+def truth_spec(**spec) -> dict:
+    return with_schema_defaults("dataset/properties/ground_truth", **spec)
 
 
 def repo_config() -> dict:

@@ -1,11 +1,14 @@
 """Config validation: JSON schema (``workflow/schemas/config.schema.yaml``) plus its defaults.
 
 The schema is the one place that states a setting's default: :func:`validate_config`
-fills every ``default`` it declares for top-level settings, the method sections
-(``vocabulary``, ``vlad``, ``pca``, ``segvlad``, ``snsm``, ``pooling``), each
-dataset and each backbone and segmenter entry. Method overrides and a dataset's
-``defaults`` stay partial on purpose: they are merged over the filled top-level
-sections (see :func:`vprflow.plan.resolve_method`).
+fills every ``default`` it declares, at any depth (through ``$ref`` definitions, the
+entries of ``datasets``, ``backbones`` and ``segmenters``, and the ``then`` of an
+``if``/``then`` the instance meets, for defaults of one ground-truth kind), then each
+backbone and segmenter entry's kind defaults from :mod:`vprflow.registry`. Objects the
+schema marks ``x-partial`` (a method's overrides, a dataset's ``defaults``) stay as
+written: they are merged over the filled top-level sections
+(:func:`vprflow.plan.resolve_method`), and the plan fills the search index's parameter
+defaults into the merged ``retrieval`` (:func:`vprflow.registry.search_settings`).
 """
 
 from __future__ import annotations
@@ -19,13 +22,12 @@ import yaml
 from vprflow.registry import (
     AGGREGATORS,
     BACKBONES,
-    KIND_KEY,
     SEARCH_INDEXES,
     SEGMENTERS,
     with_defaults,
 )
 
-# Top-level sections that every method inherits and that may be omitted entirely.
+# Top-level sections that every method inherits (each may be omitted: its schema default is {}).
 METHOD_DEFAULT_SECTIONS = (
     "vocabulary",
     "vlad",
@@ -62,14 +64,7 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
             lines.append(f"  config key '{where}': {error.message}")
         raise ConfigError("invalid configuration:\n" + "\n".join(lines))
     config = copy.deepcopy(config)
-    _fill_defaults(config, schema)
-    for section in METHOD_DEFAULT_SECTIONS:
-        config[section] = config.get(section) or {}
-        _fill_defaults(config[section], schema["definitions"][section])
-    config["figures"] = config.get("figures") or {}
-    _fill_defaults(config["figures"], schema["definitions"]["figures"])
-    for dataset in config["datasets"].values():
-        _fill_defaults(dataset, schema["definitions"]["dataset"])
+    fill_defaults(config, schema)
     unknown = [name for name in config["targets"] if name not in config["datasets"]]
     if unknown:
         raise ConfigError(
@@ -78,7 +73,6 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
         )
     for entries, stage in (("backbones", "features"), ("segmenters", "segments")):
         for entry in config[entries].values():
-            _fill_defaults(entry, schema["definitions"][KIND_KEY[stage]])
             # Kind-specific defaults (a DINOv2 layer, SAM thresholds) from the registry.
             entry.update(with_defaults(stage, entry))
     return config
@@ -105,11 +99,54 @@ def _set_registry_enums(schema: dict) -> None:
     enums["search_indexes"][:] = list(SEARCH_INDEXES)
 
 
-def _fill_defaults(instance: dict, schema: dict) -> None:
-    """Set every property of ``schema`` that declares a ``default`` and is missing."""
-    for name, prop in schema.get("properties", {}).items():
-        if "default" in prop and name not in instance:
+def fill_defaults(instance: dict, schema: dict, at: str = "#") -> dict:
+    """Fill into ``instance`` (in place, and return it) every default the part of
+    ``schema`` at ``at`` (a local reference such as ``"#/definitions/dataset"``) declares
+    for it, at any depth; see the module docstring. ``instance`` need not be valid: what
+    is missing without a default stays missing."""
+    import jsonschema
+
+    validator = jsonschema.Draft202012Validator(schema)
+    _fill(instance, {"$ref": at} if at != "#" else schema, validator)
+    return instance
+
+
+def _fill(instance, part: dict, validator) -> None:
+    part = _resolve(part, validator.schema)
+    if not isinstance(instance, dict) or part.get("x-partial"):
+        return
+    properties = part.get("properties", {})
+    for name, prop in properties.items():
+        if name not in instance and "default" in prop:
             instance[name] = copy.deepcopy(prop["default"])
+        if name in instance:
+            _fill(instance[name], prop, validator)
+    entries = part.get("additionalProperties")
+    if isinstance(entries, dict):
+        for name, value in instance.items():
+            if name not in properties:
+                _fill(value, entries, validator)
+    for sub in part.get("allOf", []):
+        _fill(instance, sub, validator)
+    if "if" in part:
+        # A default of one kind (e.g. utm's radius) sits in the `then` of its `if`.
+        branch = "then" if validator.evolve(schema=part["if"]).is_valid(instance) else "else"
+        if branch in part:
+            _fill(instance, part[branch], validator)
+
+
+def _resolve(part: dict, root: dict) -> dict:
+    """``part`` with its ``$ref`` (a ``#/...`` reference into ``root``) replaced by what
+    it names; keywords beside the ``$ref`` (a description, a default) win."""
+    while "$ref" in part:
+        ref = part["$ref"]
+        if not ref.startswith("#"):
+            raise ValueError(f"schema reference {ref!r} is not local (#/...)")
+        target = root
+        for name in filter(None, ref[1:].split("/")):
+            target = target[name]
+        part = {**target, **{k: v for k, v in part.items() if k != "$ref"}}
+    return part
 
 
 def load_config(path: str | Path, schema_path: str | Path) -> dict:
@@ -128,9 +165,10 @@ anything is hashed, so a store's key and attributes record what ran.
 
 A method's settings are, later winning: the top-level sections (`vocabulary`, `vlad`,
 `pca`, `segvlad`, `retrieval`, `snsm`, `pooling`), then the dataset's `defaults`, then the method's
-own. Backbone and segmenter entries also get their kind's defaults from
-`src/vprflow/registry.py` (named in the descriptions below). What the methods compute
-is in `docs/methods.md`.
+own. Backbone and segmenter entries also get their kind's defaults, and a method's
+`retrieval.params` its index's, from `src/vprflow/registry.py` (listed below by kind and
+by index). A default followed by a condition in brackets applies only then. What the
+methods compute is in `docs/methods.md`.
 
 This file is generated from the schema's descriptions by
 `python scripts/write_config_readme.py`; `tests/test_registry.py` checks it is current.
@@ -160,8 +198,13 @@ def _allowed(prop: dict) -> str:
 _BOUNDS = (("minimum", ">="), ("exclusiveMinimum", ">"), ("maximum", "<="))
 
 
-def _table(title: str, definition: dict) -> list[str]:
+def _table(title: str, definition: dict, kinds: dict | None = None) -> list[str]:
+    """A section's table; ``kinds``: the registry's kinds whose defaults its entries get."""
     required = set(definition.get("required", []))
+    defaults = _conditional_defaults(definition)
+    for kind in (kinds or {}).values():
+        for name, value in kind.defaults.items():
+            defaults.setdefault(name, {}).setdefault(json.dumps(value), []).append(kind.name)
     lines = [f"## `{title}`", ""]
     if definition.get("description"):
         lines += [definition["description"], ""]
@@ -170,20 +213,60 @@ def _table(title: str, definition: dict) -> list[str]:
         default = "required" if name in required else ""
         if "default" in prop:
             default = f"`{json.dumps(prop['default'])}`"
+        elif name in defaults:
+            default = ", ".join(
+                f"`{value}` ({', '.join(where)})" for value, where in defaults[name].items()
+            )
         meaning = prop.get("description", "").replace("|", "\\|")
         lines.append(f"| `{name}` | {_allowed(prop)} | {default} | {meaning} |")
     return [*lines, ""]
 
 
+def _conditional_defaults(definition: dict) -> dict[str, dict[str, list[str]]]:
+    """Key -> default -> the conditions under which it applies, from the definition's
+    ``allOf`` of ``if``/``then`` (e.g. ``kind utm``)."""
+    found: dict[str, dict[str, list[str]]] = {}
+    for part in definition.get("allOf", []):
+        condition = part.get("if", {}).get("properties", {})
+        when = " and ".join(f"{k} {v['const']}" for k, v in condition.items() if "const" in v)
+        for name, prop in part.get("then", {}).get("properties", {}).items():
+            if "default" in prop:
+                found.setdefault(name, {}).setdefault(json.dumps(prop["default"]), []).append(when)
+    return found
+
+
+def _search_index_table() -> list[str]:
+    lines = [
+        "## `retrieval.params` by index",
+        "",
+        "Each index's parameters and their defaults (`src/vprflow/registry.py`), filled into "
+        "a method's `retrieval.params` before hashing; `null` = chosen by `vprflow.knn` "
+        "(`nlist`, `m`: from the data; `margin`: by `candidate_dtype`). An approximate "
+        "index's table also reports an exact search's recall.",
+        "",
+        "| index | exact | parameters (default) |",
+        "|---|---|---|",
+    ]
+    for index in SEARCH_INDEXES.values():
+        params = ", ".join(f"`{k}` (`{json.dumps(v)}`)" for k, v in index.defaults.items())
+        exact = "yes" if index.exact else "no"
+        lines.append(f"| `{index.name}` | {exact} | {params or 'none'} |")
+    return [*lines, ""]
+
+
 def config_readme(schema: dict) -> str:
-    """``config/README.md``: every key of the schema, its allowed values, default and
-    meaning (from the schema's ``description``s)."""
+    """``config/README.md``: every key of the schema, its allowed values, default (the
+    schema's, its kind's from the registry) and meaning (the schema's ``description``s),
+    and each search index's parameter defaults."""
     lines = [_README_HEAD, *_table("top level", schema)]
+    kinds = {"backbone": BACKBONES, "segmenter": SEGMENTERS}
     for name, definition in schema["definitions"].items():
         if "properties" not in definition:
             continue
-        lines += _table(name, definition)
+        lines += _table(name, definition, kinds.get(name))
         for sub, prop in definition["properties"].items():
             if "properties" in prop:
                 lines += _table(f"{name}.{sub}", prop)
+        if name == "retrieval":
+            lines += _search_index_table()
     return "\n".join(lines).rstrip() + "\n"

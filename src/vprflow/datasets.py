@@ -76,14 +76,12 @@ def list_dataset(data_root: str | Path, name: str, spec: dict) -> DatasetFiles:
             continue
         if not entry.is_dir():
             raise DatasetError(f"dataset '{name}': {role} folder {entry} does not exist.{hint}")
-        scans[role] = scan_images(
-            entry, spec.get("recursive", True), spec.get("follow_links", False)
-        )
+        scans[role] = scan_images(entry, spec["recursive"], spec["follow_links"])
         if not scans[role].paths:
             raise DatasetError(f"dataset '{name}': {role} folder {entry} contains no images")
     reference, query = scans["reference"].paths, scans["query"].paths
     check_disjoint(name, reference, query)
-    if spec.get("paired"):
+    if spec["paired"]:
         query = paired_queries(
             name,
             reference,
@@ -454,9 +452,7 @@ def utm_from_name(path: str | Path) -> tuple[float, float]:
     return easting, northing
 
 
-def utm_ground_truth(
-    reference: list[Path], query: list[Path], radius: float = 25.0
-) -> list[np.ndarray]:
+def utm_ground_truth(reference: list[Path], query: list[Path], radius: float) -> list[np.ndarray]:
     """References within ``radius`` metres (Euclidean in UTM) of each query."""
     from scipy.spatial import cKDTree
 
@@ -639,7 +635,7 @@ def coordinates_ground_truth(
 
 def _positions(files: DatasetFiles, spec: dict, folder: Path) -> tuple[Positions, Positions]:
     """Reference and query positions of a ``coordinates`` ground truth."""
-    if spec.get("source", "file") == "exif":
+    if spec["source"] == "exif":
         parts = []
         for paths in (files.reference, files.query):
             table = np.array([exif_lat_lon(p) for p in paths], dtype=np.float64)
@@ -672,14 +668,14 @@ def ground_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarr
             folder / spec["file"],
             n_query,
             n_ref,
-            spec.get("drop_out_of_range", False),
+            spec["drop_out_of_range"],
             query_folders=_role_folders(files.query, folder),
             reference_folders=_role_folders(files.reference, folder),
         )
     elif kind == "frame_window":
         truth = frame_window_ground_truth(n_query, n_ref, int(spec["radius"]))
     elif kind == "utm":
-        truth = utm_ground_truth(files.reference, files.query, float(spec.get("radius", 25.0)))
+        truth = utm_ground_truth(files.reference, files.query, float(spec["radius"]))
     elif kind == "pairs":
         truth = pairs_ground_truth(
             n_query,
@@ -712,9 +708,9 @@ def ground_truth_rule(spec: dict) -> str:
     if kind == "frame_window":
         return f"frame_window:+-{spec['radius']}"
     if kind == "utm":
-        return f"utm:{spec.get('radius', 25.0)}m"
+        return f"utm:{spec['radius']}m"
     if kind == "coordinates":
-        source = "exif" if spec.get("source", "file") == "exif" else spec["file"]
+        source = "exif" if spec["source"] == "exif" else spec["file"]
         rule = f"coordinates:{source}:{spec['radius_m']}m"
         if spec.get("max_heading_diff") is not None:
             rule += f",heading<={spec['max_heading_diff']}deg"
@@ -726,7 +722,7 @@ def ground_truth_files(data_root: str | Path, spec: dict) -> list[Path]:
     """Files the ground truth is read from (inputs of the dataset stage)."""
     truth = spec["ground_truth"]
     if truth["kind"] == "vprbench" or (
-        truth["kind"] == "coordinates" and truth.get("source", "file") == "file"
+        truth["kind"] == "coordinates" and truth["source"] == "file"
     ):
         return [dataset_folder(data_root, spec) / truth["file"]]
     return []

@@ -362,9 +362,7 @@ def download_dataset(
             )
         staged = work / "data"
         staged.mkdir()
-        files = extract_layout(
-            archive, url, spec["layout"], staged, int(spec.get("strip", 0)), manifest
-        )
+        files = extract_layout(archive, url, spec["layout"], staged, int(spec["strip"]), manifest)
         archive.unlink()
         os.replace(staged, folder)
     finally:

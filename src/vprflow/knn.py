@@ -65,6 +65,7 @@ import numpy as np
 import torch
 
 from vprflow.devices import resolve_device
+from vprflow.registry import SEARCH_INDEXES
 
 CANDIDATE_DTYPES = {"bfloat16": torch.bfloat16, "float16": torch.float16, "float32": torch.float32}
 
@@ -87,6 +88,9 @@ GROUP = 16
 # Padding index for rows that have seen fewer than k items: sorts after every real index.
 _NO_INDEX = np.iinfo(np.int64).max
 
+# exact_knn's defaults: the search stage passes them from the key; direct callers get the same.
+_EXACT = SEARCH_INDEXES["exact_fast"].defaults
+
 
 def exact_knn(
     database: np.ndarray,
@@ -94,10 +98,10 @@ def exact_knn(
     k: int,
     *,
     device: str = "auto",
-    block_queries: int = 4096,
-    block_database: int = 65536,
-    candidate_dtype: str = "bfloat16",
-    margin: int | None = None,
+    block_queries: int = _EXACT["block_queries"],
+    block_database: int = _EXACT["block_database"],
+    candidate_dtype: str = _EXACT["candidate_dtype"],
+    margin: int | None = _EXACT["margin"],
     stats: dict | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Exact squared-L2 k-NN: ``database [Nd, D]``, ``queries [Nq, D]`` ->
@@ -108,9 +112,11 @@ def exact_knn(
     distances are within float32 rounding of each other (see the module docstring).
 
     ``device``: ``"auto"``, ``"cpu"``, ``"cuda"`` (see :func:`vprflow.devices.resolve_device`).
+    The other settings default to the registry's ``exact_fast`` entry
+    (:data:`vprflow.registry.SEARCH_INDEXES`).
     ``candidate_dtype``: ``"bfloat16"``, ``"float16"`` (slow on CPUs) or ``"float32"``, the
     precision of the products that choose candidates; like ``margin`` (extra candidates
-    per block beyond k, default :data:`DEFAULT_MARGINS` by dtype) it changes speed, never
+    per block beyond k, ``None``: :data:`DEFAULT_MARGINS` by dtype) it changes speed, never
     the result.
     Peak memory is about ``block_queries x block_database`` products in the GEMM's output
     dtype (bf16 on CPUs: 0.5 GiB at the defaults; float32 on CUDA or with float32
@@ -544,13 +550,8 @@ def topk_agreement(indices_a: np.ndarray, indices_b: np.ndarray) -> float:
     return float(shared.sum(1).mean() / k)
 
 
-# Approximate faiss indexes: name -> parameter defaults (None: chosen from the data).
-FAISS_INDEXES: dict[str, dict[str, Any]] = {
-    "flat": {},
-    "ivf_flat": {"nlist": None, "nprobe": 16, "seed": 1234},
-    "ivf_pq": {"nlist": None, "nprobe": 16, "m": None, "nbits": 8, "seed": 1234},
-    "hnsw": {"M": 32, "ef_search": 128, "ef_construction": 200},
-}
+# The faiss indexes faiss_knn builds; their parameter defaults are the registry's.
+FAISS_INDEXES = ("flat", "ivf_flat", "ivf_pq", "hnsw")
 
 
 def faiss_knn(
@@ -559,14 +560,16 @@ def faiss_knn(
     """Squared-L2 k-NN with a faiss index chosen by name -> ``(distances [Nq, k'] float32,
     indices [Nq, k'] int64)``, ``k' = min(k, Nd)``, nearest first.
 
+    Parameters left out take the defaults of :data:`vprflow.registry.SEARCH_INDEXES`.
+
     - ``"flat"``: ``IndexFlatL2``, exact (the reference); no parameters.
-    - ``"ivf_flat"``: ``nlist`` (default ``min(4 sqrt(Nd), Nd / 39)``, at least 1),
-      ``nprobe`` (16, capped at nlist), ``seed`` (1234) for the k-means training.
-    - ``"ivf_pq"``: as ivf_flat plus ``m`` sub-quantizers (default the largest divisor of D
-      up to D / 16) of ``nbits`` (8) bits; needs ``Nd >= 2 ** nbits``. Distances are the PQ
-      approximations.
-    - ``"hnsw"``: ``IndexHNSWFlat`` with ``M`` (32), ``ef_construction`` (200) and
-      ``ef_search`` (128, raised to k when smaller).
+    - ``"ivf_flat"``: ``nlist`` (``None``: ``min(4 sqrt(Nd), Nd / 39)``, at least 1),
+      ``nprobe`` (capped at nlist), ``seed`` for the k-means training.
+    - ``"ivf_pq"``: as ivf_flat plus ``m`` sub-quantizers (``None``: the largest divisor
+      of D up to D / 16) of ``nbits`` bits; needs ``Nd >= 2 ** nbits``. Distances are the
+      PQ approximations.
+    - ``"hnsw"``: ``IndexHNSWFlat`` with ``M``, ``ef_construction`` and ``ef_search``
+      (raised to k when smaller).
 
     IVF training is deterministic: the coarse and PQ k-means use ``seed``. HNSW graph
     construction is parallel and therefore only reproducible with one OpenMP thread.
@@ -578,7 +581,7 @@ def faiss_knn(
 
     if index not in FAISS_INDEXES:
         raise ValueError(f"unknown faiss index {index!r}; expected one of {sorted(FAISS_INDEXES)}")
-    defaults = FAISS_INDEXES[index]
+    defaults = SEARCH_INDEXES[index].defaults
     unknown = sorted(set(params) - set(defaults))
     if unknown:
         raise ValueError(

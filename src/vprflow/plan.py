@@ -22,7 +22,13 @@ from pathlib import Path
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS
 from vprflow.files import write_text_atomic
-from vprflow.registry import SEARCH_INDEXES, aggregator, model_kind, prefixed
+from vprflow.registry import (
+    SEARCH_INDEXES,
+    aggregator,
+    model_kind,
+    prefixed,
+    search_settings,
+)
 
 CACHE = "results/cache"
 # Per-dataset tables written by the report rule.
@@ -379,7 +385,7 @@ def _hashed(params: dict) -> dict:
 
 
 def _resolution(dataset: dict, profile: dict) -> list[int]:
-    if profile.get("resolution", "dataset") == "dataset":
+    if profile["resolution"] == "dataset":
         return list(dataset["resolution"])
     return list(profile["resolution"])
 
@@ -553,7 +559,7 @@ def _plan_method(
     agg = aggregator(method["aggregator"])
     features_name = method["features"]
     backbone = _named_entry(config, "backbones", features_name, method_name)
-    if backbone.get("resize") == "method":
+    if backbone["resize"] == "method":
         # The published pipeline's reader: one backbone entry serves SegVLAD (OpenCV)
         # and SNSM (PIL) faithfully, as two features stores.
         backbone = {**backbone, "resize": agg.resize}
@@ -567,7 +573,7 @@ def _plan_method(
     if patch and min(features_params["resolution"]) < patch:
         where = (
             f"datasets.{dataset_name}.resolution"
-            if backbone.get("resolution", "dataset") == "dataset"
+            if backbone["resolution"] == "dataset"
             else f"backbones.{features_name}.resolution"
         )
         raise PlanError(
@@ -581,7 +587,7 @@ def _plan_method(
         dataset_name,
         {
             **execution,
-            "batch_size": backbone.get("batch_size", 1),
+            "batch_size": backbone["batch_size"],
             "uses_gpu": model_kind("features", backbone).uses_gpu,
         },
     )
@@ -607,7 +613,7 @@ def _plan_method(
                     dataset_name,
                     {
                         **execution,
-                        "batch_size": segmenter.get("batch_size", 1),
+                        "batch_size": segmenter["batch_size"],
                         "uses_gpu": model_kind("segments", segmenter).uses_gpu,
                     },
                 ),
@@ -656,7 +662,12 @@ def _plan_method(
         "top_k": max(max(dataset["recall_at"]), 20),
     }
     if agg.output == "segments":
-        retrieval = method["retrieval"]
+        # The index's parameter defaults, filled only now: the index and its params may
+        # each come from another level of the merge.
+        try:
+            retrieval = search_settings(method["retrieval"])
+        except ValueError as error:
+            raise PlanError(f"method {method_name!r}: {error}") from None
         search_inputs = {"dataset": ds, "descriptors": descriptors}
         voting = method["voting"]
 
@@ -669,7 +680,9 @@ def _plan_method(
         if not SEARCH_INDEXES[retrieval["index"]].exact:
             # The table states what the approximation costs: recall of an exact search
             # of the same descriptors, in the same run.
-            recall_inputs["exact_search"] = search_stage({"index": "flat", "params": {}})
+            recall_inputs["exact_search"] = search_stage(
+                search_settings({"index": "flat", "params": {}})
+            )
         recall_params["vote_ranking"] = voting["vote_ranking"]
         row.update(_prefixed("retrieval", retrieval), **_prefixed("voting", voting))
     recall_key = plan.add("recall", recall_params, recall_inputs, dataset_name)
@@ -680,7 +693,7 @@ def _segment_resolution(dataset: dict, segmenter: dict) -> list[int]:
     if segmenter.get("resolution") not in (None, "dataset"):
         return list(segmenter["resolution"])
     width, height = dataset["resolution"]
-    scale = segmenter.get("resolution_scale", 0.5)
+    scale = segmenter["resolution_scale"]
     return [max(1, round(width * scale)), max(1, round(height * scale))]
 
 

@@ -333,25 +333,70 @@ AGGREGATORS: dict[str, Aggregator] = {
 @dataclass(frozen=True)
 class SearchIndex:
     """A ``retrieval.index``: whether it returns the exact top-k (an approximate one makes
-    the plan add an exact search, so the table can report the difference) and whether it
-    runs on a GPU when there is one. Searches are dispatched in
-    :func:`vprflow.stages.search.knn`."""
+    the plan add an exact search, so the table can report the difference), whether it
+    runs on a GPU when there is one, and its parameters' defaults (``None``: chosen at run
+    time by :mod:`vprflow.knn`), filled into a method's ``retrieval.params`` before
+    hashing (:func:`search_settings`). Searches are dispatched in
+    :func:`vprflow.stages.search.knn`.
+
+    The defaults live here rather than in :mod:`vprflow.knn`, whose functions read them:
+    planning must fill them into keys without importing torch, as for the model kinds.
+    """
 
     name: str
     exact: bool
     uses_gpu: bool = False
+    defaults: dict = field(default_factory=dict)
 
+
+_IVF = {"nlist": None, "nprobe": 16, "seed": 1234}
 
 SEARCH_INDEXES: dict[str, SearchIndex] = {
     index.name: index
     for index in (
         SearchIndex("flat", exact=True),  # faiss IndexFlatL2, published
-        SearchIndex("exact_fast", exact=True, uses_gpu=True),  # vprflow.knn.exact_knn
-        SearchIndex("ivf_flat", exact=False),  # the rest: vprflow.knn.faiss_knn
-        SearchIndex("ivf_pq", exact=False),
-        SearchIndex("hnsw", exact=False),
+        # vprflow.knn.exact_knn; margin None: by candidate dtype (knn.DEFAULT_MARGINS).
+        # None of these changes the result, only speed and memory.
+        SearchIndex(
+            "exact_fast",
+            exact=True,
+            uses_gpu=True,
+            defaults={
+                "candidate_dtype": "bfloat16",
+                "block_queries": 4096,
+                "block_database": 65536,
+                "margin": None,
+            },
+        ),
+        # The rest: vprflow.knn.faiss_knn.
+        SearchIndex("ivf_flat", exact=False, defaults=dict(_IVF)),
+        SearchIndex("ivf_pq", exact=False, defaults={**_IVF, "m": None, "nbits": 8}),
+        SearchIndex(
+            "hnsw", exact=False, defaults={"M": 32, "ef_search": 128, "ef_construction": 200}
+        ),
     )
 }
+
+
+def search_index(name: str) -> SearchIndex:
+    if name not in SEARCH_INDEXES:
+        raise ValueError(f"unknown search index {name!r}; expected one of {sorted(SEARCH_INDEXES)}")
+    return SEARCH_INDEXES[name]
+
+
+def search_settings(retrieval: dict) -> dict:
+    """A ``retrieval`` section (``index``, ``params``) with the index's parameter defaults
+    filled into ``params``, so a key records what ran; a parameter the index does not
+    take is refused by name."""
+    index = search_index(retrieval["index"])
+    params = retrieval["params"]
+    unknown = sorted(set(params) - set(index.defaults))
+    if unknown:
+        raise ValueError(
+            f"retrieval.params {unknown} are not parameters of index {index.name!r}; "
+            f"it takes {sorted(index.defaults) or 'none'}"
+        )
+    return {**retrieval, "params": {**index.defaults, **params}}
 
 
 def aggregator(name: str) -> Aggregator:

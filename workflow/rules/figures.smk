@@ -1,5 +1,6 @@
 # The report's figures: rules of their own, outside the content-addressed cache. Their
-# settings (`figures:`) are params, so changing one reruns only figures.
+# settings (`figures:`) are params, so changing one reruns only figures. Each names its
+# figure in `params`: a host workflow's `use rule * from vprflow as vpr_*` renames rules.
 
 
 rule recall_table:
@@ -58,6 +59,7 @@ rule retrievals:
     conda:
         "../envs/vprflow.yaml"
     params:
+        figure="retrievals",
         data_root=data_root_param,
         settings=CONFIG["figures"],
     script:
@@ -80,6 +82,7 @@ rule segment_matches:
     conda:
         "../envs/vprflow.yaml"
     params:
+        figure="segment_matches",
         data_root=data_root_param,
         settings=CONFIG["figures"],
     script:
@@ -102,6 +105,7 @@ rule support_maps:
     conda:
         "../envs/vprflow.yaml"
     params:
+        figure="support_maps",
         data_root=data_root_param,
         settings=CONFIG["figures"],
     script:

@@ -5,7 +5,7 @@ sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(
     sm.log[0],
     lambda: draw_figure(
-        sm.rule,
+        sm.params.figure,
         dict(sm.input.items()),
         sm.params.data_root,
         sm.wildcards.method,

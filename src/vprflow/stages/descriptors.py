@@ -53,7 +53,9 @@ def compute_descriptors(
     describe = agg.descriptor_function(spec, inputs)
     by_segment = agg.output == "segments"
     pca = read_pca(inputs["pca"]) if "pca" in inputs else None
-    dtype = np.dtype(spec.get("store_dtype", "float32"))
+    # An aggregator that offers a storage precision has it among its options (SegVLAD:
+    # segvlad.store_dtype); the others store float32.
+    dtype = np.dtype(spec["store_dtype"] if "store_dtype" in spec else np.float32)
     attrs = {**stage_attrs("descriptors", params, images), "kind": agg.output}
 
     def rows_of(data: tuple) -> np.ndarray:

@@ -78,7 +78,7 @@ def _feature_extractor(spec: dict, device: str, width: int, height: int, dataset
             grids = np.stack(
                 [read_features_h5(spec["file"], Path(dataset.paths[i]).name) for i in indices]
             )
-            return l2_normalize(grids) if spec.get("normalize", True) else grids
+            return l2_normalize(grids) if spec["normalize"] else grids
 
         return read, spec["patch_size"]
     backbone = kind.load(spec, device)

@@ -43,7 +43,7 @@ def knn(database: np.ndarray, queries: np.ndarray, k: int, spec: dict, device: s
     from vprflow import knn as knn_search
     from vprflow.retrieval import search
 
-    index, options = spec["index"], spec.get("params") or {}
+    index, options = spec["index"], spec["params"]
     if index == "flat":
         return search(database, queries, k)
     if index == "exact_fast":
