@@ -112,6 +112,7 @@ def crc32c_alone(path: Path) -> float:
 
 def table(title: str, results: dict, base: str, mb: float, disk: dict | None = None) -> None:
     print(f"\n{title:<36} {'wall s':>7} {'MB/s':>6} {'overhead':>8} {'CPU s':>6} {'overhead':>8}")
+    print("-" * 76)
     wall0, cpu0 = results[base]
     for name, (wall, cpu) in results.items():
         print(
@@ -127,7 +128,10 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--workdir", type=Path, default=None, help="default: a folder in /tmp")
+    parser.add_argument("--smoke", action="store_true", help="8 MB, one repeat (CI: it runs)")
     args = parser.parse_args()
+    if args.smoke:
+        args.mb, args.repeats = 8, 1
     n_rows = max(1, (args.mb << 20) // (4 * args.dim))
     mb = n_rows * 4 * args.dim / 1e6
     chunk = stores.rows_per_chunk(4 * args.dim)
