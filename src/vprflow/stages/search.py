@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow import stores
+from vprflow.registry import search_index
 from vprflow.stages.base import stage_attrs
 from vprflow.stages.dataset import Dataset
 
@@ -33,24 +34,6 @@ def canonical_order(distances: np.ndarray, indices: np.ndarray) -> tuple[np.ndar
     return np.take_along_axis(distances, order, -1), np.take_along_axis(indices, order, -1)
 
 
-def knn(database: np.ndarray, queries: np.ndarray, k: int, spec: dict, device: str = "auto"):
-    """``(distances [Nq, k'], indices [Nq, k'])`` of the configured index, k' = min(k, Nd).
-
-    ``flat`` is faiss's exact IndexFlatL2 (published); ``exact_fast`` the blocked torch
-    path (low-precision candidates, float32 re-score, CPU or GPU); the others are
-    approximate faiss indexes, whose rows may end in ``-1`` (fewer than k found).
-    """
-    from vprflow import knn as knn_search
-    from vprflow.retrieval import search
-
-    index, options = spec["index"], spec["params"]
-    if index == "flat":
-        return search(database, queries, k)
-    if index == "exact_fast":
-        return knn_search.exact_knn(database, queries, k, device=device, **options)
-    return knn_search.faiss_knn(database, queries, k, index=index, **options)
-
-
 def search_shard(
     dataset_path: str,
     descriptors_path: str,
@@ -64,6 +47,7 @@ def search_shard(
     every query segment: ``distances [Sq, k']`` float32, ``indices [Sq, k']`` int64
     (global reference segment rows), k' = min(top_segments, segments in the shard)."""
     spec = params["params"]
+    index = search_index(spec["index"])
     dataset = Dataset(dataset_path)
     start = 0 if start is None else start
     stop = dataset.n_reference if stop is None else min(stop, dataset.n_reference)
@@ -80,7 +64,7 @@ def search_shard(
         for block in tqdm(range(split, total, QUERY_BLOCK), desc="search", unit="block"):
             queries = np.asarray(vectors[block : min(block + QUERY_BLOCK, total)], np.float32)
             if k:
-                distances, indices = knn(database, queries, k, spec, device)
+                distances, indices = index.search(database, queries, k, spec["params"], device)
                 found_any = indices >= 0  # approximate indexes pad short rows with -1
                 indices = np.where(found_any, indices + low, -1)
                 distances = np.where(found_any, distances, np.inf).astype(np.float32)
