@@ -25,7 +25,7 @@ torch path (many short multi-threaded steps) suffers more than faiss (one long G
 compare methods on an idle machine. ``agree@k`` is the mean fraction of each query's top-k
 set shared with faiss flat (:func:`vprflow.knn.topk.topk_agreement`; below 1 only through
 near-ties within float32 rounding). Voting is
-:func:`vprflow.retrieval.vote_ranking` on faiss flat's lists with 85 segments per image;
+:func:`vprflow.voting.vote_ranking` on faiss flat's lists with 85 segments per image;
 its note gives the fraction of query images whose top-50 ranking is identical when voted
 from the exact bf16 lists instead.
 """
@@ -128,7 +128,7 @@ def run_method(method: str, folder: Path, args: argparse.Namespace) -> dict:
 
 
 def voted(report: dict, n_query: int, n_ref: int, args: argparse.Namespace):
-    from vprflow.retrieval import vote_ranking
+    from vprflow.voting import vote_ranking
 
     query_image = np.arange(args.query_segments) // SEGMENTS_PER_IMAGE
     ref_image = np.arange(args.ref_segments) // SEGMENTS_PER_IMAGE

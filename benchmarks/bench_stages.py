@@ -22,7 +22,6 @@ from vprflow.arrays import l2_normalize
 from vprflow.backbones import DaisyBackbone
 from vprflow.knn.flat import flat_knn
 from vprflow.pca import fit_pca
-from vprflow.retrieval import vote_ranking
 from vprflow.segmenters import SlicSegmenter
 from vprflow.segvlad import (
     mask_patch_membership,
@@ -31,6 +30,7 @@ from vprflow.segvlad import (
     segment_centroids,
 )
 from vprflow.vlad import assign, vlad, vlad_per_region
+from vprflow.voting import vote_ranking
 
 
 def best_of(function, repeats: int) -> float:

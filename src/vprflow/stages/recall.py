@@ -31,8 +31,8 @@ def evaluate(
     """
     from vprflow.knn.flat import flat_knn
     from vprflow.recall import correct_at, counted_queries, map_at, recall_at
-    from vprflow.retrieval import image_of_segment, scored_vote_ranking
     from vprflow.stages.search import read_search
+    from vprflow.voting import image_of_segment, scored_vote_ranking
 
     spec = params["params"]
     dataset = Dataset(dataset_path)

@@ -1,4 +1,6 @@
-"""SegVLAD image voting over retrieved segments (docs/methods.md §5)."""
+"""SegVLAD's similarity-weighted image voting (docs/methods.md §5): each query segment's
+retrieved reference segments (the ``search`` stage's lists) vote for their images, and the
+voted scores rank the reference images of every query image."""
 
 from __future__ import annotations
 
