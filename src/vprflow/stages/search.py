@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow import stores
+from vprflow.knn.topk import merge_knn
 from vprflow.registry import search_index
 from vprflow.stages.base import stage_attrs
 from vprflow.stages.dataset import Dataset
@@ -26,12 +27,6 @@ log = logging.getLogger("vprflow")
 
 # Query segments searched (and merged) per block: 65,536 x 50 results is 40 MB.
 QUERY_BLOCK = 1 << 16
-
-
-def canonical_order(distances: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each row sorted by (distance, index): ``[n, k]`` each, same shapes back."""
-    order = np.lexsort((indices, distances), axis=-1)
-    return np.take_along_axis(distances, order, -1), np.take_along_axis(indices, order, -1)
 
 
 def search_shard(
@@ -68,7 +63,7 @@ def search_shard(
                 found_any = indices >= 0  # approximate indexes pad short rows with -1
                 indices = np.where(found_any, indices + low, -1)
                 distances = np.where(found_any, distances, np.inf).astype(np.float32)
-                distances, indices = canonical_order(distances, indices)
+                distances, indices = merge_knn([(distances, indices)], k)
             else:  # a shard of images without segments retrieves nothing
                 distances = np.zeros((len(queries), 0), np.float32)
                 indices = np.zeros((len(queries), 0), np.int64)
@@ -95,11 +90,10 @@ def merge_search(shard_paths: list[str], params: dict, out: str) -> None:
             # the number of shards.
             distances, indices = shards[0]["distances"][rows], shards[0]["indices"][rows]
             for shard in shards[1:]:
-                distances, indices = canonical_order(
-                    np.concatenate([distances, shard["distances"][rows]], axis=1),
-                    np.concatenate([indices, shard["indices"][rows]], axis=1),
+                distances, indices = merge_knn(
+                    [(distances, indices), (shard["distances"][rows], shard["indices"][rows])],
+                    k_total,
                 )
-                distances, indices = distances[:, :k_total], indices[:, :k_total]
             found["distances"].append(distances)
             found["indices"].append(indices)
         for writer in found.values():
