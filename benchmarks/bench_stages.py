@@ -20,8 +20,8 @@ import numpy as np
 
 from vprflow.arrays import l2_normalize
 from vprflow.backbones import DaisyBackbone
+from vprflow.knn.flat import flat_knn
 from vprflow.pca import fit_pca
-from vprflow.retrieval import search, vote_ranking
 from vprflow.segmenters import SlicSegmenter
 from vprflow.segvlad import (
     mask_patch_membership,
@@ -30,6 +30,7 @@ from vprflow.segvlad import (
     segment_centroids,
 )
 from vprflow.vlad import assign, vlad, vlad_per_region
+from vprflow.voting import vote_ranking
 
 
 def best_of(function, repeats: int) -> float:
@@ -137,7 +138,7 @@ def bench_retrieval(rng, n_images: int = 406):
     ref = l2_normalize(rng.standard_normal((n_ref_images * per_image, dim)).astype(np.float32))
     query = l2_normalize(rng.standard_normal((n_query_images * per_image, dim)).astype(np.float32))
     start = time.perf_counter()
-    distances, indices = search(ref, query, 50)
+    distances, indices = flat_knn(ref, query, 50)
     search_s = time.perf_counter() - start
     owner = np.repeat(np.arange(n_ref_images), per_image)
     start = time.perf_counter()

@@ -27,18 +27,25 @@ def test_schema_enums_list_exactly_the_registry_components():
 
 
 def test_every_search_index_is_one_the_search_stage_can_run():
-    from vprflow.knn import FAISS_INDEXES
+    import inspect
 
-    # flat and the approximate ones go to faiss; exact_fast to the torch path.
-    faiss_names = {"flat"} | {n for n, i in registry.SEARCH_INDEXES.items() if not i.exact}
-    assert faiss_names <= set(FAISS_INDEXES)
-    assert set(registry.SEARCH_INDEXES) == faiss_names | {"exact_fast"}
+    # Each index names its search function, whose keyword parameters are exactly the
+    # index's parameters (plus device where it runs on a GPU), defaults read from the entry.
+    for index in registry.SEARCH_INDEXES.values():
+        function = registry.resolve(index.knn)
+        keywords = {
+            name: p.default
+            for name, p in inspect.signature(function).parameters.items()
+            if p.kind is inspect.Parameter.KEYWORD_ONLY and name != "stats"
+        }
+        assert keywords.pop("device", None) == ("auto" if index.uses_gpu else None), index.name
+        assert keywords == index.defaults, index.name
 
 
 def test_exact_knn_takes_its_keyword_defaults_from_the_registry_entry():
     import inspect
 
-    from vprflow.knn import exact_knn
+    from vprflow.knn.exact import exact_knn
 
     # exact_knn's keyword defaults are read from the registry, never written again.
     keywords = inspect.signature(exact_knn).parameters

@@ -273,14 +273,14 @@ def test_gather_of_one_shard_renames_it_with_the_gathered_attributes(tmp_path):
 
 def test_sharded_search_equals_one_faiss_search_over_all_references(pipeline):
     """Three reference shards merged give the lists of one exact search (ties by index)."""
-    from vprflow.retrieval import search
+    from vprflow.knn.flat import flat_knn
 
     group = stores.open_store(stage_path(pipeline, "descriptors"))
     offsets = np.asarray(group["descriptors_offsets"][...])
     split = int(offsets[N_PLACES])
     vectors = np.asarray(group["descriptors"][...])
     distances, indices = read_search(stage_path(pipeline, "search"))
-    expected_d, expected_i = search(vectors[:split], vectors[split:], 50)
+    expected_d, expected_i = flat_knn(vectors[:split], vectors[split:], 50)
     np.testing.assert_array_equal(distances, expected_d)
     np.testing.assert_array_equal(indices, expected_i)
     # Against float64: every list holds the true nearest segments.

@@ -333,33 +333,51 @@ AGGREGATORS: dict[str, Aggregator] = {
 @dataclass(frozen=True)
 class SearchIndex:
     """A ``retrieval.index``: whether it returns the exact top-k (an approximate one makes
-    the plan add an exact search, so the table can report the difference), whether it
-    runs on a GPU when there is one, and its parameters' defaults (``None``: chosen at run
-    time by :mod:`vprflow.knn`), filled into a method's ``retrieval.params`` before
-    hashing (:func:`search_settings`). Searches are dispatched in
-    :func:`vprflow.stages.search.knn`.
+    the plan add an exact search, so the table can report the difference), the function
+    that runs it, whether it runs on a GPU when there is one, and its parameters'
+    defaults (``None``: chosen at run time by its function), filled into a method's
+    ``retrieval.params`` before hashing (:func:`search_settings`).
 
+    ``knn`` is ``"module:function"`` with signature ``(database [Nd, D], queries [Nq, D],
+    k, **params) -> (distances [Nq, k'] float32, indices [Nq, k'] int64)`` (see
+    :mod:`vprflow.knn`), plus ``device`` when ``uses_gpu``; :meth:`search` calls it.
     The defaults live here rather than in :mod:`vprflow.knn`, whose functions read them:
     planning must fill them into keys without importing torch, as for the model kinds.
     """
 
     name: str
     exact: bool
+    knn: str
     uses_gpu: bool = False
     defaults: dict = field(default_factory=dict)
 
+    def search(self, database, queries, k: int, params: dict | None = None, device="auto"):
+        """Squared-L2 ``k`` nearest ``database`` rows of every query with this index and
+        ``params`` (left out: :attr:`defaults`): ``(distances [Nq, k'] float32, indices
+        [Nq, k'] int64)``, ``k' = min(k, Nd)``, nearest first. Rows of an approximate
+        index may end in index -1 (fewer than k found). ``device`` (``"auto"``, ``"cpu"``,
+        ``"cuda"``) is used by the indexes that run on a GPU."""
+        params = dict(params or {})
+        _check_search_params(self, params, "params")
+        if self.uses_gpu:
+            params["device"] = device
+        return resolve(self.knn)(database, queries, k, **params)
+
 
 _IVF = {"nlist": None, "nprobe": 16, "seed": 1234}
+_KNN = "vprflow.knn"
 
 SEARCH_INDEXES: dict[str, SearchIndex] = {
     index.name: index
     for index in (
-        SearchIndex("flat", exact=True),  # faiss IndexFlatL2, published
-        # vprflow.knn.exact_knn; margin None: by candidate dtype (knn.DEFAULT_MARGINS).
+        # faiss IndexFlatL2, published.
+        SearchIndex("flat", exact=True, knn=f"{_KNN}.flat:flat_knn"),
+        # margin None: by candidate dtype (vprflow.knn.exact.DEFAULT_MARGINS).
         # None of these changes the result, only speed and memory.
         SearchIndex(
             "exact_fast",
             exact=True,
+            knn=f"{_KNN}.exact:exact_knn",
             uses_gpu=True,
             defaults={
                 "candidate_dtype": "bfloat16",
@@ -368,11 +386,20 @@ SEARCH_INDEXES: dict[str, SearchIndex] = {
                 "margin": None,
             },
         ),
-        # The rest: vprflow.knn.faiss_knn.
-        SearchIndex("ivf_flat", exact=False, defaults=dict(_IVF)),
-        SearchIndex("ivf_pq", exact=False, defaults={**_IVF, "m": None, "nbits": 8}),
         SearchIndex(
-            "hnsw", exact=False, defaults={"M": 32, "ef_search": 128, "ef_construction": 200}
+            "ivf_flat", exact=False, knn=f"{_KNN}.approximate:ivf_flat_knn", defaults=dict(_IVF)
+        ),
+        SearchIndex(
+            "ivf_pq",
+            exact=False,
+            knn=f"{_KNN}.approximate:ivf_pq_knn",
+            defaults={**_IVF, "m": None, "nbits": 8},
+        ),
+        SearchIndex(
+            "hnsw",
+            exact=False,
+            knn=f"{_KNN}.approximate:hnsw_knn",
+            defaults={"M": 32, "ef_search": 128, "ef_construction": 200},
         ),
     )
 }
@@ -390,13 +417,17 @@ def search_settings(retrieval: dict) -> dict:
     take is refused by name."""
     index = search_index(retrieval["index"])
     params = retrieval["params"]
+    _check_search_params(index, params, "retrieval.params")
+    return {**retrieval, "params": {**index.defaults, **params}}
+
+
+def _check_search_params(index: SearchIndex, params: dict, what: str) -> None:
     unknown = sorted(set(params) - set(index.defaults))
     if unknown:
         raise ValueError(
-            f"retrieval.params {unknown} are not parameters of index {index.name!r}; "
+            f"{what} {unknown} are not parameters of index {index.name!r}; "
             f"it takes {sorted(index.defaults) or 'none'}"
         )
-    return {**retrieval, "params": {**index.defaults, **params}}
 
 
 def aggregator(name: str) -> Aggregator:

@@ -29,9 +29,10 @@ def evaluate(
     same descriptors: its Recall@N is stored too (``recall_exact``), so the table can
     say what the approximation cost.
     """
+    from vprflow.knn.flat import flat_knn
     from vprflow.recall import correct_at, counted_queries, map_at, recall_at
-    from vprflow.retrieval import image_of_segment, scored_vote_ranking, search
     from vprflow.stages.search import read_search
+    from vprflow.voting import image_of_segment, scored_vote_ranking
 
     spec = params["params"]
     dataset = Dataset(dataset_path)
@@ -70,7 +71,7 @@ def evaluate(
     else:
         vectors = np.asarray(group["descriptors"][...])
         # Scores: squared L2 distances (lower is better).
-        scores, ranking = search(vectors[:n_ref], vectors[n_ref:], top_k)
+        scores, ranking = flat_knn(vectors[:n_ref], vectors[n_ref:], top_k)
     # N beyond the number of references is kept: it equals Recall@n_ref.
     recalls, maps = {}, {}
     evaluated = np.zeros(n_query, dtype=bool)

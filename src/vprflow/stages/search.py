@@ -18,6 +18,8 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow import stores
+from vprflow.knn.topk import merge_knn
+from vprflow.registry import search_index
 from vprflow.stages.base import stage_attrs
 from vprflow.stages.dataset import Dataset
 
@@ -25,30 +27,6 @@ log = logging.getLogger("vprflow")
 
 # Query segments searched (and merged) per block: 65,536 x 50 results is 40 MB.
 QUERY_BLOCK = 1 << 16
-
-
-def canonical_order(distances: np.ndarray, indices: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each row sorted by (distance, index): ``[n, k]`` each, same shapes back."""
-    order = np.lexsort((indices, distances), axis=-1)
-    return np.take_along_axis(distances, order, -1), np.take_along_axis(indices, order, -1)
-
-
-def knn(database: np.ndarray, queries: np.ndarray, k: int, spec: dict, device: str = "auto"):
-    """``(distances [Nq, k'], indices [Nq, k'])`` of the configured index, k' = min(k, Nd).
-
-    ``flat`` is faiss's exact IndexFlatL2 (published); ``exact_fast`` the blocked torch
-    path (low-precision candidates, float32 re-score, CPU or GPU); the others are
-    approximate faiss indexes, whose rows may end in ``-1`` (fewer than k found).
-    """
-    from vprflow import knn as knn_search
-    from vprflow.retrieval import search
-
-    index, options = spec["index"], spec["params"]
-    if index == "flat":
-        return search(database, queries, k)
-    if index == "exact_fast":
-        return knn_search.exact_knn(database, queries, k, device=device, **options)
-    return knn_search.faiss_knn(database, queries, k, index=index, **options)
 
 
 def search_shard(
@@ -64,6 +42,7 @@ def search_shard(
     every query segment: ``distances [Sq, k']`` float32, ``indices [Sq, k']`` int64
     (global reference segment rows), k' = min(top_segments, segments in the shard)."""
     spec = params["params"]
+    index = search_index(spec["index"])
     dataset = Dataset(dataset_path)
     start = 0 if start is None else start
     stop = dataset.n_reference if stop is None else min(stop, dataset.n_reference)
@@ -80,11 +59,11 @@ def search_shard(
         for block in tqdm(range(split, total, QUERY_BLOCK), desc="search", unit="block"):
             queries = np.asarray(vectors[block : min(block + QUERY_BLOCK, total)], np.float32)
             if k:
-                distances, indices = knn(database, queries, k, spec, device)
+                distances, indices = index.search(database, queries, k, spec["params"], device)
                 found_any = indices >= 0  # approximate indexes pad short rows with -1
                 indices = np.where(found_any, indices + low, -1)
                 distances = np.where(found_any, distances, np.inf).astype(np.float32)
-                distances, indices = canonical_order(distances, indices)
+                distances, indices = merge_knn([(distances, indices)], k)
             else:  # a shard of images without segments retrieves nothing
                 distances = np.zeros((len(queries), 0), np.float32)
                 indices = np.zeros((len(queries), 0), np.int64)
@@ -111,11 +90,10 @@ def merge_search(shard_paths: list[str], params: dict, out: str) -> None:
             # the number of shards.
             distances, indices = shards[0]["distances"][rows], shards[0]["indices"][rows]
             for shard in shards[1:]:
-                distances, indices = canonical_order(
-                    np.concatenate([distances, shard["distances"][rows]], axis=1),
-                    np.concatenate([indices, shard["indices"][rows]], axis=1),
+                distances, indices = merge_knn(
+                    [(distances, indices), (shard["distances"][rows], shard["indices"][rows])],
+                    k_total,
                 )
-                distances, indices = distances[:, :k_total], indices[:, :k_total]
             found["distances"].append(distances)
             found["indices"].append(indices)
         for writer in found.values():

@@ -1,66 +1,17 @@
-"""Exact k-NN in torch against float64 brute force and faiss flat; approximate faiss indexes
-by name; top-k merging and agreement.
-
-Tie rule: float32 distances may order two items differently from float64 (or from faiss)
-only when their distances are within float32 rounding. Index sets are therefore compared
-exactly on rows whose float64 gap between the k-th and (k+1)-th distance exceeds 1e-4
-(float32 errors here are below 1e-6); distances are compared to float64 within 1e-5.
-"""
+"""Exact k-NN in torch against float64 brute force and faiss flat (tie rule and
+tolerances: tests/knn_helpers.py)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 import torch
+from knn_helpers import DIST_TOL, GAP, brute_force, check_against_float64, clustered, unit_vectors
 
-from vprflow.knn import exact_knn, faiss_knn, merge_knn, topk_agreement
-
-GAP = 1e-4
-DIST_TOL = 1e-5
-
-
-def unit_vectors(rng, n, d):
-    x = rng.standard_normal((n, d))
-    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
-
-
-def clustered(rng, n, d, centres):
-    """Unit vectors around ``centres [c, d]``, noise comparable to the centres' spacing."""
-    labels = rng.integers(0, len(centres), n)
-    x = centres[labels] + 0.5 * rng.standard_normal((n, d)) / np.sqrt(d)
-    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
-
-
-def brute_force(database, queries):
-    """All squared L2 distances in float64 ``[Nq, Nd]`` (differences, no expansion)."""
-    diff = queries.astype(np.float64)[:, None, :] - database.astype(np.float64)[None, :, :]
-    return (diff * diff).sum(-1)
-
-
-def check_against_float64(distances, indices, database, queries, k):
-    """Shapes and dtypes, distances vs float64, index sets on rows with a clear k-th gap."""
-    exact = brute_force(database, queries)
-    k_out = min(k, len(database))
-    assert distances.shape == indices.shape == (len(queries), k_out)
-    assert distances.dtype == np.float32 and indices.dtype == np.int64
-    assert np.all(np.diff(distances, axis=1) >= 0)
-    assert np.all((indices >= 0) & (indices < len(database)))
-    assert all(len(set(row)) == k_out for row in indices)
-    # Each returned distance is that of its index, and the sorted k smallest are float64's.
-    np.testing.assert_allclose(
-        distances, np.take_along_axis(exact, indices, 1), rtol=0, atol=DIST_TOL
-    )
-    ordered = np.sort(exact, axis=1)
-    np.testing.assert_allclose(distances, ordered[:, :k_out], rtol=0, atol=DIST_TOL)
-    if k_out < len(database):
-        clear = ordered[:, k_out] - ordered[:, k_out - 1] > GAP
-    else:
-        clear = np.ones(len(queries), dtype=bool)
-    assert clear.mean() > 0.5  # the comparison below is not vacuous
-    truth = np.argsort(exact, axis=1, kind="stable")[:, :k_out]
-    for row in np.flatnonzero(clear):
-        assert set(indices[row]) == set(truth[row]), row
-    return clear
+from vprflow.knn import exact as knn_exact
+from vprflow.knn.exact import exact_knn
+from vprflow.knn.flat import flat_knn
+from vprflow.knn.topk import topk_agreement
 
 
 @pytest.mark.parametrize("candidate_dtype", ["bfloat16", "float32"])
@@ -143,24 +94,22 @@ def test_duplicates_tie_to_the_lowest_index():
 def test_certified_error_bound_holds(candidate_dtype):
     """The bound behind the candidate cut-off, checked pair by pair on this machine's GEMM:
     |d' - d| <= bound + 2 u |s~| for unit, heavy-tailed and unnormalised vectors."""
-    from vprflow import knn
-
     rng = np.random.default_rng(31)
     heavy = rng.standard_normal((260, 48)) ** 5  # a few large coordinates: C-S nearly tight
     scaled = rng.standard_normal((260, 40)) * rng.uniform(0.01, 100, (260, 1))
-    low = knn.CANDIDATE_DTYPES[candidate_dtype]
+    low = knn_exact.CANDIDATE_DTYPES[candidate_dtype]
     for data in (
         unit_vectors(rng, 260, 256),
         heavy / np.linalg.norm(heavy, axis=1)[:, None],
         scaled,
     ):
         data = torch.from_numpy(data.astype(np.float32))
-        ref, query = knn._side(data[:200], low), knn._side(data[200:], low)
-        raw, factor, unit = knn._product(query, ref)
+        ref, query = knn_exact._side(data[:200], low), knn_exact._side(data[200:], low)
+        raw, factor, unit = knn_exact._product(query, ref)
         product = raw.float() * factor  # s~
         approx = query.sq_norm[:, None] + ref.sq_norm[None, :] - 2 * product
         exact = ((data[200:, None, :] - data[None, :200, :]) ** 2).sum(-1)
-        bound = knn._error_bound(query, ref)[:, None] + 2 * unit / (1 - unit) * product.abs()
+        bound = knn_exact._error_bound(query, ref)[:, None] + 2 * unit / (1 - unit) * product.abs()
         assert torch.all((approx - exact).abs() <= bound)
 
 
@@ -168,7 +117,7 @@ def test_exact_knn_matches_faiss_flat():
     rng = np.random.default_rng(11)
     database, queries = unit_vectors(rng, 1500, 128), unit_vectors(rng, 120, 128)
     ours_d, ours_i = exact_knn(database, queries, 50, device="cpu", block_database=600)
-    ref_d, ref_i = faiss_knn(database, queries, 50, index="flat")
+    ref_d, ref_i = flat_knn(database, queries, 50)
     np.testing.assert_allclose(ours_d, ref_d, rtol=0, atol=DIST_TOL)
     exact = np.sort(brute_force(database, queries), axis=1)
     clear = exact[:, 50] - exact[:, 49] > GAP
@@ -207,81 +156,9 @@ def test_exact_knn_edge_cases_and_errors():
             exact_knn(database, queries, 5, device="cuda")
 
 
-@pytest.mark.parametrize(
-    ("index", "params", "least_recall"),
-    [
-        ("ivf_flat", {"nlist": 16, "nprobe": 4}, 0.8),
-        ("ivf_pq", {"nlist": 8, "nprobe": 4, "m": 8, "nbits": 6}, 0.3),
-        ("hnsw", {"M": 16, "ef_search": 64}, 0.8),
-    ],
-)
-def test_approximate_indexes(index, params, least_recall):
-    rng = np.random.default_rng(19)
-    centres = unit_vectors(rng, 20, 32)
-    database, queries = clustered(rng, 3000, 32, centres), clustered(rng, 100, 32, centres)
-    _, truth = exact_knn(database, queries, 10, device="cpu")
-    distances, indices = faiss_knn(database, queries, 10, index=index, **params)
-    assert distances.shape == indices.shape == (100, 10)
-    assert distances.dtype == np.float32 and indices.dtype == np.int64
-    assert np.all((indices >= -1) & (indices < len(database)))
-    assert topk_agreement(indices, truth) > least_recall
-    # Seeded training: a second build gives the same answer.
-    if index != "hnsw":
-        again = faiss_knn(database, queries, 10, index=index, **params)
-        np.testing.assert_array_equal(again[1], indices)
-
-
-def test_faiss_knn_defaults_and_errors():
-    rng = np.random.default_rng(23)
-    database, queries = unit_vectors(rng, 400, 16), unit_vectors(rng, 5, 16)
-    distances, indices = faiss_knn(database, queries, 500, index="ivf_flat")
-    assert distances.shape == indices.shape == (5, 400)  # k' = min(k, Nd)
-    with pytest.raises(ValueError, match="'ivf_hnsw'"):
-        faiss_knn(database, queries, 5, index="ivf_hnsw")
-    with pytest.raises(ValueError, match="nprobes"):
-        faiss_knn(database, queries, 5, index="ivf_flat", nprobes=3)
-    with pytest.raises(ValueError, match="nlist"):
-        faiss_knn(database, queries, 5, index="flat", nlist=3)
-    with pytest.raises(ValueError, match="divide"):
-        faiss_knn(database, queries, 5, index="ivf_pq", m=3, nbits=4)
-
-
-def test_merge_knn_of_shards_equals_one_search():
-    rng = np.random.default_rng(29)
-    database, queries = unit_vectors(rng, 230, 24), unit_vectors(rng, 12, 24)
-    whole = exact_knn(database, queries, 15, device="cpu")
-    parts = []
-    for start in range(0, len(database), 60):
-        d, i = exact_knn(database[start : start + 60], queries, 15, device="cpu")
-        parts.append((d, i + start))
-    merged = merge_knn(parts, 15)
-    np.testing.assert_array_equal(merged[0], whole[0])
-    np.testing.assert_array_equal(merged[1], whole[1])
-    # faiss padding (-1) sorts after every real neighbour.
-    padded = merge_knn([(np.array([[0.5, np.inf]], np.float32), np.array([[4, -1]]))], 2)
-    np.testing.assert_array_equal(padded[1], [[4, -1]])
-
-
-def test_topk_agreement():
-    a = np.array([[1, 2, 3, 4], [5, 6, 7, 8]])
-    assert topk_agreement(a, a) == 1.0
-    assert topk_agreement(a, a[:, ::-1]) == 1.0  # order does not matter
-    assert topk_agreement(a, a + 100) == 0.0
-    b = np.array([[1, 2, 9, 10], [8, -1, -1, 5]])
-    assert topk_agreement(a, b) == pytest.approx((2 / 4 + 2 / 4) / 2)
-    # -1 is "missing", never shared, even when both sides miss.
-    assert topk_agreement(np.array([[-1, 3]]), np.array([[-1, 3]])) == 0.5
-    # Rows do not leak into each other.
-    assert topk_agreement(np.array([[1], [2]]), np.array([[2], [1]])) == 0.0
-    with pytest.raises(ValueError):
-        topk_agreement(a, a[:, :2])
-
-
 @pytest.mark.parametrize("dtype", [torch.bfloat16, torch.float16, torch.float32])
 def test_group_max_bounds_every_group(dtype):
     """Bit-pattern group maxima: the largest value where it is positive, else zero."""
-    from vprflow import knn
-
     rng = np.random.default_rng(37)
     values = torch.from_numpy(rng.standard_normal((6, 40, 8)).astype(np.float32))
     values[0, :3] = -values[0, :3].abs()  # all negative
@@ -289,7 +166,7 @@ def test_group_max_bounds_every_group(dtype):
     values[1, 4] = -0.0
     values[1, 5] = torch.tensor([-0.0, 0.0, -1.0, -3.0, -0.0, -2.0, -5.0, -0.5])
     values = values.to(dtype)
-    peak = knn._group_max(values, -1)
+    peak = knn_exact._group_max(values, -1)
     assert peak.dtype == dtype
     expected = values.float().amax(-1).clamp(min=0)
     assert torch.equal(peak.float(), expected)
@@ -300,20 +177,18 @@ def test_select_leaves_out_only_keys_above_threshold(candidate_dtype):
     """_select by column groups (with a partial last group): distinct candidates, and every
     item left out has a key of at least the threshold, for unit and unnormalised rows (the
     latter reordered by norm, as exact_knn does)."""
-    from vprflow import knn
-
     rng = np.random.default_rng(41)
-    low = knn.CANDIDATE_DTYPES[candidate_dtype]
+    low = knn_exact.CANDIDATE_DTYPES[candidate_dtype]
     scaled = unit_vectors(rng, 1203, 24) * rng.uniform(0.2, 3.0, (1203, 1)).astype(np.float32)
     for ref_data in (unit_vectors(rng, 1203, 24), scaled):
-        ref = knn._by_norm(knn._side(torch.from_numpy(ref_data), low))
+        ref = knn_exact._by_norm(knn_exact._side(torch.from_numpy(ref_data), low))
         assert (ref.order is None) == (ref_data is not scaled)
         col_sq = ref.sq_norm if ref.order is None else ref.sq_norm[ref.order]
-        query = knn._side(torch.from_numpy(unit_vectors(rng, 30, 24)), low)
-        raw, factor, _ = knn._product(query, ref)
-        key = knn._keys(raw.clone(), factor, col_sq)
+        query = knn_exact._side(torch.from_numpy(unit_vectors(rng, 30, 24)), low)
+        raw, factor, _ = knn_exact._product(query, ref)
+        key = knn_exact._keys(raw.clone(), factor, col_sq)
         kept = raw.clone()
-        cand, _, threshold, full = knn._select(raw, factor, col_sq, 9)
+        cand, _, threshold, full = knn_exact._select(raw, factor, col_sq, 9)
         assert full is None  # the grouped path: 1203 // 16 groups >= 4 * 9
         assert torch.equal(raw, kept)  # widening passes key rows of raw later
         assert all(len(set(row.tolist())) == 9 for row in cand)
@@ -331,12 +206,12 @@ def test_select_leaves_out_only_keys_above_threshold(candidate_dtype):
 def test_grouped_selection_is_exact(monkeypatch, candidate_dtype, margin):
     """Blocks wide enough for selection by column groups (small groups here): exact against
     float64 on clustered, unnormalised data with ragged blocks, widening included."""
-    from vprflow import knn
-
     calls = []
-    group_max = knn._group_max
-    monkeypatch.setattr(knn, "GROUP", 3)
-    monkeypatch.setattr(knn, "_group_max", lambda g, d: calls.append(g.shape) or group_max(g, d))
+    group_max = knn_exact._group_max
+    monkeypatch.setattr(knn_exact, "GROUP", 3)
+    monkeypatch.setattr(
+        knn_exact, "_group_max", lambda g, d: calls.append(g.shape) or group_max(g, d)
+    )
     rng = np.random.default_rng(43)
     centres = unit_vectors(rng, 5, 40)
     database = clustered(rng, 700, 40, centres) * rng.uniform(0.5, 2, (700, 1)).astype(np.float32)
@@ -360,9 +235,7 @@ def test_grouped_selection_is_exact(monkeypatch, candidate_dtype, margin):
 
 
 def test_grouped_selection_duplicates_tie_to_the_lowest_index(monkeypatch):
-    from vprflow import knn
-
-    monkeypatch.setattr(knn, "GROUP", 2)
+    monkeypatch.setattr(knn_exact, "GROUP", 2)
     rng = np.random.default_rng(47)
     others = unit_vectors(rng, 300, 16)
     target = unit_vectors(rng, 1, 16)

@@ -1,12 +1,12 @@
-"""k-nearest-neighbour search for segment retrieval: a fast exact path in torch, approximate
-faiss indexes by name, and helpers to merge and compare top-k lists.
+"""Exact squared-L2 k-NN in torch (``retrieval.index: exact_fast``): faiss
+``IndexFlatL2``'s top-k (:func:`vprflow.knn.flat.flat_knn`) from low-precision products,
+certified exact, on CPU or GPU.
 
-All searches use squared L2 distances and return ``(distances [Nq, k'] float32,
-indices [Nq, k'] int64)`` with ``k' = min(k, Nd)``, nearest first, like
-:func:`vprflow.retrieval.search`.
+:func:`exact_knn` returns ``(distances [Nq, k'] float32, indices [Nq, k'] int64)`` with
+``k' = min(k, Nd)``, nearest first, like every search of :mod:`vprflow.knn`.
 
-Exact path (:func:`exact_knn`)
-------------------------------
+How it works
+------------
 For each (query block, database block) the products ``q . r`` are computed in low
 precision (``candidate_dtype``, float32 accumulation) only to pick candidates; every
 candidate is then re-scored exactly as ``((q - r) ** 2).sum()`` in float32 and the k best
@@ -58,13 +58,14 @@ candidate costs about as much CPU as 100 bf16 products, so int8 loses more than 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
-from typing import Any, NamedTuple
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from vprflow.devices import resolve_device
+from vprflow.knn.inputs import as_matrix, non_negative_int, positive_int
+from vprflow.knn.topk import NO_INDEX
 from vprflow.registry import SEARCH_INDEXES
 
 CANDIDATE_DTYPES = {"bfloat16": torch.bfloat16, "float16": torch.float16, "float32": torch.float32}
@@ -84,9 +85,6 @@ _UNIT32 = 2.0**-24  # float32 unit roundoff
 # Columns per group in candidate selection (_select): the product is reduced to one bound per
 # group, and only the best groups are keyed item by item.
 GROUP = 16
-
-# Padding index for rows that have seen fewer than k items: sorts after every real index.
-_NO_INDEX = np.iinfo(np.int64).max
 
 # exact_knn's defaults: the search stage passes them from the key; direct callers get the same.
 _EXACT = SEARCH_INDEXES["exact_fast"].defaults
@@ -126,22 +124,22 @@ def exact_knn(
     with counters: ``rescored`` (candidate pairs re-scored) and ``widened`` (row-block pairs
     whose candidate list had to grow past ``k + margin``).
     """
-    database = _as_matrix(database, "database")
-    queries = _as_matrix(queries, "queries")
+    database = as_matrix(database, "database")
+    queries = as_matrix(queries, "queries")
     if database.shape[1] != queries.shape[1]:
         raise ValueError(
             f"database has dimension {database.shape[1]} but queries {queries.shape[1]}"
         )
-    k = _non_negative_int("k", k)
-    block_queries = _positive_int("block_queries", block_queries)
-    block_database = _positive_int("block_database", block_database)
+    k = non_negative_int("k", k)
+    block_queries = positive_int("block_queries", block_queries)
+    block_database = positive_int("block_database", block_database)
     if candidate_dtype not in CANDIDATE_DTYPES:
         raise ValueError(
             f"unknown candidate_dtype {candidate_dtype!r}; expected one of "
             f"{sorted(CANDIDATE_DTYPES)}"
         )
     low = CANDIDATE_DTYPES[candidate_dtype]
-    margin = _non_negative_int(
+    margin = non_negative_int(
         "margin", DEFAULT_MARGINS[candidate_dtype] if margin is None else margin
     )
     target = resolve_device(device)
@@ -152,7 +150,7 @@ def exact_knn(
     n_db, n_q = len(database), len(queries)
     k_out = min(k, n_db)
     distances = np.full((n_q, k_out), np.inf, dtype=np.float32)
-    indices = np.full((n_q, k_out), _NO_INDEX, dtype=np.int64)
+    indices = np.full((n_q, k_out), NO_INDEX, dtype=np.int64)
     if k_out == 0 or n_q == 0:
         return distances, indices
 
@@ -512,162 +510,7 @@ def _merge(
     return dist.gather(1, order), idx.gather(1, order)
 
 
-def merge_knn(
-    parts: Sequence[tuple[np.ndarray, np.ndarray]], k: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Merge per-shard results into one top-k: ``parts`` of ``(distances [Nq, k_s],
-    indices [Nq, k_s])`` whose indices already point into the full database ->
-    ``(distances [Nq, k'], indices [Nq, k'])``, ``k' = min(k, sum k_s)``, sorted by
-    (distance, index); ``-1`` indices (faiss's padding) sort last."""
-    if not parts:
-        raise ValueError("merge_knn needs at least one part")
-    dist = np.concatenate([np.asarray(d, dtype=np.float32) for d, _ in parts], axis=1)
-    idx = np.concatenate([np.asarray(i, dtype=np.int64) for _, i in parts], axis=1)
-    k_out = min(_non_negative_int("k", k), dist.shape[1])
-    missing = idx < 0
-    order = np.lexsort((np.where(missing, _NO_INDEX, idx), dist, missing), axis=-1)[:, :k_out]
-    return np.take_along_axis(dist, order, 1), np.take_along_axis(idx, order, 1)
-
-
-def topk_agreement(indices_a: np.ndarray, indices_b: np.ndarray) -> float:
-    """Mean over rows of the fraction of the top-k set shared: ``[N, k]`` x ``[N, k]`` -> float.
-
-    Order within a row does not matter; ``-1`` (missing) never counts as shared. Rows are
-    assumed to hold distinct indices. Vacuously 1.0 when there are no rows or k is 0.
-    """
-    a = np.asarray(indices_a, dtype=np.int64)
-    b = np.asarray(indices_b, dtype=np.int64)
-    if a.ndim != 2 or a.shape != b.shape:
-        raise ValueError(f"expected two [N, k] arrays of one shape, got {a.shape} and {b.shape}")
-    n, k = a.shape
-    if n == 0 or k == 0:
-        return 1.0
-    # One key per (row, index): a set test over all rows at once. -1 in b maps to the last
-    # key of the previous row's span, which no valid index of a can take.
-    span = int(max(a.max(), b.max())) + 2
-    offset = np.arange(n, dtype=np.int64)[:, None] * span
-    shared = np.isin(a + offset, b + offset) & (a >= 0)
-    return float(shared.sum(1).mean() / k)
-
-
-# The faiss indexes faiss_knn builds; their parameter defaults are the registry's.
-FAISS_INDEXES = ("flat", "ivf_flat", "ivf_pq", "hnsw")
-
-
-def faiss_knn(
-    database: np.ndarray, queries: np.ndarray, k: int, *, index: str = "flat", **params: Any
-) -> tuple[np.ndarray, np.ndarray]:
-    """Squared-L2 k-NN with a faiss index chosen by name -> ``(distances [Nq, k'] float32,
-    indices [Nq, k'] int64)``, ``k' = min(k, Nd)``, nearest first.
-
-    Parameters left out take the defaults of :data:`vprflow.registry.SEARCH_INDEXES`.
-
-    - ``"flat"``: ``IndexFlatL2``, exact (the reference); no parameters.
-    - ``"ivf_flat"``: ``nlist`` (``None``: ``min(4 sqrt(Nd), Nd / 39)``, at least 1),
-      ``nprobe`` (capped at nlist), ``seed`` for the k-means training.
-    - ``"ivf_pq"``: as ivf_flat plus ``m`` sub-quantizers (``None``: the largest divisor
-      of D up to D / 16) of ``nbits`` bits; needs ``Nd >= 2 ** nbits``. Distances are the
-      PQ approximations.
-    - ``"hnsw"``: ``IndexHNSWFlat`` with ``M``, ``ef_construction`` and ``ef_search``
-      (raised to k when smaller).
-
-    IVF training is deterministic: the coarse and PQ k-means use ``seed``. HNSW graph
-    construction is parallel and therefore only reproducible with one OpenMP thread.
-    Approximate indexes may return fewer than k' results for a row, padded as faiss does
-    with index -1 and distance 3.4e38 (float32 max). Unknown names and parameters raise
-    ``ValueError``.
-    """
-    import faiss
-
-    if index not in FAISS_INDEXES:
-        raise ValueError(f"unknown faiss index {index!r}; expected one of {sorted(FAISS_INDEXES)}")
-    defaults = SEARCH_INDEXES[index].defaults
-    unknown = sorted(set(params) - set(defaults))
-    if unknown:
-        raise ValueError(
-            f"unknown parameter(s) {unknown} for faiss index {index!r}; "
-            f"expected some of {sorted(defaults)}"
-        )
-    settings = {**defaults, **params}
-    database = np.ascontiguousarray(_as_matrix(database, "database"), dtype=np.float32)
-    queries = np.ascontiguousarray(_as_matrix(queries, "queries"), dtype=np.float32)
-    n_db, dim = database.shape
-    if queries.shape[1] != dim:
-        raise ValueError(f"database has dimension {dim} but queries {queries.shape[1]}")
-    k_out = min(_non_negative_int("k", k), n_db)
-    if k_out == 0 or len(queries) == 0:
-        return np.zeros((len(queries), k_out), np.float32), np.zeros(
-            (len(queries), k_out), np.int64
-        )
-
-    if index == "flat":
-        built = faiss.IndexFlatL2(dim)
-        built.add(database)
-    elif index in ("ivf_flat", "ivf_pq"):
-        nlist = settings["nlist"]
-        if nlist is None:
-            nlist = max(1, min(round(4 * math.sqrt(n_db)), n_db // 39))
-        nlist = _positive_int("nlist", nlist)
-        if nlist > n_db:
-            raise ValueError(f"nlist={nlist} exceeds the {n_db} database vectors")
-        if index == "ivf_flat":
-            built = faiss.index_factory(dim, f"IVF{nlist},Flat")
-        else:
-            m = settings["m"] if settings["m"] is not None else _default_pq_m(dim)
-            m = _positive_int("m", m)
-            nbits = _positive_int("nbits", settings["nbits"])
-            if dim % m:
-                raise ValueError(f"m={m} must divide the dimension {dim}")
-            if n_db < 2**nbits:
-                raise ValueError(f"nbits={nbits} needs at least {2**nbits} vectors, got {n_db}")
-            built = faiss.index_factory(dim, f"IVF{nlist},PQ{m}x{nbits}")
-        ivf = faiss.downcast_index(faiss.extract_index_ivf(built))
-        seed = int(settings["seed"])
-        ivf.cp.seed = seed
-        if index == "ivf_pq":
-            ivf.pq.cp.seed = seed
-            # The factory turns on polysemous code reordering: slow (simulated annealing) and
-            # only useful for polysemous filtering, which searches do not use.
-            ivf.do_polysemous_training = False
-        built.train(database)
-        built.add(database)
-        ivf.nprobe = min(_positive_int("nprobe", settings["nprobe"]), nlist)
-    else:
-        built = faiss.IndexHNSWFlat(dim, _positive_int("M", settings["M"]))
-        built.hnsw.efConstruction = _positive_int("ef_construction", settings["ef_construction"])
-        built.add(database)
-        # A search beam narrower than k cannot return k neighbours.
-        built.hnsw.efSearch = max(_positive_int("ef_search", settings["ef_search"]), k_out)
-    distances, indices = built.search(queries, k_out)
-    return distances, indices.astype(np.int64, copy=False)
-
-
-def _default_pq_m(dim: int) -> int:
-    target = max(1, dim // 16)
-    return max(m for m in range(1, target + 1) if dim % m == 0)
-
-
 def _block(array: np.ndarray, start: int, size: int, device: torch.device) -> torch.Tensor:
     """Rows ``[start, start + size)`` of ``array`` as a float32 tensor on ``device``."""
     block = torch.from_numpy(np.ascontiguousarray(array[start : start + size], dtype=np.float32))
     return block.to(device)
-
-
-def _as_matrix(array: Any, name: str) -> np.ndarray:
-    # np.asarray keeps memory maps as they are; blocks are converted to float32 one at a time.
-    array = np.asarray(array)
-    if array.ndim != 2:
-        raise ValueError(f"{name} must be a [N, D] matrix, got shape {array.shape}")
-    return array
-
-
-def _positive_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise ValueError(f"{name} must be a positive integer, got {value!r}")
-    return int(value)
-
-
-def _non_negative_int(name: str, value: Any) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
-        raise ValueError(f"{name} must be a non-negative integer, got {value!r}")
-    return int(value)

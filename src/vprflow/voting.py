@@ -1,32 +1,12 @@
-"""Exhaustive nearest-neighbour retrieval with faiss, and SegVLAD image voting
-(docs/methods.md §5, §8)."""
+"""SegVLAD's similarity-weighted image voting (docs/methods.md §5): each query segment's
+retrieved reference segments (the ``search`` stage's lists) vote for their images, and the
+voted scores rank the reference images of every query image."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
 import numpy as np
-
-
-def search(database: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Exact squared-L2 k-NN: ``database [Nd, D]``, ``queries [Nq, D]`` ->
-    ``(distances [Nq, k'], indices [Nq, k'])`` with ``k' = min(k, Nd)``, nearest first."""
-    import faiss
-
-    database = np.ascontiguousarray(database, dtype=np.float32)
-    queries = np.ascontiguousarray(queries, dtype=np.float32)
-    k = min(k, len(database))
-    index = faiss.IndexFlatL2(database.shape[1])
-    index.add(database)
-    distances, indices = index.search(queries, k)
-    return distances, indices
-
-
-def global_ranking(reference: np.ndarray, query: np.ndarray, top: int) -> np.ndarray:
-    """Top-``top`` reference images per query for global descriptors ``[N, D]``."""
-    _, indices = search(reference, query, top)
-    return indices
-
 
 VOTE_RANKINGS = ("published", "all_images")
 
