@@ -9,8 +9,8 @@ import yaml
 from workflow_helpers import REPO
 
 from vprflow import registry
-from vprflow.config import ConfigError, validate_config
-from vprflow.plan import PlanError, build_plan, content_key
+from vprflow.config import ConfigError, PlanError, validate_config
+from vprflow.plan import build_plan, content_key
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 

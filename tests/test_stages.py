@@ -395,7 +395,8 @@ def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure)
 
 
 def test_a_method_has_the_figures_of_its_aggregator(pipeline):
-    from vprflow.plan import PlanError, dataset_outputs, figure_inputs
+    from vprflow.config import PlanError
+    from vprflow.plan import dataset_outputs, figure_inputs
 
     plan, _, _, _ = pipeline
     figures = {run.method: run.figures for run in plan.runs["toy"]}

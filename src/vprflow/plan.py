@@ -20,7 +20,7 @@ import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from vprflow.config import METHOD_DEFAULT_SECTIONS
+from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
 from vprflow.files import write_text_atomic
 from vprflow.registry import (
     SEARCH_INDEXES,
@@ -76,10 +76,6 @@ NOT_DATASET_STAGE = (
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
 EXECUTION_ONLY = ("batch_size", "cache_dir")
-
-
-class PlanError(ValueError):
-    """A config that passes the schema but refers to something that does not exist."""
 
 
 def content_key(record: dict) -> str:

@@ -2,7 +2,7 @@
 from functools import cache
 from pathlib import Path
 
-from vprflow.config import validate_config
+from vprflow.config import PlanError, validate_config
 from vprflow.datasets import list_dataset
 from vprflow.plan import (
     EXPORT,
@@ -11,7 +11,6 @@ from vprflow.plan import (
     RECALL_CSV,
     RECALL_PLOT,
     RECALL_TABLE,
-    PlanError,
     benchmark_pattern,
     build_plan,
     dataset_outputs,
