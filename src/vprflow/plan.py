@@ -22,6 +22,17 @@ from pathlib import Path
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
 from vprflow.files import write_text_atomic
+from vprflow.paths import (
+    FIGURE,
+    FINGERPRINTS,
+    INDEX,
+    PREDICTIONS_CSV,
+    RECALL_CSV,
+    RECALL_PLOT,
+    RECALL_TABLE,
+    log_pattern,
+    store_path,
+)
 from vprflow.registry import (
     SEARCH_INDEXES,
     aggregator,
@@ -30,16 +41,6 @@ from vprflow.registry import (
     search_settings,
 )
 
-CACHE = "results/cache"
-# Per-dataset tables written by the report rule.
-RECALL_CSV = "results/recall_{dataset}.csv"
-PREDICTIONS_CSV = "results/predictions_{dataset}.csv"
-# Figures of the report (not stages: no key, a changed figure setting reruns only them).
-RECALL_PLOT = "results/plots/recall_{dataset}.png"
-RECALL_TABLE = "results/tables/recall_{dataset}.html"
-# A method's descriptors of a dataset in one NumPy file (the `export` rule).
-EXPORT = "results/export/{dataset}/{method}.npz"
-FIGURE = "results/figures/{dataset}/{figure}/{method}.png"
 # Each figure kind of one method and the stores it reads (the method's own, by name).
 FIGURES = {
     "retrievals": ("dataset", "recall"),
@@ -102,9 +103,6 @@ def deep_merge(base: dict, override: dict) -> dict:
     return merged
 
 
-FINGERPRINTS = f"{CACHE}/fingerprints.json"
-
-
 def load_fingerprints(path: str | Path = FINGERPRINTS) -> dict:
     """The memo of content hashes (see :func:`_memoised`). It is only a cache: an
     unreadable one is reported, ignored and rebuilt (hashing everything once more)."""
@@ -130,36 +128,6 @@ def load_fingerprints(path: str | Path = FINGERPRINTS) -> dict:
 def save_fingerprints(memo: dict, path: str | Path = FINGERPRINTS) -> None:
     """Write the memo atomically, so a concurrent or killed run never leaves half a file."""
     write_text_atomic(path, json.dumps(memo, indent=1, sort_keys=True))
-
-
-def store_path(stage: str, key: str) -> str:
-    return store_pattern(stage).format(key=key)
-
-
-# Where everything lives. Rules take their outputs and logs from these, input functions
-# their inputs: one place decides each path.
-def store_pattern(stage: str) -> str:
-    """A stage's store, wildcard ``{key}``."""
-    return f"{CACHE}/{stage}/{{key}}.zarr"
-
-
-def shard_pattern(stage: str) -> str:
-    """One shard of a per-image stage, wildcards ``{key}``, ``{start}``, ``{stop}``."""
-    return f"{CACHE}/{stage}/{{key}}.shards/{{start}}-{{stop}}.zarr"
-
-
-def log_pattern(stage: str, part: str = "{stage}") -> str:
-    """A stage's log: every log of one store (its shards, its gather) in one folder,
-    ``logs/<stage>/<key>/``; ``logs/by-method/`` links to them by dataset and method."""
-    return f"logs/{stage}/{{key}}/{part.replace('{stage}', stage)}.log"
-
-
-def benchmark_pattern(stage: str, part: str = "{stage}") -> str:
-    """A stage's benchmark table, next to its log."""
-    return log_pattern(stage, part).removesuffix(".log") + ".benchmark.tsv"
-
-
-INDEX = f"{CACHE}/index.tsv"
 
 
 @dataclass

@@ -4,25 +4,27 @@ from pathlib import Path
 
 from vprflow.config import PlanError, validate_config
 from vprflow.datasets import list_dataset
-from vprflow.plan import (
+from vprflow.paths import (
     EXPORT,
     FIGURE,
+    FINGERPRINTS,
     PREDICTIONS_CSV,
     RECALL_CSV,
     RECALL_PLOT,
     RECALL_TABLE,
     benchmark_pattern,
-    build_plan,
-    dataset_outputs,
-    figure_inputs,
-    method_stores,
-    FINGERPRINTS,
-    load_fingerprints,
     log_pattern,
-    save_fingerprints,
     shard_pattern,
     store_path,
     store_pattern,
+)
+from vprflow.plan import (
+    build_plan,
+    dataset_outputs,
+    figure_inputs,
+    load_fingerprints,
+    method_stores,
+    save_fingerprints,
     withdraw_reports,
     withdraw_stale_reports,
     write_index,
