@@ -436,7 +436,7 @@ def test_an_image_changed_after_the_dataset_stage_fails_the_stage_reading_it(tmp
 
 
 def test_an_image_changed_after_planning_fails_the_dataset_stage_naming_it(tmp_path):
-    from vprflow.plan import save_fingerprints
+    from vprflow.fingerprints import save_fingerprints
 
     memo = {}
     plan = small_plan(tmp_path, memo=memo)

@@ -16,15 +16,14 @@ import copy
 import hashlib
 import json
 import os
-import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
 from vprflow.files import write_text_atomic
+from vprflow.fingerprints import dataset_contents, file_digest, memoised, source_fingerprint
 from vprflow.paths import (
     FIGURE,
-    FINGERPRINTS,
     INDEX,
     PREDICTIONS_CSV,
     RECALL_CSV,
@@ -85,14 +84,6 @@ def content_key(record: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def file_digest(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def deep_merge(base: dict, override: dict) -> dict:
     merged = copy.deepcopy(base)
     for name, value in override.items():
@@ -101,33 +92,6 @@ def deep_merge(base: dict, override: dict) -> dict:
         else:
             merged[name] = copy.deepcopy(value)
     return merged
-
-
-def load_fingerprints(path: str | Path = FINGERPRINTS) -> dict:
-    """The memo of content hashes (see :func:`_memoised`). It is only a cache: an
-    unreadable one is reported, ignored and rebuilt (hashing everything once more)."""
-    path = Path(path)
-    if not path.exists():
-        return {}
-    try:
-        memo = json.loads(path.read_text())
-        if not isinstance(memo, dict) or not all(isinstance(v, str) for v in memo.values()):
-            raise ValueError("not a JSON object of strings")
-        return memo
-    except (OSError, ValueError) as error:
-        import warnings
-
-        warnings.warn(
-            f"{path} is unreadable ({error}); it only caches content hashes, so it is "
-            "ignored and rebuilt (delete it to silence this)",
-            stacklevel=2,
-        )
-        return {}
-
-
-def save_fingerprints(memo: dict, path: str | Path = FINGERPRINTS) -> None:
-    """Write the memo atomically, so a concurrent or killed run never leaves half a file."""
-    write_text_atomic(path, json.dumps(memo, indent=1, sort_keys=True))
 
 
 @dataclass
@@ -368,108 +332,12 @@ def resolve_method(config: dict, name: str, dataset: dict | None = None) -> dict
     return deep_merge(settings, config["methods"][name])
 
 
-def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> dict:
-    """What identifies the weights or file a backbone (``stage="features"``) or
-    segmenter (``stage="segments"``) entry reads, as its registry kind says.
-
-    Hub ids stand for themselves; local model directories and imported HDF5 files are
-    hashed by content (memoised by path, size and modification time, because a
-    ViT-G checkpoint takes seconds to hash and the plan is built on every run), as are
-    the kind's ``model_files`` in a local directory and a backbone's ``checkpoint`` file.
-    ``where`` is the entry's config key (``backbones.<name>``), named in errors.
-    """
-    kind = model_kind(stage, entry)
-    if kind.weights == "file":
-        return {"file_sha256": _memoised(entry["file"], memo, file_digest, f"{where}.file")}
-    if kind.weights == "model":
-        from vprflow.models import is_local_model, weights_fingerprint
-
-        model = entry["model"]
-        if not is_local_model(model):
-            return {
-                "model": model,
-                "weights": f"hf:{model}",
-                **_checkpoint_fingerprint(entry, memo, where),
-            }
-        if not Path(model).expanduser().exists():
-            from vprflow.models import model_not_found
-
-            raise PlanError(
-                f"config key {where}.model: "
-                + str(model_not_found(model, f"local directory {model!r} does not exist", None))
-            )
-        weights = _memoised(model, memo, weights_fingerprint, f"{where}.model")
-        found = {"model": model, "weights": weights}
-        for name in kind.model_files:  # e.g. a DINOv3 directory's preprocessor_config.json
-            path = Path(model).expanduser() / name
-            if path.is_file():
-                found[name] = _memoised(path, memo, file_digest, f"{where}.model")
-        return {**found, **_checkpoint_fingerprint(entry, memo, where)}
-    return {}
-
-
-def _checkpoint_fingerprint(entry: dict, memo: dict, where: str) -> dict:
-    """A backbone's ``checkpoint`` file (weights replacing the model's), hashed."""
-    if entry.get("checkpoint") is None:
-        return {}
-    sha = _memoised(entry["checkpoint"], memo, file_digest, f"{where}.checkpoint")
-    return {"checkpoint_sha256": sha}
-
-
-def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str | None:
-    """:func:`vprflow.datasets.contents_digest` of a dataset, or ``None`` while the
-    dataset cannot be listed (its stage then fails, naming why).
-
-    Each file's hash is memoised by path, size, mtime and ctime, so re-planning reads no
-    image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
-    ``rsync -a`` or ``tar`` (which restore an older mtime).
-    """
-    from vprflow.datasets import DatasetError, contents_digest, list_dataset
-    from vprflow.images import ImageReadError
-
-    try:
-        files = list_dataset(data_root, name, spec)
-    except (DatasetError, ImageReadError):
-        return None
-    return contents_digest(
-        files,
-        data_root,
-        spec,
-        lambda path, where: _memoised(path, memo, file_digest, f"datasets.{name}.{where}"),
-    )
-
-
-def memo_key(path: str | Path, st: os.stat_result | None = None) -> str:
-    """The memo's key of a file: its absolute path, size, mtime and ctime."""
-    st = st or os.stat(path)
-    stamp = f"{os.path.basename(path)}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}"
-    return f"{os.path.abspath(path)}|{stamp}"
-
-
-def _memoised(path: str | Path, memo: dict, digest, where: str) -> str:
-    """``digest(path)`` of a file or a directory's files, memoised by absolute path,
-    size, mtime and ctime (one ``stat`` per file: re-planning 100,000 images is quick)."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        raise PlanError(f"config key {where}: {path} does not exist") from None
-    if stat.S_ISDIR(st.st_mode):
-        entries = sorted(os.scandir(path), key=lambda e: e.name)
-        stamps = [(e.name, e.stat()) for e in entries if e.is_file()]
-        stamp = "|".join(f"{n}:{s.st_size}:{s.st_mtime_ns}:{s.st_ctime_ns}" for n, s in stamps)
-        key = f"{os.path.abspath(path)}|{stamp}"
-    else:
-        key = memo_key(path, st)
-    if key not in memo:
-        memo[key] = digest(str(path))
-    return memo[key]
-
-
 def build_plan(config: dict, memo: dict | None = None) -> Plan:
     """Every stage of every (dataset, method) pair in ``config``; shared stages dedupe.
 
     ``memo`` caches content hashes of local model weights and imported files across
-    runs (see :func:`source_fingerprint`); pass a dict loaded from disk to reuse it.
+    runs (see :func:`vprflow.fingerprints.source_fingerprint`); pass a dict loaded from
+    disk to reuse it.
     """
     memo = {} if memo is None else memo
     plan = Plan()
@@ -589,7 +457,7 @@ def _plan_method(
             if vocabulary["source"] == "file":
                 params.update(
                     file=vocabulary["file"],
-                    sha256=_memoised(vocabulary["file"], memo, file_digest, "vocabulary.file"),
+                    sha256=memoised(vocabulary["file"], memo, file_digest, "vocabulary.file"),
                 )
             inputs["vocabulary"] = (
                 "vocabulary",

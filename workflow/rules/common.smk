@@ -4,6 +4,7 @@ from pathlib import Path
 
 from vprflow.config import PlanError, validate_config
 from vprflow.datasets import list_dataset
+from vprflow.fingerprints import load_fingerprints, save_fingerprints
 from vprflow.paths import (
     EXPORT,
     FIGURE,
@@ -22,9 +23,7 @@ from vprflow.plan import (
     build_plan,
     dataset_outputs,
     figure_inputs,
-    load_fingerprints,
     method_stores,
-    save_fingerprints,
     withdraw_reports,
     withdraw_stale_reports,
     write_index,
