@@ -359,8 +359,8 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
 
 
 def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
-    """The stores a figure rule would get (vprflow.plan.figure_inputs), as run here."""
-    from vprflow.plan import FIGURES
+    """The stores a figure rule would get (vprflow.reports.figure_inputs), as run here."""
+    from vprflow.reports import FIGURES
 
     return {name: stage_path(pipeline, name, method) for name in FIGURES[figure]}
 
@@ -377,7 +377,7 @@ def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
 def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure):
     from PIL import Image
 
-    from vprflow.plan import figure_inputs
+    from vprflow.reports import figure_inputs
     from vprflow.stages.figures import draw_figure
 
     plan, _, _, root = pipeline
@@ -396,7 +396,7 @@ def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure)
 
 def test_a_method_has_the_figures_of_its_aggregator(pipeline):
     from vprflow.config import PlanError
-    from vprflow.plan import dataset_outputs, figure_inputs
+    from vprflow.reports import dataset_outputs, figure_inputs
 
     plan, _, _, _ = pipeline
     figures = {run.method: run.figures for run in plan.runs["toy"]}

@@ -22,16 +22,7 @@ from pathlib import Path
 from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
 from vprflow.files import write_text_atomic
 from vprflow.fingerprints import dataset_contents, file_digest, memoised, source_fingerprint
-from vprflow.paths import (
-    FIGURE,
-    INDEX,
-    PREDICTIONS_CSV,
-    RECALL_CSV,
-    RECALL_PLOT,
-    RECALL_TABLE,
-    log_pattern,
-    store_path,
-)
+from vprflow.paths import INDEX, log_pattern, store_path
 from vprflow.registry import (
     SEARCH_INDEXES,
     aggregator,
@@ -39,13 +30,6 @@ from vprflow.registry import (
     prefixed,
     search_settings,
 )
-
-# Each figure kind of one method and the stores it reads (the method's own, by name).
-FIGURES = {
-    "retrievals": ("dataset", "recall"),
-    "segment_matches": ("dataset", "recall", "search", "descriptors", "segments"),
-    "support_maps": ("dataset", "recall", "descriptors", "features"),
-}
 
 FORMAT_VERSIONS = {
     "dataset": 2,  # 2: paths relative to data_root, contents in the key
@@ -169,62 +153,6 @@ class Plan:
             ) from None
 
 
-def stale_reports(plan: Plan, root: str = "") -> list[Path]:
-    """Results tables on disk that do not describe the current config: one of the
-    dataset's recall stores is missing or newer than the table. ``root`` is the
-    prefix of every path (a host workflow's module ``prefix``)."""
-    stale = []
-    for dataset, runs in plan.runs.items():
-        shown = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
-        tables = [Path(root) / t.format(dataset=dataset) for t in shown]
-        for table in tables:
-            if not table.exists():
-                continue
-            built = table.stat().st_mtime
-            recalls = [Path(root) / store_path("recall", run.recall_key) for run in runs]
-            if any(not r.exists() or r.stat().st_mtime > built for r in recalls):
-                stale.append(table)
-    return stale
-
-
-def withdraw_stale_reports(plan: Plan, root: str = "") -> list[Path]:
-    """Rename every stale table to ``<name>.stale`` so that a failed run never leaves a
-    table that looks current; returns the new paths."""
-    return _withdraw(stale_reports(plan, root))
-
-
-def withdraw_reports(root: str = "", dataset: str = "*") -> list[Path]:
-    """Withdraw every table of ``dataset`` (all datasets by default) regardless of age:
-    for failures before a plan exists (a config that cannot be planned, a dataset that
-    cannot be listed), where none of them describes the current config."""
-    shown = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
-    return _withdraw([t for p in shown for t in Path(root or ".").glob(p.format(dataset=dataset))])
-
-
-def _withdraw(tables: list[Path]) -> list[Path]:
-    moved = []
-    for table in tables:
-        target = table.with_name(table.name + ".stale")
-        table.replace(target)
-        moved.append(target)
-    return moved
-
-
-def dataset_outputs(plan: Plan, dataset: str) -> list[str]:
-    """Everything a dataset's report shows: its tables, its recall plot and every
-    method's figures."""
-    tables = (PREDICTIONS_CSV,)
-    if plan.has_ground_truth[dataset]:  # without it there is no recall to show
-        tables += (RECALL_CSV, RECALL_TABLE, RECALL_PLOT)
-    outputs = [t.format(dataset=dataset) for t in tables]
-    for run in plan.runs[dataset]:
-        outputs += [
-            FIGURE.format(dataset=dataset, figure=figure, method=run.method)
-            for figure in run.figures
-        ]
-    return outputs
-
-
 def method_run(plan: Plan, dataset: str, method: str) -> MethodRun:
     """The row of ``method`` in ``dataset``'s table; an unknown one is named."""
     runs = {run.method: run for run in plan.runs.get(dataset, [])}
@@ -240,14 +168,6 @@ def method_stores(plan: Plan, dataset: str, method: str) -> dict[str, str]:
     recall = plan.get("recall", method_run(plan, dataset, method).recall_key)
     descriptors = plan.get(*recall.inputs["descriptors"])
     return {**descriptors.input_paths(), **recall.input_paths(), "recall": recall.path}
-
-
-def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[str, str]:
-    """The stores one method's figure reads, by name (see :data:`FIGURES`)."""
-    if figure not in method_run(plan, dataset, method).figures:
-        raise PlanError(f"no figure {figure!r} of method {method!r} on dataset {dataset!r}")
-    stores = method_stores(plan, dataset, method)
-    return {name: stores[name] for name in FIGURES[figure]}
 
 
 def stage_users(plan: Plan) -> dict[tuple[str, str], set[tuple[str, str]]]:

@@ -21,12 +21,14 @@ from vprflow.paths import (
 )
 from vprflow.plan import (
     build_plan,
+    method_stores,
+    write_index,
+)
+from vprflow.reports import (
     dataset_outputs,
     figure_inputs,
-    method_stores,
     withdraw_reports,
     withdraw_stale_reports,
-    write_index,
 )
 
 
