@@ -110,7 +110,7 @@ def stage_path(pipeline, stage: str, method: str = "segvlad") -> str:
     plan, runner, _, _ = pipeline
     run = {r.method: r for r in plan.runs["toy"]}[method]
     users = {}
-    from vprflow.plan import stage_users
+    from vprflow.store_index import stage_users
 
     for (name, key), rows in stage_users(plan).items():
         if name == stage and ("toy", method) in rows:

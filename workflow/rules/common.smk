@@ -19,17 +19,14 @@ from vprflow.paths import (
     store_path,
     store_pattern,
 )
-from vprflow.plan import (
-    build_plan,
-    method_stores,
-    write_index,
-)
+from vprflow.plan import build_plan, method_stores
 from vprflow.reports import (
     dataset_outputs,
     figure_inputs,
     withdraw_reports,
     withdraw_stale_reports,
 )
+from vprflow.store_index import write_index
 
 
 configfile: "config/config.yaml"
