@@ -22,6 +22,7 @@ from vprflow.fingerprints import dataset_contents, file_digest, memoised, source
 from vprflow.paths import store_path
 from vprflow.registry import (
     SEARCH_INDEXES,
+    Aggregator,
     aggregator,
     model_kind,
     prefixed,
@@ -65,14 +66,7 @@ def content_key(record: dict) -> str:
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def deep_merge(base: dict, override: dict) -> dict:
-    merged = copy.deepcopy(base)
-    for name, value in override.items():
-        if isinstance(value, dict) and isinstance(merged.get(name), dict):
-            merged[name] = deep_merge(merged[name], value)
-        else:
-            merged[name] = copy.deepcopy(value)
-    return merged
+# ------------------------------------------------------------------ the plan
 
 
 @dataclass
@@ -167,25 +161,7 @@ def method_stores(plan: Plan, dataset: str, method: str) -> dict[str, str]:
     return {**descriptors.input_paths(), **recall.input_paths(), "recall": recall.path}
 
 
-def _flatten(prefix: str, value, out: dict) -> None:
-    if isinstance(value, dict):
-        for name in sorted(value):
-            _flatten(f"{prefix}.{name}" if prefix else name, value[name], out)
-    elif isinstance(value, list):
-        out[prefix] = " ".join(str(v) for v in value)
-    else:
-        out[prefix] = value
-
-
-def _hashed(params: dict) -> dict:
-    return {k: v for k, v in params.items() if k not in EXECUTION_ONLY}
-
-
-def _resolution(dataset: dict, profile: dict) -> list[int]:
-    if profile["resolution"] == "dataset":
-        return list(dataset["resolution"])
-    return list(profile["resolution"])
-
+# ------------------------------------------------------------------ planning
 
 # What a method inherits: its backbone and segmenter entry names, then the sections.
 METHOD_SECTIONS = ("features", "segmenter", *METHOD_DEFAULT_SECTIONS)
@@ -201,6 +177,16 @@ def resolve_method(config: dict, name: str, dataset: dict | None = None) -> dict
     return deep_merge(settings, config["methods"][name])
 
 
+def deep_merge(base: dict, override: dict) -> dict:
+    merged = copy.deepcopy(base)
+    for name, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(name), dict):
+            merged[name] = deep_merge(merged[name], value)
+        else:
+            merged[name] = copy.deepcopy(value)
+    return merged
+
+
 def build_plan(config: dict, memo: dict | None = None) -> Plan:
     """Every stage of every (dataset, method) pair in ``config``; shared stages dedupe.
 
@@ -210,184 +196,249 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
     """
     memo = {} if memo is None else memo
     plan = Plan()
-    execution = {"device": config["device"]}
     for dataset_name, dataset in sorted(config["datasets"].items()):
-        dataset_params = {
-            "name": dataset_name,
-            # Every dataset setting but those read by later stages or by people only:
-            # one the stage reads (recursive, follow_links, ...) can never be left out.
-            **{k: v for k, v in dataset.items() if k not in NOT_DATASET_STAGE},
-            # What the images and ground truth hold, not where they are: replaced images
-            # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
-            "contents": dataset_contents(config["data_root"], dataset_name, dataset, memo),
-        }
-        dataset_key = plan.add("dataset", dataset_params, {}, dataset_name)
+        dataset_key = _plan_dataset(plan, config, dataset_name, dataset, memo)
         plan.dataset_keys[dataset_name] = dataset_key
         plan.has_ground_truth[dataset_name] = dataset["ground_truth"]["kind"] != "none"
-        rows = []
-        for method_name in dataset["methods"]:
-            method = resolve_method(config, method_name, dataset)
-            rows.append(
-                _plan_method(
-                    plan,
-                    config,
-                    dataset_name,
-                    dataset,
-                    dataset_key,
-                    method_name,
-                    method,
-                    execution,
-                    memo,
-                )
-            )
-        plan.runs[dataset_name] = rows
+        plan.runs[dataset_name] = [
+            _plan_method(plan, config, memo, dataset_name, dataset_key, method_name)
+            for method_name in dataset["methods"]
+        ]
     return plan
 
 
-def _named_entry(config: dict, section: str, name: str, method_name: str) -> dict:
-    if name not in config[section]:
-        raise PlanError(
-            f"method {method_name!r} uses {name!r}, which is not defined under {section}: "
-            f"{sorted(config[section])}"
-        )
-    return config[section][name]
+def _plan_dataset(plan: Plan, config: dict, name: str, dataset: dict, memo: dict) -> str:
+    params = {
+        "name": name,
+        # Every dataset setting but those read by later stages or by people only:
+        # one the stage reads (recursive, follow_links, ...) can never be left out.
+        **{k: v for k, v in dataset.items() if k not in NOT_DATASET_STAGE},
+        # What the images and ground truth hold, not where they are: replaced images
+        # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
+        "contents": dataset_contents(config["data_root"], name, dataset, memo),
+    }
+    return plan.add("dataset", params, {}, name)
+
+
+_StoreRef = tuple[str, str]  # (stage, key)
+
+
+@dataclass
+class _Method:
+    """One method on one dataset while its stages are planned: what every stage's
+    planner reads, and where it adds its stage."""
+
+    plan: Plan
+    config: dict
+    memo: dict
+    dataset_name: str
+    dataset: dict
+    dataset_store: _StoreRef
+    name: str
+    settings: dict  # resolved: see resolve_method
+    aggregator: Aggregator
+    options: dict  # the descriptor stage's own settings (Aggregator.options)
+
+    def add(
+        self, stage: str, params: dict, inputs: dict[str, _StoreRef], run_params: dict | None = None
+    ) -> _StoreRef:
+        return (stage, self.plan.add(stage, params, inputs, self.dataset_name, run_params))
+
+    def entry(self, section: str, name: str) -> dict:
+        """The ``backbones`` or ``segmenters`` entry ``name`` the method uses."""
+        if name not in self.config[section]:
+            raise PlanError(
+                f"method {self.name!r} uses {name!r}, which is not defined under {section}: "
+                f"{sorted(self.config[section])}"
+            )
+        return self.config[section][name]
+
+    @property
+    def execution(self) -> dict:
+        """How stages run, not what they compute (not hashed)."""
+        return {"device": self.config["device"]}
+
+    def model_run_params(self, stage: str, entry: dict) -> dict:
+        """Run settings of a stage that runs a backbone or segmenter ``entry``."""
+        return {
+            **self.execution,
+            "batch_size": entry["batch_size"],
+            "uses_gpu": model_kind(stage, entry).uses_gpu,
+        }
 
 
 def _plan_method(
-    plan, config, dataset_name, dataset, dataset_key, method_name, method, execution, memo
-):
-    """Plan one method's stages (as its registry entry needs them) and its CSV row."""
-    agg = aggregator(method["aggregator"])
-    features_name = method["features"]
-    backbone = _named_entry(config, "backbones", features_name, method_name)
+    plan: Plan, config: dict, memo: dict, dataset_name: str, dataset_key: str, method_name: str
+) -> MethodRun:
+    """Plan one method's stages (as its registry entry needs them) and its CSV row:
+    features, the stages its aggregator needs, descriptors, then recall (through the
+    segment search for a per-segment method). Each stage's planner returns its store
+    and its CSV columns."""
+    dataset = config["datasets"][dataset_name]
+    settings = resolve_method(config, method_name, dataset)
+    agg = aggregator(settings["aggregator"])
+    m = _Method(
+        plan,
+        config,
+        memo,
+        dataset_name,
+        dataset,
+        ("dataset", dataset_key),
+        method_name,
+        settings,
+        agg,
+        agg.options(settings),
+    )
+    features, columns = _plan_features(m)
+    row = {"aggregator": agg.name, **columns}
+    inputs = {"dataset": m.dataset_store, "features": features}
+    for stage in agg.needs:
+        if stage not in _NEEDED_STAGES:  # a registry entry naming a stage the plan does not know
+            raise PlanError(f"aggregator {agg.name!r} needs unknown stage {stage!r}")
+        store, columns = _NEEDED_STAGES[stage](m, inputs)
+        if store is not None:
+            inputs[stage] = store
+        row.update(columns)
+    row.update(agg.columns(settings))
+    descriptors = m.add("descriptors", {"aggregator": agg.name, **m.options}, inputs)
+    (_, recall_key), columns = _plan_recall(m, descriptors)
+    row.update(columns)
+    return MethodRun(method_name, recall_key, _flat(row), agg.name)
+
+
+def _plan_features(m: _Method) -> tuple[_StoreRef, dict]:
+    name = m.settings["features"]
+    backbone = m.entry("backbones", name)
     if backbone["resize"] == "method":
         # The published pipeline's reader: one backbone entry serves SegVLAD (OpenCV)
         # and SNSM (PIL) faithfully, as two features stores.
-        backbone = {**backbone, "resize": agg.resize}
-    ds = ("dataset", dataset_key)
-    features_params = {
+        backbone = {**backbone, "resize": m.aggregator.resize}
+    params = {
         **_hashed(backbone),
-        **source_fingerprint("features", backbone, memo, f"backbones.{features_name}"),
-        "resolution": _resolution(dataset, backbone),
+        **source_fingerprint("features", backbone, m.memo, f"backbones.{name}"),
+        "resolution": _resolution(m.dataset, backbone),
     }
     patch = backbone.get("patch_size")
-    if patch and min(features_params["resolution"]) < patch:
+    if patch and min(params["resolution"]) < patch:
         where = (
-            f"datasets.{dataset_name}.resolution"
+            f"datasets.{m.dataset_name}.resolution"
             if backbone["resolution"] == "dataset"
-            else f"backbones.{features_name}.resolution"
+            else f"backbones.{name}.resolution"
         )
         raise PlanError(
-            f"config key {where} = {features_params['resolution']} is smaller than one "
-            f"{patch}-pixel patch of backbone {features_name!r}"
+            f"config key {where} = {params['resolution']} is smaller than one "
+            f"{patch}-pixel patch of backbone {name!r}"
         )
-    features_key = plan.add(
-        "features",
-        features_params,
-        {"dataset": ds},
-        dataset_name,
-        {
-            **execution,
-            "batch_size": backbone["batch_size"],
-            "uses_gpu": model_kind("features", backbone).uses_gpu,
-        },
-    )
-    fx = ("features", features_key)
-    row = {"aggregator": agg.name, "features": features_name, **_prefixed("features", backbone)}
-    inputs = {"dataset": ds, "features": fx}
-    options = agg.options(method)
-    for stage in agg.needs:
-        if stage == "segments":
-            segmenter_name = method["segmenter"]
-            segmenter = _named_entry(config, "segmenters", segmenter_name, method_name)
-            params = {
-                **_hashed(segmenter),
-                **source_fingerprint("segments", segmenter, memo, f"segmenters.{segmenter_name}"),
-                "resolution": _segment_resolution(dataset, segmenter),
-            }
-            inputs["segments"] = (
-                "segments",
-                plan.add(
-                    "segments",
-                    params,
-                    {"dataset": ds},
-                    dataset_name,
-                    {
-                        **execution,
-                        "batch_size": segmenter["batch_size"],
-                        "uses_gpu": model_kind("segments", segmenter).uses_gpu,
-                    },
-                ),
-            )
-            row.update(segmenter=segmenter_name, **_prefixed("segmenter", segmenter))
-        elif stage == "vocabulary":
-            vocabulary = method["vocabulary"]
-            params = {k: v for k, v in vocabulary.items() if k != "file"}
-            if vocabulary["source"] == "file":
-                params.update(
-                    file=vocabulary["file"],
-                    sha256=memoised(vocabulary["file"], memo, file_digest, "vocabulary.file"),
-                )
-            inputs["vocabulary"] = (
-                "vocabulary",
-                plan.add("vocabulary", params, {"dataset": ds, "features": fx}, dataset_name),
-            )
-            row.update(_prefixed("vocabulary", vocabulary))
-        elif stage == "pca":
-            pca = method["pca"]
-            if not pca["enabled"]:
-                row["pca.enabled"] = False
-                continue
-            params = {
-                # fit_order is read by the aggregator into fit_on: `method` and the
-                # order it resolves to are one PCA.
-                **{k: v for k, v in pca.items() if k not in ("enabled", "fit_order")},
-                "aggregator": agg.name,
-                # What the PCA is fitted on, as the aggregator says (SegVLAD: one PCA
-                # per neighbourhood order).
-                "fit_on": agg.pca_descriptor_options(method, options),
-            }
-            inputs["pca"] = ("pca", plan.add("pca", params, dict(inputs), dataset_name))
-            row.update(_prefixed("pca", pca))
-        else:  # a registry entry naming a stage the plan does not know
-            raise PlanError(f"aggregator {agg.name!r} needs unknown stage {stage!r}")
-    row.update(agg.columns(method))
-    descriptors_key = plan.add(
-        "descriptors", {"aggregator": agg.name, **options}, inputs, dataset_name
-    )
-    descriptors = ("descriptors", descriptors_key)
-    recall_inputs = {"dataset": ds, "descriptors": descriptors}
-    recall_params = {
-        "recall_at": dataset["recall_at"],
-        "denominator": dataset["denominator"],
-        "top_k": max(max(dataset["recall_at"]), 20),
+    run_params = m.model_run_params("features", backbone)
+    store = m.add("features", params, {"dataset": m.dataset_store}, run_params)
+    return store, {"features": name, **_prefixed("features", backbone)}
+
+
+def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
+    name = m.settings["segmenter"]
+    segmenter = m.entry("segmenters", name)
+    params = {
+        **_hashed(segmenter),
+        **source_fingerprint("segments", segmenter, m.memo, f"segmenters.{name}"),
+        "resolution": _segment_resolution(m.dataset, segmenter),
     }
-    if agg.output == "segments":
-        # The index's parameter defaults, filled only now: the index and its params may
-        # each come from another level of the merge.
-        try:
-            retrieval = search_settings(method["retrieval"])
-        except ValueError as error:
-            raise PlanError(f"method {method_name!r}: {error}") from None
-        search_inputs = {"dataset": ds, "descriptors": descriptors}
-        voting = method["voting"]
+    run_params = m.model_run_params("segments", segmenter)
+    store = m.add("segments", params, {"dataset": m.dataset_store}, run_params)
+    return store, {"segmenter": name, **_prefixed("segmenter", segmenter)}
 
-        def search_stage(settings: dict) -> tuple[str, str]:
-            params = {"top_segments": voting["top_segments"], **settings}
-            run = {**execution, "uses_gpu": SEARCH_INDEXES[settings["index"]].uses_gpu}
-            return ("search", plan.add("search", params, search_inputs, dataset_name, run))
 
-        recall_inputs["search"] = search_stage(retrieval)
-        if not SEARCH_INDEXES[retrieval["index"]].exact:
-            # The table states what the approximation costs: recall of an exact search
-            # of the same descriptors, in the same run.
-            recall_inputs["exact_search"] = search_stage(
-                search_settings({"index": "flat", "params": {}})
-            )
-        recall_params["vote_ranking"] = voting["vote_ranking"]
-        row.update(_prefixed("retrieval", retrieval), **_prefixed("voting", voting))
-    recall_key = plan.add("recall", recall_params, recall_inputs, dataset_name)
-    return MethodRun(method_name, recall_key, _flat(row), agg.name)
+def _plan_vocabulary(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
+    vocabulary = m.settings["vocabulary"]
+    params = {k: v for k, v in vocabulary.items() if k != "file"}
+    if vocabulary["source"] == "file":
+        params.update(
+            file=vocabulary["file"],
+            sha256=memoised(vocabulary["file"], m.memo, file_digest, "vocabulary.file"),
+        )
+    store = m.add(
+        "vocabulary", params, {"dataset": m.dataset_store, "features": inputs["features"]}
+    )
+    return store, _prefixed("vocabulary", vocabulary)
+
+
+def _plan_pca(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef | None, dict]:
+    """The PCA of the method's descriptors, fitted on every input planned so far; none
+    when the method disables it."""
+    pca = m.settings["pca"]
+    if not pca["enabled"]:
+        return None, {"pca.enabled": False}
+    params = {
+        # fit_order is read by the aggregator into fit_on: `method` and the
+        # order it resolves to are one PCA.
+        **{k: v for k, v in pca.items() if k not in ("enabled", "fit_order")},
+        "aggregator": m.aggregator.name,
+        # What the PCA is fitted on, as the aggregator says (SegVLAD: one PCA
+        # per neighbourhood order).
+        "fit_on": m.aggregator.pca_descriptor_options(m.settings, m.options),
+    }
+    return m.add("pca", params, dict(inputs)), _prefixed("pca", pca)
+
+
+# The stages an aggregator may need between features and descriptors (Aggregator.needs),
+# each planned as ``(method, inputs planned so far) -> (its store or None, CSV columns)``.
+_NEEDED_STAGES = {
+    "segments": _plan_segments,
+    "vocabulary": _plan_vocabulary,
+    "pca": _plan_pca,
+}
+
+
+def _plan_recall(m: _Method, descriptors: _StoreRef) -> tuple[_StoreRef, dict]:
+    """Recall of the method's descriptors: directly for a per-image method, through
+    the segment search and voting for a per-segment one."""
+    inputs = {"dataset": m.dataset_store, "descriptors": descriptors}
+    params = {
+        "recall_at": m.dataset["recall_at"],
+        "denominator": m.dataset["denominator"],
+        "top_k": max(max(m.dataset["recall_at"]), 20),
+    }
+    columns: dict = {}
+    if m.aggregator.output == "segments":
+        searches, columns = _plan_search(m, descriptors)
+        inputs.update(searches)
+        params["vote_ranking"] = m.settings["voting"]["vote_ranking"]
+    return m.add("recall", params, inputs), columns
+
+
+def _plan_search(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict]:
+    """The segment searches a per-segment method's recall votes over, by recall input
+    name, and the retrieval and voting CSV columns."""
+    # The index's parameter defaults, filled only now: the index and its params may
+    # each come from another level of the merge.
+    try:
+        retrieval = search_settings(m.settings["retrieval"])
+    except ValueError as error:
+        raise PlanError(f"method {m.name!r}: {error}") from None
+    voting = m.settings["voting"]
+
+    def search(settings: dict) -> _StoreRef:
+        params = {"top_segments": voting["top_segments"], **settings}
+        run_params = {**m.execution, "uses_gpu": SEARCH_INDEXES[settings["index"]].uses_gpu}
+        return m.add(
+            "search", params, {"dataset": m.dataset_store, "descriptors": descriptors}, run_params
+        )
+
+    searches = {"search": search(retrieval)}
+    if not SEARCH_INDEXES[retrieval["index"]].exact:
+        # The table states what the approximation costs: recall of an exact search
+        # of the same descriptors, in the same run.
+        searches["exact_search"] = search(search_settings({"index": "flat", "params": {}}))
+    return searches, {**_prefixed("retrieval", retrieval), **_prefixed("voting", voting)}
+
+
+def _hashed(params: dict) -> dict:
+    return {k: v for k, v in params.items() if k not in EXECUTION_ONLY}
+
+
+def _resolution(dataset: dict, profile: dict) -> list[int]:
+    if profile["resolution"] == "dataset":
+        return list(dataset["resolution"])
+    return list(profile["resolution"])
 
 
 def _segment_resolution(dataset: dict, segmenter: dict) -> list[int]:
@@ -407,3 +458,13 @@ def _flat(row: dict) -> dict:
     for name, value in row.items():
         _flatten(name, value, out)
     return out
+
+
+def _flatten(prefix: str, value, out: dict) -> None:
+    if isinstance(value, dict):
+        for name in sorted(value):
+            _flatten(f"{prefix}.{name}" if prefix else name, value[name], out)
+    elif isinstance(value, list):
+        out[prefix] = " ".join(str(v) for v in value)
+    else:
+        out[prefix] = value
