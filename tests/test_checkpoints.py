@@ -18,7 +18,7 @@ import torch
 from tiny_models import tiny_vit
 
 from vprflow.checkpoints import CheckpointError, load_hub_checkpoint
-from vprflow.plan import source_fingerprint
+from vprflow.fingerprints import source_fingerprint
 from vprflow.vit import load_vit
 
 HIDDEN = 32

@@ -19,7 +19,7 @@ from tiny_models import save_tiny_dinov3
 from transformers import AutoModel
 
 from vprflow import registry
-from vprflow.plan import source_fingerprint
+from vprflow.fingerprints import source_fingerprint
 from vprflow.vit import load_vit
 
 HIDDEN = 32

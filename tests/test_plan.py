@@ -9,8 +9,8 @@ import yaml
 from workflow_helpers import REPO
 
 from vprflow import registry
-from vprflow.config import ConfigError, validate_config
-from vprflow.plan import PlanError, build_plan, content_key
+from vprflow.config import ConfigError, PlanError, validate_config
+from vprflow.plan import build_plan, content_key
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
@@ -317,7 +317,7 @@ def test_resolution_below_one_patch_names_the_config_key(config):
 
 
 def test_corrupt_fingerprints_cache_is_named_ignored_and_rewritten_atomically(tmp_path):
-    from vprflow.plan import load_fingerprints, save_fingerprints
+    from vprflow.fingerprints import load_fingerprints, save_fingerprints
 
     path = tmp_path / "fingerprints.json"
     path.write_text('{"half": "writ')

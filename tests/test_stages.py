@@ -110,7 +110,7 @@ def stage_path(pipeline, stage: str, method: str = "segvlad") -> str:
     plan, runner, _, _ = pipeline
     run = {r.method: r for r in plan.runs["toy"]}[method]
     users = {}
-    from vprflow.plan import stage_users
+    from vprflow.store_index import stage_users
 
     for (name, key), rows in stage_users(plan).items():
         if name == stage and ("toy", method) in rows:
@@ -359,8 +359,8 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
 
 
 def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
-    """The stores a figure rule would get (vprflow.plan.figure_inputs), as run here."""
-    from vprflow.plan import FIGURES
+    """The stores a figure rule would get (vprflow.reports.figure_inputs), as run here."""
+    from vprflow.reports import FIGURES
 
     return {name: stage_path(pipeline, name, method) for name in FIGURES[figure]}
 
@@ -377,7 +377,7 @@ def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
 def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure):
     from PIL import Image
 
-    from vprflow.plan import figure_inputs
+    from vprflow.reports import figure_inputs
     from vprflow.stages.figures import draw_figure
 
     plan, _, _, root = pipeline
@@ -395,7 +395,8 @@ def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure)
 
 
 def test_a_method_has_the_figures_of_its_aggregator(pipeline):
-    from vprflow.plan import PlanError, dataset_outputs, figure_inputs
+    from vprflow.config import PlanError
+    from vprflow.reports import dataset_outputs, figure_inputs
 
     plan, _, _, _ = pipeline
     figures = {run.method: run.figures for run in plan.runs["toy"]}
@@ -435,7 +436,7 @@ def test_an_image_changed_after_the_dataset_stage_fails_the_stage_reading_it(tmp
 
 
 def test_an_image_changed_after_planning_fails_the_dataset_stage_naming_it(tmp_path):
-    from vprflow.plan import save_fingerprints
+    from vprflow.fingerprints import save_fingerprints
 
     memo = {}
     plan = small_plan(tmp_path, memo=memo)

@@ -24,7 +24,7 @@ from workflow_helpers import (
     write_config,
 )
 
-from vprflow.plan import PREDICTIONS_CSV, RECALL_CSV, RECALL_PLOT, RECALL_TABLE
+from vprflow.paths import PREDICTIONS_CSV, RECALL_CSV, RECALL_PLOT, RECALL_TABLE
 from vprflow.stores import array_items
 
 pytestmark = pytest.mark.workflow

@@ -44,6 +44,11 @@ class ConfigError(ValueError):
     """Invalid configuration; the message names the key at fault."""
 
 
+class PlanError(ValueError):
+    """A config that passes the schema but refers to something that does not exist (a
+    method, backbone, file, ...), or a target that is not in its plan."""
+
+
 def validate_config(config: dict, schema_path: str | Path) -> dict:
     """Check ``config`` against the schema and return a copy with defaults filled in.
 

@@ -15,37 +15,19 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
-import stat
 from dataclasses import dataclass, field
-from pathlib import Path
 
-from vprflow.config import METHOD_DEFAULT_SECTIONS
-from vprflow.files import write_text_atomic
+from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
+from vprflow.fingerprints import dataset_contents, file_digest, memoised, source_fingerprint
+from vprflow.paths import store_path
 from vprflow.registry import (
     SEARCH_INDEXES,
+    Aggregator,
     aggregator,
     model_kind,
     prefixed,
     search_settings,
 )
-
-CACHE = "results/cache"
-# Per-dataset tables written by the report rule.
-RECALL_CSV = "results/recall_{dataset}.csv"
-PREDICTIONS_CSV = "results/predictions_{dataset}.csv"
-# Figures of the report (not stages: no key, a changed figure setting reruns only them).
-RECALL_PLOT = "results/plots/recall_{dataset}.png"
-RECALL_TABLE = "results/tables/recall_{dataset}.html"
-# A method's descriptors of a dataset in one NumPy file (the `export` rule).
-EXPORT = "results/export/{dataset}/{method}.npz"
-FIGURE = "results/figures/{dataset}/{figure}/{method}.png"
-# Each figure kind of one method and the stores it reads (the method's own, by name).
-FIGURES = {
-    "retrievals": ("dataset", "recall"),
-    "segment_matches": ("dataset", "recall", "search", "descriptors", "segments"),
-    "support_maps": ("dataset", "recall", "descriptors", "features"),
-}
 
 FORMAT_VERSIONS = {
     "dataset": 2,  # 2: paths relative to data_root, contents in the key
@@ -78,92 +60,13 @@ NOT_DATASET_STAGE = (
 EXECUTION_ONLY = ("batch_size", "cache_dir")
 
 
-class PlanError(ValueError):
-    """A config that passes the schema but refers to something that does not exist."""
-
-
 def content_key(record: dict) -> str:
     """16 hex digits of the SHA-256 of ``record`` as canonical JSON."""
     text = json.dumps(record, sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
-def file_digest(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def deep_merge(base: dict, override: dict) -> dict:
-    merged = copy.deepcopy(base)
-    for name, value in override.items():
-        if isinstance(value, dict) and isinstance(merged.get(name), dict):
-            merged[name] = deep_merge(merged[name], value)
-        else:
-            merged[name] = copy.deepcopy(value)
-    return merged
-
-
-FINGERPRINTS = f"{CACHE}/fingerprints.json"
-
-
-def load_fingerprints(path: str | Path = FINGERPRINTS) -> dict:
-    """The memo of content hashes (see :func:`_memoised`). It is only a cache: an
-    unreadable one is reported, ignored and rebuilt (hashing everything once more)."""
-    path = Path(path)
-    if not path.exists():
-        return {}
-    try:
-        memo = json.loads(path.read_text())
-        if not isinstance(memo, dict) or not all(isinstance(v, str) for v in memo.values()):
-            raise ValueError("not a JSON object of strings")
-        return memo
-    except (OSError, ValueError) as error:
-        import warnings
-
-        warnings.warn(
-            f"{path} is unreadable ({error}); it only caches content hashes, so it is "
-            "ignored and rebuilt (delete it to silence this)",
-            stacklevel=2,
-        )
-        return {}
-
-
-def save_fingerprints(memo: dict, path: str | Path = FINGERPRINTS) -> None:
-    """Write the memo atomically, so a concurrent or killed run never leaves half a file."""
-    write_text_atomic(path, json.dumps(memo, indent=1, sort_keys=True))
-
-
-def store_path(stage: str, key: str) -> str:
-    return store_pattern(stage).format(key=key)
-
-
-# Where everything lives. Rules take their outputs and logs from these, input functions
-# their inputs: one place decides each path.
-def store_pattern(stage: str) -> str:
-    """A stage's store, wildcard ``{key}``."""
-    return f"{CACHE}/{stage}/{{key}}.zarr"
-
-
-def shard_pattern(stage: str) -> str:
-    """One shard of a per-image stage, wildcards ``{key}``, ``{start}``, ``{stop}``."""
-    return f"{CACHE}/{stage}/{{key}}.shards/{{start}}-{{stop}}.zarr"
-
-
-def log_pattern(stage: str, part: str = "{stage}") -> str:
-    """A stage's log: every log of one store (its shards, its gather) in one folder,
-    ``logs/<stage>/<key>/``; ``logs/by-method/`` links to them by dataset and method."""
-    return f"logs/{stage}/{{key}}/{part.replace('{stage}', stage)}.log"
-
-
-def benchmark_pattern(stage: str, part: str = "{stage}") -> str:
-    """A stage's benchmark table, next to its log."""
-    return log_pattern(stage, part).removesuffix(".log") + ".benchmark.tsv"
-
-
-INDEX = f"{CACHE}/index.tsv"
+# ------------------------------------------------------------------ the plan
 
 
 @dataclass
@@ -241,62 +144,6 @@ class Plan:
             ) from None
 
 
-def stale_reports(plan: Plan, root: str = "") -> list[Path]:
-    """Results tables on disk that do not describe the current config: one of the
-    dataset's recall stores is missing or newer than the table. ``root`` is the
-    prefix of every path (a host workflow's module ``prefix``)."""
-    stale = []
-    for dataset, runs in plan.runs.items():
-        shown = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
-        tables = [Path(root) / t.format(dataset=dataset) for t in shown]
-        for table in tables:
-            if not table.exists():
-                continue
-            built = table.stat().st_mtime
-            recalls = [Path(root) / store_path("recall", run.recall_key) for run in runs]
-            if any(not r.exists() or r.stat().st_mtime > built for r in recalls):
-                stale.append(table)
-    return stale
-
-
-def withdraw_stale_reports(plan: Plan, root: str = "") -> list[Path]:
-    """Rename every stale table to ``<name>.stale`` so that a failed run never leaves a
-    table that looks current; returns the new paths."""
-    return _withdraw(stale_reports(plan, root))
-
-
-def withdraw_reports(root: str = "", dataset: str = "*") -> list[Path]:
-    """Withdraw every table of ``dataset`` (all datasets by default) regardless of age:
-    for failures before a plan exists (a config that cannot be planned, a dataset that
-    cannot be listed), where none of them describes the current config."""
-    shown = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
-    return _withdraw([t for p in shown for t in Path(root or ".").glob(p.format(dataset=dataset))])
-
-
-def _withdraw(tables: list[Path]) -> list[Path]:
-    moved = []
-    for table in tables:
-        target = table.with_name(table.name + ".stale")
-        table.replace(target)
-        moved.append(target)
-    return moved
-
-
-def dataset_outputs(plan: Plan, dataset: str) -> list[str]:
-    """Everything a dataset's report shows: its tables, its recall plot and every
-    method's figures."""
-    tables = (PREDICTIONS_CSV,)
-    if plan.has_ground_truth[dataset]:  # without it there is no recall to show
-        tables += (RECALL_CSV, RECALL_TABLE, RECALL_PLOT)
-    outputs = [t.format(dataset=dataset) for t in tables]
-    for run in plan.runs[dataset]:
-        outputs += [
-            FIGURE.format(dataset=dataset, figure=figure, method=run.method)
-            for figure in run.figures
-        ]
-    return outputs
-
-
 def method_run(plan: Plan, dataset: str, method: str) -> MethodRun:
     """The row of ``method`` in ``dataset``'s table; an unknown one is named."""
     runs = {run.method: run for run in plan.runs.get(dataset, [])}
@@ -314,81 +161,7 @@ def method_stores(plan: Plan, dataset: str, method: str) -> dict[str, str]:
     return {**descriptors.input_paths(), **recall.input_paths(), "recall": recall.path}
 
 
-def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[str, str]:
-    """The stores one method's figure reads, by name (see :data:`FIGURES`)."""
-    if figure not in method_run(plan, dataset, method).figures:
-        raise PlanError(f"no figure {figure!r} of method {method!r} on dataset {dataset!r}")
-    stores = method_stores(plan, dataset, method)
-    return {name: stores[name] for name in FIGURES[figure]}
-
-
-def stage_users(plan: Plan) -> dict[tuple[str, str], set[tuple[str, str]]]:
-    """``(stage, key) -> {(dataset, method)}``: which rows of which tables use a store."""
-    users: dict[tuple[str, str], set[tuple[str, str]]] = {}
-
-    def visit(stage: str, key: str, row: tuple[str, str]) -> None:
-        users.setdefault((stage, key), set()).add(row)
-        for upstream in plan.get(stage, key).inputs.values():
-            visit(*upstream, row)
-
-    for dataset, runs in plan.runs.items():
-        for run in runs:
-            visit("recall", run.recall_key, (dataset, run.method))
-    return users
-
-
-def write_index(plan: Plan, root: str = "") -> Path:
-    """``<root>results/cache/index.tsv``: every store of the current config with its
-    stage, key, dataset, the methods using it and its log folder; and
-    ``<root>logs/by-method/<dataset>/<method>/<stage>`` links to those log folders.
-    Written atomically and only when changed; links are replaced, never half made."""
-    users = stage_users(plan)
-    lines = ["stage\tkey\tdataset\tmethods\tstore\tlogs"]
-    for (stage, key), rows in sorted(users.items()):
-        datasets = sorted({d for d, _ in rows})
-        methods = sorted({m for _, m in rows})
-        logs = str(Path(log_pattern(stage).format(key=key)).parent)
-        lines.append(
-            "\t".join(
-                [stage, key, ",".join(datasets), ",".join(methods), store_path(stage, key), logs]
-            )
-        )
-        for dataset, method in rows:
-            link = Path(root) / "logs" / "by-method" / dataset / method / stage
-            link.parent.mkdir(parents=True, exist_ok=True)
-            target = os.path.relpath(Path(root) / logs, link.parent)
-            if link.is_symlink() and os.readlink(link) == target:
-                continue
-            tmp = link.with_name(f".{stage}.{os.getpid()}.tmp")
-            tmp.unlink(missing_ok=True)
-            tmp.symlink_to(target, target_is_directory=True)
-            os.replace(tmp, link)
-    index = Path(root) / INDEX
-    text = "\n".join(lines) + "\n"
-    if not index.exists() or index.read_text() != text:
-        write_text_atomic(index, text)
-    return index
-
-
-def _flatten(prefix: str, value, out: dict) -> None:
-    if isinstance(value, dict):
-        for name in sorted(value):
-            _flatten(f"{prefix}.{name}" if prefix else name, value[name], out)
-    elif isinstance(value, list):
-        out[prefix] = " ".join(str(v) for v in value)
-    else:
-        out[prefix] = value
-
-
-def _hashed(params: dict) -> dict:
-    return {k: v for k, v in params.items() if k not in EXECUTION_ONLY}
-
-
-def _resolution(dataset: dict, profile: dict) -> list[int]:
-    if profile["resolution"] == "dataset":
-        return list(dataset["resolution"])
-    return list(profile["resolution"])
-
+# ------------------------------------------------------------------ planning
 
 # What a method inherits: its backbone and segmenter entry names, then the sections.
 METHOD_SECTIONS = ("features", "segmenter", *METHOD_DEFAULT_SECTIONS)
@@ -404,289 +177,268 @@ def resolve_method(config: dict, name: str, dataset: dict | None = None) -> dict
     return deep_merge(settings, config["methods"][name])
 
 
-def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> dict:
-    """What identifies the weights or file a backbone (``stage="features"``) or
-    segmenter (``stage="segments"``) entry reads, as its registry kind says.
-
-    Hub ids stand for themselves; local model directories and imported HDF5 files are
-    hashed by content (memoised by path, size and modification time, because a
-    ViT-G checkpoint takes seconds to hash and the plan is built on every run), as are
-    the kind's ``model_files`` in a local directory and a backbone's ``checkpoint`` file.
-    ``where`` is the entry's config key (``backbones.<name>``), named in errors.
-    """
-    kind = model_kind(stage, entry)
-    if kind.weights == "file":
-        return {"file_sha256": _memoised(entry["file"], memo, file_digest, f"{where}.file")}
-    if kind.weights == "model":
-        from vprflow.models import is_local_model, weights_fingerprint
-
-        model = entry["model"]
-        if not is_local_model(model):
-            return {
-                "model": model,
-                "weights": f"hf:{model}",
-                **_checkpoint_fingerprint(entry, memo, where),
-            }
-        if not Path(model).expanduser().exists():
-            from vprflow.models import model_not_found
-
-            raise PlanError(
-                f"config key {where}.model: "
-                + str(model_not_found(model, f"local directory {model!r} does not exist", None))
-            )
-        weights = _memoised(model, memo, weights_fingerprint, f"{where}.model")
-        found = {"model": model, "weights": weights}
-        for name in kind.model_files:  # e.g. a DINOv3 directory's preprocessor_config.json
-            path = Path(model).expanduser() / name
-            if path.is_file():
-                found[name] = _memoised(path, memo, file_digest, f"{where}.model")
-        return {**found, **_checkpoint_fingerprint(entry, memo, where)}
-    return {}
-
-
-def _checkpoint_fingerprint(entry: dict, memo: dict, where: str) -> dict:
-    """A backbone's ``checkpoint`` file (weights replacing the model's), hashed."""
-    if entry.get("checkpoint") is None:
-        return {}
-    sha = _memoised(entry["checkpoint"], memo, file_digest, f"{where}.checkpoint")
-    return {"checkpoint_sha256": sha}
-
-
-def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str | None:
-    """:func:`vprflow.datasets.contents_digest` of a dataset, or ``None`` while the
-    dataset cannot be listed (its stage then fails, naming why).
-
-    Each file's hash is memoised by path, size, mtime and ctime, so re-planning reads no
-    image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
-    ``rsync -a`` or ``tar`` (which restore an older mtime).
-    """
-    from vprflow.datasets import DatasetError, contents_digest, list_dataset
-    from vprflow.images import ImageReadError
-
-    try:
-        files = list_dataset(data_root, name, spec)
-    except (DatasetError, ImageReadError):
-        return None
-    return contents_digest(
-        files,
-        data_root,
-        spec,
-        lambda path, where: _memoised(path, memo, file_digest, f"datasets.{name}.{where}"),
-    )
-
-
-def memo_key(path: str | Path, st: os.stat_result | None = None) -> str:
-    """The memo's key of a file: its absolute path, size, mtime and ctime."""
-    st = st or os.stat(path)
-    stamp = f"{os.path.basename(path)}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}"
-    return f"{os.path.abspath(path)}|{stamp}"
-
-
-def _memoised(path: str | Path, memo: dict, digest, where: str) -> str:
-    """``digest(path)`` of a file or a directory's files, memoised by absolute path,
-    size, mtime and ctime (one ``stat`` per file: re-planning 100,000 images is quick)."""
-    try:
-        st = os.stat(path)
-    except FileNotFoundError:
-        raise PlanError(f"config key {where}: {path} does not exist") from None
-    if stat.S_ISDIR(st.st_mode):
-        entries = sorted(os.scandir(path), key=lambda e: e.name)
-        stamps = [(e.name, e.stat()) for e in entries if e.is_file()]
-        stamp = "|".join(f"{n}:{s.st_size}:{s.st_mtime_ns}:{s.st_ctime_ns}" for n, s in stamps)
-        key = f"{os.path.abspath(path)}|{stamp}"
-    else:
-        key = memo_key(path, st)
-    if key not in memo:
-        memo[key] = digest(str(path))
-    return memo[key]
+def deep_merge(base: dict, override: dict) -> dict:
+    merged = copy.deepcopy(base)
+    for name, value in override.items():
+        if isinstance(value, dict) and isinstance(merged.get(name), dict):
+            merged[name] = deep_merge(merged[name], value)
+        else:
+            merged[name] = copy.deepcopy(value)
+    return merged
 
 
 def build_plan(config: dict, memo: dict | None = None) -> Plan:
     """Every stage of every (dataset, method) pair in ``config``; shared stages dedupe.
 
     ``memo`` caches content hashes of local model weights and imported files across
-    runs (see :func:`source_fingerprint`); pass a dict loaded from disk to reuse it.
+    runs (see :func:`vprflow.fingerprints.source_fingerprint`); pass a dict loaded from
+    disk to reuse it.
     """
     memo = {} if memo is None else memo
     plan = Plan()
-    execution = {"device": config["device"]}
     for dataset_name, dataset in sorted(config["datasets"].items()):
-        dataset_params = {
-            "name": dataset_name,
-            # Every dataset setting but those read by later stages or by people only:
-            # one the stage reads (recursive, follow_links, ...) can never be left out.
-            **{k: v for k, v in dataset.items() if k not in NOT_DATASET_STAGE},
-            # What the images and ground truth hold, not where they are: replaced images
-            # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
-            "contents": dataset_contents(config["data_root"], dataset_name, dataset, memo),
-        }
-        dataset_key = plan.add("dataset", dataset_params, {}, dataset_name)
+        dataset_key = _plan_dataset(plan, config, dataset_name, dataset, memo)
         plan.dataset_keys[dataset_name] = dataset_key
         plan.has_ground_truth[dataset_name] = dataset["ground_truth"]["kind"] != "none"
-        rows = []
-        for method_name in dataset["methods"]:
-            method = resolve_method(config, method_name, dataset)
-            rows.append(
-                _plan_method(
-                    plan,
-                    config,
-                    dataset_name,
-                    dataset,
-                    dataset_key,
-                    method_name,
-                    method,
-                    execution,
-                    memo,
-                )
-            )
-        plan.runs[dataset_name] = rows
+        plan.runs[dataset_name] = [
+            _plan_method(plan, config, memo, dataset_name, dataset_key, method_name)
+            for method_name in dataset["methods"]
+        ]
     return plan
 
 
-def _named_entry(config: dict, section: str, name: str, method_name: str) -> dict:
-    if name not in config[section]:
-        raise PlanError(
-            f"method {method_name!r} uses {name!r}, which is not defined under {section}: "
-            f"{sorted(config[section])}"
-        )
-    return config[section][name]
+def _plan_dataset(plan: Plan, config: dict, name: str, dataset: dict, memo: dict) -> str:
+    params = {
+        "name": name,
+        # Every dataset setting but those read by later stages or by people only:
+        # one the stage reads (recursive, follow_links, ...) can never be left out.
+        **{k: v for k, v in dataset.items() if k not in NOT_DATASET_STAGE},
+        # What the images and ground truth hold, not where they are: replaced images
+        # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
+        "contents": dataset_contents(config["data_root"], name, dataset, memo),
+    }
+    return plan.add("dataset", params, {}, name)
+
+
+_StoreRef = tuple[str, str]  # (stage, key)
+
+
+@dataclass
+class _Method:
+    """One method on one dataset while its stages are planned: what every stage's
+    planner reads, and where it adds its stage."""
+
+    plan: Plan
+    config: dict
+    memo: dict
+    dataset_name: str
+    dataset: dict
+    dataset_store: _StoreRef
+    name: str
+    settings: dict  # resolved: see resolve_method
+    aggregator: Aggregator
+    options: dict  # the descriptor stage's own settings (Aggregator.options)
+
+    def add(
+        self, stage: str, params: dict, inputs: dict[str, _StoreRef], run_params: dict | None = None
+    ) -> _StoreRef:
+        return (stage, self.plan.add(stage, params, inputs, self.dataset_name, run_params))
+
+    def entry(self, section: str, name: str) -> dict:
+        """The ``backbones`` or ``segmenters`` entry ``name`` the method uses."""
+        if name not in self.config[section]:
+            raise PlanError(
+                f"method {self.name!r} uses {name!r}, which is not defined under {section}: "
+                f"{sorted(self.config[section])}"
+            )
+        return self.config[section][name]
+
+    @property
+    def execution(self) -> dict:
+        """How stages run, not what they compute (not hashed)."""
+        return {"device": self.config["device"]}
+
+    def model_run_params(self, stage: str, entry: dict) -> dict:
+        """Run settings of a stage that runs a backbone or segmenter ``entry``."""
+        return {
+            **self.execution,
+            "batch_size": entry["batch_size"],
+            "uses_gpu": model_kind(stage, entry).uses_gpu,
+        }
 
 
 def _plan_method(
-    plan, config, dataset_name, dataset, dataset_key, method_name, method, execution, memo
-):
-    """Plan one method's stages (as its registry entry needs them) and its CSV row."""
-    agg = aggregator(method["aggregator"])
-    features_name = method["features"]
-    backbone = _named_entry(config, "backbones", features_name, method_name)
+    plan: Plan, config: dict, memo: dict, dataset_name: str, dataset_key: str, method_name: str
+) -> MethodRun:
+    """Plan one method's stages (as its registry entry needs them) and its CSV row:
+    features, the stages its aggregator needs, descriptors, then recall (through the
+    segment search for a per-segment method). Each stage's planner returns its store
+    and its CSV columns."""
+    dataset = config["datasets"][dataset_name]
+    settings = resolve_method(config, method_name, dataset)
+    agg = aggregator(settings["aggregator"])
+    m = _Method(
+        plan,
+        config,
+        memo,
+        dataset_name,
+        dataset,
+        ("dataset", dataset_key),
+        method_name,
+        settings,
+        agg,
+        agg.options(settings),
+    )
+    features, columns = _plan_features(m)
+    row = {"aggregator": agg.name, **columns}
+    inputs = {"dataset": m.dataset_store, "features": features}
+    for stage in agg.needs:
+        if stage not in _NEEDED_STAGES:  # a registry entry naming a stage the plan does not know
+            raise PlanError(f"aggregator {agg.name!r} needs unknown stage {stage!r}")
+        store, columns = _NEEDED_STAGES[stage](m, inputs)
+        if store is not None:
+            inputs[stage] = store
+        row.update(columns)
+    row.update(agg.columns(settings))
+    descriptors = m.add("descriptors", {"aggregator": agg.name, **m.options}, inputs)
+    (_, recall_key), columns = _plan_recall(m, descriptors)
+    row.update(columns)
+    return MethodRun(method_name, recall_key, _flat(row), agg.name)
+
+
+def _plan_features(m: _Method) -> tuple[_StoreRef, dict]:
+    name = m.settings["features"]
+    backbone = m.entry("backbones", name)
     if backbone["resize"] == "method":
         # The published pipeline's reader: one backbone entry serves SegVLAD (OpenCV)
         # and SNSM (PIL) faithfully, as two features stores.
-        backbone = {**backbone, "resize": agg.resize}
-    ds = ("dataset", dataset_key)
-    features_params = {
+        backbone = {**backbone, "resize": m.aggregator.resize}
+    params = {
         **_hashed(backbone),
-        **source_fingerprint("features", backbone, memo, f"backbones.{features_name}"),
-        "resolution": _resolution(dataset, backbone),
+        **source_fingerprint("features", backbone, m.memo, f"backbones.{name}"),
+        "resolution": _resolution(m.dataset, backbone),
     }
     patch = backbone.get("patch_size")
-    if patch and min(features_params["resolution"]) < patch:
+    if patch and min(params["resolution"]) < patch:
         where = (
-            f"datasets.{dataset_name}.resolution"
+            f"datasets.{m.dataset_name}.resolution"
             if backbone["resolution"] == "dataset"
-            else f"backbones.{features_name}.resolution"
+            else f"backbones.{name}.resolution"
         )
         raise PlanError(
-            f"config key {where} = {features_params['resolution']} is smaller than one "
-            f"{patch}-pixel patch of backbone {features_name!r}"
+            f"config key {where} = {params['resolution']} is smaller than one "
+            f"{patch}-pixel patch of backbone {name!r}"
         )
-    features_key = plan.add(
-        "features",
-        features_params,
-        {"dataset": ds},
-        dataset_name,
-        {
-            **execution,
-            "batch_size": backbone["batch_size"],
-            "uses_gpu": model_kind("features", backbone).uses_gpu,
-        },
-    )
-    fx = ("features", features_key)
-    row = {"aggregator": agg.name, "features": features_name, **_prefixed("features", backbone)}
-    inputs = {"dataset": ds, "features": fx}
-    options = agg.options(method)
-    for stage in agg.needs:
-        if stage == "segments":
-            segmenter_name = method["segmenter"]
-            segmenter = _named_entry(config, "segmenters", segmenter_name, method_name)
-            params = {
-                **_hashed(segmenter),
-                **source_fingerprint("segments", segmenter, memo, f"segmenters.{segmenter_name}"),
-                "resolution": _segment_resolution(dataset, segmenter),
-            }
-            inputs["segments"] = (
-                "segments",
-                plan.add(
-                    "segments",
-                    params,
-                    {"dataset": ds},
-                    dataset_name,
-                    {
-                        **execution,
-                        "batch_size": segmenter["batch_size"],
-                        "uses_gpu": model_kind("segments", segmenter).uses_gpu,
-                    },
-                ),
-            )
-            row.update(segmenter=segmenter_name, **_prefixed("segmenter", segmenter))
-        elif stage == "vocabulary":
-            vocabulary = method["vocabulary"]
-            params = {k: v for k, v in vocabulary.items() if k != "file"}
-            if vocabulary["source"] == "file":
-                params.update(
-                    file=vocabulary["file"],
-                    sha256=_memoised(vocabulary["file"], memo, file_digest, "vocabulary.file"),
-                )
-            inputs["vocabulary"] = (
-                "vocabulary",
-                plan.add("vocabulary", params, {"dataset": ds, "features": fx}, dataset_name),
-            )
-            row.update(_prefixed("vocabulary", vocabulary))
-        elif stage == "pca":
-            pca = method["pca"]
-            if not pca["enabled"]:
-                row["pca.enabled"] = False
-                continue
-            params = {
-                # fit_order is read by the aggregator into fit_on: `method` and the
-                # order it resolves to are one PCA.
-                **{k: v for k, v in pca.items() if k not in ("enabled", "fit_order")},
-                "aggregator": agg.name,
-                # What the PCA is fitted on, as the aggregator says (SegVLAD: one PCA
-                # per neighbourhood order).
-                "fit_on": agg.pca_descriptor_options(method, options),
-            }
-            inputs["pca"] = ("pca", plan.add("pca", params, dict(inputs), dataset_name))
-            row.update(_prefixed("pca", pca))
-        else:  # a registry entry naming a stage the plan does not know
-            raise PlanError(f"aggregator {agg.name!r} needs unknown stage {stage!r}")
-    row.update(agg.columns(method))
-    descriptors_key = plan.add(
-        "descriptors", {"aggregator": agg.name, **options}, inputs, dataset_name
-    )
-    descriptors = ("descriptors", descriptors_key)
-    recall_inputs = {"dataset": ds, "descriptors": descriptors}
-    recall_params = {
-        "recall_at": dataset["recall_at"],
-        "denominator": dataset["denominator"],
-        "top_k": max(max(dataset["recall_at"]), 20),
+    run_params = m.model_run_params("features", backbone)
+    store = m.add("features", params, {"dataset": m.dataset_store}, run_params)
+    return store, {"features": name, **_prefixed("features", backbone)}
+
+
+def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
+    name = m.settings["segmenter"]
+    segmenter = m.entry("segmenters", name)
+    params = {
+        **_hashed(segmenter),
+        **source_fingerprint("segments", segmenter, m.memo, f"segmenters.{name}"),
+        "resolution": _segment_resolution(m.dataset, segmenter),
     }
-    if agg.output == "segments":
-        # The index's parameter defaults, filled only now: the index and its params may
-        # each come from another level of the merge.
-        try:
-            retrieval = search_settings(method["retrieval"])
-        except ValueError as error:
-            raise PlanError(f"method {method_name!r}: {error}") from None
-        search_inputs = {"dataset": ds, "descriptors": descriptors}
-        voting = method["voting"]
+    run_params = m.model_run_params("segments", segmenter)
+    store = m.add("segments", params, {"dataset": m.dataset_store}, run_params)
+    return store, {"segmenter": name, **_prefixed("segmenter", segmenter)}
 
-        def search_stage(settings: dict) -> tuple[str, str]:
-            params = {"top_segments": voting["top_segments"], **settings}
-            run = {**execution, "uses_gpu": SEARCH_INDEXES[settings["index"]].uses_gpu}
-            return ("search", plan.add("search", params, search_inputs, dataset_name, run))
 
-        recall_inputs["search"] = search_stage(retrieval)
-        if not SEARCH_INDEXES[retrieval["index"]].exact:
-            # The table states what the approximation costs: recall of an exact search
-            # of the same descriptors, in the same run.
-            recall_inputs["exact_search"] = search_stage(
-                search_settings({"index": "flat", "params": {}})
-            )
-        recall_params["vote_ranking"] = voting["vote_ranking"]
-        row.update(_prefixed("retrieval", retrieval), **_prefixed("voting", voting))
-    recall_key = plan.add("recall", recall_params, recall_inputs, dataset_name)
-    return MethodRun(method_name, recall_key, _flat(row), agg.name)
+def _plan_vocabulary(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
+    vocabulary = m.settings["vocabulary"]
+    params = {k: v for k, v in vocabulary.items() if k != "file"}
+    if vocabulary["source"] == "file":
+        params.update(
+            file=vocabulary["file"],
+            sha256=memoised(vocabulary["file"], m.memo, file_digest, "vocabulary.file"),
+        )
+    store = m.add(
+        "vocabulary", params, {"dataset": m.dataset_store, "features": inputs["features"]}
+    )
+    return store, _prefixed("vocabulary", vocabulary)
+
+
+def _plan_pca(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef | None, dict]:
+    """The PCA of the method's descriptors, fitted on every input planned so far; none
+    when the method disables it."""
+    pca = m.settings["pca"]
+    if not pca["enabled"]:
+        return None, {"pca.enabled": False}
+    params = {
+        # fit_order is read by the aggregator into fit_on: `method` and the
+        # order it resolves to are one PCA.
+        **{k: v for k, v in pca.items() if k not in ("enabled", "fit_order")},
+        "aggregator": m.aggregator.name,
+        # What the PCA is fitted on, as the aggregator says (SegVLAD: one PCA
+        # per neighbourhood order).
+        "fit_on": m.aggregator.pca_descriptor_options(m.settings, m.options),
+    }
+    return m.add("pca", params, dict(inputs)), _prefixed("pca", pca)
+
+
+# The stages an aggregator may need between features and descriptors (Aggregator.needs),
+# each planned as ``(method, inputs planned so far) -> (its store or None, CSV columns)``.
+_NEEDED_STAGES = {
+    "segments": _plan_segments,
+    "vocabulary": _plan_vocabulary,
+    "pca": _plan_pca,
+}
+
+
+def _plan_recall(m: _Method, descriptors: _StoreRef) -> tuple[_StoreRef, dict]:
+    """Recall of the method's descriptors: directly for a per-image method, through
+    the segment search and voting for a per-segment one."""
+    inputs = {"dataset": m.dataset_store, "descriptors": descriptors}
+    params = {
+        "recall_at": m.dataset["recall_at"],
+        "denominator": m.dataset["denominator"],
+        "top_k": max(max(m.dataset["recall_at"]), 20),
+    }
+    columns: dict = {}
+    if m.aggregator.output == "segments":
+        searches, columns = _plan_search(m, descriptors)
+        inputs.update(searches)
+        params["vote_ranking"] = m.settings["voting"]["vote_ranking"]
+    return m.add("recall", params, inputs), columns
+
+
+def _plan_search(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict]:
+    """The segment searches a per-segment method's recall votes over, by recall input
+    name, and the retrieval and voting CSV columns."""
+    # The index's parameter defaults, filled only now: the index and its params may
+    # each come from another level of the merge.
+    try:
+        retrieval = search_settings(m.settings["retrieval"])
+    except ValueError as error:
+        raise PlanError(f"method {m.name!r}: {error}") from None
+    voting = m.settings["voting"]
+
+    def search(settings: dict) -> _StoreRef:
+        params = {"top_segments": voting["top_segments"], **settings}
+        run_params = {**m.execution, "uses_gpu": SEARCH_INDEXES[settings["index"]].uses_gpu}
+        return m.add(
+            "search", params, {"dataset": m.dataset_store, "descriptors": descriptors}, run_params
+        )
+
+    searches = {"search": search(retrieval)}
+    if not SEARCH_INDEXES[retrieval["index"]].exact:
+        # The table states what the approximation costs: recall of an exact search
+        # of the same descriptors, in the same run.
+        searches["exact_search"] = search(search_settings({"index": "flat", "params": {}}))
+    return searches, {**_prefixed("retrieval", retrieval), **_prefixed("voting", voting)}
+
+
+def _hashed(params: dict) -> dict:
+    return {k: v for k, v in params.items() if k not in EXECUTION_ONLY}
+
+
+def _resolution(dataset: dict, profile: dict) -> list[int]:
+    if profile["resolution"] == "dataset":
+        return list(dataset["resolution"])
+    return list(profile["resolution"])
 
 
 def _segment_resolution(dataset: dict, segmenter: dict) -> list[int]:
@@ -706,3 +458,13 @@ def _flat(row: dict) -> dict:
     for name, value in row.items():
         _flatten(name, value, out)
     return out
+
+
+def _flatten(prefix: str, value, out: dict) -> None:
+    if isinstance(value, dict):
+        for name in sorted(value):
+            _flatten(f"{prefix}.{name}" if prefix else name, value[name], out)
+    elif isinstance(value, list):
+        out[prefix] = " ".join(str(v) for v in value)
+    else:
+        out[prefix] = value

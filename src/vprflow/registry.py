@@ -209,7 +209,7 @@ class Aggregator:
     ``(options, input store paths) -> ImageDescriptor`` (stages/descriptors.py): a
     callable ``image index -> [dim] or [S, dim]`` split into store reads and arithmetic.
     ``explanation``: the report's figure of how the method decided, besides the
-    retrievals every method gets (a name in :data:`vprflow.plan.FIGURES`), or None.
+    retrievals every method gets (a name in :data:`vprflow.reports.FIGURES`), or None.
     ``pca_fit``: see :meth:`pca_descriptor_options` (for aggregators with ``pca``).
     ``resize``: how the published pipeline resizes images before the backbone (a
     :data:`vprflow.images.RESIZE_METHODS` name), the default of a backbone's

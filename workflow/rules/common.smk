@@ -2,32 +2,31 @@
 from functools import cache
 from pathlib import Path
 
-from vprflow.config import validate_config
+from vprflow.config import PlanError, validate_config
 from vprflow.datasets import list_dataset
-from vprflow.plan import (
+from vprflow.fingerprints import load_fingerprints, save_fingerprints
+from vprflow.paths import (
     EXPORT,
     FIGURE,
+    FINGERPRINTS,
     PREDICTIONS_CSV,
     RECALL_CSV,
     RECALL_PLOT,
     RECALL_TABLE,
-    PlanError,
     benchmark_pattern,
-    build_plan,
-    dataset_outputs,
-    figure_inputs,
-    method_stores,
-    FINGERPRINTS,
-    load_fingerprints,
     log_pattern,
-    save_fingerprints,
     shard_pattern,
     store_path,
     store_pattern,
+)
+from vprflow.plan import build_plan, method_stores
+from vprflow.reports import (
+    dataset_outputs,
+    figure_inputs,
     withdraw_reports,
     withdraw_stale_reports,
-    write_index,
 )
+from vprflow.store_index import write_index
 
 
 configfile: "config/config.yaml"

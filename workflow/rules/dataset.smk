@@ -1,5 +1,5 @@
 # No file inputs: the key covers the images' and ground truth's contents (see
-# vprflow.plan.dataset_contents), and their location must not trigger a rerun.
+# vprflow.fingerprints.dataset_contents), and their location must not trigger a rerun.
 rule dataset:
     output:
         directory(store_pattern("dataset")),

@@ -11,8 +11,8 @@ from tqdm import tqdm
 
 from vprflow import datasets, stores
 from vprflow.datasets import DatasetError
+from vprflow.fingerprints import file_digest
 from vprflow.images import ImageReadError, decode_image
-from vprflow.plan import file_digest
 from vprflow.stages.base import shard_range
 
 log = logging.getLogger("vprflow")
@@ -106,7 +106,7 @@ def _changed_since_planning(
 ) -> str:
     """The message for files that differ from what the plan hashed: those whose stamp
     (size, mtime, ctime) or hash is not in the plan's memo."""
-    from vprflow.plan import load_fingerprints, memo_key
+    from vprflow.fingerprints import load_fingerprints, memo_key
 
     memo = load_fingerprints(fingerprints) if fingerprints else {}
     changed = [p for p in paths if memo.get(memo_key(p)) != digests[p]] if memo else []

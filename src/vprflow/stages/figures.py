@@ -242,7 +242,7 @@ def draw_support_maps(
     figures.save_figure(figures.support_map_figure(rows, title), out)
 
 
-# The figures by name (vprflow.plan.FIGURES says which stores each reads); a figure rule
+# The figures by name (vprflow.reports.FIGURES says which stores each reads); a figure rule
 # passes its name, never its rule name, which a host workflow may prefix.
 FIGURE_FUNCTIONS = {
     "retrievals": draw_retrievals,

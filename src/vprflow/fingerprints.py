@@ -1,0 +1,154 @@
+"""Content hashes of the files a key covers, memoised by stamp between runs.
+
+A stage's key covers what its inputs hold, not where they are: a dataset's images and
+ground truth, local model weights, imported files. The plan is built on every run, so
+each file's SHA-256 is memoised by absolute path, size, mtime and ctime (one ``stat``
+per file: re-planning 100,000 images, or a ViT-G checkpoint that takes seconds to hash,
+is quick). The memo lives at :data:`vprflow.paths.FINGERPRINTS`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import stat
+from pathlib import Path
+
+from vprflow.config import PlanError
+from vprflow.files import write_text_atomic
+from vprflow.paths import FINGERPRINTS
+from vprflow.registry import model_kind
+
+
+def file_digest(path: str | Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def load_fingerprints(path: str | Path = FINGERPRINTS) -> dict:
+    """The memo of content hashes (see :func:`memoised`). It is only a cache: an
+    unreadable one is reported, ignored and rebuilt (hashing everything once more)."""
+    path = Path(path)
+    if not path.exists():
+        return {}
+    try:
+        memo = json.loads(path.read_text())
+        if not isinstance(memo, dict) or not all(isinstance(v, str) for v in memo.values()):
+            raise ValueError("not a JSON object of strings")
+        return memo
+    except (OSError, ValueError) as error:
+        import warnings
+
+        warnings.warn(
+            f"{path} is unreadable ({error}); it only caches content hashes, so it is "
+            "ignored and rebuilt (delete it to silence this)",
+            stacklevel=2,
+        )
+        return {}
+
+
+def save_fingerprints(memo: dict, path: str | Path = FINGERPRINTS) -> None:
+    """Write the memo atomically, so a concurrent or killed run never leaves half a file."""
+    write_text_atomic(path, json.dumps(memo, indent=1, sort_keys=True))
+
+
+def memo_key(path: str | Path, st: os.stat_result | None = None) -> str:
+    """The memo's key of a file: its absolute path, size, mtime and ctime."""
+    st = st or os.stat(path)
+    stamp = f"{os.path.basename(path)}:{st.st_size}:{st.st_mtime_ns}:{st.st_ctime_ns}"
+    return f"{os.path.abspath(path)}|{stamp}"
+
+
+def memoised(path: str | Path, memo: dict, digest, where: str) -> str:
+    """``digest(path)`` of a file or a directory's files, memoised by absolute path,
+    size, mtime and ctime (one ``stat`` per file: re-planning 100,000 images is quick).
+    ``where`` is the config key naming ``path``, named when it does not exist."""
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise PlanError(f"config key {where}: {path} does not exist") from None
+    if stat.S_ISDIR(st.st_mode):
+        entries = sorted(os.scandir(path), key=lambda e: e.name)
+        stamps = [(e.name, e.stat()) for e in entries if e.is_file()]
+        stamp = "|".join(f"{n}:{s.st_size}:{s.st_mtime_ns}:{s.st_ctime_ns}" for n, s in stamps)
+        key = f"{os.path.abspath(path)}|{stamp}"
+    else:
+        key = memo_key(path, st)
+    if key not in memo:
+        memo[key] = digest(str(path))
+    return memo[key]
+
+
+def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str | None:
+    """:func:`vprflow.datasets.contents_digest` of a dataset, or ``None`` while the
+    dataset cannot be listed (its stage then fails, naming why).
+
+    Each file's hash is memoised by path, size, mtime and ctime, so re-planning reads no
+    image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
+    ``rsync -a`` or ``tar`` (which restore an older mtime).
+    """
+    from vprflow.datasets import DatasetError, contents_digest, list_dataset
+    from vprflow.images import ImageReadError
+
+    try:
+        files = list_dataset(data_root, name, spec)
+    except (DatasetError, ImageReadError):
+        return None
+    return contents_digest(
+        files,
+        data_root,
+        spec,
+        lambda path, where: memoised(path, memo, file_digest, f"datasets.{name}.{where}"),
+    )
+
+
+def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> dict:
+    """What identifies the weights or file a backbone (``stage="features"``) or
+    segmenter (``stage="segments"``) entry reads, as its registry kind says.
+
+    Hub ids stand for themselves; local model directories and imported HDF5 files are
+    hashed by content (memoised by path, size and modification time, because a
+    ViT-G checkpoint takes seconds to hash and the plan is built on every run), as are
+    the kind's ``model_files`` in a local directory and a backbone's ``checkpoint`` file.
+    ``where`` is the entry's config key (``backbones.<name>``), named in errors.
+    """
+    kind = model_kind(stage, entry)
+    if kind.weights == "file":
+        return {"file_sha256": memoised(entry["file"], memo, file_digest, f"{where}.file")}
+    if kind.weights == "model":
+        from vprflow.models import is_local_model, weights_fingerprint
+
+        model = entry["model"]
+        if not is_local_model(model):
+            return {
+                "model": model,
+                "weights": f"hf:{model}",
+                **_checkpoint_fingerprint(entry, memo, where),
+            }
+        if not Path(model).expanduser().exists():
+            from vprflow.models import model_not_found
+
+            raise PlanError(
+                f"config key {where}.model: "
+                + str(model_not_found(model, f"local directory {model!r} does not exist", None))
+            )
+        weights = memoised(model, memo, weights_fingerprint, f"{where}.model")
+        found = {"model": model, "weights": weights}
+        for name in kind.model_files:  # e.g. a DINOv3 directory's preprocessor_config.json
+            path = Path(model).expanduser() / name
+            if path.is_file():
+                found[name] = memoised(path, memo, file_digest, f"{where}.model")
+        return {**found, **_checkpoint_fingerprint(entry, memo, where)}
+    return {}
+
+
+def _checkpoint_fingerprint(entry: dict, memo: dict, where: str) -> dict:
+    """A backbone's ``checkpoint`` file (weights replacing the model's), hashed."""
+    if entry.get("checkpoint") is None:
+        return {}
+    sha = memoised(entry["checkpoint"], memo, file_digest, f"{where}.checkpoint")
+    return {"checkpoint_sha256": sha}

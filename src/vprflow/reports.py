@@ -1,0 +1,89 @@
+"""A dataset's report on disk: the tables and figures it shows, the stores each figure
+reads, and withdrawing tables that no longer describe the config."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from vprflow.config import PlanError
+from vprflow.paths import (
+    FIGURE,
+    PREDICTIONS_CSV,
+    RECALL_CSV,
+    RECALL_PLOT,
+    RECALL_TABLE,
+    store_path,
+)
+from vprflow.plan import Plan, method_run, method_stores
+
+# Each figure kind of one method and the stores it reads (the method's own, by name).
+FIGURES = {
+    "retrievals": ("dataset", "recall"),
+    "segment_matches": ("dataset", "recall", "search", "descriptors", "segments"),
+    "support_maps": ("dataset", "recall", "descriptors", "features"),
+}
+
+# The outputs that state results: withdrawn when they may not describe the config.
+_SHOWN = (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE, RECALL_PLOT)
+
+
+def dataset_outputs(plan: Plan, dataset: str) -> list[str]:
+    """Everything a dataset's report shows: its tables, its recall plot and every
+    method's figures."""
+    tables = (PREDICTIONS_CSV,)
+    if plan.has_ground_truth[dataset]:  # without it there is no recall to show
+        tables += (RECALL_CSV, RECALL_TABLE, RECALL_PLOT)
+    outputs = [t.format(dataset=dataset) for t in tables]
+    for run in plan.runs[dataset]:
+        outputs += [
+            FIGURE.format(dataset=dataset, figure=figure, method=run.method)
+            for figure in run.figures
+        ]
+    return outputs
+
+
+def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[str, str]:
+    """The stores one method's figure reads, by name (see :data:`FIGURES`)."""
+    if figure not in method_run(plan, dataset, method).figures:
+        raise PlanError(f"no figure {figure!r} of method {method!r} on dataset {dataset!r}")
+    stores = method_stores(plan, dataset, method)
+    return {name: stores[name] for name in FIGURES[figure]}
+
+
+def stale_reports(plan: Plan, root: str = "") -> list[Path]:
+    """Results tables on disk that do not describe the current config: one of the
+    dataset's recall stores is missing or newer than the table. ``root`` is the
+    prefix of every path (a host workflow's module ``prefix``)."""
+    stale = []
+    for dataset, runs in plan.runs.items():
+        tables = [Path(root) / t.format(dataset=dataset) for t in _SHOWN]
+        for table in tables:
+            if not table.exists():
+                continue
+            built = table.stat().st_mtime
+            recalls = [Path(root) / store_path("recall", run.recall_key) for run in runs]
+            if any(not r.exists() or r.stat().st_mtime > built for r in recalls):
+                stale.append(table)
+    return stale
+
+
+def withdraw_stale_reports(plan: Plan, root: str = "") -> list[Path]:
+    """Rename every stale table to ``<name>.stale`` so that a failed run never leaves a
+    table that looks current; returns the new paths."""
+    return _withdraw(stale_reports(plan, root))
+
+
+def withdraw_reports(root: str = "", dataset: str = "*") -> list[Path]:
+    """Withdraw every table of ``dataset`` (all datasets by default) regardless of age:
+    for failures before a plan exists (a config that cannot be planned, a dataset that
+    cannot be listed), where none of them describes the current config."""
+    return _withdraw([t for p in _SHOWN for t in Path(root or ".").glob(p.format(dataset=dataset))])
+
+
+def _withdraw(tables: list[Path]) -> list[Path]:
+    moved = []
+    for table in tables:
+        target = table.with_name(table.name + ".stale")
+        table.replace(target)
+        moved.append(target)
+    return moved
