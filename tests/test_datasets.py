@@ -22,19 +22,16 @@ import pytest
 from PIL import Image
 from workflow_helpers import dataset_spec, truth_spec
 
-from vprflow.datasets import (
-    DatasetError,
-    DatasetFiles,
+from vprflow.datasets import DatasetError, DatasetFiles, list_dataset
+from vprflow.ground_truth import (
     frame_window_ground_truth,
     ground_truth,
-    list_dataset,
     load_object_npy,
     pairs_ground_truth,
-    utm_from_name,
-    utm_ground_truth,
     vprbench_ground_truth,
 )
 from vprflow.images import ImageReadError, list_images, read_image, resize_image
+from vprflow.positions import utm_from_name, utm_ground_truth
 
 
 def assert_truth_equal(truth, expected):

@@ -12,21 +12,18 @@ import pytest
 from PIL import Image
 from workflow_helpers import dataset_spec
 
-from vprflow.datasets import (
+from vprflow.datasets import DatasetError, DatasetFiles, list_dataset
+from vprflow.ground_truth import ground_truth, ground_truth_rule
+from vprflow.images import scan_images
+from vprflow.positions import (
     EARTH_RADIUS_M,
-    DatasetError,
-    DatasetFiles,
     Positions,
     coordinates_ground_truth,
     exif_lat_lon,
-    ground_truth,
-    ground_truth_rule,
     haversine_m,
     heading_difference,
-    list_dataset,
     read_positions,
 )
-from vprflow.images import scan_images
 from vprflow.recall import average_precision_at, map_at, recall_at
 
 METRES_PER_DEGREE = math.pi * EARTH_RADIUS_M / 180  # along a meridian: 111,195.08 m
