@@ -1,6 +1,6 @@
 """Ground-truth kinds (vprflow.ground_truth) against direct formulas: exact integer
 index sets, the safe VPR-Bench loader against live malicious pickles, errors that name
-the file, row or folder at fault.
+the file, row or folder at fault, and the table of kinds against the schema.
 
 Tests marked ``data`` read the real files under ``$VPRFLOW_DATA`` (the ``data_root``
 fixture of conftest.py): skipped when it is unset or not a folder, but failed under
@@ -16,11 +16,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
 from dataset_helpers import SPEC, assert_truth_equal, touch_images, utm_name
-from workflow_helpers import dataset_spec, truth_spec
+from workflow_helpers import SCHEMA, dataset_spec, truth_spec
 
 from vprflow.datasets import DatasetError, DatasetFiles, list_dataset
 from vprflow.ground_truth import (
+    KINDS,
     frame_window_ground_truth,
     ground_truth,
     ground_truth_rule,
@@ -267,6 +269,13 @@ def test_no_ground_truth_gives_empty_lists_and_its_rule():
     truth = ground_truth(files, {"kind": "none"}, Path("."))
     assert [t.tolist() for t in truth] == [[]]
     assert ground_truth_rule({"kind": "none"}) == "none"
+
+
+def test_the_schema_lists_exactly_the_table_of_kinds():
+    # As tests/test_registry.py checks the registry's enums: a kind the schema admits
+    # must be one ground_truth() computes, and the other way round.
+    dataset = yaml.safe_load(SCHEMA.read_text())["definitions"]["dataset"]["properties"]
+    assert dataset["ground_truth"]["properties"]["kind"]["enum"] == list(KINDS)
 
 
 # ------------------------------------------------------------------ images by folder in errors
