@@ -1,7 +1,9 @@
 """Reading, finding and resizing images.
 
 ``resize_image``: OpenCV INTER_LINEAR ("linear") and PIL bilinear ("antialias", equal to
-PIL's 8-bit result on 8-bit images). ``read_image``: the EXIF orientation as
+PIL's 8-bit result on 8-bit images); resizing a linear ramp must reproduce the ramp at
+the output pixel centres within 1e-5. ``read_image``: 8-bit values must equal v / 255 and
+16-bit values v / 65535 within 1e-7 (float32 rounding), the EXIF orientation as
 ``cv2.imread`` applies it. ``scan_images``: links, unread formats and the order of names.
 
 The reference for "linear" is a slow float64 double loop over output pixels written
@@ -145,6 +147,40 @@ def test_antialias_on_8bit_images_equals_pil_on_the_8bit_image_bit_for_bit():
         np.testing.assert_array_equal(ours * 255.0, np.asarray(published, dtype=np.float32))
 
 
+def test_resize_image_reproduces_a_linear_ramp():
+    height, width = 6, 40
+    ramp = np.tile(np.linspace(0.1, 0.9, width, dtype=np.float32), (height, 1))
+    image = np.stack([ramp, 1 - ramp, np.full_like(ramp, 0.25)], axis=2)
+    step = 0.8 / (width - 1)
+
+    def value_at(x):  # the ramp at input column coordinate x (pixel centres at integers)
+        return 0.1 + step * x
+
+    for new_width in (20, 13, 80):
+        out = resize_image(image, new_width, height)
+        assert out.shape == (height, new_width, 3) and out.dtype == np.float32
+        scale = width / new_width
+        centres = (np.arange(new_width) + 0.5) * scale - 0.5
+        # Away from the borders (where the filter is truncated) a linear ramp stays exact.
+        margin = int(math.ceil(2 * max(scale, 1.0)))
+        inner = slice(margin, new_width - margin)
+        expected = np.broadcast_to(value_at(centres[inner]), (height, len(centres[inner])))
+        np.testing.assert_allclose(out[:, inner, 0], expected, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(out[:, inner, 1], 1 - expected, rtol=0, atol=1e-5)
+        np.testing.assert_allclose(out[:, :, 2], 0.25, atol=1e-6)  # constants stay constant
+        assert out.min() >= 0.0 and out.max() <= 1.0
+    same = resize_image(image, width, height)
+    np.testing.assert_array_equal(same, image)
+
+
+def test_resize_keeps_16bit_precision():
+    image = np.full((8, 8, 3), 1000 / 65535, dtype=np.float32)
+    image[:, 4:] = 1001 / 65535
+    out = resize_image(image, 4, 4)
+    assert out[0, 0, 0] == pytest.approx(1000 / 65535, abs=1e-8)
+    assert out[0, 3, 0] == pytest.approx(1001 / 65535, abs=1e-8)
+
+
 # ------------------------------------------------------------------ reading
 
 
@@ -183,6 +219,85 @@ def test_a_decompression_bomb_names_the_file_and_the_remedy(tmp_path, monkeypatc
     monkeypatch.setattr(Image, "MAX_IMAGE_PIXELS", 100)  # 40 x 40 > 2 x 100
     with pytest.raises(ImageReadError, match=r"huge\.png: .*decompression bomb.*downscale it"):
         read_image(tmp_path / "huge.png")
+
+
+def test_read_8bit_rgb(tmp_path):
+    pixels = np.random.default_rng(0).integers(0, 256, (5, 7, 3), dtype=np.uint8)
+    Image.fromarray(pixels, "RGB").save(tmp_path / "rgb.png")
+    image = read_image(tmp_path / "rgb.png")
+    assert image.shape == (5, 7, 3) and image.dtype == np.float32
+    np.testing.assert_allclose(image, pixels / 255.0, rtol=0, atol=1e-7)
+
+
+@pytest.mark.parametrize(("low", "high"), [(0.0, 255.0), (-0.5, 0.5)])
+def test_float_image_outside_unit_range_is_refused_naming_file_and_range(tmp_path, low, high):
+    # A 0-255 float TIFF used to be clipped to [0, 1]: 98% white, no error.
+    pixels = np.linspace(low, high, 20, dtype=np.float32).reshape(4, 5)
+    Image.fromarray(pixels, "F").save(tmp_path / "float.tif")
+    with pytest.raises(ImageReadError, match=rf"float\.tif.*\[{low:g}, {high:g}\]"):
+        read_image(tmp_path / "float.tif")
+
+
+def test_float_image_in_unit_range_is_read_as_is(tmp_path):
+    pixels = np.random.default_rng(3).uniform(0, 1, (4, 5)).astype(np.float32)
+    Image.fromarray(pixels, "F").save(tmp_path / "float.tif")
+    np.testing.assert_array_equal(read_image(tmp_path / "float.tif")[:, :, 1], pixels)
+
+
+def test_read_grayscale_is_repeated(tmp_path):
+    pixels = np.random.default_rng(1).integers(0, 256, (4, 6), dtype=np.uint8)
+    Image.fromarray(pixels, "L").save(tmp_path / "grey.png")
+    image = read_image(tmp_path / "grey.png")
+    assert image.shape == (4, 6, 3)
+    for c in range(3):
+        np.testing.assert_allclose(image[:, :, c], pixels / 255.0, rtol=0, atol=1e-7)
+
+
+def test_read_16bit_grayscale(tmp_path):
+    pixels = np.random.default_rng(2).integers(0, 65536, (6, 5), dtype=np.uint16)
+    pixels[0, 0], pixels[0, 1] = 0, 65535
+    Image.fromarray(pixels).save(tmp_path / "thermal.png")
+    assert Image.open(tmp_path / "thermal.png").mode.startswith("I")
+    image = read_image(tmp_path / "thermal.png")
+    assert image.shape == (6, 5, 3)
+    for c in range(3):
+        np.testing.assert_allclose(image[:, :, c], pixels / 65535.0, rtol=0, atol=1e-7)
+    # 16-bit precision survives: neighbouring levels stay distinct (8-bit would merge them).
+    assert image[0, 1, 0] == 1.0 and image[0, 0, 0] == 0.0
+
+
+def test_read_rgba_drops_alpha(tmp_path):
+    pixels = np.random.default_rng(3).integers(0, 256, (3, 4, 4), dtype=np.uint8)
+    pixels[..., 3] = 0  # fully transparent: colours must still come through unchanged
+    Image.fromarray(pixels, "RGBA").save(tmp_path / "rgba.png")
+    np.testing.assert_allclose(
+        read_image(tmp_path / "rgba.png"), pixels[..., :3] / 255.0, rtol=0, atol=1e-7
+    )
+
+
+def test_read_palette_image(tmp_path):
+    palette = np.array([[255, 0, 0], [0, 128, 255], [10, 20, 30]], dtype=np.uint8)
+    index = np.random.default_rng(4).integers(0, 3, (5, 6), dtype=np.uint8)
+    image = Image.fromarray(index, "P")
+    image.putpalette(palette.ravel().tolist())
+    image.save(tmp_path / "palette.png")
+    np.testing.assert_allclose(
+        read_image(tmp_path / "palette.png"), palette[index] / 255.0, rtol=0, atol=1e-7
+    )
+
+
+def test_read_corrupt_image_names_the_file(tmp_path):
+    garbage = tmp_path / "broken.jpg"
+    garbage.write_bytes(b"\xff\xd8 definitely not a jpeg")
+    with pytest.raises(ImageReadError, match="broken.jpg"):
+        read_image(garbage)
+    Image.fromarray(np.zeros((64, 64, 3), np.uint8) + 7).save(tmp_path / "whole.png")
+    truncated = tmp_path / "truncated.png"
+    truncated.write_bytes((tmp_path / "whole.png").read_bytes()[:60])
+    with pytest.raises(ImageReadError, match="truncated.png"):
+        read_image(truncated)
+    with pytest.raises(ImageReadError, match="missing.png"):
+        read_image(tmp_path / "missing.png")
 
 
 # ------------------------------------------------------------------ discovery
@@ -264,3 +379,20 @@ def test_the_order_is_a_total_order_of_names_whatever_the_file_system_lists_firs
     assert orders[0].index("A.png") + 1 == orders[0].index("a.png")
     # Decomposed (macOS) and composed spellings of a name sort alike.
     assert natural_key("e\u0301.png")[0] == natural_key("\u00e9.png")[0]
+
+
+def test_recursive_discovery_orders_relative_paths_naturally_and_counts_skips(tmp_path):
+    write_pngs(tmp_path, ["b/2.png", "b/10.png", "a/x/1.png", "3.png", ".hidden.png"])
+    (tmp_path / ".cache").mkdir()
+    write_pngs(tmp_path / ".cache", ["9.png"])
+    (tmp_path / "notes.txt").write_text("not an image")
+    scan = scan_images(tmp_path, recursive=True)
+    assert [p.relative_to(tmp_path).as_posix() for p in scan.paths] == [
+        "3.png",
+        "a/x/1.png",
+        "b/2.png",
+        "b/10.png",
+    ]
+    assert (scan.skipped_hidden, scan.skipped_other) == (2, 1)
+    flat = scan_images(tmp_path, recursive=False)
+    assert [p.name for p in flat.paths] == ["3.png"]

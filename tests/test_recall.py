@@ -1,12 +1,13 @@
-"""Recall@N (REFERENCE.md section 2 step 9) against a direct loop. Results are exact
-fractions, compared with a 1e-12 absolute tolerance."""
+"""Recall@N (REFERENCE.md section 2 step 9) against a direct loop, mAP@N against the
+published average precision, and which queries the denominator counts. Results are
+exact fractions, compared with a 1e-12 absolute tolerance."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from vprflow.recall import correct_at, recall_at
+from vprflow.recall import average_precision_at, correct_at, map_at, recall_at
 
 
 def direct_recall(ranking, truth, ns):
@@ -91,3 +92,47 @@ def test_correct_at_small_example():
     ranking = np.array([[4, 2, 7], [1, 3, 5], [9, 8, 6]])
     truth = [np.array([7, 2]), np.array([0]), np.array([9])]
     np.testing.assert_array_equal(correct_at(ranking, truth), [1, -1, 0])
+
+
+# ------------------------------------------------------------------ mAP@N and the denominator
+
+
+def published_ap(retrieved: list[bool]) -> float:
+    """Revisit-Anything's calculate_ap, as its code reads."""
+    relevant = sum(retrieved)
+    if relevant == 0:
+        return 0.0
+    hits, total = 0, 0.0
+    for i, ok in enumerate(retrieved, start=1):
+        if ok:
+            hits += 1
+            total += hits / i
+    return total / relevant
+
+
+def test_map_at_n_equals_the_published_average_precision():
+    rng = np.random.default_rng(3)
+    n_ref, n_query = 30, 40
+    ranking = np.array([rng.permutation(n_ref)[:12] for _ in range(n_query)])
+    ranking[3, 8:] = -1  # a short (voted) ranking
+    truth = [np.sort(rng.choice(n_ref, rng.integers(0, 6), replace=False)) for _ in range(n_query)]
+    truth[5] = np.zeros(0, np.int64)
+    for n in (1, 5, 10):
+        ap = average_precision_at(ranking, truth, n)
+        for q in range(n_query):
+            retrieved = [int(r) in set(truth[q].tolist()) for r in ranking[q, :n] if r >= 0]
+            assert ap[q] == pytest.approx(published_ap(retrieved), abs=1e-12)
+        with_positives = [q for q in range(n_query) if len(truth[q])]
+        assert map_at(ranking, truth, [n])[n] == pytest.approx(
+            np.mean([ap[q] for q in with_positives]), abs=1e-12
+        )
+        assert map_at(ranking, truth, [n], "all")[n] == pytest.approx(np.mean(ap), abs=1e-12)
+
+
+def test_the_denominator_counts_queries_without_positives_as_misses_when_all():
+    ranking = np.array([[0, 1], [1, 0], [2, 0], [0, 2]])
+    truth = [np.array([0]), np.array([0]), np.zeros(0, np.int64), np.array([2])]
+    assert recall_at(ranking, truth, [1, 2]) == {1: pytest.approx(1 / 3), 2: 1.0}
+    assert recall_at(ranking, truth, [1, 2], "all") == {1: 0.25, 2: 0.75}
+    with pytest.raises(ValueError, match="unknown denominator"):
+        recall_at(ranking, truth, [1], "some")

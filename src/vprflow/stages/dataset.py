@@ -12,6 +12,7 @@ from tqdm import tqdm
 from vprflow import datasets, stores
 from vprflow.datasets import DatasetError
 from vprflow.fingerprints import file_digest
+from vprflow.ground_truth import ground_truth, ground_truth_rule
 from vprflow.images import ImageReadError, decode_image
 from vprflow.stages.base import shard_range
 
@@ -51,7 +52,7 @@ def build_dataset(
     datasets.check_disjoint(
         name, files.reference, files.query, by_path.get, "are byte-identical copies of references"
     )
-    truth = datasets.ground_truth(files, spec["ground_truth"], folder)
+    truth = ground_truth(files, spec["ground_truth"], folder)
     counts = np.array([len(t) for t in truth], dtype=np.int64)
     with stores.atomic_store(out, {"stage": "dataset", "params": params}) as group:
         group.attrs.update(
@@ -59,7 +60,7 @@ def build_dataset(
             data_root_at_build=str(Path(data_root).resolve()),
             n_reference=len(files.reference),
             n_query=len(files.query),
-            ground_truth_rule=datasets.ground_truth_rule(spec["ground_truth"]),
+            ground_truth_rule=ground_truth_rule(spec["ground_truth"]),
             n_queries_with_positives=int((counts > 0).sum()),
             exif_orientation=spec["exif_orientation"],
         )

@@ -1,5 +1,6 @@
-"""Your own places: coordinate and EXIF ground truth, no ground truth, nested folders and
-image lists, comparable metrics (denominator, mAP@N) and descriptor export."""
+"""Positions (vprflow.positions): distances against written-out formulas, coordinate
+files and EXIF GPS tags read by name with errors naming the line, UTM file names, and
+the radius rules against pairwise loops."""
 
 from __future__ import annotations
 
@@ -9,25 +10,23 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from dataset_helpers import assert_truth_equal, utm_name
 from PIL import Image
 from workflow_helpers import dataset_spec
 
-from vprflow.datasets import (
+from vprflow.datasets import DatasetError, list_dataset
+from vprflow.ground_truth import ground_truth, ground_truth_rule
+from vprflow.positions import (
     EARTH_RADIUS_M,
-    DatasetError,
-    DatasetFiles,
     Positions,
     coordinates_ground_truth,
     exif_lat_lon,
-    ground_truth,
-    ground_truth_rule,
     haversine_m,
     heading_difference,
-    list_dataset,
     read_positions,
+    utm_from_name,
+    utm_ground_truth,
 )
-from vprflow.images import scan_images
-from vprflow.recall import average_precision_at, map_at, recall_at
 
 METRES_PER_DEGREE = math.pi * EARTH_RADIUS_M / 180  # along a meridian: 111,195.08 m
 
@@ -220,6 +219,9 @@ def test_a_coordinate_file_that_is_not_utf8_names_the_line(tmp_path):
         read_positions(path, NAMES)
 
 
+# ------------------------------------------------------------------ EXIF GPS
+
+
 def gps_jpeg(path: Path, lat: tuple, lat_ref: str, lon: tuple, lon_ref: str) -> Path:
     exif = Image.Exif()
     exif[0x8825] = {1: lat_ref, 2: lat, 3: lon_ref, 4: lon}
@@ -254,96 +256,41 @@ def test_exif_ground_truth_through_list_dataset(tmp_path):
     assert ground_truth_rule(truth_spec) == "coordinates:exif:15m"
 
 
-def test_no_ground_truth_gives_empty_lists_and_its_rule():
-    files = DatasetFiles([Path("r0.jpg"), Path("r1.jpg")], [Path("q.jpg")])
-    truth = ground_truth(files, {"kind": "none"}, Path("."))
-    assert [t.tolist() for t in truth] == [[]]
-    assert ground_truth_rule({"kind": "none"}) == "none"
+# ------------------------------------------------------------------ UTM file names
 
 
-# ------------------------------------------------------------------ folders as people have them
+def test_utm_ground_truth_matches_pairwise_distance_loop(tmp_path):
+    rng = np.random.default_rng(0)
+    ref_xy = rng.uniform(0, 120, (60, 2)) + [585300.0, 4477300.0]
+    query_xy = rng.uniform(0, 120, (25, 2)) + [585300.0, 4477300.0]
+    reference = [tmp_path / utm_name(e, n, f"r{i}") for i, (e, n) in enumerate(ref_xy)]
+    query = [tmp_path / utm_name(e, n, f"q{i}") for i, (e, n) in enumerate(query_xy)]
+    # The names are rounded to centimetres: the direct loop reads them back the same way.
+    ref_xy = [(float(p.name.split("@")[1]), float(p.name.split("@")[2])) for p in reference]
+    query_xy = [(float(p.name.split("@")[1]), float(p.name.split("@")[2])) for p in query]
+    for radius in (10.0, 25.0):
+        expected = [
+            {r for r, (re, rn) in enumerate(ref_xy) if math.hypot(qe - re, qn - rn) <= radius}
+            for qe, qn in query_xy
+        ]
+        assert any(expected) and not all(expected)
+        assert_truth_equal(utm_ground_truth(reference, query, radius), expected)
 
 
-def write_images(folder: Path, names: list[str]) -> None:
-    for name in names:
-        (folder / name).parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(folder / name)
+def test_utm_from_name():
+    assert utm_from_name("db/@0585313.93@4477305.41@17@T@037.0@x.jpg") == (585313.93, 4477305.41)
+    with pytest.raises(DatasetError, match="no '@easting@northing@'"):
+        utm_from_name("db/000123.jpg")
 
 
-def test_recursive_discovery_orders_relative_paths_naturally_and_counts_skips(tmp_path):
-    write_images(tmp_path, ["b/2.png", "b/10.png", "a/x/1.png", "3.png", ".hidden.png"])
-    (tmp_path / ".cache").mkdir()
-    write_images(tmp_path / ".cache", ["9.png"])
-    (tmp_path / "notes.txt").write_text("not an image")
-    scan = scan_images(tmp_path, recursive=True)
-    assert [p.relative_to(tmp_path).as_posix() for p in scan.paths] == [
-        "3.png",
-        "a/x/1.png",
-        "b/2.png",
-        "b/10.png",
-    ]
-    assert (scan.skipped_hidden, scan.skipped_other) == (2, 1)
-    flat = scan_images(tmp_path, recursive=False)
-    assert [p.name for p in flat.paths] == ["3.png"]
-
-
-def test_image_list_files_keep_their_order_and_name_bad_lines(tmp_path):
-    root = tmp_path / "mine"
-    write_images(root, ["db/1.png", "db/2.png", "q/1.png"])
-    (root / "ref.txt").write_text("# database\ndb/2.png\n\ndb/1.png\n")
-    (root / "query.txt").write_text("q/1.png\n")
-    spec = dataset_spec(path="mine", reference="ref.txt", query="query.txt")
-    files = list_dataset(tmp_path, "mine", spec)
-    assert [p.relative_to(root).as_posix() for p in files.reference] == ["db/2.png", "db/1.png"]
-    for text, message in (
-        ("db/1.png\ndb/3.png\n", r"ref.txt line 2: image .*db/3.png does not exist"),
-        ("db/1.png\ndb/1.png\n", r"line 2: 'db/1.png' is listed again \(first on line 1\)"),
-        ("db/1.png\nnotes.txt\n", r"line 2: 'notes.txt' is not an image"),
-    ):
-        (root / "ref.txt").write_text(text)
-        with pytest.raises(DatasetError, match=message):
-            list_dataset(tmp_path, "mine", spec)
-
-
-# ------------------------------------------------------------------ metrics
-
-
-def published_ap(retrieved: list[bool]) -> float:
-    """Revisit-Anything's calculate_ap, as its code reads."""
-    relevant = sum(retrieved)
-    if relevant == 0:
-        return 0.0
-    hits, total = 0, 0.0
-    for i, ok in enumerate(retrieved, start=1):
-        if ok:
-            hits += 1
-            total += hits / i
-    return total / relevant
-
-
-def test_map_at_n_equals_the_published_average_precision():
-    rng = np.random.default_rng(3)
-    n_ref, n_query = 30, 40
-    ranking = np.array([rng.permutation(n_ref)[:12] for _ in range(n_query)])
-    ranking[3, 8:] = -1  # a short (voted) ranking
-    truth = [np.sort(rng.choice(n_ref, rng.integers(0, 6), replace=False)) for _ in range(n_query)]
-    truth[5] = np.zeros(0, np.int64)
-    for n in (1, 5, 10):
-        ap = average_precision_at(ranking, truth, n)
-        for q in range(n_query):
-            retrieved = [int(r) in set(truth[q].tolist()) for r in ranking[q, :n] if r >= 0]
-            assert ap[q] == pytest.approx(published_ap(retrieved), abs=1e-12)
-        with_positives = [q for q in range(n_query) if len(truth[q])]
-        assert map_at(ranking, truth, [n])[n] == pytest.approx(
-            np.mean([ap[q] for q in with_positives]), abs=1e-12
-        )
-        assert map_at(ranking, truth, [n], "all")[n] == pytest.approx(np.mean(ap), abs=1e-12)
-
-
-def test_the_denominator_counts_queries_without_positives_as_misses_when_all():
-    ranking = np.array([[0, 1], [1, 0], [2, 0], [0, 2]])
-    truth = [np.array([0]), np.array([0]), np.zeros(0, np.int64), np.array([2])]
-    assert recall_at(ranking, truth, [1, 2]) == {1: pytest.approx(1 / 3), 2: 1.0}
-    assert recall_at(ranking, truth, [1, 2], "all") == {1: 0.25, 2: 0.75}
-    with pytest.raises(ValueError, match="unknown denominator"):
-        recall_at(ranking, truth, [1], "some")
+@pytest.mark.parametrize(("easting", "northing"), [("nan", "4.1e6"), ("585313.9", "inf")])
+def test_utm_name_with_nan_or_infinity_is_refused_naming_the_file_and_value(
+    tmp_path, easting, northing
+):
+    # Today scipy's KD-tree fails with "'x' must be finite", naming no file.
+    name = f"@{easting}@{northing}@17@T@x.jpg"
+    reference = [tmp_path / utm_name(585313.9, 4.1e6, "r0"), tmp_path / name]
+    query = [tmp_path / utm_name(585313.9, 4.1e6, "q0")]
+    bad = easting if easting == "nan" else northing
+    with pytest.raises(DatasetError, match=rf"{name}: UTM \w+ '{bad}' in the file name is not"):
+        utm_ground_truth(reference, query, 25.0)

@@ -1,0 +1,365 @@
+"""Ground truth: per query, the reference indices that count as correct (docs/methods.md §9).
+
+One table, :data:`KINDS`, holds every ``ground_truth.kind``: how its truth is computed,
+its name in results tables and the files it reads. The kinds:
+
+- ``vprbench``: a VPR-Bench ``ground_truth_new.npy`` object array of
+  ``[query_index, [ref indices]]`` rows, read without executing arbitrary pickles;
+- ``frame_window``: query ``i`` matches references ``j`` with ``|i - j| <= radius``;
+- ``utm``: references within ``radius`` metres, UTM easting and northing taken from
+  ``@easting@northing@`` in the file names (Pitts30k, SF-XL, MSLS convention);
+- ``pairs``: query ``i`` matches reference ``i`` (aligned RGB-thermal pairs);
+- ``coordinates``: references within ``radius_m`` metres of each query, positions
+  from a CSV file (``lat``/``lon``: great-circle distance; ``easting``/``northing``:
+  Euclidean) or from the images' EXIF GPS tags (``source: exif``), optionally also
+  within ``max_heading_diff`` degrees of the query's ``heading`` (as MSLS);
+- ``none``: no ground truth; the workflow ranks and draws, but computes no recall.
+
+Positions and distances (``utm``, ``coordinates``) are :mod:`vprflow.positions`.
+"""
+
+from __future__ import annotations
+
+import pickle
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from vprflow.datasets import DatasetError, DatasetFiles, dataset_folder, role_folders
+from vprflow.positions import (
+    Positions,
+    coordinates_ground_truth,
+    exif_lat_lon,
+    read_positions,
+    utm_ground_truth,
+)
+
+# ---------------------------------------------------------------- VPR-Bench files
+
+
+class _NumpyOnlyUnpickler(pickle.Unpickler):
+    """Unpickler for numpy object arrays of plain lists and ints: nothing else loads."""
+
+    ALLOWED = {
+        ("numpy.core.multiarray", "_reconstruct"),
+        ("numpy._core.multiarray", "_reconstruct"),
+        ("numpy.core.multiarray", "scalar"),
+        ("numpy._core.multiarray", "scalar"),
+        ("numpy", "ndarray"),
+        ("numpy", "dtype"),
+    }
+
+    def find_class(self, module, name):
+        if (module, name) in self.ALLOWED:
+            return super().find_class(module, name)
+        raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a ground-truth file")
+
+
+def load_object_npy(path: str | Path) -> np.ndarray:
+    """Load a ``.npy`` file, including object arrays, without running arbitrary pickles."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        try:
+            version = np.lib.format.read_magic(f)
+            read_header = {
+                (1, 0): np.lib.format.read_array_header_1_0,
+                (2, 0): np.lib.format.read_array_header_2_0,
+            }.get(version)
+            if read_header is None:
+                raise ValueError(f"unsupported .npy version {version}")
+            _shape, _fortran, dtype = read_header(f)
+        except ValueError as error:
+            raise DatasetError(f"{path} is not a .npy file: {error}") from error
+        if dtype.hasobject:
+            try:
+                array = _NumpyOnlyUnpickler(f).load()
+            except (pickle.UnpicklingError, EOFError, AttributeError) as error:
+                raise DatasetError(f"{path}: unreadable object array: {error}") from error
+            return np.asarray(array)
+        f.seek(0)
+    return np.load(path, allow_pickle=False)
+
+
+def _short_repr(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _as_index(value, where: str) -> int:
+    """``value`` as an index: an integer (Python or numpy) or an integral float.
+
+    A fractional float used to be truncated (2.5 -> 2) and a boolean read as 0 or 1;
+    either gives a believable but wrong ground truth, so both are refused. ``where``
+    names the file, row and field (``"<file> row 4: reference index"``).
+    """
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    # bool is an int and timedelta64 a numpy integer, but neither is an index.
+    if isinstance(value, (bool, np.bool_)):
+        raise DatasetError(f"{where} {value!r} is a boolean, not an integer")
+    if isinstance(value, (int, np.integer)) and not isinstance(value, np.timedelta64):
+        return int(value)
+    if isinstance(value, (float, np.floating)) and float(value).is_integer():
+        return int(value)
+    raise DatasetError(f"{where} {_short_repr(value)} is not an integer")
+
+
+def _reference_indices(refs, where: str) -> list[int]:
+    """The positives of one row: a list, tuple or 1-D array of indices, or one index."""
+    if isinstance(refs, np.ndarray) and refs.ndim > 1:
+        raise DatasetError(
+            f"{where} positives are a {refs.ndim}-D array of shape {refs.shape}; "
+            "expected a flat list of reference indices"
+        )
+    if isinstance(refs, np.ndarray) and refs.ndim == 1 and refs.dtype.kind in "iu":
+        return refs.tolist()  # valid as a whole: spares long arrays the loop below
+    if isinstance(refs, (list, tuple)) or (isinstance(refs, np.ndarray) and refs.ndim == 1):
+        items = list(refs)
+    elif isinstance(refs, (np.ndarray, int, float, np.number, np.bool_)):
+        items = [refs]  # a single index, as the old reshape(-1) read it
+    else:
+        raise DatasetError(
+            f"{where} positives {_short_repr(refs)}: expected a list of reference indices"
+        )
+    return [_as_index(item, f"{where} reference index") for item in items]
+
+
+def vprbench_ground_truth(
+    path: str | Path,
+    n_query: int,
+    n_ref: int,
+    drop_out_of_range: bool = False,
+    *,
+    query_folders: str = "",
+    reference_folders: str = "",
+) -> list[np.ndarray]:
+    """Per-query reference indices from a VPR-Bench ``ground_truth_new.npy``.
+
+    Rows are ``[query_index, [ref indices]]``: integers or integral floats, positives
+    a list, tuple, 1-D array or single index; anything else (fractions, booleans,
+    strings, nested lists) is an error naming the row. The number of rows must equal
+    the number of query images. Reference indices beyond the reference set are an
+    error unless ``drop_out_of_range`` (the published 17places file lists references
+    406 and 407 of a 406-image set). ``query_folders`` and ``reference_folders``
+    (:func:`vprflow.datasets.role_folders`) follow the image counts in errors.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise DatasetError(f"ground-truth file {path} does not exist")
+    table = load_object_npy(path)
+    if table.ndim != 2 or table.shape[1] != 2:
+        raise DatasetError(
+            f"{path}: expected rows of [query_index, [ref indices]], got {table.shape}"
+        )
+    if len(table) != n_query:
+        raise DatasetError(
+            f"{path} has {len(table)} ground-truth rows but the dataset has {n_query} query "
+            f"images{query_folders}"
+        )
+    query_indices = [
+        _as_index(q, f"{path} row {row}: query index") for row, q in enumerate(table[:, 0])
+    ]
+    outside = [(row, q) for row, q in enumerate(query_indices) if not 0 <= q < n_query]
+    if outside:
+        row, q = outside[0]
+        raise DatasetError(f"{path}: row {row} has query index {q}, outside 0..{n_query - 1}")
+    rows_of: dict[int, list[int]] = {}
+    for row, q in enumerate(query_indices):
+        rows_of.setdefault(q, []).append(row)
+    repeated = {q: rows for q, rows in rows_of.items() if len(rows) > 1}
+    if repeated:
+        listing = "; ".join(f"query {q} in rows {rows}" for q, rows in sorted(repeated.items())[:5])
+        missing = sorted(set(range(n_query)) - set(rows_of))
+        raise DatasetError(
+            f"{path}: {len(repeated)} query index(es) appear in more than one row ({listing}); "
+            f"queries with no row: {missing[:10]}. Each query must have exactly one row."
+        )
+    truth: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * n_query
+    for row, (q, refs) in enumerate(zip(query_indices, table[:, 1], strict=True)):
+        indices = _reference_indices(refs, f"{path} row {row}:")
+        # Checked as Python ints: an index such as 1e30 would overflow int64.
+        bad = [r for r in indices if not 0 <= r < n_ref]
+        if bad and not drop_out_of_range:
+            raise DatasetError(
+                f"{path}: query {q} lists reference indices {bad} but the dataset has "
+                f"{n_ref} reference images{reference_folders} (set "
+                "ground_truth.drop_out_of_range: true to drop them)"
+            )
+        truth[q] = np.unique(np.array([r for r in indices if 0 <= r < n_ref], dtype=np.int64))
+    return truth
+
+
+# ---------------------------------------------------------------- rules over indices
+
+
+def frame_window_ground_truth(n_query: int, n_ref: int, radius: int) -> list[np.ndarray]:
+    """Query ``i`` matches every reference ``j`` with ``|i - j| <= radius``."""
+    return [
+        np.arange(max(0, i - radius), min(n_ref, i + radius + 1), dtype=np.int64)
+        for i in range(n_query)
+    ]
+
+
+def pairs_ground_truth(
+    n_query: int, n_ref: int, *, query_folders: str = "", reference_folders: str = ""
+) -> list[np.ndarray]:
+    """Query ``i`` matches reference ``i`` (aligned pairs). ``query_folders`` and
+    ``reference_folders`` (:func:`vprflow.datasets.role_folders`) follow the image
+    counts in errors."""
+    if n_query != n_ref:
+        raise DatasetError(
+            "pairs ground truth needs as many queries as references, but the dataset has "
+            f"{n_query} query images{query_folders} and {n_ref} reference "
+            f"images{reference_folders}"
+        )
+    return [np.array([i], dtype=np.int64) for i in range(n_query)]
+
+
+# ---------------------------------------------------------------- the kinds
+
+
+def _none_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+    return [np.zeros(0, dtype=np.int64) for _ in range(len(files.query))]
+
+
+def _vprbench_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+    return vprbench_ground_truth(
+        folder / spec["file"],
+        len(files.query),
+        len(files.reference),
+        spec["drop_out_of_range"],
+        query_folders=role_folders(files.query, folder),
+        reference_folders=role_folders(files.reference, folder),
+    )
+
+
+def _frame_window_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+    return frame_window_ground_truth(len(files.query), len(files.reference), int(spec["radius"]))
+
+
+def _utm_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+    return utm_ground_truth(files.reference, files.query, float(spec["radius"]))
+
+
+def _pairs_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+    return pairs_ground_truth(
+        len(files.query),
+        len(files.reference),
+        query_folders=role_folders(files.query, folder),
+        reference_folders=role_folders(files.reference, folder),
+    )
+
+
+def _positions(files: DatasetFiles, spec: dict, folder: Path) -> tuple[Positions, Positions]:
+    """Reference and query positions of a ``coordinates`` ground truth."""
+    if spec["source"] == "exif":
+        parts = []
+        for paths in (files.reference, files.query):
+            table = np.array([exif_lat_lon(p) for p in paths], dtype=np.float64)
+            parts.append(Positions(table[:, 0], table[:, 1], None, True))
+        return parts[0], parts[1]
+    names = [p.relative_to(folder).as_posix() for p in files.reference + files.query]
+    both = read_positions(folder / spec["file"], names)
+    if spec.get("max_heading_diff") is not None and both.heading is None:
+        raise DatasetError(
+            f"{folder / spec['file']}: ground_truth.max_heading_diff is set but the file "
+            "has no 'heading' column"
+        )
+    n = len(files.reference)
+
+    def part(rows: slice) -> Positions:
+        heading = None if both.heading is None else both.heading[rows]
+        return Positions(both.x[rows], both.y[rows], heading, both.geographic)
+
+    return part(slice(0, n)), part(slice(n, None))
+
+
+def _coordinates_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+    reference, query = _positions(files, spec, folder)
+    return coordinates_ground_truth(
+        reference, query, float(spec["radius_m"]), spec.get("max_heading_diff")
+    )
+
+
+def _coordinates_rule(spec: dict) -> str:
+    source = "exif" if spec["source"] == "exif" else spec["file"]
+    rule = f"coordinates:{source}:{spec['radius_m']}m"
+    if spec.get("max_heading_diff") is not None:
+        rule += f",heading<={spec['max_heading_diff']}deg"
+    return rule
+
+
+def _no_files(spec: dict) -> list[str]:
+    return []
+
+
+@dataclass(frozen=True)
+class Kind:
+    """One ground-truth kind.
+
+    ``truth(files, spec, folder)``: per query, the sorted int64 indices of its correct
+    references (``spec`` the dataset's ``ground_truth``, ``folder`` the dataset folder);
+    ``rule(spec)``: the short name of the rule in results tables (the ``ground_truth``
+    column); ``files(spec)``: the files it reads, relative to the dataset folder (inputs
+    of the dataset stage, hashed into its key); ``judged``: whether it says which
+    references are correct at all (``none`` does not: its empty lists are no error).
+    """
+
+    truth: Callable[[DatasetFiles, dict, Path], list[np.ndarray]]
+    rule: Callable[[dict], str]
+    files: Callable[[dict], list[str]] = _no_files
+    judged: bool = True
+
+
+# In the order of the schema's enum (``ground_truth.kind``), which a test compares.
+KINDS: dict[str, Kind] = {
+    "vprbench": Kind(
+        _vprbench_truth, lambda spec: f"vprbench:{spec['file']}", lambda spec: [spec["file"]]
+    ),
+    "frame_window": Kind(_frame_window_truth, lambda spec: f"frame_window:+-{spec['radius']}"),
+    "utm": Kind(_utm_truth, lambda spec: f"utm:{spec['radius']}m"),
+    "pairs": Kind(_pairs_truth, lambda spec: "pairs"),
+    "coordinates": Kind(
+        _coordinates_truth,
+        _coordinates_rule,
+        lambda spec: [spec["file"]] if spec["source"] == "file" else [],
+    ),
+    "none": Kind(_none_truth, lambda spec: "none", judged=False),
+}
+
+
+def _kind(spec: dict) -> Kind:
+    kind = spec["kind"]
+    if kind not in KINDS:
+        raise DatasetError(f"unknown ground-truth kind {kind!r}")
+    return KINDS[kind]
+
+
+def ground_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+    """Per query, the correct reference indices under ``spec`` (the dataset's
+    ``ground_truth``; see :data:`KINDS`). A truth in which no query has a positive is an
+    error (recall would be undefined), except for ``none``."""
+    kind = _kind(spec)
+    truth = kind.truth(files, spec, folder)
+    if kind.judged and not any(len(t) for t in truth):
+        source = folder / spec["file"] if spec.get("file") else f"{folder} ({spec['kind']})"
+        raise DatasetError(
+            f"ground truth {ground_truth_rule(spec)} from {source}: no query has a positive "
+            f"among the {len(files.reference)} references, so recall is undefined; check the "
+            "file or rule (or use ground_truth: {kind: none} to rank without recall)"
+        )
+    return truth
+
+
+def ground_truth_rule(spec: dict) -> str:
+    """A short human-readable name of the rule, for results tables."""
+    return _kind(spec).rule(spec)
+
+
+def ground_truth_files(data_root: str | Path, spec: dict) -> list[Path]:
+    """Files the ground truth of dataset ``spec`` is read from (inputs of the dataset
+    stage)."""
+    truth = spec["ground_truth"]
+    return [dataset_folder(data_root, spec) / name for name in _kind(truth).files(truth)]
