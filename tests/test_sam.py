@@ -5,8 +5,8 @@ pretrained weights exist on the test machines). Their parameters are re-drawn wi
 large spread: the default initialisation gives logits of ~1e-5, which would make every
 mask the whole image. The reference pipeline below follows the original
 ``SamAutomaticMaskGenerator`` step by step (``F.interpolate`` upscaling, per-candidate
-filters, a pure-Python float64 NMS), so it shares no code with ``vprflow.sam`` beyond
-the image embedding, which has its own test.
+filters, a pure-Python float64 NMS), so it shares no code with the library's SAM
+modules beyond the image preprocessing, which has its own test.
 
 The reference runs the model in float64, the library in float32 with its own batching,
 so every comparison allows for float32 rounding (see ``LOGIT_ERR`` and the thresholds
@@ -28,16 +28,18 @@ from scipy import ndimage
 from tiny_models import tiny_sam
 from transformers import SamModel
 
-from vprflow.sam import (
+from vprflow.sam_adapters import (
     PIXEL_MEAN,
     PIXEL_STD,
     SAM_DEFAULTS,
+    preprocess_image,
+    preprocess_shape,
+)
+from vprflow.sam_generator import point_grid
+from vprflow.sam_masks import (
     LogitUpscaler,
     box_nms,
     masks_to_boxes,
-    point_grid,
-    preprocess_image,
-    preprocess_shape,
     remove_small_regions,
     stability_score,
 )
@@ -103,7 +105,7 @@ def sample_image(height: int = 48, width: int = 80, seed: int = 0) -> np.ndarray
 
 
 def _load(path, **params):
-    from vprflow.sam import load_sam
+    from vprflow.sam_adapters import load_sam
 
     return load_sam({"model": str(path), "points_per_side": SIDE, **params}, device="cpu")
 
@@ -415,7 +417,7 @@ def test_bfloat16_runs_on_cpu(sam_model):
 
 def test_missing_model_error_names_the_model(tmp_path, monkeypatch):
     models = pytest.importorskip("vprflow.models", reason="vprflow.models not written yet")
-    from vprflow.sam import load_sam
+    from vprflow.sam_adapters import load_sam
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     missing = tmp_path / "no-such-sam"

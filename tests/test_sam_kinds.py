@@ -26,13 +26,13 @@ from test_sam_decoder import hq_original
 from tiny_models import tiny_sam, tiny_sam2, tiny_sam_hq
 
 from vprflow.registry import SEGMENTERS
-from vprflow.sam import (
+from vprflow.sam_adapters import (
     SAM_KINDS,
-    LogitUpscaler,
     load_segmenter,
     preprocess_image_sam2,
     preprocess_shape,
 )
+from vprflow.sam_masks import LogitUpscaler
 
 KINDS = ("sam", "sam_hq", "sam2")
 MODEL_SIZE = 128
@@ -73,7 +73,7 @@ def test_registry_defaults_are_each_generators_defaults():
     for kind in KINDS:
         defaults = SEGMENTERS[kind].defaults
         assert {k: defaults[k] for k in common} == common, kind
-        assert SEGMENTERS[kind].loader == f"vprflow.sam:load_{kind}"
+        assert SEGMENTERS[kind].loader == f"vprflow.sam_adapters:load_{kind}"
     assert SEGMENTERS["sam"].defaults["pred_iou_thresh"] == 0.88
     assert SEGMENTERS["sam_hq"].defaults["pred_iou_thresh"] == 0.88  # SAM's generator
     assert SEGMENTERS["sam_hq"].defaults["hq_token_only"] is False
