@@ -28,10 +28,10 @@ from scipy import ndimage
 from tiny_models import tiny_sam
 from transformers import SamModel
 
+from vprflow.registry import SEGMENTERS
 from vprflow.sam_adapters import (
     PIXEL_MEAN,
     PIXEL_STD,
-    SAM_DEFAULTS,
     preprocess_image,
     preprocess_shape,
 )
@@ -247,14 +247,15 @@ def reference(reference_model):
 
 
 def test_defaults_are_the_original_library_defaults():
-    assert SAM_DEFAULTS["points_per_side"] == 32
-    assert SAM_DEFAULTS["points_per_batch"] == 64
-    assert SAM_DEFAULTS["pred_iou_thresh"] == 0.88
-    assert SAM_DEFAULTS["stability_score_thresh"] == 0.95
-    assert SAM_DEFAULTS["stability_score_offset"] == 1.0
-    assert SAM_DEFAULTS["box_nms_thresh"] == 0.7
-    assert SAM_DEFAULTS["min_mask_region_area"] == 0
-    assert SAM_DEFAULTS["model"] == "facebook/sam-vit-huge"
+    defaults = SEGMENTERS["sam"].defaults
+    assert defaults["points_per_side"] == 32
+    assert defaults["points_per_batch"] == 64
+    assert defaults["pred_iou_thresh"] == 0.88
+    assert defaults["stability_score_thresh"] == 0.95
+    assert defaults["stability_score_offset"] == 1.0
+    assert defaults["box_nms_thresh"] == 0.7
+    assert defaults["min_mask_region_area"] == 0
+    assert defaults["model"] == "facebook/sam-vit-huge"
 
 
 def test_masks_shape_dtype_and_nonempty_with_zero_thresholds(sam_model):

@@ -107,7 +107,7 @@ def test_bfloat16_runs(saved):
 
 def test_loaded_with_sdpa_attention(saved):
     kind, path, _ = saved
-    assert _load(kind, path).model.config._attn_implementation == "sdpa"
+    assert _load(kind, path).adapter.model.config._attn_implementation == "sdpa"
 
 
 def _direct(kind, model, pixels, points):

@@ -27,9 +27,6 @@ from vprflow.registry import SEGMENTERS, with_defaults
 from vprflow.sam_generator import SamSegmenter
 from vprflow.sam_masks import LogitUpscaler
 
-# The original automatic mask generator's defaults (ViT-H), stated in the registry.
-SAM_DEFAULTS: dict = SEGMENTERS["sam"].defaults
-
 # ---------------------------------------------------------------------- preprocessing
 
 # The original SAM's normalisation constants, in 0..255 units (= ImageNet mean/std).
@@ -326,7 +323,7 @@ def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmente
 
 
 def load_sam(params: dict, device: str = "auto") -> SamSegmenter:
-    """Segment Anything (``segmenter: sam``); defaults :data:`SAM_DEFAULTS` (the original
+    """Segment Anything (``segmenter: sam``); defaults: the registry's (the original
     library's, ViT-H)."""
     return load_segmenter("sam", params, device)
 

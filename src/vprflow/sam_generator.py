@@ -102,16 +102,8 @@ class SamSegmenter:
         self.params = params
 
     @property
-    def model(self):
-        return self.adapter.model
-
-    @property
     def device(self) -> torch.device:
         return self.adapter.device
-
-    @property
-    def dtype(self) -> torch.dtype:
-        return self.adapter.dtype
 
     def masks(self, image: np.ndarray) -> np.ndarray:
         """Image float32 ``[H, W, 3]`` in ``[0, 1]`` -> masks bool ``[S, H, W]``."""
