@@ -131,7 +131,8 @@ def _large_segmenter(model: str, params: dict, device: str, dtype_name: str):
     import transformers
 
     from vprflow.devices import resolve_device, resolve_dtype
-    from vprflow.sam import SAM_KINDS, SamSegmenter, sam_params
+    from vprflow.sam_adapters import SAM_KINDS, sam_params
+    from vprflow.sam_generator import SamSegmenter
 
     kind, config_name, config = LARGE[model]
     class_name, adapter_class = SAM_KINDS[kind]
@@ -160,7 +161,7 @@ def run_one(
     import torch
     from transformers import SamConfig, SamModel
 
-    from vprflow.sam import load_sam
+    from vprflow.sam_adapters import load_sam
 
     params = {"points_per_side": side, **FILTERS[filters]}
     if model in LARGE:
@@ -239,7 +240,7 @@ def decoder_one(
     import transformers
 
     from vprflow.devices import resolve_device
-    from vprflow.sam import SAM_KINDS
+    from vprflow.sam_adapters import SAM_KINDS
 
     torch_device = resolve_device(device)
     cuda = torch_device.type == "cuda"

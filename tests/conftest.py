@@ -1,4 +1,5 @@
-"""Shared fixtures: the real datasets under $VPRFLOW_DATA, and the SLURM cluster."""
+"""Shared fixtures: the real datasets under $VPRFLOW_DATA, the SLURM cluster, and a tiny
+model of each SAM kind."""
 
 from __future__ import annotations
 
@@ -39,3 +40,19 @@ def corridor_run(tmp_path_factory, data_root):
     snakemake(workdir, config_path)
     snakemake(workdir, config_path, "--report", "report.html")
     return workdir, workdir / "report.html"
+
+
+@pytest.fixture(scope="module", params=("sam", "sam_hq", "sam2"))
+def sam_kind_model(request, tmp_path_factory):
+    """``(kind, path, model)``: a tiny random model of each SAM kind saved to ``path``
+    (``test_sam_adapters``, ``test_sam_generator``). Well-conditioned weights (as
+    ``test_sam_generator``'s reference model): float32 logits of separately batched calls
+    agree to ~1e-5."""
+    from tiny_models import tiny_sam, tiny_sam2, tiny_sam_hq
+
+    kind = request.param
+    build = {"sam": tiny_sam, "sam_hq": tiny_sam_hq, "sam2": tiny_sam2}[kind]
+    model = build(model_size=128, seed=3, scale=0.3)
+    path = tmp_path_factory.mktemp(kind)
+    model.save_pretrained(path)
+    return kind, path, model

@@ -140,7 +140,7 @@ SEGMENTERS: dict[str, ModelKind] = {
         ModelKind(
             "sam",
             "segmenter",
-            "vprflow.sam:load_sam",
+            "vprflow.sam_adapters:load_sam",
             {"model": "facebook/sam-vit-huge", **_SAM_GENERATOR},
             weights="model",
             uses_gpu=True,
@@ -150,7 +150,7 @@ SEGMENTERS: dict[str, ModelKind] = {
         ModelKind(
             "sam_hq",
             "segmenter",
-            "vprflow.sam:load_sam_hq",
+            "vprflow.sam_adapters:load_sam_hq",
             {"model": "syscv-community/sam-hq-vit-huge", **_SAM_GENERATOR, "hq_token_only": False},
             weights="model",
             uses_gpu=True,
@@ -160,7 +160,7 @@ SEGMENTERS: dict[str, ModelKind] = {
         ModelKind(
             "sam2",
             "segmenter",
-            "vprflow.sam:load_sam2",
+            "vprflow.sam_adapters:load_sam2",
             {"model": "facebook/sam2.1-hiera-large", **_SAM_GENERATOR, "pred_iou_thresh": 0.8},
             weights="model",
             uses_gpu=True,

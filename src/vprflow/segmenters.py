@@ -2,7 +2,8 @@
 
 A segmenter maps an image ``[H, W, 3]`` (float32 in ``[0, 1]``) to masks
 ``[S, H, W]``. The scikit-image segmenters (``slic``, ``felzenszwalb``) partition the
-image; Segment Anything (``sam``, in ``vprflow.sam``) returns overlapping masks.
+image; Segment Anything (``sam``, ``sam_hq``, ``sam2``: ``vprflow.sam_generator`` over
+``vprflow.sam_adapters``) returns overlapping masks.
 """
 
 from __future__ import annotations

@@ -1,17 +1,25 @@
-"""Segment Anything automatic mask generation, checked against an independent reference.
+"""Segment Anything automatic mask generation (``vprflow.sam_generator``), checked
+against an independent reference.
 
 The models are tiny randomly initialised ``SamModel``s saved to a temporary directory (no
 pretrained weights exist on the test machines). Their parameters are re-drawn with a
 large spread: the default initialisation gives logits of ~1e-5, which would make every
 mask the whole image. The reference pipeline below follows the original
 ``SamAutomaticMaskGenerator`` step by step (``F.interpolate`` upscaling, per-candidate
-filters, a pure-Python float64 NMS), so it shares no code with ``vprflow.sam`` beyond
-the image embedding, which has its own test.
+filters, a pure-Python float64 NMS), so it shares no code with the generator or
+``vprflow.sam_masks``; only the image preprocessing is the library's, which has its own
+test (``test_sam_adapters``).
 
 The reference runs the model in float64, the library in float32 with its own batching,
 so every comparison allows for float32 rounding (see ``LOGIT_ERR`` and the thresholds
 chosen in gaps of the data) and the test gives the same answer for any BLAS, thread
 count or CPU.
+
+Every SAM kind (SAM, SAM-HQ, SAM 2; the conftest's ``sam_kind_model``) runs end to end,
+and with its adapter's decoder replaced by synthetic low-res logits the generator's
+output equals a float64 reference that follows each original library (SAM / SAM-HQ:
+upscale to the padded input, crop, resize; SAM 2: one resize; SAM-HQ: one candidate per
+point).
 """
 
 from __future__ import annotations
@@ -23,24 +31,13 @@ import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
-from PIL import Image
 from scipy import ndimage
+from test_sam_masks import reference_nms
 from tiny_models import tiny_sam
 from transformers import SamModel
 
-from vprflow.sam import (
-    PIXEL_MEAN,
-    PIXEL_STD,
-    SAM_DEFAULTS,
-    LogitUpscaler,
-    box_nms,
-    masks_to_boxes,
-    point_grid,
-    preprocess_image,
-    preprocess_shape,
-    remove_small_regions,
-    stability_score,
-)
+from vprflow.sam_adapters import load_segmenter, preprocess_image, preprocess_shape
+from vprflow.sam_generator import point_grid
 
 MODEL_SIZE = 128  # the tiny model's input side (1024 for real checkpoints)
 HIDDEN = 32
@@ -103,31 +100,12 @@ def sample_image(height: int = 48, width: int = 80, seed: int = 0) -> np.ndarray
 
 
 def _load(path, **params):
-    from vprflow.sam import load_sam
+    from vprflow.sam_adapters import load_sam
 
     return load_sam({"model": str(path), "points_per_side": SIDE, **params}, device="cpu")
 
 
 # ------------------------------------------------------------------ reference pipeline
-
-
-def reference_nms(boxes: np.ndarray, scores: np.ndarray, threshold: float) -> list[int]:
-    """O(n^2) greedy NMS in float64 Python, torchvision semantics (0/0 IoU never suppresses)."""
-    order = sorted(range(len(scores)), key=lambda i: (-float(scores[i]), i))
-    kept: list[int] = []
-    for i in order:
-        x0, y0, x1, y1 = (float(v) for v in boxes[i])
-        suppressed = False
-        for k in kept:
-            a0, b0, a1, b1 = (float(v) for v in boxes[k])
-            inter = max(0.0, min(x1, a1) - max(x0, a0)) * max(0.0, min(y1, b1) - max(y0, b0))
-            union = (x1 - x0) * (y1 - y0) + (a1 - a0) * (b1 - b0) - inter
-            if union != 0 and inter / union > threshold:
-                suppressed = True
-                break
-        if not suppressed:
-            kept.append(i)
-    return kept
 
 
 def reference_candidates(model: SamModel, image: np.ndarray, side: int):
@@ -242,17 +220,6 @@ def reference(reference_model):
 
 
 # ---------------------------------------------------------------------------- pipeline
-
-
-def test_defaults_are_the_original_library_defaults():
-    assert SAM_DEFAULTS["points_per_side"] == 32
-    assert SAM_DEFAULTS["points_per_batch"] == 64
-    assert SAM_DEFAULTS["pred_iou_thresh"] == 0.88
-    assert SAM_DEFAULTS["stability_score_thresh"] == 0.95
-    assert SAM_DEFAULTS["stability_score_offset"] == 1.0
-    assert SAM_DEFAULTS["box_nms_thresh"] == 0.7
-    assert SAM_DEFAULTS["min_mask_region_area"] == 0
-    assert SAM_DEFAULTS["model"] == "facebook/sam-vit-huge"
 
 
 def test_masks_shape_dtype_and_nonempty_with_zero_thresholds(sam_model):
@@ -413,19 +380,7 @@ def test_bfloat16_runs_on_cpu(sam_model):
     assert masks.shape[1:] == (48, 80) and masks.dtype == bool and len(masks) > 0
 
 
-def test_missing_model_error_names_the_model(tmp_path, monkeypatch):
-    models = pytest.importorskip("vprflow.models", reason="vprflow.models not written yet")
-    from vprflow.sam import load_sam
-
-    monkeypatch.setenv("HF_HUB_OFFLINE", "1")
-    missing = tmp_path / "no-such-sam"
-    with pytest.raises(models.ModelNotFoundError, match="no-such-sam"):
-        load_sam({"model": str(missing)}, device="cpu")
-    with pytest.raises(models.ModelNotFoundError, match="nobody/sam-vit-missing"):
-        load_sam({"model": "nobody/sam-vit-missing", "cache_dir": str(tmp_path)}, device="cpu")
-
-
-# ------------------------------------------------------------------------------ pieces
+# ---------------------------------------------------------------------- prompt points
 
 
 def test_point_grid_is_row_major_cell_centres():
@@ -436,115 +391,148 @@ def test_point_grid_is_row_major_cell_centres():
     np.testing.assert_allclose(grid, expected)
 
 
-def test_preprocess_resizes_longest_side_normalises_and_pads():
-    assert preprocess_shape(240, 320, 1024) == (768, 1024)
-    assert preprocess_shape(320, 240, 1024) == (1024, 768)
-    assert preprocess_shape(100, 333, 1024) == (308, 1024)  # 307.5 rounds up
-    image = sample_image(30, 50)
-    pixels, (new_h, new_w) = preprocess_image(image, 64)
-    assert pixels.shape == (1, 3, 64, 64) and (new_h, new_w) == (38, 64)
-    resized = Image.fromarray(np.rint(image * 255).astype(np.uint8)).resize(
-        (64, 38), Image.BILINEAR
+# --------------------------------------------------------------------- every SAM kind
+
+KIND_SIDE = 8  # points per side in the tests of every kind: 64 points
+
+
+def _load_kind(kind, path, **params):
+    return load_segmenter(kind, {"model": str(path), "points_per_side": KIND_SIDE, **params}, "cpu")
+
+
+def test_masks_end_to_end(sam_kind_model):
+    kind, path, _ = sam_kind_model
+    segmenter = _load_kind(kind, path, pred_iou_thresh=0.0, stability_score_thresh=0.0)
+    assert segmenter.adapter.masks_per_point == (1 if kind == "sam_hq" else 3)
+    for height, width in [(48, 80), (70, 30)]:
+        result = segmenter.generate(sample_image(height, width))
+        masks = result.masks
+        assert masks.dtype == bool and masks.shape[1:] == (height, width)
+        assert len(masks) > 0 and masks.reshape(len(masks), -1).any(1).all()
+        assert (result.candidate < KIND_SIDE * KIND_SIDE * segmenter.adapter.masks_per_point).all()
+    # The library thresholds run too (with random weights few or no masks survive).
+    default = _load_kind(kind, path).masks(sample_image())
+    assert default.dtype == bool and default.shape[1:] == (48, 80)
+
+
+def test_bfloat16_runs(sam_kind_model):
+    kind, path, _ = sam_kind_model
+    segmenter = _load_kind(
+        kind, path, pred_iou_thresh=0.0, stability_score_thresh=0.0, dtype="bfloat16"
     )
-    expected = (np.asarray(resized, dtype=np.float32) - PIXEL_MEAN) / PIXEL_STD
-    np.testing.assert_allclose(pixels[0].permute(1, 2, 0).numpy()[:38], expected, atol=1e-5)
-    assert (pixels[0, :, 38:, :] == 0).all()
+    masks = segmenter.masks(sample_image())
+    assert masks.dtype == bool and masks.shape[1:] == (48, 80)
+
+
+def test_generate_batch_equals_one_image_at_a_time(sam_kind_model):
+    """One encoder pass over images of different sizes gives each image's own masks.
+
+    In float64 (model cast after loading) the batched encoder's rounding differs from
+    the single-image one by ~1e-15, far below any decision the generator makes.
+    """
+    kind, path, _ = sam_kind_model
+    segmenter = _load_kind(kind, path, pred_iou_thresh=0.0, stability_score_thresh=0.0)
+    segmenter.adapter.model.double()
+    segmenter.adapter.dtype = torch.float64
+    images = [
+        sample_image(48, 80, seed=1),
+        sample_image(70, 30, seed=2),
+        sample_image(48, 80, seed=3),
+    ]
+    batched = segmenter.generate_batch(images)
+    assert len(batched) == 3
+    for image, result in zip(images, batched, strict=True):
+        alone = segmenter.generate(image)
+        assert result.masks.shape[1:] == image.shape[:2] and len(result.masks) > 0
+        assert result.candidate.tolist() == alone.candidate.tolist()
+        np.testing.assert_array_equal(result.masks, alone.masks)
+        np.testing.assert_allclose(result.iou_preds, alone.iou_preds, rtol=0, atol=1e-6)
+    # masks_batch is the masks of generate_batch.
+    for masks, result in zip(segmenter.masks_batch(images[:2]), batched, strict=False):
+        np.testing.assert_array_equal(masks, result.masks)
+
+
+# ------------------------------------------------- shared post-processing, synthetic logits
+
+LOW = 32  # synthetic low-res logit side
+# Low-res logits of the synthetic decoder: +INSIDE inside a disc, -OUTSIDE elsewhere.
+# Bilinear weights here are dyadic / small-denominator rationals, never 5/13, 4/13 or
+# 6/13, so no upscaled logit lands on 0 or +-1 (checked in the test).
+INSIDE, OUTSIDE = 8.0, 5.0
+
+
+def _synthetic(points: torch.Tensor, per_point: int, model_size: int):
+    """Discs around each point (model-input pixels), radius growing with the output index
+    -> low-res logits ``[P, M, LOW, LOW]`` float32 and IoUs ``[P, M]`` on a 1/64 grid
+    (ties included: they keep candidate order)."""
+    ys, xs = torch.meshgrid(torch.arange(LOW), torch.arange(LOW), indexing="ij")
+    logits, ious = [], []
+    for x, y in points.double().tolist():
+        index = int(x * 7 + y * 13)  # from the point, not its place in the batch
+        cx, cy = x / model_size * LOW - 0.5, y / model_size * LOW - 0.5
+        row, row_iou = [], []
+        for m in range(per_point):
+            radius = 2 + 3 * m + (index % 3)
+            inside = (xs - cx) ** 2 + (ys - cy) ** 2 <= radius**2
+            row.append(torch.where(inside, INSIDE, -OUTSIDE))
+            row_iou.append(((index * 37 + m * 11) % 64) / 64)
+        logits.append(torch.stack(row))
+        ious.append(row_iou)
+    return torch.stack(logits).float(), torch.tensor(ious, dtype=torch.float32)
+
+
+def _reference_upscale(kind, low, model_size, input_size, size):
+    low = low.double()[None]
+    if kind == "sam2":
+        return F.interpolate(low, size, mode="bilinear", align_corners=False)[0]
+    up = F.interpolate(low, (model_size, model_size), mode="bilinear", align_corners=False)
+    up = up[..., : input_size[0], : input_size[1]]
+    return F.interpolate(up, size, mode="bilinear", align_corners=False)[0]
 
 
 @pytest.mark.parametrize(
-    ("height", "width", "model_size", "low"),
-    [(48, 80, 128, 32), (70, 30, 128, 32), (240, 320, 1024, 256), (1100, 700, 1024, 256)],
+    ("iou_thresh", "stab_thresh", "nms_thresh"),
+    [(0.0, 0.0, 1.0), (0.7, 0.0, 0.7), (0.0, 0.9, 0.5), (0.3, 0.85, 0.3)],
 )
-def test_upscaler_equals_interpolate_crop_interpolate(height, width, model_size, low):
-    generator = torch.Generator().manual_seed(height)
-    logits = torch.randn((5, low, low), generator=generator) * 10
-    new_h, new_w = preprocess_shape(height, width, model_size)
-    # The reference runs in float64: float32 F.interpolate computes source coordinates in
-    # float32 and is itself off by up to 6e-4 at 1024 pixels, a deterministic error that
-    # left a float32 comparison only 4x headroom.
-    expected = F.interpolate(
-        logits.double()[None], (model_size, model_size), mode="bilinear", align_corners=False
+def test_shared_post_processing_on_synthetic_logits(
+    sam_kind_model, iou_thresh, stab_thresh, nms_thresh
+):
+    kind, path, _ = sam_kind_model
+    height, width = 48, 80
+    segmenter = _load_kind(
+        kind,
+        path,
+        pred_iou_thresh=iou_thresh,
+        stability_score_thresh=stab_thresh,
+        box_nms_thresh=nms_thresh,
+        points_per_batch=10,  # not a divisor of 64: a ragged last batch
     )
-    expected = F.interpolate(
-        expected[..., :new_h, :new_w], (height, width), mode="bilinear", align_corners=False
-    )[0]
-    upscale = LogitUpscaler((low, low), model_size, (new_h, new_w), (height, width), "cpu")
-    out = upscale(logits)
-    assert out.shape == (5, height, width) and out.dtype == torch.float32
-    # float32 matrices and matmuls on logits up to ~40 in size: measured within 5e-6 of
-    # float64 (about one float32 ulp at 40, 3.8e-6); 1e-4 leaves 20x for other kernels.
-    torch.testing.assert_close(out.double(), expected, atol=1e-4, rtol=0)
+    adapter = segmenter.adapter
+    per_point, model_size = adapter.masks_per_point, adapter.model_size
+    adapter.decode = lambda embedding, points: _synthetic(points, per_point, model_size)
+    input_size = (
+        (model_size, model_size) if kind == "sam2" else preprocess_shape(height, width, model_size)
+    )
+    _, model_points = segmenter.prompt_points(height, width, input_size)
+    low, iou = _synthetic(torch.from_numpy(model_points), per_point, model_size)
+    logits = _reference_upscale(kind, low.flatten(0, 1), model_size, input_size, (height, width))
+    distance = torch.stack([(logits - t).abs() for t in (-1.0, 0.0, 1.0)]).min()
+    assert distance > 1e-3, "a synthetic logit lies on a threshold: the test is ill-posed"
 
-
-def test_stability_score_matches_direct_formula():
-    rng = np.random.default_rng(3)
-    logits = rng.normal(0, 2, (6, 9, 11)).astype(np.float32)
-    logits[5] = -5.0  # nothing above t - offset: 0/0
-    for threshold, offset in [(0.0, 1.0), (0.5, 0.25), (-1.0, 2.0)]:
-        got = stability_score(torch.from_numpy(logits), threshold, offset).numpy()
-        for i, mask in enumerate(logits):
-            high = sum(v > threshold + offset for v in mask.ravel())
-            low = sum(v > threshold - offset for v in mask.ravel())
-            if low == 0:
-                assert math.isnan(got[i])
-            else:
-                assert got[i] == pytest.approx(high / low, rel=1e-6)
-
-
-def test_masks_to_boxes_inclusive_corners_and_empty():
-    masks = torch.zeros((3, 7, 9), dtype=torch.bool)
-    masks[0, 2:5, 1:8] = True
-    masks[1, 6, 0] = True
-    boxes = masks_to_boxes(masks)
-    assert boxes.tolist() == [[1, 2, 7, 4], [0, 6, 0, 6], [0, 0, 0, 0]]
-    assert boxes.dtype == torch.float32
-
-
-@pytest.mark.parametrize("seed", range(6))
-@pytest.mark.parametrize("threshold", [0.0, 0.3, 0.5, 0.7, 0.95])
-def test_box_nms_matches_python_reference(seed, threshold):
-    rng = np.random.default_rng(seed)
-    n = 60
-    if seed % 2:  # integer boxes as from masks, with repeated scores and degenerate boxes
-        corners = rng.integers(0, 30, (n, 2, 2))
-        scores = rng.integers(0, 5, n).astype(np.float32)
-    else:
-        corners = rng.uniform(0, 50, (n, 2, 2))
-        scores = rng.uniform(0, 1, n).astype(np.float32)
-    boxes = np.concatenate([corners.min(1), corners.max(1)], axis=1)
-    boxes = boxes[:, [0, 1, 2, 3]]
-    keep = box_nms(torch.from_numpy(boxes).float(), torch.from_numpy(scores), threshold)
-    assert keep.dtype == torch.long
-    expected = reference_nms(boxes.astype(np.float32).astype(np.float64), scores, threshold)
-    assert keep.tolist() == expected
-    assert 0 < len(expected) < n or threshold >= 0.95
-
-
-def test_box_nms_empty_input():
-    keep = box_nms(torch.zeros((0, 4)), torch.zeros(0), 0.5)
-    assert keep.shape == (0,) and keep.dtype == torch.long
-
-
-def test_remove_small_regions_holes_and_islands():
-    mask = np.zeros((12, 12), dtype=bool)
-    mask[1:9, 1:9] = True
-    mask[4, 4] = False  # 1-pixel hole
-    mask[10, 10] = True  # 1-pixel island
-    filled, changed = remove_small_regions(mask, 3, "holes")
-    assert changed and filled[4, 4] and filled[10, 10] and filled.sum() == mask.sum() + 1
-    cleaned, changed = remove_small_regions(filled, 3, "islands")
-    assert changed and not cleaned[10, 10] and cleaned.sum() == 64
-    same, changed = remove_small_regions(cleaned, 3, "islands")
-    assert not changed and (same == cleaned).all()
-    # Every island small: the largest survives.
-    dots = np.zeros((8, 8), dtype=bool)
-    dots[0, 0] = True
-    dots[5:7, 5] = True
-    kept, changed = remove_small_regions(dots, 10, "islands")
-    assert changed and kept.sum() == 2 and kept[5, 5] and kept[6, 5]
-    # 8-connectivity, as OpenCV in the original: a diagonal chain is one region.
-    chain = np.zeros((6, 6), dtype=bool)
-    chain[[1, 2, 3], [1, 2, 3]] = True
-    chain[5, 5] = True
-    kept, changed = remove_small_regions(chain, 3, "islands")
-    assert changed and kept.sum() == 3 and not kept[5, 5]
+    expected = reference_generate(
+        logits, iou.flatten().double(), iou_thresh, stab_thresh, nms_thresh
+    )
+    result = segmenter.generate(sample_image(height, width))
+    assert result.candidate.tolist() == expected
+    assert len(expected) >= 2
+    reference_masks = (logits[expected] > 0).numpy()
+    assert (result.masks == reference_masks).all()
+    assert result.boxes.tolist() == [list(mask_box(m)) for m in reference_masks]
+    np.testing.assert_array_equal(result.iou_preds, iou.flatten().numpy()[expected])
+    point = result.candidate // per_point
+    np.testing.assert_allclose(
+        result.points[:, 0], (point % KIND_SIDE + 0.5) / KIND_SIDE * width, atol=1e-4
+    )
+    np.testing.assert_allclose(
+        result.points[:, 1], (point // KIND_SIDE + 0.5) / KIND_SIDE * height, atol=1e-4
+    )
