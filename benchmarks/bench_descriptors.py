@@ -12,7 +12,8 @@ vocabulary, PCA) for a synthetic N-image set (the corridor images cycled, as
 bench_workflow.py) with Snakemake, once per work directory. Then, per method of the
 corridor config, in one process and under the rule's thread budget (``run_stage``):
 
-- stage: ``compute_descriptors`` over all images (store reads, PCA, writes, zarr);
+- stage: the descriptors stage's job (``vprflow.stages.jobs.run_job``) over all images
+  (store reads, PCA, writes, zarr);
 - arithmetic: the method's per-image ``compute`` (and PCA transform) on every image's
   inputs read beforehand (float32 features, unpacked masks), one image at a time, with
   one BLAS thread or the rule's threads, whichever is faster;
@@ -77,7 +78,7 @@ def best_of(function, repeats: int) -> float:
 
 
 def method_name(stage) -> str:
-    params = stage.params["params"]
+    params = stage.record["params"]
     name = params["aggregator"]
     if name == "segvlad":
         name += f" order {params['order']}" + (" + pca" if "pca" in stage.inputs else "")
@@ -93,8 +94,8 @@ script, inputs, params, out, n, threads = json.loads(sys.argv[1])
 class Inputs(dict):
     __getattr__ = dict.__getitem__
 snakemake = SimpleNamespace(
-    input=Inputs(inputs), params=SimpleNamespace(cfg=params), output=[out], log=["/dev/null"],
-    wildcards=SimpleNamespace(start="0", stop=str(n)), threads=threads,
+    input=Inputs(inputs), params=Inputs(record=params), output=[out], log=["/dev/null"],
+    wildcards=Inputs(start="0", stop=str(n)), threads=threads,
 )
 runpy.run_path(script, init_globals={"snakemake": snakemake})
 """
@@ -104,8 +105,8 @@ def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ..
     """(stage, arithmetic, read, job) seconds per image of one descriptors stage."""
     from vprflow.registry import aggregator
     from vprflow.stages.dataset import Dataset
-    from vprflow.stages.descriptors import compute_descriptors
     from vprflow.stages.features import FeatureReader
+    from vprflow.stages.jobs import Job, run_job
     from vprflow.stages.pca import read_pca
     from vprflow.stages.segments import MaskReader
 
@@ -113,12 +114,12 @@ def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ..
     n = Dataset(inputs["dataset"]).n_images
     out = Path(tempfile.mkdtemp(dir=workdir)) / "descriptors.zarr"
     stage_s = best_of(
-        lambda: compute_descriptors(inputs, stage.params, str(out), threads=threads), repeats
+        lambda: run_job(Job(stage.record, inputs, str(out), threads=threads)), repeats
     )
 
     # The same per-image arithmetic on every image's inputs read beforehand.
-    spec = stage.params["params"]
-    describe = aggregator(spec["aggregator"]).descriptor_function(spec, inputs)
+    params = stage.record["params"]
+    describe = aggregator(params["aggregator"]).descriptor_function(params, inputs)
     data = [describe.read(i) for i in range(n)]
     pca = read_pca(inputs["pca"]) if "pca" in inputs else None
 
@@ -143,8 +144,8 @@ def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ..
                 mask_reader(i)
 
     read_s = best_of(read, repeats)
-    script = str(REPO / "workflow" / "scripts" / "descriptors.py")
-    job = json.dumps([script, inputs, stage.params, str(out), n, threads])
+    script = str(REPO / "workflow" / "scripts" / "stage.py")
+    job = json.dumps([script, inputs, stage.record, str(out), n, threads])
     job_s = best_of(lambda: subprocess.run([sys.executable, "-c", JOB, job], check=True), repeats)
     shutil.rmtree(out.parent)
     return stage_s / n, arithmetic_s / n, read_s / n, job_s / n

@@ -10,7 +10,8 @@ Per query image, median over ``--repeat`` passes, milliseconds:
 - ``sha256``: hashing the file's bytes, the check ``Dataset.read_image`` adds before it
   decodes (a file changed during a run must fail, not be computed under its old key);
 - ``checked``: ``Dataset.read_image`` as the stages call it (read, hash, decode), on a
-  dataset store the dataset stage built (``build_dataset``, as the ``dataset`` rule);
+  dataset store the dataset stage built (its job through ``vprflow.stages.jobs``, as
+  the ``dataset`` rule runs it);
 - ``scan``: ``images.scan_images`` of the query folder, per image (links, formats, order).
 
 Images: the corridor dataset under ``$VPRFLOW_DATA`` when it is there, and synthetic
@@ -35,7 +36,8 @@ from PIL import Image
 from vprflow.config import validate_config
 from vprflow.images import read_image, scan_images
 from vprflow.plan import build_plan
-from vprflow.stages.dataset import Dataset, build_dataset
+from vprflow.stages.dataset import Dataset
+from vprflow.stages.jobs import Job, run_job
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -75,7 +77,7 @@ def dataset_store(data_root: Path, folder: str, out: Path) -> Dataset:
     config = validate_config(config, REPO / "workflow" / "schemas" / "config.schema.yaml")
     plan = build_plan(config)
     stage = plan.stages["dataset"][plan.dataset_keys["bench"]]
-    build_dataset("bench", stage.params, str(data_root), str(out))
+    run_job(Job(stage.record, {}, str(out), data_root=str(data_root)))
     return Dataset(str(out), str(data_root))
 
 

@@ -72,7 +72,7 @@ def test_order_refits_pca_but_never_features_segments_or_vocabulary(config):
     changed["segvlad"]["order"] = 2
     assert changed_stages(config, changed) == {"pca", "descriptors", "search", "recall"}
     pca = build_plan(changed).get("pca", keys_of(changed)["pca"])
-    assert pca.params["params"]["fit_on"]["order"] == 2
+    assert pca.record["params"]["fit_on"]["order"] == 2
 
 
 def test_fixed_fit_order_keeps_pca_when_the_order_changes(config):
@@ -179,7 +179,7 @@ def test_resize_method_follows_each_methods_published_reader(config):
     resize = {}
     for method in ("snsm", "gem", "segvlad", "anyloc_vlad"):
         key = keys_of(config, "roadscene", method)["features"]
-        resize[method] = plan.stages["features"][key].params["params"]["resize"]
+        resize[method] = plan.stages["features"][key].record["params"]["resize"]
     assert resize == {
         "snsm": "antialias",
         "gem": "antialias",
@@ -258,11 +258,11 @@ def test_csv_row_lists_the_parameters_that_shaped_it(config):
 
 def test_dataset_defaults_sit_between_top_level_and_method(config):
     plan = build_plan(config)
-    features = {s.dataset: s.params["params"] for s in plan.stages["features"].values()}
+    features = {s.dataset: s.record["params"] for s in plan.stages["features"].values()}
     assert features["17places"]["backbone"] == "dinov2" and features["17places"]["layer"] == 31
     assert features["17places"]["weights"] == "hf:facebook/dinov2-giant"
     assert features["corridor"]["backbone"] == "daisy"
-    segments = {s.dataset: s.params["params"] for s in plan.stages["segments"].values()}
+    segments = {s.dataset: s.record["params"] for s in plan.stages["segments"].values()}
     assert (
         segments["17places"]["segmenter"] == "sam" and segments["corridor"]["segmenter"] == "slic"
     )
@@ -340,10 +340,10 @@ def test_retrieval_index_plans_its_search_and_an_exact_one_when_approximate(
     recall = plan.get("recall", keys_of(changed)["recall"])
     assert len({"search", "exact_search"} & set(recall.inputs)) == searches
     search = plan.get(*recall.inputs["search"])
-    assert search.params["params"]["index"] == index
+    assert search.record["params"]["index"] == index
     assert search.run_params["uses_gpu"] is gpu
     if searches == 2:
-        assert plan.get(*recall.inputs["exact_search"]).params["params"]["index"] == "flat"
+        assert plan.get(*recall.inputs["exact_search"]).record["params"]["index"] == "flat"
 
 
 # ------------------------------------------------------------------ defaults in keys
@@ -363,10 +363,10 @@ def test_the_dataset_stage_lists_images_as_the_plan_did(tmp_path):
     config = validate_config(toy_config(tmp_path, recursive=False), SCHEMA)
     plan = build_plan(config)
     (dataset,) = plan.stages["dataset"].values()
-    assert dataset.params["params"]["contents"] is not None
+    assert dataset.record["params"]["contents"] is not None
     # The stage lists from its hashed params alone; the plan listed from the config.
     spec = config["datasets"]["toy"]
-    as_stage = list_dataset(tmp_path, "toy", dataset.params["params"])
+    as_stage = list_dataset(tmp_path, "toy", dataset.record["params"])
     assert as_stage == list_dataset(tmp_path, "toy", spec)
     assert extra / "x.png" not in as_stage.query
 
@@ -432,7 +432,7 @@ def test_the_planned_search_params_contain_every_default_of_the_index(config, in
     config["retrieval"]["index"] = index
     plan = build_plan(config)
     search = plan.get("search", search_stages(config)["search"])
-    assert search.params["params"]["params"] == registry.SEARCH_INDEXES[index].defaults
+    assert search.record["params"]["params"] == registry.SEARCH_INDEXES[index].defaults
 
 
 def test_changing_an_index_default_changes_the_search_key_and_nothing_upstream(config, monkeypatch):

@@ -4,6 +4,7 @@ weight-free DAISY features and SLIC segments, checked against direct computation
 from __future__ import annotations
 
 import csv
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -20,12 +21,13 @@ from vprflow.stages.dataset import Dataset, build_dataset
 from vprflow.stages.descriptors import compute_descriptors
 from vprflow.stages.features import compute_features, read_features
 from vprflow.stages.gather import gather
-from vprflow.stages.pca import fit_pca_stage, read_pca
+from vprflow.stages.jobs import SHARDED, Job, combine_shards, run_job, shard_ranges
+from vprflow.stages.pca import read_pca
 from vprflow.stages.recall import evaluate
 from vprflow.stages.report import write_predictions, write_report
-from vprflow.stages.search import merge_search, read_search, search_shard
-from vprflow.stages.segments import compute_segments, read_masks
-from vprflow.stages.vocabulary import fit_vocabulary, read_centres
+from vprflow.stages.search import read_search, search_shard
+from vprflow.stages.segments import read_masks
+from vprflow.stages.vocabulary import read_centres
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
@@ -34,8 +36,12 @@ N_PLACES = 6
 
 
 class Runner:
-    """Runs a plan's stages in dependency order, as the rules would (per-image stages in
-    two shards, then gathered)."""
+    """Runs a plan's stages in dependency order through the rules' own table
+    (:mod:`vprflow.stages.jobs`): per-image stages in two shards (references, queries),
+    the segment search in uneven shards of 4 references, then combined; segments in
+    batches of 4 (a ragged last batch in each shard)."""
+
+    SHARD_SIZE, SEARCH_SHARD_SIZE = N_PLACES, 4
 
     def __init__(self, plan, data_root: Path, out: Path):
         self.plan, self.data_root, self.out = plan, str(data_root), out
@@ -49,40 +55,29 @@ class Runner:
     def _run(self, stage) -> str:
         inputs = {name: self.path(*ref) for name, ref in stage.inputs.items()}
         out = str(self.out / stage.stage / f"{stage.key}.zarr")
-        params = stage.params
-        if stage.stage == "dataset":
-            build_dataset(stage.dataset, params, self.data_root, out)
-        elif stage.stage in ("features", "segments", "descriptors"):
-            n = Dataset(inputs["dataset"]).n_images
-            shards = []
-            for start, stop in ((0, n // 2), (n // 2, n)):
-                shard = f"{out}.shards/{start}-{stop}.zarr"
-                if stage.stage == "features":
-                    compute_features(
-                        inputs["dataset"], params, shard, self.data_root, "cpu", 2, start, stop
-                    )
-                elif stage.stage == "segments":
-                    compute_segments(  # batch of 4: a ragged last batch in each shard
-                        inputs["dataset"], params, shard, self.data_root, "cpu", 4, start, stop
-                    )
-                else:
-                    compute_descriptors(inputs, params, shard, start, stop)
-                shards.append(shard)
-            gather(shards, params, out)
-        elif stage.stage == "vocabulary":
-            fit_vocabulary(inputs["dataset"], inputs["features"], params, out)
-        elif stage.stage == "pca":
-            fit_pca_stage(inputs, params, out)
-        elif stage.stage == "search":
-            n_ref = Dataset(inputs["dataset"]).n_reference
-            shards = []
-            for start, stop in ((0, 2), (2, 3), (3, n_ref)):  # uneven reference shards
-                shard = f"{out}.shards/{start}-{stop}.zarr"
-                search_shard(inputs["dataset"], inputs["descriptors"], params, shard, start, stop)
-                shards.append(shard)
-            merge_search(shards, params, out)
-        elif stage.stage == "recall":
-            evaluate(inputs["dataset"], inputs["descriptors"], params, out, inputs.get("search"))
+        job = Job(
+            stage.record,
+            inputs,
+            out,
+            data_root=self.data_root,
+            run={"device": "cpu", "batch_size": 4},
+            threads=2,
+        )
+        if stage.stage not in SHARDED:
+            run_job(job)
+            return out
+        dataset = Dataset(inputs["dataset"])
+        ranges = shard_ranges(
+            stage.stage,
+            dataset.n_reference,
+            dataset.n_query,
+            self.SHARD_SIZE,
+            self.SEARCH_SHARD_SIZE,
+        )
+        shards = [f"{out}.shards/{start}-{stop}.zarr" for start, stop in ranges]
+        for (start, stop), shard in zip(ranges, shards, strict=True):
+            run_job(replace(job, out=shard, start=start, stop=stop))
+        combine_shards(shards, stage.record, out)
         return out
 
 
@@ -205,7 +200,7 @@ def test_segment_gem_descriptors_are_each_segments_gem_projected(pipeline):
         stored = np.asarray(group["descriptors"][offsets[index] : offsets[index + 1]])
         np.testing.assert_allclose(stored, pca.transform(np.array(expected)), atol=2e-5)
     recall = stores.open_store(stage_path(pipeline, "recall", "segment_gem"))
-    assert "search" in dict(recall.attrs["params"]["inputs"])
+    assert "search" in dict(recall.attrs["record"]["inputs"])
 
 
 def test_global_recall_matches_a_direct_ranking(pipeline):
@@ -264,7 +259,7 @@ def test_gather_of_one_shard_renames_it_with_the_gathered_attributes(tmp_path):
     group = stores.open_store(out)
     assert dict(group.attrs) == {
         "stage": "descriptors",
-        "params": {"stage": "descriptors", "key": "x"},
+        "record": {"stage": "descriptors", "key": "x"},
         "shards": 1,
     }
     np.testing.assert_array_equal(group["descriptors"][...], rows)
@@ -296,10 +291,10 @@ def test_float16_segment_descriptors_are_the_float32_ones_rounded(pipeline, tmp_
     (stage,) = [
         s
         for s in plan.stages["descriptors"].values()
-        if s.params["params"]["aggregator"] == "segvlad"
+        if s.record["params"]["aggregator"] == "segvlad"
     ]
     inputs = {name: runner.path(*ref) for name, ref in stage.inputs.items()}
-    params = {**stage.params, "params": {**stage.params["params"], "store_dtype": "float16"}}
+    params = {**stage.record, "params": {**stage.record["params"], "store_dtype": "float16"}}
     out = str(tmp_path / "half.zarr")
     compute_descriptors(inputs, params, out)
     half = stores.open_store(out)["descriptors"]
@@ -313,11 +308,11 @@ def test_descriptors_are_the_same_bits_with_more_threads(pipeline, tmp_path, met
     """Images computed three at a time store what the sharded one-thread runs stored."""
     plan, runner, _, _ = pipeline
     (stage,) = [
-        s for s in plan.stages["descriptors"].values() if s.params["params"]["aggregator"] == method
+        s for s in plan.stages["descriptors"].values() if s.record["params"]["aggregator"] == method
     ]
     inputs = {name: runner.path(*ref) for name, ref in stage.inputs.items()}
     out = str(tmp_path / "threads.zarr")
-    compute_descriptors(inputs, stage.params, out, threads=3)
+    compute_descriptors(inputs, stage.record, out, threads=3)
     threaded = stores.open_store(out)
     stored = stores.open_store(stage_path(pipeline, "descriptors", method))
     for name, array in stores.array_items(stored):
@@ -339,9 +334,9 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
         if runner.path(*s.inputs["descriptors"]) == stage_path(pipeline, "descriptors", "segvlad")
     ]
     inputs = {name: runner.path(*ref) for name, ref in search.inputs.items()}
-    spec = {**search.params["params"], "index": index, "params": options}
+    spec = {**search.record["params"], "index": index, "params": options}
     out = str(tmp_path / "search.zarr")
-    search_shard(inputs["dataset"], inputs["descriptors"], {**search.params, "params": spec}, out)
+    search_shard(inputs["dataset"], inputs["descriptors"], {**search.record, "params": spec}, out)
     distances, indices = read_search(out)
     flat_distances, flat_indices = read_search(stage_path(pipeline, "search"))
     np.testing.assert_array_equal(indices, flat_indices)
@@ -352,7 +347,7 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
         if s.inputs.get("search") == ("search", search.key)
     ]
     result = str(tmp_path / "recall.zarr")
-    evaluate(inputs["dataset"], inputs["descriptors"], recall.params, result, out, out)
+    evaluate(inputs["dataset"], inputs["descriptors"], recall.record, result, out, out)
     attrs = stores.open_store(result).attrs
     flat = stores.open_store(stage_path(pipeline, "recall", "segvlad")).attrs
     assert attrs["recall_exact"] == attrs["recall"] == flat["recall"]
@@ -425,13 +420,13 @@ def test_an_image_changed_after_the_dataset_stage_fails_the_stage_reading_it(tmp
     plan = small_plan(tmp_path)
     dataset_stage = plan.get("dataset", plan.dataset_keys["toy"])
     dataset_path = str(tmp_path / "dataset.zarr")
-    build_dataset("toy", dataset_stage.params, str(tmp_path / "data"), dataset_path)
+    build_dataset("toy", dataset_stage.record, str(tmp_path / "data"), dataset_path)
     features = next(iter(plan.stages["features"].values()))
     changed = tmp_path / "data/toy/query/0001.jpg"
     changed.write_bytes((tmp_path / "data/toy/query/0002.jpg").read_bytes())
     out = tmp_path / "features.zarr"
     with pytest.raises(DatasetError, match=r"query/0001\.jpg changed after the dataset stage"):
-        compute_features(dataset_path, features.params, str(out), str(tmp_path / "data"), "cpu")
+        compute_features(dataset_path, features.record, str(out), str(tmp_path / "data"), "cpu")
     assert not out.exists()
 
 
@@ -448,7 +443,7 @@ def test_an_image_changed_after_planning_fails_the_dataset_stage_naming_it(tmp_p
     with pytest.raises(DatasetError, match=r"changed after this run planned it.*ref/0002\.png"):
         build_dataset(
             "toy",
-            stage.params,
+            stage.record,
             str(tmp_path / "data"),
             str(out),
             str(tmp_path / "fingerprints.json"),
@@ -464,7 +459,7 @@ def test_a_query_that_is_a_copy_of_a_reference_is_refused(tmp_path):
     plan = small_plan(tmp_path, make=False)
     stage = plan.get("dataset", plan.dataset_keys["toy"])
     with pytest.raises(DatasetError, match=r"byte-identical.*query/0001\.png = .*ref/0001\.png"):
-        build_dataset("toy", stage.params, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
+        build_dataset("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
 
 
 def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_path):
@@ -480,7 +475,7 @@ def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_p
     )
     plan = small_plan(tmp_path, make=False)
     stage = plan.get("dataset", plan.dataset_keys["toy"])
-    build_dataset("toy", stage.params, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
+    build_dataset("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
     dataset = Dataset(str(tmp_path / "d.zarr"), str(tmp_path / "data"))
     np.testing.assert_array_equal(dataset.read_image(1), upright.astype(np.float32) / 255.0)
     sizes = np.asarray(dataset.group["image_sizes"][...])
@@ -508,7 +503,7 @@ def test_the_dataset_stage_lists_images_as_planned(tmp_path):
         plan = build_plan(validate_config(config, SCHEMA))
         stage = plan.get("dataset", plan.dataset_keys["toy"])
         out = tmp_path / f"{root.name}.zarr"
-        build_dataset("toy", stage.params, str(root), str(out))
+        build_dataset("toy", stage.record, str(root), str(out))
         names = Dataset(str(out)).names
         expected = ["run1/0000.jpg", "run1/0001.jpg", "run1/0002.jpg"]
         if root.name == "nested":

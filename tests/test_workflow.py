@@ -153,7 +153,7 @@ def test_stages_are_shared_and_self_describing(toy_run):
         "recall": 5,
     }
     store = zarr.open_group(str(next((cache / "features").glob("*.zarr"))), mode="r")
-    assert store.attrs["params"]["params"]["backbone"] == "daisy"
+    assert store.attrs["record"]["params"]["backbone"] == "daisy"
     assert store["features"].shape[:3] == (20, 9, 12)
     assert not list(cache.glob("*/*.tmp")), "temporary stores left behind"
 

@@ -32,48 +32,48 @@ class DatasetFiles:
     skipped: dict[str, tuple[int, int]] | None = None
 
 
-def dataset_folder(data_root: str | Path, spec: dict) -> Path:
-    return Path(data_root) / spec["path"]
+def dataset_folder(data_root: str | Path, dataset: dict) -> Path:
+    return Path(data_root) / dataset["path"]
 
 
-def list_dataset(data_root: str | Path, name: str, spec: dict) -> DatasetFiles:
+def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFiles:
     """List reference and query images, failing with a message that says what is missing.
 
-    ``spec`` keys: ``path``, ``reference``, ``query`` (folder names), ``paired``
+    ``dataset`` keys: ``path``, ``reference``, ``query`` (folder names), ``paired``
     (file names must match one to one), optional ``source`` (where to get the data).
     """
-    root = dataset_folder(data_root, spec)
-    hint = f" Get it from {spec['source']}." if spec.get("source") else ""
+    root = dataset_folder(data_root, dataset)
+    hint = f" Get it from {dataset['source']}." if dataset.get("source") else ""
     if not root.is_dir():
-        if spec.get("download"):
+        if dataset.get("download"):
             from vprflow.download import download_hint
 
             hint = f" Download it with `{download_hint(name)}` (then run again).{hint}"
         raise DatasetError(
             f"dataset '{name}': folder {root} does not exist. Put the dataset there "
-            f"(with '{spec['reference']}/' and '{spec['query']}/' inside) or set "
+            f"(with '{dataset['reference']}/' and '{dataset['query']}/' inside) or set "
             f"data_root.{hint}"
         )
     scans: dict[str, ImageScan] = {}
     for role in ("reference", "query"):
-        entry = root / spec[role]
+        entry = root / dataset[role]
         if entry.suffix.lower() == ".txt":
             scans[role] = read_image_list(entry, root, f"dataset '{name}': {role} list")
             continue
         if not entry.is_dir():
             raise DatasetError(f"dataset '{name}': {role} folder {entry} does not exist.{hint}")
-        scans[role] = scan_images(entry, spec["recursive"], spec["follow_links"])
+        scans[role] = scan_images(entry, dataset["recursive"], dataset["follow_links"])
         if not scans[role].paths:
             raise DatasetError(f"dataset '{name}': {role} folder {entry} contains no images")
     reference, query = scans["reference"].paths, scans["query"].paths
     check_disjoint(name, reference, query)
-    if spec["paired"]:
+    if dataset["paired"]:
         query = paired_queries(
             name,
             reference,
             query,
-            _role_base(root, spec, "reference", reference),
-            _role_base(root, spec, "query", query),
+            _role_base(root, dataset, "reference", reference),
+            _role_base(root, dataset, "query", query),
         )
     return DatasetFiles(
         reference=reference,
@@ -82,10 +82,10 @@ def list_dataset(data_root: str | Path, name: str, spec: dict) -> DatasetFiles:
     )
 
 
-def _role_base(root: Path, spec: dict, role: str, paths: list[Path]) -> Path:
+def _role_base(root: Path, dataset: dict, role: str, paths: list[Path]) -> Path:
     """What a role's images are named relative to when pairing: its folder, or for a
     list file the folder its images have in common (``vi/`` of ``vi/1.jpg``)."""
-    entry = root / spec[role]
+    entry = root / dataset[role]
     if entry.suffix.lower() != ".txt":
         return entry
     return Path(os.path.commonpath([p.parent for p in paths]))
@@ -175,7 +175,7 @@ def paired_queries(
     return [queries[path.relative_to(ref_base).with_suffix("").as_posix()] for path in reference]
 
 
-def contents_digest(files: DatasetFiles, data_root: str | Path, spec: dict, file_hash) -> str:
+def contents_digest(files: DatasetFiles, data_root: str | Path, dataset: dict, file_hash) -> str:
     """SHA-256 over every image's and the ground-truth file's name and content hash:
     what a dataset's key covers. ``file_hash(path, where) -> hex sha256``, ``where`` a
     config key (``reference``, ``query``, ``ground_truth.file``) to name in errors."""
@@ -185,15 +185,15 @@ def contents_digest(files: DatasetFiles, data_root: str | Path, spec: dict, file
     from vprflow.ground_truth import ground_truth_files
 
     digest = hashlib.sha256()
-    root = dataset_folder(data_root, spec)
+    root = dataset_folder(data_root, dataset)
     for role, paths in (("reference", files.reference), ("query", files.query)):
         # Named relative to the role's folder (a list file's: the dataset folder), so a
         # flat folder hashes its file names and a nested one its relative paths.
-        base = root / spec[role] if (root / spec[role]).is_dir() else root
+        base = root / dataset[role] if (root / dataset[role]).is_dir() else root
         for path in paths:
             label = path.relative_to(base).as_posix()
             digest.update(f"{role}/{label}:{file_hash(path, role)}\n".encode())
-    for path in ground_truth_files(data_root, spec):
+    for path in ground_truth_files(data_root, dataset):
         if path.exists():
             sha = file_hash(path, "ground_truth.file")
             digest.update(f"truth/{path.name}:{sha}\n".encode())

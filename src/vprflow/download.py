@@ -66,14 +66,14 @@ def download_entry(config: dict, name: str) -> dict:
     configured, or has none, is an error saying where to get it instead."""
     if name not in config["datasets"]:
         raise DownloadError(f"unknown dataset {name!r}; configured: {sorted(config['datasets'])}")
-    spec = config["datasets"][name]
-    if "download" not in spec:
-        where = f" Get it from {spec['source']}." if spec.get("source") else ""
+    entry = config["datasets"][name]
+    if "download" not in entry:
+        where = f" Get it from {entry['source']}." if entry.get("source") else ""
         raise DownloadError(
             f"dataset {name!r} has no `download` entry: no public archive can be fetched "
             f"for it.{where}"
         )
-    return spec["download"]
+    return entry["download"]
 
 
 def manifest_inputs(config: dict, name: str, workflow_dir: str | Path) -> list[str]:
@@ -316,15 +316,15 @@ def extract_layout(
 
 
 def download_dataset(
-    name: str, spec: dict, folder: str | Path, manifest_path: str | Path | None = None
+    name: str, entry: dict, folder: str | Path, manifest_path: str | Path | None = None
 ) -> dict:
     """Fetch and lay out dataset ``name`` at ``folder`` unless it exists; return the record.
 
-    ``spec``: ``url``, optional ``sha256`` (of the archive), ``layout``, ``strip``.
+    ``entry``: ``url``, optional ``sha256`` (of the archive), ``layout``, ``strip``.
     ``manifest_path``: optional per-file SHA-256 list (see :func:`read_manifest`).
     """
     folder = Path(folder)
-    url = spec["url"]
+    url = entry["url"]
     record = {
         "dataset": name,
         "url": url,
@@ -346,7 +346,7 @@ def download_dataset(
         log.info("dataset %s: downloading %s", name, url)
         actual = fetch(url, archive)
         size = archive.stat().st_size
-        pinned = spec.get("sha256")
+        pinned = entry.get("sha256")
         if pinned:
             verify_sha256(url, pinned, actual)
         else:
@@ -362,7 +362,7 @@ def download_dataset(
             )
         staged = work / "data"
         staged.mkdir()
-        files = extract_layout(archive, url, spec["layout"], staged, int(spec["strip"]), manifest)
+        files = extract_layout(archive, url, entry["layout"], staged, int(entry["strip"]), manifest)
         archive.unlink()
         os.replace(staged, folder)
     finally:

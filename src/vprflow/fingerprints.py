@@ -83,7 +83,7 @@ def memoised(path: str | Path, memo: dict, digest, where: str) -> str:
     return memo[key]
 
 
-def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str | None:
+def dataset_contents(data_root: str, name: str, dataset: dict, memo: dict) -> str | None:
     """:func:`vprflow.datasets.contents_digest` of a dataset, or ``None`` while the
     dataset cannot be listed (its stage then fails, naming why).
 
@@ -95,13 +95,13 @@ def dataset_contents(data_root: str, name: str, spec: dict, memo: dict) -> str |
     from vprflow.images import ImageReadError
 
     try:
-        files = list_dataset(data_root, name, spec)
+        files = list_dataset(data_root, name, dataset)
     except (DatasetError, ImageReadError):
         return None
     return contents_digest(
         files,
         data_root,
-        spec,
+        dataset,
         lambda path, where: memoised(path, memo, file_digest, f"datasets.{name}.{where}"),
     )
 

@@ -220,30 +220,30 @@ def pairs_ground_truth(
 # ---------------------------------------------------------------- the kinds
 
 
-def _none_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+def _none_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
     return [np.zeros(0, dtype=np.int64) for _ in range(len(files.query))]
 
 
-def _vprbench_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+def _vprbench_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
     return vprbench_ground_truth(
-        folder / spec["file"],
+        folder / entry["file"],
         len(files.query),
         len(files.reference),
-        spec["drop_out_of_range"],
+        entry["drop_out_of_range"],
         query_folders=role_folders(files.query, folder),
         reference_folders=role_folders(files.reference, folder),
     )
 
 
-def _frame_window_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
-    return frame_window_ground_truth(len(files.query), len(files.reference), int(spec["radius"]))
+def _frame_window_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
+    return frame_window_ground_truth(len(files.query), len(files.reference), int(entry["radius"]))
 
 
-def _utm_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
-    return utm_ground_truth(files.reference, files.query, float(spec["radius"]))
+def _utm_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
+    return utm_ground_truth(files.reference, files.query, float(entry["radius"]))
 
 
-def _pairs_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
+def _pairs_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
     return pairs_ground_truth(
         len(files.query),
         len(files.reference),
@@ -252,19 +252,19 @@ def _pairs_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarr
     )
 
 
-def _positions(files: DatasetFiles, spec: dict, folder: Path) -> tuple[Positions, Positions]:
+def _positions(files: DatasetFiles, entry: dict, folder: Path) -> tuple[Positions, Positions]:
     """Reference and query positions of a ``coordinates`` ground truth."""
-    if spec["source"] == "exif":
+    if entry["source"] == "exif":
         parts = []
         for paths in (files.reference, files.query):
             table = np.array([exif_lat_lon(p) for p in paths], dtype=np.float64)
             parts.append(Positions(table[:, 0], table[:, 1], None, True))
         return parts[0], parts[1]
     names = [p.relative_to(folder).as_posix() for p in files.reference + files.query]
-    both = read_positions(folder / spec["file"], names)
-    if spec.get("max_heading_diff") is not None and both.heading is None:
+    both = read_positions(folder / entry["file"], names)
+    if entry.get("max_heading_diff") is not None and both.heading is None:
         raise DatasetError(
-            f"{folder / spec['file']}: ground_truth.max_heading_diff is set but the file "
+            f"{folder / entry['file']}: ground_truth.max_heading_diff is set but the file "
             "has no 'heading' column"
         )
     n = len(files.reference)
@@ -276,22 +276,22 @@ def _positions(files: DatasetFiles, spec: dict, folder: Path) -> tuple[Positions
     return part(slice(0, n)), part(slice(n, None))
 
 
-def _coordinates_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
-    reference, query = _positions(files, spec, folder)
+def _coordinates_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
+    reference, query = _positions(files, entry, folder)
     return coordinates_ground_truth(
-        reference, query, float(spec["radius_m"]), spec.get("max_heading_diff")
+        reference, query, float(entry["radius_m"]), entry.get("max_heading_diff")
     )
 
 
-def _coordinates_rule(spec: dict) -> str:
-    source = "exif" if spec["source"] == "exif" else spec["file"]
-    rule = f"coordinates:{source}:{spec['radius_m']}m"
-    if spec.get("max_heading_diff") is not None:
-        rule += f",heading<={spec['max_heading_diff']}deg"
+def _coordinates_rule(entry: dict) -> str:
+    source = "exif" if entry["source"] == "exif" else entry["file"]
+    rule = f"coordinates:{source}:{entry['radius_m']}m"
+    if entry.get("max_heading_diff") is not None:
+        rule += f",heading<={entry['max_heading_diff']}deg"
     return rule
 
 
-def _no_files(spec: dict) -> list[str]:
+def _no_files(entry: dict) -> list[str]:
     return []
 
 
@@ -299,10 +299,10 @@ def _no_files(spec: dict) -> list[str]:
 class Kind:
     """One ground-truth kind.
 
-    ``truth(files, spec, folder)``: per query, the sorted int64 indices of its correct
-    references (``spec`` the dataset's ``ground_truth``, ``folder`` the dataset folder);
-    ``rule(spec)``: the short name of the rule in results tables (the ``ground_truth``
-    column); ``files(spec)``: the files it reads, relative to the dataset folder (inputs
+    ``truth(files, entry, folder)``: per query, the sorted int64 indices of its correct
+    references (``entry`` the dataset's ``ground_truth``, ``folder`` the dataset folder);
+    ``rule(entry)``: the short name of the rule in results tables (the ``ground_truth``
+    column); ``files(entry)``: the files it reads, relative to the dataset folder (inputs
     of the dataset stage, hashed into its key); ``judged``: whether it says which
     references are correct at all (``none`` does not: its empty lists are no error).
     """
@@ -316,50 +316,50 @@ class Kind:
 # In the order of the schema's enum (``ground_truth.kind``), which a test compares.
 KINDS: dict[str, Kind] = {
     "vprbench": Kind(
-        _vprbench_truth, lambda spec: f"vprbench:{spec['file']}", lambda spec: [spec["file"]]
+        _vprbench_truth, lambda entry: f"vprbench:{entry['file']}", lambda entry: [entry["file"]]
     ),
-    "frame_window": Kind(_frame_window_truth, lambda spec: f"frame_window:+-{spec['radius']}"),
-    "utm": Kind(_utm_truth, lambda spec: f"utm:{spec['radius']}m"),
-    "pairs": Kind(_pairs_truth, lambda spec: "pairs"),
+    "frame_window": Kind(_frame_window_truth, lambda entry: f"frame_window:+-{entry['radius']}"),
+    "utm": Kind(_utm_truth, lambda entry: f"utm:{entry['radius']}m"),
+    "pairs": Kind(_pairs_truth, lambda entry: "pairs"),
     "coordinates": Kind(
         _coordinates_truth,
         _coordinates_rule,
-        lambda spec: [spec["file"]] if spec["source"] == "file" else [],
+        lambda entry: [entry["file"]] if entry["source"] == "file" else [],
     ),
-    "none": Kind(_none_truth, lambda spec: "none", judged=False),
+    "none": Kind(_none_truth, lambda entry: "none", judged=False),
 }
 
 
-def _kind(spec: dict) -> Kind:
-    kind = spec["kind"]
+def _kind(entry: dict) -> Kind:
+    kind = entry["kind"]
     if kind not in KINDS:
         raise DatasetError(f"unknown ground-truth kind {kind!r}")
     return KINDS[kind]
 
 
-def ground_truth(files: DatasetFiles, spec: dict, folder: Path) -> list[np.ndarray]:
-    """Per query, the correct reference indices under ``spec`` (the dataset's
+def ground_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
+    """Per query, the correct reference indices under ``entry`` (the dataset's
     ``ground_truth``; see :data:`KINDS`). A truth in which no query has a positive is an
     error (recall would be undefined), except for ``none``."""
-    kind = _kind(spec)
-    truth = kind.truth(files, spec, folder)
+    kind = _kind(entry)
+    truth = kind.truth(files, entry, folder)
     if kind.judged and not any(len(t) for t in truth):
-        source = folder / spec["file"] if spec.get("file") else f"{folder} ({spec['kind']})"
+        source = folder / entry["file"] if entry.get("file") else f"{folder} ({entry['kind']})"
         raise DatasetError(
-            f"ground truth {ground_truth_rule(spec)} from {source}: no query has a positive "
+            f"ground truth {ground_truth_rule(entry)} from {source}: no query has a positive "
             f"among the {len(files.reference)} references, so recall is undefined; check the "
             "file or rule (or use ground_truth: {kind: none} to rank without recall)"
         )
     return truth
 
 
-def ground_truth_rule(spec: dict) -> str:
+def ground_truth_rule(entry: dict) -> str:
     """A short human-readable name of the rule, for results tables."""
-    return _kind(spec).rule(spec)
+    return _kind(entry).rule(entry)
 
 
-def ground_truth_files(data_root: str | Path, spec: dict) -> list[Path]:
-    """Files the ground truth of dataset ``spec`` is read from (inputs of the dataset
+def ground_truth_files(data_root: str | Path, entry: dict) -> list[Path]:
+    """Files the ground truth of dataset ``entry`` is read from (inputs of the dataset
     stage)."""
-    truth = spec["ground_truth"]
-    return [dataset_folder(data_root, spec) / name for name in _kind(truth).files(truth)]
+    truth = entry["ground_truth"]
+    return [dataset_folder(data_root, entry) / name for name in _kind(truth).files(truth)]

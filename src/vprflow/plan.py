@@ -75,7 +75,10 @@ class Stage:
 
     stage: str
     key: str
-    params: dict  # exactly what was hashed (plus execution-only settings, see run_params)
+    # Exactly what was hashed: the stage, its format versions, its own parameters
+    # (``record["params"]``) and its inputs' keys. Stage functions take it whole and
+    # store it in their output's attributes.
+    record: dict
     inputs: dict[str, tuple[str, str]]  # input name -> (stage, key)
     # Not hashed: device, batch size, whether the stage runs on a GPU when there is one.
     run_params: dict = field(default_factory=dict)

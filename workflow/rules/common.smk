@@ -26,6 +26,7 @@ from vprflow.reports import (
     withdraw_reports,
     withdraw_stale_reports,
 )
+from vprflow.stages.jobs import SHARDED, shard_ranges
 from vprflow.store_index import write_index
 
 
@@ -60,7 +61,7 @@ if len(_memo) != _memo_size:
 # cluster job steps, which parse this file again.
 if workflow.is_main_process:
     write_index(PLAN, PREFIX)
-SHARDED = "features|segments|descriptors|search"
+SHARDED_STAGES = "|".join(SHARDED)
 
 
 wildcard_constraints:
@@ -78,9 +79,9 @@ def stage_inputs(stage):
     return lambda wildcards: planned(stage, wildcards).input_paths()
 
 
-def stage_params(stage):
+def stage_record(stage):
     """Params function: the stage's hashed record (what its key is made of)."""
-    return lambda wildcards: planned(stage, wildcards).params
+    return lambda wildcards: planned(stage, wildcards).record
 
 
 def stage_run_params(stage):
@@ -102,7 +103,7 @@ def gpu_request(stage):
     return request
 
 
-def dataset_spec(name):
+def dataset_entry(name):
     if name not in CONFIG["datasets"]:
         raise PlanError(
             f"unknown dataset {name!r}; configured: {sorted(CONFIG['datasets'])}"
@@ -113,7 +114,7 @@ def dataset_spec(name):
 @cache
 def dataset_files(name):
     try:
-        return list_dataset(CONFIG["data_root"], name, dataset_spec(name))
+        return list_dataset(CONFIG["data_root"], name, dataset_entry(name))
     except Exception:
         # Raised while Snakemake builds the DAG, where `onerror` does not run.
         if workflow.is_main_process:
@@ -129,16 +130,16 @@ def data_root_param(wildcards, output):
     return CONFIG["data_root"]
 
 
-def shard_ranges(name, stage):
-    """``(start, stop)`` image ranges of a sharded stage's jobs: all images for the
-    per-image stages, the reference images for search."""
+def dataset_shard_ranges(name, stage):
+    """``(start, stop)`` image ranges of a sharded stage's jobs on dataset ``name``."""
     files = dataset_files(name)
-    if stage == "search":
-        n_images, size = len(files.reference), CONFIG["search_shard_size"]
-    else:
-        n_images, size = len(files.reference) + len(files.query), CONFIG["shard_size"]
-    size = size or n_images
-    return [(start, min(start + size, n_images)) for start in range(0, n_images, size)]
+    return shard_ranges(
+        stage,
+        len(files.reference),
+        len(files.query),
+        CONFIG["shard_size"],
+        CONFIG["search_shard_size"],
+    )
 
 
 def shard_inputs(wildcards):
@@ -147,16 +148,16 @@ def shard_inputs(wildcards):
     pattern = shard_pattern(wildcards.stage)
     return [
         pattern.format(key=wildcards.key, start=start, stop=stop)
-        for start, stop in shard_ranges(stage.dataset, wildcards.stage)
+        for start, stop in dataset_shard_ranges(stage.dataset, wildcards.stage)
     ]
 
 
-def gather_params(wildcards):
-    return planned(wildcards.stage, wildcards).params
+def gather_record(wildcards):
+    return planned(wildcards.stage, wildcards).record
 
 
 def prediction_inputs(wildcards):
-    dataset_spec(wildcards.dataset)  # an unknown dataset fails here, by name
+    dataset_entry(wildcards.dataset)  # an unknown dataset fails here, by name
     return {
         "dataset": store_path("dataset", PLAN.dataset_keys[wildcards.dataset]),
         "recalls": [
@@ -168,7 +169,7 @@ def prediction_inputs(wildcards):
 def report_inputs(wildcards):
     """The recall stores of a dataset's table; a dataset without ground truth has no
     table, and asking for one says so."""
-    if dataset_spec(wildcards.dataset)["ground_truth"]["kind"] == "none":
+    if dataset_entry(wildcards.dataset)["ground_truth"]["kind"] == "none":
         raise PlanError(
             f"dataset {wildcards.dataset!r} has ground_truth kind 'none': there is no "
             f"recall to tabulate. Its rankings are in "

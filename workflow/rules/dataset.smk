@@ -11,10 +11,9 @@ rule dataset:
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
-        cfg=stage_params("dataset"),
-        name=lambda wildcards: planned("dataset", wildcards).dataset,
+        record=stage_record("dataset"),
         data_root=data_root_param,
         # The plan's memo of file hashes: names a file that changed after planning.
         fingerprints=PREFIX + FINGERPRINTS,
     script:
-        "../scripts/dataset.py"
+        "../scripts/stage.py"

@@ -14,6 +14,6 @@ rule descriptors:
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
-        cfg=stage_params("descriptors"),
+        record=stage_record("descriptors"),
     script:
-        "../scripts/descriptors.py"
+        "../scripts/stage.py"

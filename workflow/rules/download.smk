@@ -31,7 +31,7 @@ rule download:
     conda:
         "../envs/vprflow.yaml"
     params:
-        spec=lambda wildcards: download_entry(CONFIG, wildcards.dataset),
+        entry=lambda wildcards: download_entry(CONFIG, wildcards.dataset),
         folder=lambda wildcards: str(
             dataset_folder(CONFIG["data_root"], CONFIG["datasets"][wildcards.dataset])
         ),

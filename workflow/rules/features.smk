@@ -15,11 +15,11 @@ rule features:
         runtime=lambda wildcards, attempt: 120 * attempt,
         gpu=gpu_request("features"),
     params:
-        cfg=stage_params("features"),
+        record=stage_record("features"),
         run=stage_run_params("features"),
         data_root=data_root_param,
     script:
-        "../scripts/features.py"
+        "../scripts/stage.py"
 
 
 rule gather:
@@ -30,13 +30,13 @@ rule gather:
     log:
         log_pattern("{stage}", "gather"),
     wildcard_constraints:
-        stage=SHARDED,
+        stage=SHARDED_STAGES,
     conda:
         "../envs/vprflow.yaml"
     resources:
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
-        cfg=gather_params,
+        record=gather_record,
     script:
         "../scripts/gather.py"

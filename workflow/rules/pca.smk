@@ -14,6 +14,6 @@ rule pca:
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
-        cfg=stage_params("pca"),
+        record=stage_record("pca"),
     script:
-        "../scripts/pca.py"
+        "../scripts/stage.py"

@@ -14,9 +14,9 @@ rule recall:
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
-        cfg=stage_params("recall"),
+        record=stage_record("recall"),
     script:
-        "../scripts/recall.py"
+        "../scripts/stage.py"
 
 
 rule report:

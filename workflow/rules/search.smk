@@ -15,7 +15,7 @@ rule search:
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
-        cfg=stage_params("search"),
+        record=stage_record("search"),
         run=stage_run_params("search"),
     script:
-        "../scripts/search.py"
+        "../scripts/stage.py"

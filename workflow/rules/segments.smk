@@ -15,8 +15,8 @@ rule segments:
         runtime=lambda wildcards, attempt: 180 * attempt,
         gpu=gpu_request("segments"),
     params:
-        cfg=stage_params("segments"),
+        record=stage_record("segments"),
         run=stage_run_params("segments"),
         data_root=data_root_param,
     script:
-        "../scripts/segments.py"
+        "../scripts/stage.py"

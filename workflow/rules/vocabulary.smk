@@ -14,6 +14,6 @@ rule vocabulary:
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
-        cfg=stage_params("vocabulary"),
+        record=stage_record("vocabulary"),
     script:
-        "../scripts/vocabulary.py"
+        "../scripts/stage.py"

@@ -8,7 +8,7 @@ sm = snakemake  # noqa: F821 (injected by Snakemake)
 
 def main():
     manifest = sm.input.manifest[0] if sm.input.manifest else None
-    record = download_dataset(sm.wildcards.dataset, sm.params.spec, sm.params.folder, manifest)
+    record = download_dataset(sm.wildcards.dataset, sm.params.entry, sm.params.folder, manifest)
     if record["downloaded"] and not record["sha256_pinned"]:
         print(
             f"vprflow: warning: {record['url']} has no sha256 in the config; it downloaded "

@@ -8,7 +8,7 @@ from pathlib import Path
 log = logging.getLogger("vprflow")
 
 
-def resolved_sources(spec: dict) -> dict[str, str]:
+def resolved_sources(params: dict) -> dict[str, str]:
     """The model directory or file a stage reads, as absolute paths (hub ids as they
     are), for its log and attributes: a ``..`` or absolute path outside ``data_root``
     is allowed, but never invisible."""
@@ -16,7 +16,7 @@ def resolved_sources(spec: dict) -> dict[str, str]:
 
     sources = {}
     for name in ("model", "file"):
-        value = spec.get(name)
+        value = params.get(name)
         if value:
             local = name == "file" or is_local_model(str(value))
             sources[name] = str(Path(value).expanduser().resolve()) if local else str(value)
@@ -31,5 +31,5 @@ def shard_range(n_images: int, start: int | None, stop: int | None) -> range:
     return range(start, stop)
 
 
-def stage_attrs(stage: str, params: dict, images: range) -> dict:
-    return {"stage": stage, "params": params, "start": images.start, "stop": images.stop}
+def stage_attrs(stage: str, record: dict, images: range) -> dict:
+    return {"stage": stage, "record": record, "start": images.start, "stop": images.stop}

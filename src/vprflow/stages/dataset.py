@@ -20,7 +20,7 @@ log = logging.getLogger("vprflow")
 
 
 def build_dataset(
-    name: str, params: dict, data_root: str, out: str, fingerprints: str | None = None
+    name: str, record: dict, data_root: str, out: str, fingerprints: str | None = None
 ) -> None:
     """List and decode every image once (so a corrupt file fails here, by name) and
     store paths (relative to ``data_root``, so the data folder may move), sizes (after
@@ -28,41 +28,41 @@ def build_dataset(
     folder read is logged and kept in the attributes.
 
     What is read must be what the key covers: the contents hash of the files as read
-    here must equal the plan's (``params["params"]["contents"]``), else a file changed
+    here must equal the plan's (``record["params"]["contents"]``), else a file changed
     after planning, and it is named (with ``fingerprints``, the plan's memo of hashes
     by file stamp). Queries byte-identical to a reference are refused.
     """
-    spec = params["params"]
-    files = datasets.list_dataset(data_root, name, spec)
-    folder = datasets.dataset_folder(data_root, spec)
+    params = record["params"]
+    files = datasets.list_dataset(data_root, name, params)
+    folder = datasets.dataset_folder(data_root, params)
     paths = files.reference + files.query
     sizes = np.zeros((len(paths), 2), dtype=np.int64)
     digests = []
     for i, path in enumerate(tqdm(paths, desc=f"checking {name} images")):
         data = _read_bytes(path)
         digests.append(hashlib.sha256(data).hexdigest())
-        sizes[i] = decode_image(data, path, spec["exif_orientation"]).shape[:2]
+        sizes[i] = decode_image(data, path, params["exif_orientation"]).shape[:2]
     by_path = dict(zip(paths, digests, strict=True))
     contents = datasets.contents_digest(
-        files, data_root, spec, lambda p, _: by_path.get(p) or file_digest(p)
+        files, data_root, params, lambda p, _: by_path.get(p) or file_digest(p)
     )
-    if contents != spec["contents"]:
+    if contents != params["contents"]:
         raise DatasetError(_changed_since_planning(name, paths, by_path, fingerprints))
     # A copied folder: the same images under other names.
     datasets.check_disjoint(
         name, files.reference, files.query, by_path.get, "are byte-identical copies of references"
     )
-    truth = ground_truth(files, spec["ground_truth"], folder)
+    truth = ground_truth(files, params["ground_truth"], folder)
     counts = np.array([len(t) for t in truth], dtype=np.int64)
-    with stores.atomic_store(out, {"stage": "dataset", "params": params}) as group:
+    with stores.atomic_store(out, {"stage": "dataset", "record": record}) as group:
         group.attrs.update(
             name=name,
             data_root_at_build=str(Path(data_root).resolve()),
             n_reference=len(files.reference),
             n_query=len(files.query),
-            ground_truth_rule=ground_truth_rule(spec["ground_truth"]),
+            ground_truth_rule=ground_truth_rule(params["ground_truth"]),
             n_queries_with_positives=int((counts > 0).sum()),
-            exif_orientation=spec["exif_orientation"],
+            exif_orientation=params["exif_orientation"],
         )
         stores.write_array(
             group, "paths", np.array([p.relative_to(data_root).as_posix() for p in paths])

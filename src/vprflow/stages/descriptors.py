@@ -28,7 +28,7 @@ from vprflow.stages.vocabulary import read_centres
 
 def compute_descriptors(
     inputs: dict[str, str],
-    params: dict,
+    record: dict,
     out: str,
     start: int | None = None,
     stop: int | None = None,
@@ -46,17 +46,17 @@ def compute_descriptors(
     keep every thread busy. The stored values are the same for any ``threads``
     (OpenBLAS rounds a product differently with a different number of its threads).
     """
-    spec = params["params"]
-    agg = aggregator(spec["aggregator"])
+    params = record["params"]
+    agg = aggregator(params["aggregator"])
     dataset = Dataset(inputs["dataset"])
     images = shard_range(dataset.n_images, start, stop)
-    describe = agg.descriptor_function(spec, inputs)
+    describe = agg.descriptor_function(params, inputs)
     by_segment = agg.output == "segments"
     pca = read_pca(inputs["pca"]) if "pca" in inputs else None
     # An aggregator that offers a storage precision has it among its options (SegVLAD:
     # segvlad.store_dtype); the others store float32.
-    dtype = np.dtype(spec["store_dtype"] if "store_dtype" in spec else np.float32)
-    attrs = {**stage_attrs("descriptors", params, images), "kind": agg.output}
+    dtype = np.dtype(params["store_dtype"] if "store_dtype" in params else np.float32)
+    attrs = {**stage_attrs("descriptors", record, images), "kind": agg.output}
 
     def rows_of(data: tuple) -> np.ndarray:
         rows = describe.compute(*data)

@@ -19,7 +19,7 @@ log = logging.getLogger("vprflow")
 
 def compute_features(
     dataset_path: str,
-    params: dict,
+    record: dict,
     out: str,
     data_root: str,
     device: str = "auto",
@@ -28,12 +28,12 @@ def compute_features(
     stop: int | None = None,
 ) -> None:
     """Dense patch descriptors ``features [n, h, w, D]`` of images ``start..stop``."""
-    spec = params["params"]
+    params = record["params"]
     dataset, images = open_shard(dataset_path, data_root, start, stop)
-    width, height = spec["resolution"]
-    store_dtype = np.dtype(spec["store_dtype"])
-    extract, patch_size = _feature_extractor(spec, device, width, height, dataset)
-    attrs = {**stage_attrs("features", params, images), "sources": resolved_sources(spec)}
+    width, height = params["resolution"]
+    store_dtype = np.dtype(params["store_dtype"])
+    extract, patch_size = _feature_extractor(params, device, width, height, dataset)
+    attrs = {**stage_attrs("features", record, images), "sources": resolved_sources(params)}
     with stores.atomic_store(out, attrs) as group:
         array = None
         batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
@@ -62,30 +62,30 @@ def compute_features(
             array[start_row : start_row + len(batch)] = stored
 
 
-def _feature_extractor(spec: dict, device: str, width: int, height: int, dataset):
+def _feature_extractor(params: dict, device: str, width: int, height: int, dataset):
     """``(image indices -> float32 [B, h, w, D], patch size)`` for the configured
     backbone, reading ``dataset``'s images.
 
     A kind without a loader (``backbone: import``) reads the authors' published HDF5
     features instead of running a model (``<image file name>/ift_dino``).
     """
-    kind = model_kind("features", spec)
+    kind = model_kind("features", params)
     if kind.loader is None:
         from vprflow.arrays import l2_normalize
         from vprflow.published import read_features_h5
 
         def read(indices):
             grids = np.stack(
-                [read_features_h5(spec["file"], Path(dataset.paths[i]).name) for i in indices]
+                [read_features_h5(params["file"], Path(dataset.paths[i]).name) for i in indices]
             )
-            return l2_normalize(grids) if spec["normalize"] else grids
+            return l2_normalize(grids) if params["normalize"] else grids
 
-        return read, spec["patch_size"]
-    backbone = kind.load(spec, device)
+        return read, params["patch_size"]
+    backbone = kind.load(params, device)
 
     def run(indices):
         pixels = np.stack(
-            [resize_image(dataset.read_image(i), width, height, spec["resize"]) for i in indices]
+            [resize_image(dataset.read_image(i), width, height, params["resize"]) for i in indices]
         )
         return backbone.features(pixels)
 

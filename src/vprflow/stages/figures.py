@@ -212,7 +212,7 @@ def draw_support_maps(
     result = stores.open_store(inputs["recall"])
     first = np.asarray(result["first_correct"][...])
     top1 = np.asarray(result["ranking"][:, 0])
-    options = stores.open_store(inputs["descriptors"]).attrs["params"]["params"]
+    options = stores.open_store(inputs["descriptors"]).attrs["record"]["params"]
     keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
     snsm = {k: options[k] for k in keys}
     read_features = FeatureReader(stores.open_store(inputs["features"]), block_bytes=0)

@@ -9,7 +9,7 @@ from tqdm import tqdm
 from vprflow import stores
 
 
-def gather(shard_paths: list[str], params: dict, out: str) -> None:
+def gather(shard_paths: list[str], record: dict, out: str) -> None:
     """Concatenate per-image shard stores (in image order) into one store.
 
     Arrays with an ``<name>_offsets`` partner are ragged: rows are concatenated and
@@ -20,7 +20,7 @@ def gather(shard_paths: list[str], params: dict, out: str) -> None:
     first = shards[0]
     names = [name for name, _ in stores.array_items(first)]
     attrs = {k: v for k, v in first.attrs.items() if k not in ("start", "stop")}
-    attrs["params"] = params
+    attrs["record"] = record
     attrs["shards"] = len(shards)
     if len(shards) == 1:
         # One shard is the whole store: rename it instead of copying every array. Its

@@ -11,20 +11,20 @@ from vprflow.registry import aggregator
 from vprflow.stages.dataset import Dataset
 
 
-def fit_pca_stage(inputs: dict[str, str], params: dict, out: str) -> None:
+def fit_pca_stage(inputs: dict[str, str], record: dict, out: str) -> None:
     """PCA fitted on a random sample of the reference images' segment descriptors,
     computed by the method's aggregator with the options ``fit_on`` (SegVLAD: at
     ``pca.fit_order``, docs/methods.md §5)."""
     from vprflow.pca import fit_pca
 
-    spec = params["params"]
+    params = record["params"]
     dataset = Dataset(inputs["dataset"])
-    describe = aggregator(spec["aggregator"]).descriptor_function(spec["fit_on"], inputs)
+    describe = aggregator(params["aggregator"]).descriptor_function(params["fit_on"], inputs)
     segments_path = inputs["segments"]
     offsets = np.asarray(stores.open_store(segments_path)["masks_offsets"][...])
     total = int(offsets[dataset.n_reference])
-    rng = np.random.default_rng(spec["seed"])
-    chosen = np.sort(rng.choice(total, size=min(total, spec["max_samples"]), replace=False))
+    rng = np.random.default_rng(params["seed"])
+    chosen = np.sort(rng.choice(total, size=min(total, params["max_samples"]), replace=False))
     # Filled in place: for DINOv2-G this is 50,000 x 49,152 floats (10 GB), one copy only.
     sample = None
     filled = 0
@@ -41,11 +41,13 @@ def fit_pca_stage(inputs: dict[str, str], params: dict, out: str) -> None:
                 filled += len(rows)
     if sample is None:
         raise ValueError(f"{segments_path}: the reference images have no segments to fit PCA on")
-    fitted = fit_pca(sample, spec["dim"], spec["whiten"], spec["seed"], solver=spec["solver"])
-    with stores.atomic_store(out, {"stage": "pca", "params": params}) as group:
+    fitted = fit_pca(
+        sample, params["dim"], params["whiten"], params["seed"], solver=params["solver"]
+    )
+    with stores.atomic_store(out, {"stage": "pca", "record": record}) as group:
         # `dim` is the effective dimension: capped at the sample's numerical rank.
         group.attrs.update(
-            whiten=fitted.whiten, n_samples=len(chosen), dim=fitted.dim, requested_dim=spec["dim"]
+            whiten=fitted.whiten, n_samples=len(chosen), dim=fitted.dim, requested_dim=params["dim"]
         )
         stores.write_array(group, "mean", fitted.mean)
         stores.write_array(group, "components", fitted.components)

@@ -16,7 +16,7 @@ log = logging.getLogger("vprflow")
 def evaluate(
     dataset_path: str,
     descriptors_path: str,
-    params: dict,
+    record: dict,
     out: str,
     search_path: str | None = None,
     exact_search_path: str | None = None,
@@ -34,14 +34,14 @@ def evaluate(
     from vprflow.stages.search import read_search
     from vprflow.voting import image_of_segment, scored_vote_ranking
 
-    spec = params["params"]
+    params = record["params"]
     dataset = Dataset(dataset_path)
     group = stores.open_store(descriptors_path)
     n_ref, n_query = dataset.n_reference, dataset.n_query
-    top_k = min(spec["top_k"], n_ref)
+    top_k = min(params["top_k"], n_ref)
     truth = dataset.truth()
     has_truth = dataset.has_ground_truth
-    denominator = spec["denominator"]
+    denominator = params["denominator"]
     recall_exact = None
     if group.attrs["kind"] == "segments":
         if search_path is None:
@@ -60,14 +60,14 @@ def evaluate(
                 n_query,
                 n_ref,
                 top_k,
-                spec["vote_ranking"],
+                params["vote_ranking"],
             )
 
         # Scores: votes (higher is better).
         ranking, scores = voted(search_path)
         if exact_search_path is not None and has_truth:
             exact_ranking = voted(exact_search_path)[0]
-            recall_exact = recall_at(exact_ranking, truth, spec["recall_at"], denominator)
+            recall_exact = recall_at(exact_ranking, truth, params["recall_at"], denominator)
     else:
         vectors = np.asarray(group["descriptors"][...])
         # Scores: squared L2 distances (lower is better).
@@ -76,11 +76,11 @@ def evaluate(
     recalls, maps = {}, {}
     evaluated = np.zeros(n_query, dtype=bool)
     if has_truth:
-        recalls = recall_at(ranking, truth, spec["recall_at"], denominator)
-        maps = map_at(ranking, truth, spec["recall_at"], denominator)
+        recalls = recall_at(ranking, truth, params["recall_at"], denominator)
+        maps = map_at(ranking, truth, params["recall_at"], denominator)
         evaluated = counted_queries(truth, denominator)
     ranked = (ranking >= 0).sum(axis=1)
-    with stores.atomic_store(out, {"stage": "recall", "params": params}) as result:
+    with stores.atomic_store(out, {"stage": "recall", "record": record}) as result:
         result.attrs.update(
             recall={str(n): v for n, v in recalls.items()},
             map={str(n): v for n, v in maps.items()},
@@ -93,7 +93,9 @@ def evaluate(
             descriptor_dim=int(group.attrs["dim"]),
             # Queries ranking fewer references than the largest N (or than all of them):
             # SegVLAD ranks only voted images, and a missing rank counts as a miss.
-            n_short_rankings=int((evaluated & (ranked < min(max(spec["recall_at"]), n_ref))).sum()),
+            n_short_rankings=int(
+                (evaluated & (ranked < min(max(params["recall_at"]), n_ref))).sum()
+            ),
             ground_truth_rule=dataset.group.attrs["ground_truth_rule"],
         )
         stores.write_array(result, "ranking", ranking.astype(np.int64))

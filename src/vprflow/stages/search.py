@@ -32,7 +32,7 @@ QUERY_BLOCK = 1 << 16
 def search_shard(
     dataset_path: str,
     descriptors_path: str,
-    params: dict,
+    record: dict,
     out: str,
     start: int | None = None,
     stop: int | None = None,
@@ -41,8 +41,8 @@ def search_shard(
     """Top-``top_segments`` reference segments of reference images ``start..stop`` for
     every query segment: ``distances [Sq, k']`` float32, ``indices [Sq, k']`` int64
     (global reference segment rows), k' = min(top_segments, segments in the shard)."""
-    spec = params["params"]
-    index = search_index(spec["index"])
+    params = record["params"]
+    index = search_index(params["index"])
     dataset = Dataset(dataset_path)
     start = 0 if start is None else start
     stop = dataset.n_reference if stop is None else min(stop, dataset.n_reference)
@@ -52,14 +52,14 @@ def search_shard(
     split, total = int(offsets[dataset.n_reference]), int(offsets[-1])
     vectors = group["descriptors"]
     database = np.asarray(vectors[low:high], dtype=np.float32)
-    k = min(spec["top_segments"], len(database))
-    attrs = {**stage_attrs("search", params, range(start, stop)), "rows": [low, high]}
+    k = min(params["top_segments"], len(database))
+    attrs = {**stage_attrs("search", record, range(start, stop)), "rows": [low, high]}
     with stores.atomic_store(out, attrs) as result:
         found = _list_writers(result, k)
         for block in tqdm(range(split, total, QUERY_BLOCK), desc="search", unit="block"):
             queries = np.asarray(vectors[block : min(block + QUERY_BLOCK, total)], np.float32)
             if k:
-                distances, indices = index.search(database, queries, k, spec["params"], device)
+                distances, indices = index.search(database, queries, k, params["params"], device)
                 found_any = indices >= 0  # approximate indexes pad short rows with -1
                 indices = np.where(found_any, indices + low, -1)
                 distances = np.where(found_any, distances, np.inf).astype(np.float32)
@@ -74,14 +74,14 @@ def search_shard(
     log.info("searched %d query segments in reference segments %d..%d", total - split, low, high)
 
 
-def merge_search(shard_paths: list[str], params: dict, out: str) -> None:
+def merge_search(shard_paths: list[str], record: dict, out: str) -> None:
     """The exact top-k over all shards: per query segment the ``top_segments`` best of
     every shard's lists by (distance, index), read one query block at a time."""
-    k = params["params"]["top_segments"]
+    k = record["params"]["top_segments"]
     shards = [stores.open_store(p) for p in shard_paths]
     n_rows = shards[0]["distances"].shape[0]
     k_total = min(k, sum(s["distances"].shape[1] for s in shards))
-    attrs = {"stage": "search", "params": params, "shards": len(shards)}
+    attrs = {"stage": "search", "record": record, "shards": len(shards)}
     with stores.atomic_store(out, attrs) as result:
         found = _list_writers(result, k_total)
         for block in tqdm(range(0, n_rows, QUERY_BLOCK), desc="merge", unit="block"):

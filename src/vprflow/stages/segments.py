@@ -19,7 +19,7 @@ log = logging.getLogger("vprflow")
 
 def compute_segments(
     dataset_path: str,
-    params: dict,
+    record: dict,
     out: str,
     data_root: str,
     device: str = "auto",
@@ -31,10 +31,10 @@ def compute_segments(
 
     ``batch_size`` images share one image-encoder pass (SAM kinds; others run one by one).
     """
-    spec = params["params"]
+    params = record["params"]
     dataset, images = open_shard(dataset_path, data_root, start, stop)
-    segment = _mask_source(spec, device, dataset)
-    attrs = {**stage_attrs("segments", params, images), "sources": resolved_sources(spec)}
+    segment = _mask_source(params, device, dataset)
+    attrs = {**stage_attrs("segments", record, images), "sources": resolved_sources(params)}
     with stores.atomic_store(out, attrs) as group:
         writer, shape = None, None
         for i, masks in _segmented(segment, images, batch_size):
@@ -67,7 +67,7 @@ def _segmented(segment, images, batch_size: int):
             progress.update(len(batch))
 
 
-def _mask_source(spec: dict, device: str, dataset):
+def _mask_source(params: dict, device: str, dataset):
     """``[image index, ...] -> [bool [S, Hm, Wm], ...]`` for the configured segmenter,
     reading ``dataset``'s images.
 
@@ -75,18 +75,20 @@ def _mask_source(spec: dict, device: str, dataset):
     (``<image file name>/masks/<j>/segmentation``) at their own resolution. Segmenters
     with ``masks_batch`` (SAM kinds) take a list of images in one call.
     """
-    kind = model_kind("segments", spec)
+    kind = model_kind("segments", params)
     if kind.loader is None:
         from vprflow.published import read_masks_h5
 
         return lambda indices: [
-            read_masks_h5(spec["file"], Path(dataset.paths[i]).name) for i in indices
+            read_masks_h5(params["file"], Path(dataset.paths[i]).name) for i in indices
         ]
-    segmenter = kind.load(spec, device)
-    width, height = spec["resolution"]
+    segmenter = kind.load(params, device)
+    width, height = params["resolution"]
 
     def images(indices):
-        return [resize_image(dataset.read_image(i), width, height, spec["resize"]) for i in indices]
+        return [
+            resize_image(dataset.read_image(i), width, height, params["resize"]) for i in indices
+        ]
 
     if hasattr(segmenter, "masks_batch"):
         return lambda indices: segmenter.masks_batch(images(indices))

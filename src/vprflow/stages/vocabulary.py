@@ -33,49 +33,51 @@ def load_centres_file(path: str) -> np.ndarray:
     return load_c_centers(path)
 
 
-def fit_vocabulary(dataset_path: str, features_path: str, params: dict, out: str) -> None:
+def fit_vocabulary(dataset_path: str, features_path: str, record: dict, out: str) -> None:
     """VLAD centres ``[K, D]``: spherical k-means on sampled patch descriptors, or a file."""
     from vprflow.vlad import fit_spherical_kmeans
 
-    spec = params["params"]
-    if spec["source"] == "file":
-        centres = load_centres_file(spec["file"])
+    params = record["params"]
+    if params["source"] == "file":
+        centres = load_centres_file(params["file"])
         dim = int(stores.open_store(features_path).attrs["dim"])
         if centres.shape[1] != dim:
             raise ValueError(
-                f"vocabulary.file {spec['file']}: centres have {centres.shape[1]} dimensions "
+                f"vocabulary.file {params['file']}: centres have {centres.shape[1]} dimensions "
                 f"but the features have {dim}; the file belongs to another backbone or layer"
             )
     else:
         dataset = Dataset(dataset_path)
         features = stores.open_store(features_path)
-        images = dataset.indices(spec["fit_on"])
+        images = dataset.indices(params["fit_on"])
         h, w = features.attrs["grid"]
         per_image = h * w
         total = len(images) * per_image
-        rng = np.random.default_rng(spec["seed"])
-        chosen = np.sort(rng.choice(total, size=min(total, spec["max_descriptors"]), replace=False))
+        rng = np.random.default_rng(params["seed"])
+        chosen = np.sort(
+            rng.choice(total, size=min(total, params["max_descriptors"]), replace=False)
+        )
         owner = chosen // per_image
         sample = []
         for i in tqdm(np.unique(owner), desc="vocabulary sample", unit="image"):
             grid = read_features(features, images[i]).reshape(per_image, -1)
             sample.append(grid[chosen[owner == i] % per_image])
         sample = np.concatenate(sample)
-        if len(sample) < spec["n_clusters"]:
+        if len(sample) < params["n_clusters"]:
             raise ValueError(
-                f"config key vocabulary.n_clusters = {spec['n_clusters']} is more than the "
-                f"{len(sample)} patch descriptors of the {spec['fit_on']} images "
+                f"config key vocabulary.n_clusters = {params['n_clusters']} is more than the "
+                f"{len(sample)} patch descriptors of the {params['fit_on']} images "
                 f"({len(images)} images x {per_image} patches, max_descriptors "
-                f"{spec['max_descriptors']}): lower n_clusters"
+                f"{params['max_descriptors']}): lower n_clusters"
             )
         centres = fit_spherical_kmeans(
             sample,
-            spec["n_clusters"],
-            spec["n_iter"],
-            spec["seed"],
-            centres=spec["centres"],
+            params["n_clusters"],
+            params["n_iter"],
+            params["seed"],
+            centres=params["centres"],
         )
-    attrs = {"stage": "vocabulary", "params": params, "sources": resolved_sources(spec)}
+    attrs = {"stage": "vocabulary", "record": record, "sources": resolved_sources(params)}
     with stores.atomic_store(out, attrs) as group:
         stores.write_array(group, "centres", centres.astype(np.float32))
 
