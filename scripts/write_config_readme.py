@@ -5,10 +5,8 @@ python scripts/write_config_readme.py
 
 from pathlib import Path
 
-import yaml
-
-from vprflow.config import config_readme
+from vprflow.config import config_readme, load_schema
 
 REPO = Path(__file__).resolve().parents[1]
-schema = yaml.safe_load((REPO / "workflow" / "schemas" / "config.schema.yaml").read_text())
+schema = load_schema(REPO / "workflow" / "schemas" / "config.schema.yaml")
 (REPO / "config" / "README.md").write_text(config_readme(schema))

@@ -16,7 +16,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import yaml
 from dataset_helpers import SPEC, assert_truth_equal, touch_images, utm_name
 from workflow_helpers import SCHEMA, dataset_spec, truth_spec
 
@@ -271,10 +270,12 @@ def test_no_ground_truth_gives_empty_lists_and_its_rule():
     assert ground_truth_rule({"kind": "none"}) == "none"
 
 
-def test_the_schema_lists_exactly_the_table_of_kinds():
-    # As tests/test_registry.py checks the registry's enums: a kind the schema admits
-    # must be one ground_truth() computes, and the other way round.
-    dataset = yaml.safe_load(SCHEMA.read_text())["definitions"]["dataset"]["properties"]
+def test_the_schema_admits_exactly_the_table_of_kinds():
+    # The enum is filled from KINDS (config.load_schema): a kind the schema admits is
+    # one ground_truth() computes, and the other way round.
+    from vprflow.config import load_schema
+
+    dataset = load_schema(SCHEMA)["definitions"]["dataset"]["properties"]
     assert dataset["ground_truth"]["properties"]["kind"]["enum"] == list(KINDS)
 
 

@@ -10,20 +10,39 @@ import pytest
 import yaml
 
 from vprflow import registry
-from vprflow.config import registry_enums, validate_config
+from vprflow.config import METHOD_DEFAULT_SECTIONS, ConfigError, load_schema, validate_config
 from vprflow.plan import FORMAT_VERSIONS, build_plan
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA_PATH = REPO / "workflow" / "schemas" / "config.schema.yaml"
-SCHEMA = yaml.safe_load(SCHEMA_PATH.read_text())
+SCHEMA = load_schema(SCHEMA_PATH)
 
 
-def test_schema_enums_list_exactly_the_registry_components():
-    enums = registry_enums(SCHEMA)
-    assert enums["backbones"] == list(registry.BACKBONES)
-    assert enums["segmenters"] == list(registry.SEGMENTERS)
-    assert enums["aggregators"] == list(registry.AGGREGATORS)
-    assert enums["search_indexes"] == list(registry.SEARCH_INDEXES)
+def test_a_component_name_outside_the_registry_is_refused_listing_the_registrys():
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    raw["methods"]["segvlad"]["aggregator"] = "softvlad"
+    with pytest.raises(ConfigError, match="'softvlad' is not one of") as error:
+        validate_config(raw, SCHEMA_PATH)
+    assert str(list(registry.AGGREGATORS)) in str(error.value)
+
+
+def test_the_schema_file_does_not_restate_what_the_code_lists():
+    # Component names, ground-truth kinds and method sections come from the code
+    # (config.load_schema): a second copy in the file could only drift.
+    raw = yaml.safe_load(SCHEMA_PATH.read_text())
+    definitions = raw["definitions"]
+    for definition, key in (
+        (definitions["backbone"], "backbone"),
+        (definitions["segmenter"], "segmenter"),
+        (definitions["method"], "aggregator"),
+        (definitions["retrieval"], "index"),
+        (definitions["dataset"]["properties"]["ground_truth"], "kind"),
+    ):
+        assert "enum" not in definition["properties"][key], key
+    sections = set(METHOD_DEFAULT_SECTIONS)
+    assert not sections & set(raw["properties"])
+    assert not sections & set(definitions["method"]["properties"])
+    assert not sections & set(definitions["dataset"]["properties"]["defaults"]["properties"])
 
 
 def test_every_search_index_is_one_the_search_stage_can_run():
@@ -154,12 +173,19 @@ def test_every_config_key_is_described_and_config_readme_is_current():
     assert readme == config_readme(SCHEMA), "run: python scripts/write_config_readme.py"
 
 
-def test_method_sections_are_the_schema_method_sections():
-    from vprflow.config import METHOD_DEFAULT_SECTIONS
+def test_every_method_section_is_a_default_a_dataset_default_and_a_method_override():
+    from vprflow.plan import resolve_method
 
-    method = SCHEMA["definitions"]["method"]["properties"]
-    sections = [name for name, prop in method.items() if "$ref" in prop]
-    assert list(METHOD_DEFAULT_SECTIONS) == sections
-    top = [name for name, prop in SCHEMA["properties"].items() if "$ref" in prop]
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    method = raw["methods"]["segvlad"]
+    dataset = raw["datasets"]["corridor"]
+    for section in METHOD_DEFAULT_SECTIONS:
+        raw.setdefault(section, {})
+        dataset.setdefault("defaults", {}).setdefault(section, {})
+        method.setdefault(section, {})
+    config = validate_config(raw, SCHEMA_PATH)
+    settings = resolve_method(config, "segvlad", config["datasets"]["corridor"])
+    assert set(METHOD_DEFAULT_SECTIONS) <= set(settings)
     # `figures` is the one top-level section that methods do not override.
-    assert sorted(top) == sorted([*sections, "figures"])
+    top = [name for name, prop in SCHEMA["properties"].items() if "$ref" in prop]
+    assert sorted(top) == sorted([*METHOD_DEFAULT_SECTIONS, "figures"])

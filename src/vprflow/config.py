@@ -56,8 +56,7 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
     """
     import jsonschema
 
-    schema = yaml.safe_load(Path(schema_path).read_text())
-    _set_registry_enums(schema)
+    schema = load_schema(schema_path)
     errors = sorted(
         jsonschema.Draft202012Validator(schema).iter_errors(config),
         key=lambda e: list(map(str, e.absolute_path)),
@@ -83,25 +82,53 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
     return config
 
 
-def registry_enums(schema: dict) -> dict[str, list[str]]:
-    """The schema's lists of backbone, segmenter, aggregator and search index names (which
-    ``tests/test_registry.py`` checks against :mod:`vprflow.registry`)."""
+def load_schema(path: str | Path) -> dict:
+    """The schema file, completed with the lists the code owns: the names of backbones,
+    segmenters, aggregators and search indexes (:mod:`vprflow.registry`) and of
+    ground-truth kinds (:data:`vprflow.ground_truth.KINDS`) as enums, and each method
+    section of :data:`METHOD_DEFAULT_SECTIONS` as a top-level key, a method key and a
+    dataset ``defaults`` key (each a reference to the section's definition)."""
+    from vprflow.ground_truth import KINDS
+
+    schema = yaml.safe_load(Path(path).read_text())
     definitions = schema["definitions"]
-    return {
-        "backbones": definitions["backbone"]["properties"]["backbone"]["enum"],
-        "segmenters": definitions["segmenter"]["properties"]["segmenter"]["enum"],
-        "aggregators": definitions["method"]["properties"]["aggregator"]["enum"],
-        "search_indexes": definitions["retrieval"]["properties"]["index"]["enum"],
-    }
+    for names, definition, key in (
+        (BACKBONES, definitions["backbone"], "backbone"),
+        (SEGMENTERS, definitions["segmenter"], "segmenter"),
+        (AGGREGATORS, definitions["method"], "aggregator"),
+        (SEARCH_INDEXES, definitions["retrieval"], "index"),
+        (KINDS, definitions["dataset"]["properties"]["ground_truth"], "kind"),
+    ):
+        definition["properties"][key]["enum"] = list(names)
+    method = definitions["method"]["properties"]
+    dataset_defaults = definitions["dataset"]["properties"]["defaults"]["properties"]
+    top: dict = {}
+    for name, prop in schema["properties"].items():
+        if name == "methods":  # the sections read best just before the methods
+            top.update(_method_section_keys(definitions))
+        top[name] = prop
+    schema["properties"] = top
+    for section in METHOD_DEFAULT_SECTIONS:
+        ref = f"#/definitions/{section}"
+        method[section] = {"$ref": ref, "description": f"overrides of the `{section}` section"}
+        dataset_defaults[section] = {
+            "$ref": ref,
+            "description": f"this dataset's `{section}` defaults",
+        }
+    return schema
 
 
-def _set_registry_enums(schema: dict) -> None:
-    """Make the registry the authority on component names, whatever the file lists."""
-    enums = registry_enums(schema)
-    enums["backbones"][:] = list(BACKBONES)
-    enums["segmenters"][:] = list(SEGMENTERS)
-    enums["aggregators"][:] = list(AGGREGATORS)
-    enums["search_indexes"][:] = list(SEARCH_INDEXES)
+def _method_section_keys(definitions: dict) -> dict:
+    keys = {}
+    for section in METHOD_DEFAULT_SECTIONS:
+        if section not in definitions:
+            raise ValueError(f"method section {section!r} has no schema definition")
+        keys[section] = {
+            "$ref": f"#/definitions/{section}",
+            "default": {},
+            "description": f"defaults of every method's `{section}` section (see `{section}`)",
+        }
+    return keys
 
 
 def fill_defaults(instance: dict, schema: dict, at: str = "#") -> dict:
@@ -168,9 +195,8 @@ _README_HEAD = """# Configuration
 unknown key is an error that names it, and every `default` below is filled in before
 anything is hashed, so a store's key and attributes record what ran.
 
-A method's settings are, later winning: the top-level sections (`vocabulary`, `vlad`,
-`pca`, `segvlad`, `retrieval`, `snsm`, `pooling`), then the dataset's `defaults`, then the method's
-own. Backbone and segmenter entries also get their kind's defaults, and a method's
+A method's settings are, later winning: the top-level sections ({sections}), then the
+dataset's `defaults`, then the method's own. Backbone and segmenter entries also get their kind's defaults, and a method's
 `retrieval.params` its index's, from `src/vprflow/registry.py` (listed below by kind and
 by index). A default followed by a condition in brackets applies only then. What the
 methods compute is in `docs/methods.md`.
@@ -263,7 +289,8 @@ def config_readme(schema: dict) -> str:
     """``config/README.md``: every key of the schema, its allowed values, default (the
     schema's, its kind's from the registry) and meaning (the schema's ``description``s),
     and each search index's parameter defaults."""
-    lines = [_README_HEAD, *_table("top level", schema)]
+    sections = ", ".join(f"`{name}`" for name in METHOD_DEFAULT_SECTIONS)
+    lines = [_README_HEAD.replace("{sections}", sections), *_table("top level", schema)]
     kinds = {"backbone": BACKBONES, "segmenter": SEGMENTERS}
     for name, definition in schema["definitions"].items():
         if "properties" not in definition:
