@@ -52,6 +52,7 @@ import inspect
 import json
 import math
 import types
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -65,14 +66,36 @@ from .registry import with_defaults
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-# AnyLoc / SegVLAD use block 31 (0-based) of DINOv2 ViT-G/14's 40 blocks.
-MODEL_TYPES = {
-    "dinov2": ("dinov2", "dinov2_with_registers"),
-    "dinov3": ("dinov3_vit",),
-    "dino": ("vit",),
+
+
+@dataclass(frozen=True)
+class VitFamily:
+    """What differs between the ViT backbones vprflow loads (their config defaults,
+    such as the layer, are in :mod:`vprflow.registry`)."""
+
+    # transformers ``model_type`` values a model of this backbone may have, each with
+    # whether its transformers position-embedding interpolation differs from the
+    # original repository's (and is replaced under ``pos_embed_interpolation:
+    # original``); "dinov2_with_registers" already matches.
+    model_types: dict[str, bool]
+    rope: bool = False  # positions from RoPE: no position embeddings to interpolate
+    model_normalisation: bool = False  # mean/std from preprocessor_config.json, else ImageNet's
+    hub_checkpoint: bool = False  # takes a torch-hub-layout `checkpoint` (SegVLAD-FineT)
+    pooler: bool = True  # False: the checkpoints carry no pooler (skip a spurious random init)
+
+
+VIT_FAMILIES = {
+    "dinov2": VitFamily({"dinov2": True, "dinov2_with_registers": False}, hub_checkpoint=True),
+    "dinov3": VitFamily({"dinov3_vit": False}, rope=True, model_normalisation=True),
+    "dino": VitFamily({"vit": True}, pooler=False),
 }
-# Backbones whose positions come from RoPE: no position embeddings to interpolate.
-ROPE_BACKBONES = ("dinov3",)
+# Model type -> whether "original" replaces its interpolation, over every family.
+_ORIGINAL_INTERPOLATION = {
+    model_type: replaced
+    for family in VIT_FAMILIES.values()
+    if not family.rope
+    for model_type, replaced in family.model_types.items()
+}
 FACETS = ("query", "key", "value", "token")
 # Submodule names of the q/k/v projections: transformers >= 5 ("q_proj") and the
 # older layout ("attention.attention.query") that transformers 4.x builds.
@@ -86,9 +109,6 @@ _BLOCK_LISTS = ("encoder.layer", "layers", "encoder.layers", "model.layer")
 _FINAL_NORMS = ("layernorm", "norm")
 PREPROCESSOR_CONFIG = "preprocessor_config.json"
 POS_EMBED_INTERPOLATIONS = ("original", "transformers")
-# Model types whose transformers interpolation differs from the original repositories'
-# (and gets replaced under "original"); "dinov2_with_registers" already matches.
-_ORIGINAL_INTERPOLATION = {"dinov2": True, "vit": True, "dinov2_with_registers": False}
 
 
 def _find_blocks(model: nn.Module) -> tuple[nn.Module, str, nn.ModuleList]:
@@ -332,10 +352,11 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
     from transformers import AutoConfig, AutoModel
 
     backbone = str(params.get("backbone", "dinov2")).lower()
-    if backbone not in MODEL_TYPES:
+    if backbone not in VIT_FAMILIES:
         raise ValueError(
-            f"unknown ViT backbone {backbone!r}; expected one of {sorted(MODEL_TYPES)}"
+            f"unknown ViT backbone {backbone!r}; expected one of {sorted(VIT_FAMILIES)}"
         )
+    family = VIT_FAMILIES[backbone]
     params = with_defaults("features", {**params, "backbone": backbone})
     facet = str(params["facet"]).lower()
     if facet not in FACETS:
@@ -343,7 +364,7 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
     final_norm = bool(params["final_norm"])
     if final_norm and facet != "token":
         raise ValueError(f"final_norm applies to the 'token' facet only, not {facet!r}")
-    if backbone in ROPE_BACKBONES:
+    if family.rope:
         if params.get("pos_embed_interpolation") is not None:
             raise ValueError(
                 f"pos_embed_interpolation does not apply to {backbone!r}: its positions are "
@@ -353,21 +374,21 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
     else:
         interpolation = _check_pos_embed_interpolation(params["pos_embed_interpolation"])
     checkpoint = params.get("checkpoint")
-    if checkpoint is not None and backbone != "dinov2":
-        raise ValueError(f"checkpoint applies to the 'dinov2' backbone only, not {backbone!r}")
+    if checkpoint is not None and not family.hub_checkpoint:
+        takes = " / ".join(repr(name) for name, f in VIT_FAMILIES.items() if f.hub_checkpoint)
+        raise ValueError(f"checkpoint applies to the {takes} backbone only, not {backbone!r}")
     torch_device = resolve_device(device)
     dtype = resolve_dtype(params["dtype"], torch_device)
 
     model_name = params["model"]
     source = resolve_model_source(str(model_name), params.get("cache_dir"))
     config = AutoConfig.from_pretrained(source)
-    if config.model_type not in MODEL_TYPES[backbone]:
+    if config.model_type not in family.model_types:
         raise ValueError(
             f"model {model_name!r} is a {config.model_type!r} model, but backbone "
-            f"{backbone!r} expects {MODEL_TYPES[backbone]}"
+            f"{backbone!r} expects {tuple(family.model_types)}"
         )
-    # DINO checkpoints carry no pooler; skipping it avoids a spurious random init.
-    extra = {"add_pooling_layer": False} if config.model_type == "vit" else {}
+    extra = {} if family.pooler else {"add_pooling_layer": False}
     model, info = load_pretrained(
         AutoModel.from_pretrained,
         source,
@@ -393,7 +414,7 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
     _, _, blocks = _find_blocks(model)
     layer = _resolve_layer(params["layer"], len(blocks))
     mean, std = IMAGENET_MEAN, IMAGENET_STD
-    if backbone == "dinov3":
+    if family.model_normalisation:
         mean, std = _read_normalisation(source, str(model_name))
     return VitBackbone(
         model,
