@@ -357,7 +357,7 @@ def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
     """The stores a figure rule would get (vprflow.reports.figure_inputs), as run here."""
     from vprflow.reports import FIGURES
 
-    return {name: stage_path(pipeline, name, method) for name in FIGURES[figure]}
+    return {name: stage_path(pipeline, name, method) for name in FIGURES[figure].inputs}
 
 
 @pytest.mark.parametrize(

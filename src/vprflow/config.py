@@ -195,11 +195,13 @@ _README_HEAD = """# Configuration
 unknown key is an error that names it, and every `default` below is filled in before
 anything is hashed, so a store's key and attributes record what ran.
 
-A method's settings are, later winning: the top-level sections ({sections}), then the
-dataset's `defaults`, then the method's own. Backbone and segmenter entries also get their kind's defaults, and a method's
-`retrieval.params` its index's, from `src/vprflow/registry.py` (listed below by kind and
-by index). A default followed by a condition in brackets applies only then. What the
-methods compute is in `docs/methods.md`.
+A method's settings are, later winning: the top-level sections
+({sections}),
+then the dataset's `defaults`, then the method's own. Backbone and segmenter entries
+also get their kind's defaults, and a method's `retrieval.params` its index's, from
+`src/vprflow/registry.py` (listed below by kind and by index). A default followed by a
+condition in brackets applies only then. What the methods compute is in
+`docs/methods.md`.
 
 This file is generated from the schema's descriptions by
 `python scripts/write_config_readme.py`; `tests/test_registry.py` checks it is current.

@@ -3,6 +3,7 @@ reads, and withdrawing tables that no longer describe the config."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 from vprflow.config import PlanError
@@ -16,11 +17,30 @@ from vprflow.paths import (
 )
 from vprflow.plan import Plan, method_run, method_stores
 
-# Each figure kind of one method and the stores it reads (the method's own, by name).
+
+@dataclass(frozen=True)
+class MethodFigure:
+    """A figure the report shows for each method that has it (every method has
+    ``retrievals``; an aggregator names its ``explanation``). Its rule is made from this
+    entry (``workflow/rules/figures.smk``), its caption is
+    ``workflow/report/<name>.rst`` and :func:`vprflow.stages.figures.draw_figure` draws
+    it with ``draw_<name>``."""
+
+    inputs: tuple[str, ...]  # the method's stores it reads, by name (plan.method_stores)
+    heading: str  # the report's subcategory it is filed under
+    label: str  # its label in the report
+
+
 FIGURES = {
-    "retrievals": ("dataset", "recall"),
-    "segment_matches": ("dataset", "recall", "search", "descriptors", "segments"),
-    "support_maps": ("dataset", "recall", "descriptors", "features"),
+    "retrievals": MethodFigure(("dataset", "recall"), "Retrievals", "retrievals"),
+    "segment_matches": MethodFigure(
+        ("dataset", "recall", "search", "descriptors", "segments"),
+        "SegVLAD segment matches",
+        "segment matches",
+    ),
+    "support_maps": MethodFigure(
+        ("dataset", "recall", "descriptors", "features"), "SNSM support maps", "support maps"
+    ),
 }
 
 # The outputs that state results: withdrawn when they may not describe the config.
@@ -47,7 +67,7 @@ def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[st
     if figure not in method_run(plan, dataset, method).figures:
         raise PlanError(f"no figure {figure!r} of method {method!r} on dataset {dataset!r}")
     stores = method_stores(plan, dataset, method)
-    return {name: stores[name] for name in FIGURES[figure]}
+    return {name: stores[name] for name in FIGURES[figure].inputs}
 
 
 def stale_reports(plan: Plan, root: str = "") -> list[Path]:

@@ -21,6 +21,7 @@ from vprflow.paths import (
 )
 from vprflow.plan import build_plan, method_stores
 from vprflow.reports import (
+    FIGURES,
     dataset_outputs,
     figure_inputs,
     withdraw_reports,

@@ -43,79 +43,37 @@ rule recall_plot:
         "../scripts/recall_plot.py"
 
 
-rule retrievals:
-    input:
-        unpack(figure_stores("retrievals")),
-    output:
-        report(
-            figure_pattern("retrievals"),
-            caption="../report/retrievals.rst",
-            category="{dataset}",
-            subcategory="Retrievals",
-            labels={"figure": "retrievals", "method": "{method}"},
-        ),
-    log:
-        "logs/figures/{dataset}/retrievals/{method}.log",
-    conda:
-        "../envs/vprflow.yaml"
-    params:
-        figure="retrievals",
-        data_root=data_root_param,
-        settings=CONFIG["figures"],
-    script:
-        "../scripts/figures.py"
+# One rule per figure of the table, named after it.
+for _figure, _entry in FIGURES.items():
 
-
-rule segment_matches:
-    input:
-        unpack(figure_stores("segment_matches")),
-    output:
-        report(
-            figure_pattern("segment_matches"),
-            caption="../report/segment_matches.rst",
-            category="{dataset}",
-            subcategory="SegVLAD segment matches",
-            labels={"figure": "segment matches", "method": "{method}"},
-        ),
-    log:
-        "logs/figures/{dataset}/segment_matches/{method}.log",
-    conda:
-        "../envs/vprflow.yaml"
-    params:
-        figure="segment_matches",
-        data_root=data_root_param,
-        settings=CONFIG["figures"],
-    script:
-        "../scripts/figures.py"
-
-
-rule support_maps:
-    input:
-        unpack(figure_stores("support_maps")),
-    output:
-        report(
-            figure_pattern("support_maps"),
-            caption="../report/support_maps.rst",
-            category="{dataset}",
-            subcategory="SNSM support maps",
-            labels={"figure": "support maps", "method": "{method}"},
-        ),
-    log:
-        "logs/figures/{dataset}/support_maps/{method}.log",
-    conda:
-        "../envs/vprflow.yaml"
-    params:
-        figure="support_maps",
-        data_root=data_root_param,
-        settings=CONFIG["figures"],
-    script:
-        "../scripts/figures.py"
+    rule:
+        name:
+            _figure
+        input:
+            unpack(figure_stores(_figure)),
+        output:
+            report(
+                figure_pattern(_figure),
+                caption=f"../report/{_figure}.rst",
+                category="{dataset}",
+                subcategory=_entry.heading,
+                labels={"figure": _entry.label, "method": "{method}"},
+            ),
+        log:
+            f"logs/figures/{{dataset}}/{_figure}/{{method}}.log",
+        # A few seconds of matplotlib: not worth a cluster job.
+        localrule: True
+        conda:
+            "../envs/vprflow.yaml"
+        params:
+            figure=_figure,
+            data_root=data_root_param,
+            settings=CONFIG["figures"],
+        script:
+            "../scripts/figures.py"
 
 
 # A few seconds of matplotlib each: not worth a cluster job.
 localrules:
     recall_table,
     recall_plot,
-    retrievals,
-    segment_matches,
-    support_maps,

@@ -242,17 +242,14 @@ def draw_support_maps(
     figures.save_figure(figures.support_map_figure(rows, title), out)
 
 
-# The figures by name (vprflow.reports.FIGURES says which stores each reads); a figure rule
-# passes its name, never its rule name, which a host workflow may prefix.
-FIGURE_FUNCTIONS = {
-    "retrievals": draw_retrievals,
-    "segment_matches": draw_segment_matches,
-    "support_maps": draw_support_maps,
-}
-
-
 def draw_figure(
     figure: str, inputs: dict[str, str], data_root: str, method: str, settings: dict, out: str
 ) -> None:
-    """Draw one method's ``figure`` (a key of :data:`FIGURE_FUNCTIONS`)."""
-    FIGURE_FUNCTIONS[figure](inputs, data_root, method, settings, out)
+    """Draw one method's ``figure`` (a name in :data:`vprflow.reports.FIGURES`) with
+    this module's ``draw_<figure>``: a figure rule passes the figure's name, never its
+    rule name, which a host workflow may prefix."""
+    from vprflow.reports import FIGURES
+
+    if figure not in FIGURES:
+        raise ValueError(f"unknown figure {figure!r}; figures: {sorted(FIGURES)}")
+    globals()[f"draw_{figure}"](inputs, data_root, method, settings, out)
