@@ -10,7 +10,7 @@ from PIL import Image
 from workflow_helpers import dataset_spec
 
 from vprflow.datasets import DatasetError, list_dataset
-from vprflow.images import ImageReadError, list_images
+from vprflow.images import ImageReadError, scan_images
 
 # ------------------------------------------------------------------ folders
 
@@ -21,7 +21,7 @@ def test_list_dataset_natural_order(tmp_path):
     files = list_dataset(tmp_path, "toy", SPEC)
     assert [p.name for p in files.reference] == ["1.jpg", "2.jpg", "10.jpg", "img10.PNG"]
     assert [p.name for p in files.query] == ["frame_2.png", "frame_9.png", "frame_10.png"]
-    assert list_images(tmp_path / "ds/query") == files.query
+    assert scan_images(tmp_path / "ds/query").paths == files.query
 
 
 def test_list_dataset_missing_and_empty_folders(tmp_path):

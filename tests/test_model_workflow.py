@@ -14,7 +14,7 @@ from synthetic import make_dataset
 from tiny_models import save_tiny_dino, save_tiny_dinov2, save_tiny_sam
 from workflow_helpers import repo_config, snakemake, toy_config, write_config
 
-from vprflow.images import list_images
+from vprflow.images import scan_images
 
 pytestmark = pytest.mark.workflow
 
@@ -86,7 +86,7 @@ def test_published_artefacts_reproduce_without_any_model(tmp_path):
     """Features, masks and centres imported from files in the authors' layouts."""
     root = make_dataset(tmp_path / "data" / "toy")
     rng = np.random.default_rng(0)
-    images = list_images(root / "ref") + list_images(root / "query")
+    images = scan_images(root / "ref").paths + scan_images(root / "query").paths
     features_h5, masks_h5 = tmp_path / "dino.h5", tmp_path / "masks.h5"
     with h5py.File(features_h5, "w") as features, h5py.File(masks_h5, "w") as masks:
         for image in images:

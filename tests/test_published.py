@@ -9,7 +9,6 @@ import torch
 
 from vprflow.published import (
     PublishedDataError,
-    list_h5_images,
     load_c_centers,
     read_features_h5,
     read_masks_h5,
@@ -56,11 +55,6 @@ def test_masks_round_trip_in_numeric_order(published_h5):
     read = read_masks_h5(path, "0001.jpg")
     assert read.dtype == bool and read.shape == (12, 24, 32)
     np.testing.assert_array_equal(read, masks)
-
-
-def test_list_images(published_h5):
-    path, _, _ = published_h5
-    assert list_h5_images(path) == ["0001.jpg", "0002.jpg"]
 
 
 def test_missing_entries_name_file_and_key(published_h5, tmp_path):

@@ -181,11 +181,6 @@ def _resolve(part: dict, root: dict) -> dict:
     return part
 
 
-def load_config(path: str | Path, schema_path: str | Path) -> dict:
-    with open(path) as f:
-        return validate_config(yaml.safe_load(f), schema_path)
-
-
 # ------------------------------------------------------------------ config/README.md
 
 _README_HEAD = """# Configuration

@@ -85,14 +85,6 @@ def manifest_inputs(config: dict, name: str, workflow_dir: str | Path) -> list[s
 # ------------------------------------------------------------------ fetching
 
 
-def sha256_file(path: str | Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(CHUNK):
-            digest.update(chunk)
-    return digest.hexdigest()
-
-
 def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
     """Stream ``url`` into ``dest`` with a progress bar; return the SHA-256 of the bytes.
 

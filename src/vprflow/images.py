@@ -336,11 +336,6 @@ def scan_images(
     return ImageScan(ordered, hidden, other)
 
 
-def list_images(folder: str | Path, recursive: bool = False) -> list[Path]:
-    """The image paths of :func:`scan_images`."""
-    return scan_images(folder, recursive).paths
-
-
 _DIGITS = re.compile(r"([0-9]+)")
 
 

@@ -42,14 +42,6 @@ def _group(handle, h5_path, image_name: str):
     return handle[image_name]
 
 
-def list_h5_images(h5_path: str | Path) -> list[str]:
-    """Names of the top-level image groups of a published HDF5 file, sorted."""
-    import h5py
-
-    with _open(h5_path) as handle:
-        return sorted(name for name, item in handle.items() if isinstance(item, h5py.Group))
-
-
 def read_features_h5(h5_path: str | Path, image_name: str) -> np.ndarray:
     """``<image_name>/ift_dino`` ``[1, D, h, w]`` -> float32 ``[h, w, D]``."""
     with _open(h5_path) as handle:

@@ -406,13 +406,6 @@ class RaggedWriter(RowWriter):
         return offsets
 
 
-def read_ragged(group: CheckedGroup, name: str, index: int) -> np.ndarray:
-    """Rows of image ``index`` from a ragged array written by :class:`RaggedWriter`."""
-    offsets = group[f"{name}_offsets"]
-    start, stop = (int(v) for v in offsets[index : index + 2])
-    return np.asarray(group[name][start:stop])
-
-
 class RaggedReader:
     """``reader(index) -> rows [n_i, ...]`` of a ragged array, reading the offsets once
     and about ``block_bytes`` of rows per store access (a stage walks images in order;
