@@ -29,7 +29,15 @@ from vprflow.stores import array_items
 
 pytestmark = pytest.mark.workflow
 TARGET = "results/recall_toy.csv"
-METHODS = ["anyloc_vlad", "segvlad_o0_nopca", "segvlad_o0", "segvlad_nopca", "segvlad"]
+# segment_gem: a per-segment aggregator other than SegVLAD takes the segment path.
+METHODS = [
+    "anyloc_vlad",
+    "segvlad_o0_nopca",
+    "segvlad_o0",
+    "segvlad_nopca",
+    "segvlad",
+    "segment_gem",
+]
 
 
 @pytest.fixture(scope="module")
@@ -37,7 +45,7 @@ def toy_run(tmp_path_factory):
     """One complete run of the workflow on the toy dataset (shared by the tests below)."""
     workdir = tmp_path_factory.mktemp("workflow")
     make_dataset(workdir / "data" / "toy")
-    config = toy_config(workdir / "data")
+    config = toy_config(workdir / "data", methods=METHODS)
     config_path = write_config(workdir, config)
     snakemake(workdir, config_path, TARGET)
     return workdir, config
@@ -73,8 +81,8 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
         assert row["dataset"] == "toy"
         assert row["ground_truth"] == "vprbench:ground_truth_new.npy"
         assert row["n_queries"] == "10"
-        # Global methods rank every reference; SegVLAD only the voted ones.
-        assert row["n_short_rankings"] == "0" or row["aggregator"] == "segvlad"
+        # Global methods rank every reference; per-segment ones only the voted ones.
+        assert row["n_short_rankings"] == "0" or row["aggregator"] in ("segvlad", "segment_gem")
         assert 0 <= int(row["n_short_rankings"]) <= 10
         recalls = [float(row[f"recall@{n}"]) for n in (1, 5, 10, 20)]
         assert all(0.0 <= r <= 1.0 for r in recalls)
@@ -96,6 +104,12 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     n_clusters = config["vocabulary"]["n_clusters"]
     assert by_method["segvlad_nopca"]["descriptor_dim"] == str(n_clusters * daisy_dim)
     assert by_method["anyloc_vlad"]["segvlad.order"] == ""  # not a parameter of that row
+    # The segment path's settings are the voting section's, whichever aggregator.
+    for name in ("segvlad", "segment_gem"):
+        assert by_method[name]["voting.top_segments"] != ""
+        assert by_method[name]["voting.vote_ranking"] != ""
+    assert by_method["segment_gem"]["aggregator"] == "segment_gem"
+    assert by_method["segment_gem"]["segvlad.order"] == ""
     # The toy places are distinctive: the classical pipeline must beat chance (3/10) clearly.
     assert float(by_method["anyloc_vlad"]["recall@1"]) >= 0.6
     assert float(by_method["segvlad_nopca"]["recall@1"]) >= 0.6
@@ -127,7 +141,8 @@ def test_index_and_log_links_name_the_dataset_and_methods(toy_run):
     assert len(features) == 1 and features[0]["dataset"] == "toy"
     assert features[0]["methods"].split(",") == sorted(METHODS)  # one backbone, shared
     pcas = {r["methods"] for r in rows if r["stage"] == "pca"}
-    assert pcas == {"segvlad_o0", "segvlad"}  # a PCA per order
+    # A PCA per SegVLAD order, and segment_gem's own (fitted on its descriptors).
+    assert pcas == {"segvlad_o0", "segvlad", "segment_gem"}
     for method in METHODS:
         recall_log = workdir / "logs" / "by-method" / "toy" / method / "recall"
         assert list(recall_log.glob("*.log")), method
@@ -140,17 +155,18 @@ def test_stages_are_shared_and_self_describing(toy_run):
     workdir, _ = toy_run
     cache = workdir / "results" / "cache"
     counts = {s.name: len(list(s.glob("*.zarr"))) for s in cache.iterdir() if s.is_dir()}
-    # Five methods share one features, segments and vocabulary store; PCA is fitted once
-    # per neighbourhood order that uses it (orders 0 and 3), as published.
+    # Six methods share one features and segments store, five one vocabulary; PCA is
+    # fitted once per SegVLAD neighbourhood order that uses it (orders 0 and 3), as
+    # published, and once for segment_gem.
     assert counts == {
         "dataset": 1,
         "features": 1,
         "segments": 1,
         "vocabulary": 1,
-        "pca": 2,
-        "descriptors": 5,
-        "search": 4,  # one segment search per SegVLAD method
-        "recall": 5,
+        "pca": 3,
+        "descriptors": 6,
+        "search": 5,  # one segment search per per-segment method
+        "recall": 6,
     }
     store = zarr.open_group(str(next((cache / "features").glob("*.zarr"))), mode="r")
     assert store.attrs["record"]["params"]["backbone"] == "daisy"
@@ -213,7 +229,11 @@ def test_figures_are_drawn_and_a_figure_setting_reruns_only_figures(toy_run):
     assert sorted(p.name for p in (figures / "retrievals").iterdir()) == sorted(
         f"{m}.png" for m in METHODS
     )
-    assert len(list((figures / "segment_matches").iterdir())) == 4
+    # Every per-segment method gets the segment-match figure, segment_gem included.
+    per_segment = [m for m in METHODS if m != "anyloc_vlad"]
+    assert sorted(p.name for p in (figures / "segment_matches").iterdir()) == sorted(
+        f"{m}.png" for m in per_segment
+    )
     assert (workdir / "results" / "plots" / "recall_toy.png").exists()
     assert (workdir / "logs" / "figures" / "toy" / "retrievals" / "segvlad.log").exists()
     changed = copy.deepcopy(config)
@@ -360,7 +380,7 @@ def test_killed_run_leaves_no_complete_looking_store_and_rerun_finishes(tmp_path
     assert not (tmp_path / TARGET).exists()
     snakemake(tmp_path, path, "--unlock")
     snakemake(tmp_path, path, TARGET)
-    assert len(read_rows(tmp_path / TARGET)) == len(METHODS)
+    assert len(read_rows(tmp_path / TARGET)) == len(config["datasets"]["toy"]["methods"])
     assert not list((tmp_path / "results" / "cache").glob("**/*.tmp"))
 
 
