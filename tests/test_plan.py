@@ -17,7 +17,10 @@ SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 @pytest.fixture
 def config() -> dict:
-    return validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()), SCHEMA)
+    """The shipped config, naming the 17places preset (its folder is absent here)."""
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    raw["datasets"]["17places"] = {}
+    return validate_config(raw, SCHEMA)
 
 
 def keys_of(config: dict, dataset: str = "corridor", method: str = "segvlad") -> dict[str, str]:

@@ -447,6 +447,8 @@ def test_missing_17places_images_say_where_to_put_them(tmp_path):
     text = result.stdout + result.stderr
     assert result.returncode != 0
     assert str(tmp_path / "data" / "17places") in text and "VPR-Bench" in text
+    # A preset: its published layout too.
+    assert "ground_truth_new.npy" in text and "preset" in text
 
 
 def test_unused_dataset_is_not_touched(tmp_path):

@@ -56,7 +56,11 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
     """
     import jsonschema
 
+    from vprflow.presets import presets, protocol, with_presets
+
     schema = load_schema(schema_path)
+    if isinstance(config.get("data_root"), str):
+        config = {**config, "datasets": with_presets(config)}
     errors = sorted(
         jsonschema.Draft202012Validator(schema).iter_errors(config),
         key=lambda e: list(map(str, e.absolute_path)),
@@ -69,6 +73,12 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
         raise ConfigError("invalid configuration:\n" + "\n".join(lines))
     config = copy.deepcopy(config)
     fill_defaults(config, schema)
+    for name, dataset in config["datasets"].items():
+        if name in presets():
+            preset = copy.deepcopy(presets()[name].dataset)
+            fill_defaults(preset, schema, "#/definitions/dataset")
+            # Set here, after validation: a fact about the entry, not a setting.
+            dataset["protocol"] = protocol(name, preset, dataset)
     unknown = [name for name in config["targets"] if name not in config["datasets"]]
     if unknown:
         raise ConfigError(

@@ -49,6 +49,10 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
             from vprflow.download import download_hint
 
             hint = f" Download it with `{download_hint(name)}` (then run again).{hint}"
+        from vprflow.presets import presets
+
+        if name in presets():
+            hint += f"\nThe preset's published layout (docs/datasets.md):\n{presets()[name].layout}"
         raise DatasetError(
             f"dataset '{name}': folder {root} does not exist. Put the dataset there "
             f"(with '{dataset['reference']}/' and '{dataset['query']}/' inside) or set "
@@ -194,9 +198,13 @@ def contents_digest(files: DatasetFiles, data_root: str | Path, dataset: dict, f
             label = path.relative_to(base).as_posix()
             digest.update(f"{role}/{label}:{file_hash(path, role)}\n".encode())
     for path in ground_truth_files(data_root, dataset):
-        if path.exists():
-            sha = file_hash(path, "ground_truth.file")
-            digest.update(f"truth/{path.name}:{sha}\n".encode())
+        # A folder (Baidu Mall's pose files) counts by each file in it.
+        members = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
+        for member in members:
+            if member.exists():
+                sha = file_hash(member, "ground_truth.file")
+                label = member.relative_to(path.parent).as_posix()
+                digest.update(f"truth/{label}:{sha}\n".encode())
     return digest.hexdigest()[:32]
 
 

@@ -13,14 +13,18 @@ its name in results tables and the files it reads. The kinds:
   from a CSV file (``lat``/``lon``: great-circle distance; ``easting``/``northing``:
   Euclidean) or from the images' EXIF GPS tags (``source: exif``), optionally also
   within ``max_heading_diff`` degrees of the query's ``heading`` (as MSLS);
+- ``positions``: references within ``radius`` of each query (Euclidean, in the
+  positions' units), positions per role from a folder of Baidu Mall ``.camera`` files or
+  an array file in the authors' image order (InsideOut's pickles);
+- ``msls``: the published MSLS validation lists of one ``city``;
 - ``none``: no ground truth; the workflow ranks and draws, but computes no recall.
 
-Positions and distances (``utm``, ``coordinates``) are :mod:`vprflow.positions`.
+Positions and distances (``utm``, ``coordinates``) are :mod:`vprflow.positions`; the
+papers' own files (``positions``, ``msls``, the safe unpickler) :mod:`vprflow.published_truth`.
 """
 
 from __future__ import annotations
 
-import pickle
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -35,51 +39,17 @@ from vprflow.positions import (
     read_positions,
     utm_ground_truth,
 )
+from vprflow.published_truth import (
+    MSLS_FILES,
+    camera_centres,
+    in_published_order,
+    load_object_npy,
+    msls_ground_truth,
+    radius_ground_truth,
+    read_position_array,
+)
 
 # ---------------------------------------------------------------- VPR-Bench files
-
-
-class _NumpyOnlyUnpickler(pickle.Unpickler):
-    """Unpickler for numpy object arrays of plain lists and ints: nothing else loads."""
-
-    ALLOWED = {
-        ("numpy.core.multiarray", "_reconstruct"),
-        ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy.core.multiarray", "scalar"),
-        ("numpy._core.multiarray", "scalar"),
-        ("numpy", "ndarray"),
-        ("numpy", "dtype"),
-    }
-
-    def find_class(self, module, name):
-        if (module, name) in self.ALLOWED:
-            return super().find_class(module, name)
-        raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a ground-truth file")
-
-
-def load_object_npy(path: str | Path) -> np.ndarray:
-    """Load a ``.npy`` file, including object arrays, without running arbitrary pickles."""
-    path = Path(path)
-    with open(path, "rb") as f:
-        try:
-            version = np.lib.format.read_magic(f)
-            read_header = {
-                (1, 0): np.lib.format.read_array_header_1_0,
-                (2, 0): np.lib.format.read_array_header_2_0,
-            }.get(version)
-            if read_header is None:
-                raise ValueError(f"unsupported .npy version {version}")
-            _shape, _fortran, dtype = read_header(f)
-        except ValueError as error:
-            raise DatasetError(f"{path} is not a .npy file: {error}") from error
-        if dtype.hasobject:
-            try:
-                array = _NumpyOnlyUnpickler(f).load()
-            except (pickle.UnpicklingError, EOFError, AttributeError) as error:
-                raise DatasetError(f"{path}: unreadable object array: {error}") from error
-            return np.asarray(array)
-        f.seek(0)
-    return np.load(path, allow_pickle=False)
 
 
 def _short_repr(value) -> str:
@@ -291,6 +261,33 @@ def _coordinates_rule(entry: dict) -> str:
     return rule
 
 
+def _role_positions(files: DatasetFiles, entry: dict, folder: Path, role: str) -> np.ndarray:
+    """A role's positions: a folder of Baidu Mall ``.camera`` files (matched by name) or
+    an array file in the authors' image order."""
+    key = f"{role}_positions"
+    path = folder / entry[key]
+    images = files.reference if role == "reference" else files.query
+    if path.is_dir():
+        return camera_centres(path, images, f"ground_truth.{key}")
+    table = read_position_array(path, len(images), f"ground_truth.{key}")
+    return in_published_order(table, images)
+
+
+def _positions_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
+    reference = _role_positions(files, entry, folder, "reference")
+    query = _role_positions(files, entry, folder, "query")
+    if reference.shape[1] != query.shape[1]:
+        raise DatasetError(
+            f"ground_truth: reference positions have {reference.shape[1]} coordinates and "
+            f"query positions {query.shape[1]}"
+        )
+    return radius_ground_truth(reference, query, float(entry["radius"]))
+
+
+def _msls_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
+    return msls_ground_truth(folder, entry["city"], files.reference, files.query)
+
+
 def _no_files(entry: dict) -> list[str]:
     return []
 
@@ -325,6 +322,14 @@ KINDS: dict[str, Kind] = {
         _coordinates_truth,
         _coordinates_rule,
         lambda entry: [entry["file"]] if entry["source"] == "file" else [],
+    ),
+    "positions": Kind(
+        _positions_truth,
+        lambda entry: f"positions:{entry['reference_positions']}:{entry['radius']}",
+        lambda entry: [entry["reference_positions"], entry["query_positions"]],
+    ),
+    "msls": Kind(
+        _msls_truth, lambda entry: f"msls:{entry['city']}", lambda entry: list(MSLS_FILES.values())
     ),
     "none": Kind(_none_truth, lambda entry: "none", judged=False),
 }

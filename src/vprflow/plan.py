@@ -54,6 +54,7 @@ NOT_DATASET_STAGE = (
     "resolution",
     "source",
     "download",
+    "protocol",
 )
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
@@ -294,6 +295,8 @@ def _plan_method(
     )
     features, columns = _plan_features(m)
     row = {"aggregator": agg.name, **columns}
+    if "protocol" in dataset:  # a preset's (config.validate_config)
+        row["protocol"] = dataset["protocol"]
     inputs = {"dataset": m.dataset_store, "features": features}
     for stage in agg.needs:
         if stage not in _NEEDED_STAGES:  # a registry entry naming a stage the plan does not know

@@ -20,6 +20,7 @@ from vprflow.paths import (
     store_pattern,
 )
 from vprflow.plan import build_plan, method_stores
+from vprflow.presets import unknown_dataset
 from vprflow.reports import (
     FIGURES,
     dataset_outputs,
@@ -106,9 +107,7 @@ def gpu_request(stage):
 
 def dataset_entry(name):
     if name not in CONFIG["datasets"]:
-        raise PlanError(
-            f"unknown dataset {name!r}; configured: {sorted(CONFIG['datasets'])}"
-        )
+        raise PlanError(unknown_dataset(name, CONFIG))
     return CONFIG["datasets"][name]
 
 

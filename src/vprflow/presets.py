@@ -1,0 +1,195 @@
+"""Dataset presets: the papers' datasets with their published protocols
+(``presets.yaml``; docs/datasets.md is generated from it).
+
+A preset is a dataset entry vprflow ships: the folder layout the authors' code or the
+common downloader produces, the ground-truth rule, the resolution, which queries count
+and the vocabulary the paper used. It joins a config's ``datasets`` when the config
+names it (a ``datasets`` entry of that name, which may give only the keys it changes,
+or a name in ``targets``) or when its folder exists under ``data_root``; so
+``snakemake results/recall_<preset>.csv`` needs no setting beyond the data. A folder
+decides rather than the command line's targets because cluster jobs plan again from the
+config and the file system alone.
+"""
+
+from __future__ import annotations
+
+import copy
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+import yaml
+
+PRESETS_FILE = Path(__file__).with_name("presets.yaml")
+# Dataset keys that do not change what is evaluated or how it is counted: a config that
+# changes only these still runs the preset's protocol.
+NOT_PROTOCOL = ("methods", "defaults", "recall_at", "source", "download", "path")
+
+
+@dataclass(frozen=True)
+class Preset:
+    """One published dataset: its config entry and what docs/datasets.md says of it."""
+
+    name: str
+    dataset: dict  # a config ``datasets`` entry
+    title: str  # the dataset as the papers name it
+    layout: str  # the folder tree the entry reads, as published
+    protocol: str  # positives, queries counted, image size, vocabulary: in words
+    code: str  # the published code the entry follows (repository, commit, files)
+    published: tuple[dict, ...]  # recall the papers report: method, paper, R@1, R@5
+
+
+@cache
+def presets() -> dict[str, Preset]:
+    """Every preset, by name, in the file's order."""
+    raw = yaml.safe_load(PRESETS_FILE.read_text())
+    return {
+        name: Preset(
+            name=name,
+            dataset=entry["dataset"],
+            title=entry["title"],
+            layout=entry["layout"].rstrip("\n"),
+            protocol=" ".join(entry["protocol"].split()),
+            code=" ".join(entry["code"].split()),
+            published=tuple(entry.get("published", ())),
+        )
+        for name, entry in raw.items()
+    }
+
+
+def merge_entry(base: dict, override: dict) -> dict:
+    """``base`` with ``override``'s keys put over it, mappings merged key by key; a
+    mapping that names another ``kind`` (a ground-truth rule) replaces the base's, whose
+    other keys belong to that kind."""
+    merged = copy.deepcopy(base)
+    for key, value in override.items():
+        old = merged.get(key)
+        if (
+            isinstance(old, dict)
+            and isinstance(value, dict)
+            and value.get("kind", old.get("kind")) == old.get("kind")
+        ):
+            merged[key] = merge_entry(old, value)
+        else:
+            merged[key] = copy.deepcopy(value)
+    return merged
+
+
+def with_presets(config: dict) -> dict:
+    """``config["datasets"]`` completed with the presets it uses: those it names (its
+    entry of the same name merged over the preset) and those whose folder exists under
+    ``data_root``. Other presets stay out, so a missing one costs nothing."""
+    datasets = dict(config.get("datasets") or {})
+    targets = set(config.get("targets") or ())
+    for name, preset in presets().items():
+        if name in datasets:
+            datasets[name] = merge_entry(preset.dataset, datasets[name] or {})
+        elif name in targets or (Path(config["data_root"]) / preset.dataset["path"]).is_dir():
+            datasets[name] = copy.deepcopy(preset.dataset)
+    return datasets
+
+
+def protocol(name: str, preset: dict, dataset: dict) -> str:
+    """What a results table says of the protocol of ``dataset``, a config entry made from
+    the preset ``name`` (both with their defaults filled): the preset's name, and the
+    protocol keys the config changed, if any."""
+    changed = sorted(
+        key
+        for key in _flat(preset).keys() | _flat(dataset).keys()
+        if key.split(".")[0] not in NOT_PROTOCOL
+        and _flat(preset).get(key) != _flat(dataset).get(key)
+    )
+    # A section whose kind changed is named once: its other keys changed with it.
+    replaced = {key.rpartition(".")[0] for key in changed if key.endswith(".kind")}
+    changed = sorted({next((r for r in replaced if k.startswith(r + ".")), k) for k in changed})
+    return f"preset {name}" + (f", changed: {', '.join(changed)}" if changed else "")
+
+
+def _flat(entry: dict, prefix: str = "") -> dict:
+    out = {}
+    for key, value in entry.items():
+        if isinstance(value, dict):
+            out.update(_flat(value, f"{prefix}{key}."))
+        else:
+            out[f"{prefix}{key}"] = value
+    return out
+
+
+def unknown_dataset(name: str, config: dict) -> str:
+    """Why ``name`` is not among a validated config's datasets: a preset whose folder is
+    missing (where to put it, where to get it, the layout it must have), or a name that
+    is neither configured nor a preset."""
+    preset = presets().get(name)
+    if preset is None:
+        return (
+            f"unknown dataset {name!r}; configured: {sorted(config['datasets'])}; "
+            f"presets: {sorted(presets())}"
+        )
+    folder = Path(config["data_root"]) / preset.dataset["path"]
+    return (
+        f"dataset {name!r} is a vprflow preset ({preset.title}), and its folder {folder} "
+        f"does not exist. Get it from {preset.dataset['source']}. "
+        f"Expected layout (docs/datasets.md):\n{preset.layout}"
+    )
+
+
+def datasets_doc() -> str:
+    """docs/datasets.md: every preset's layout, protocol, source and published recall."""
+    lines = [
+        "# Datasets: the papers' datasets as presets",
+        "",
+        "<!-- Generated from src/vprflow/presets.yaml by scripts/write_datasets_doc.py;"
+        " edit that file. -->",
+        "",
+        "Put a dataset under `data_root/<preset>/` in the layout below and run",
+        "`snakemake --cores 2 results/recall_<preset>.csv`: the preset sets the layout, the",
+        "ground-truth rule, the resolution, which queries count and the vocabulary. A",
+        "`datasets` entry of the same name in your config changes only the keys it gives",
+        "(a `ground_truth` with another `kind` replaces the preset's); the table's",
+        "`protocol` column then lists the protocol keys you changed. A preset joins the",
+        "plan when its folder exists, when `targets` names it or when `datasets` has an",
+        "entry of its name.",
+        "",
+        "| preset | dataset | positives | queries counted | size | published R@1 / R@5 |",
+        "|---|---|---|---|---|---|",
+    ]
+    for preset in presets().values():
+        entry = preset.dataset
+        published = "; ".join(
+            f"{p['method']} {p['recall@1']} / {p['recall@5']} ({p['paper']})"
+            for p in preset.published
+        )
+        width, height = entry["resolution"]
+        lines.append(
+            f"| `{preset.name}` | {preset.title} | `{_rule(entry['ground_truth'])}` | "
+            f"{entry['denominator']} | {width} x {height} | "
+            f"{published or 'see below'} |"
+        )
+    for preset in presets().values():
+        lines += [
+            "",
+            f"## `{preset.name}`: {preset.title}",
+            "",
+            preset.protocol,
+            "",
+            f"Follows: {preset.code}.",
+            "",
+            f"Get it: {preset.dataset['source']}",
+            "",
+            "```",
+            preset.layout,
+            "```",
+        ]
+        if preset.published:
+            lines += ["", "| method | paper | R@1 | R@5 |", "|---|---|---|---|"]
+            lines += [
+                f"| {p['method']} | {p['paper']} | {p['recall@1']} | {p['recall@5']} |"
+                for p in preset.published
+            ]
+    return "\n".join(lines) + "\n"
+
+
+def _rule(truth: dict) -> str:
+    from vprflow.ground_truth import ground_truth_rule
+
+    return ground_truth_rule(truth)  # presets state every key their rule names

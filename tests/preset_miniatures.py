@@ -1,0 +1,172 @@
+"""Miniature copies of the presets' published layouts: a handful of tiny images with the
+real file naming and folder structure, and ground-truth files written the way the
+published code reads them. Each builder returns, per query file name, the reference
+file names the published rule makes positive, computed directly from what it wrote."""
+
+from __future__ import annotations
+
+import pickle
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from synthetic import place_image, write_vprbench_ground_truth
+
+from vprflow.published_truth import MSLS_FILES, published_order
+
+SIZE = (40, 30)  # stored image size; the test backbone resizes to its own
+
+
+def write_image(path: Path, rng: np.random.Generator) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    pixels = (place_image(rng, *SIZE) * 255).astype(np.uint8)
+    Image.fromarray(pixels).save(path)
+
+
+def _within(points_q: dict, points_r: dict, radius: float) -> dict[str, set[str]]:
+    """Per query name, the reference names within ``radius`` (Euclidean, <=)."""
+    return {
+        q: {r for r, pr in points_r.items() if np.linalg.norm(np.subtract(pq, pr)) <= radius}
+        for q, pq in points_q.items()
+    }
+
+
+def _index_window(root: Path, rng, radius: int, n: int = 8) -> dict[str, set[str]]:
+    """Frames ``Image000.jpg`` ... in ref/ and query/ (written once: the two 17places
+    presets share a folder); query i's positives are references within ``radius``."""
+    names = [f"Image{i:03d}.jpg" for i in range(n)]  # VPR-Bench's 17places naming
+    for name in names:
+        for role in ("ref", "query"):
+            if not (root / role / name).exists():
+                write_image(root / role / name, rng)
+    return {q: {names[j] for j in range(n) if abs(i - j) <= radius} for i, q in enumerate(names)}
+
+
+def seventeen_places(root: Path, rng) -> dict[str, set[str]]:
+    """VPR-Bench file of +-2 frames, listing references past the end (dropped)."""
+    n = 8
+    expected = _index_window(root, rng, 2, n)
+    write_vprbench_ground_truth(root / "ground_truth_new.npy", n, n + 2, radius=2)
+    return expected
+
+
+def seventeen_places_pm15(root: Path, rng) -> dict[str, set[str]]:
+    return _index_window(root, rng, 15, 8)
+
+
+def utm_names(root: Path, rng, database: str, queries: str, n_ref=8, n_query=4):
+    """Downloader names ``@easting@northing@zone@band@lat@lon@...@.jpg``, references
+    along a street every 10 m, queries near some of them."""
+    refs, qs = {}, {}
+    for i in range(n_ref):
+        e, n = 584000.0 + 10 * i, 4477000.0 + 3 * i
+        name = f"@{e:.2f}@{n:.2f}@17@T@40.44@-79.99@ref{i:03d}@@@@@@@@.jpg"
+        refs[name] = (e, n)
+        write_image(root / database / name, rng)
+    for i in range(n_query):
+        e, n = 584000.0 + 20 * i + rng.uniform(-6, 6), 4477000.0 + rng.uniform(-6, 6)
+        name = f"@{e:.2f}@{n:.2f}@17@T@40.44@-79.99@q{i:03d}@@@@@@@@.jpg"
+        qs[name] = (float(name.split("@")[1]), float(name.split("@")[2]))
+        write_image(root / queries / name, rng)
+    refs = {k: (float(k.split("@")[1]), float(k.split("@")[2])) for k in refs}
+    return refs, qs
+
+
+def pitts30k(root: Path, rng) -> dict[str, set[str]]:
+    refs, qs = utm_names(root, rng, "images/test/database", "images/test/queries")
+    return _within(qs, refs, 25)
+
+
+def baidu_mall(root: Path, rng) -> dict[str, set[str]]:
+    """Images and one .camera file each (centre on the second-to-last line)."""
+    centres = {}
+    for folder, gt, prefix, n in (
+        ("training_images_undistort", "training_gt", "ref", 8),
+        ("query_images_undistort", "query_gt", "q", 4),
+    ):
+        points = {}
+        for i in range(n):
+            name = f"{prefix}_{i:05d}.jpg"
+            write_image(root / folder / name, rng)
+            xyz = np.round(rng.uniform(0, 25, 3), 4)
+            lines = ["CAMERA", "640 480", "525.0 525.0 320.0 240.0", "0 0 0 0 0"]
+            lines += [" ".join(f"{v:.6f}" for v in row) for row in np.eye(3)]
+            # The centre is the second-to-last line (the authors' lines[-2]).
+            lines += ["0 0 0", " ".join(f"{v:.4f}" for v in xyz), "0"]
+            (root / gt).mkdir(parents=True, exist_ok=True)
+            (root / gt / f"{Path(name).stem}.camera").write_text("\n".join(lines) + "\n")
+            points[name] = xyz
+        centres[prefix] = points
+    return _within(centres["q"], centres["ref"], 10)
+
+
+def insideout(root: Path, rng) -> dict[str, set[str]]:
+    """Position pickles in natsorted (case-kept) name order, which differs from
+    vprflow's case-folded order for these names."""
+    points = {}
+    for folder, pickle_name, names in (
+        ("ref_images", "gps_db_correct.pkl", ["b2.jpg", "A10.jpg", "a3.jpg", "C1.jpg", "c4.jpg"]),
+        ("query_images", "gps_q_new.pkl", ["q2.jpg", "Q1.jpg", "q10.jpg"]),
+    ):
+        xy = {name: tuple(np.round(rng.uniform(0, 150, 2), 3)) for name in names}
+        for name in names:
+            write_image(root / folder / name, rng)
+        rows = [list(xy[names[i]]) for i in published_order(names)]
+        with open(root / pickle_name, "wb") as f:
+            pickle.dump(rows, f)
+        points[folder] = xy
+    return _within(points["query_images"], points["ref_images"], 50)
+
+
+def _msls(city: str) -> Callable:
+    def build(root: Path, rng) -> dict[str, set[str]]:
+        db = [f"train_val/cph/database/images/cphdb{i}.jpg" for i in range(6)]
+        db += [f"train_val/sf/database/images/sfdb{i}.jpg" for i in range(6)]
+        queries = [
+            f"train_val/{c}/query/images/{c}q{i}.jpg" for c in ("cph", "sf") for i in range(3)
+        ]
+        kept = np.array([0, 2, 3, 4, 5], dtype=np.int64)  # cphq1 dropped, as qIdx drops 7
+        positives = np.empty(len(kept), dtype=object)
+        expected = {}
+        for row, q in enumerate(kept):
+            own = [i for i, p in enumerate(db) if f"/{queries[q].split('/')[1]}/" in p]
+            chosen = rng.choice(own, size=2, replace=False).tolist()
+            cross = [i for i, p in enumerate(db) if i not in own][:1]
+            positives[row] = np.array(chosen + cross, dtype=np.int64)
+            if f"/{city}/" in queries[q]:
+                expected[Path(queries[q]).name] = {Path(db[i]).name for i in chosen}
+        root.mkdir(parents=True, exist_ok=True)
+        np.save(root / MSLS_FILES["dbImages"], np.array(db))
+        np.save(root / MSLS_FILES["qImages"], np.array(queries))
+        np.save(root / MSLS_FILES["qIdx"], kept)
+        np.save(root / MSLS_FILES["pIdx"], positives, allow_pickle=True)
+        for p in db:
+            if f"/{city}/" in p:
+                write_image(root / "database" / Path(p).name, rng)
+        for name in expected:
+            write_image(root / "query" / name, rng)
+        return expected
+
+    return build
+
+
+def amstertime(root: Path, rng) -> dict[str, set[str]]:
+    """Pairs named alike in new/ (png) and old/ (jpg), as the published release."""
+    names = [f"{i:04d}" for i in (0, 1, 2, 10, 11)]
+    for name in names:
+        write_image(root / "new" / f"{name}.png", rng)
+        write_image(root / "old" / f"{name}.jpg", rng)
+    return {f"{n}.jpg": {f"{n}.png"} for n in names}
+
+
+MINIATURES: dict[str, Callable[[Path, np.random.Generator], dict[str, set[str]]]] = {
+    "17places": seventeen_places,
+    "17places_pm15": seventeen_places_pm15,
+    "pitts30k": pitts30k,
+    "baidu_mall": baidu_mall,
+    "insideout": insideout,
+    "msls_sf": _msls("sf"),
+    "msls_cph": _msls("cph"),
+    "amstertime": amstertime,
+}

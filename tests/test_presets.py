@@ -1,0 +1,125 @@
+"""Dataset presets: every preset validates, joins a config as documented, reads its
+miniature published layout with the published ground-truth rule, and (one Snakemake run
+over every miniature) gives its recall table with no setting but the data."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+
+import numpy as np
+import pytest
+from preset_miniatures import MINIATURES
+from workflow_helpers import repo_config, snakemake, write_config
+
+from vprflow.config import validate_config
+from vprflow.datasets import list_dataset
+from vprflow.ground_truth import ground_truth
+from vprflow.presets import datasets_doc, merge_entry, presets, unknown_dataset
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+
+
+def config_with(data_root: Path, **changes) -> dict:
+    config = repo_config()
+    config["data_root"] = str(data_root)
+    config.update(changes)
+    return config
+
+
+def test_every_preset_has_a_miniature_and_the_doc_is_current():
+    assert list(MINIATURES) == list(presets())
+    text = (REPO / "docs" / "datasets.md").read_text()
+    assert text == datasets_doc(), "run: python scripts/write_datasets_doc.py"
+
+
+def test_every_preset_validates_and_runs_methods_the_shipped_config_defines(tmp_path):
+    config = config_with(tmp_path)
+    config["datasets"].update({name: {} for name in presets()})
+    datasets = validate_config(config, SCHEMA)["datasets"]
+    for name in presets():
+        assert datasets[name]["protocol"] == f"preset {name}"
+        assert set(datasets[name]["methods"]) <= set(config["methods"]), name
+        assert datasets[name]["path"] == name or name == "17places_pm15"
+
+
+def test_a_preset_joins_when_its_folder_exists_or_the_config_names_it(tmp_path):
+    names = lambda config: set(validate_config(config, SCHEMA)["datasets"])  # noqa: E731
+    shipped = set(repo_config()["datasets"])
+    assert names(config_with(tmp_path)) == shipped
+    (tmp_path / "pitts30k").mkdir()
+    assert names(config_with(tmp_path)) == shipped | {"pitts30k"}
+    assert "baidu_mall" in names(config_with(tmp_path, targets=["baidu_mall"]))
+    config = config_with(tmp_path)
+    config["datasets"]["insideout"] = {"recall_at": [1, 5]}
+    assert "insideout" in names(config)
+
+
+def test_a_config_entry_changes_only_the_keys_it_gives_and_the_table_says_which(tmp_path):
+    config = config_with(tmp_path)
+    config["datasets"]["pitts30k"] = {"ground_truth": {"radius": 10}, "recall_at": [1]}
+    entry = validate_config(config, SCHEMA)["datasets"]["pitts30k"]
+    assert entry["ground_truth"] == {"kind": "utm", "radius": 10}
+    assert entry["reference"] == presets()["pitts30k"].dataset["reference"]
+    assert entry["recall_at"] == [1]  # not a protocol key
+    assert entry["protocol"] == "preset pitts30k, changed: ground_truth.radius"
+
+
+def test_a_ground_truth_of_another_kind_replaces_the_presets_rule():
+    merged = merge_entry(
+        {"ground_truth": {"kind": "vprbench", "file": "gt.npy"}, "query": "q"},
+        {"ground_truth": {"kind": "frame_window", "radius": 2}},
+    )
+    assert merged == {"ground_truth": {"kind": "frame_window", "radius": 2}, "query": "q"}
+
+
+def test_an_absent_preset_says_where_it_belongs_where_to_get_it_and_its_layout(tmp_path):
+    config = validate_config(config_with(tmp_path), SCHEMA)
+    message = unknown_dataset("baidu_mall", config)
+    assert str(tmp_path / "baidu_mall") in message
+    assert presets()["baidu_mall"].dataset["source"] in message
+    assert "training_gt/" in message and "query_images_undistort/" in message
+    assert "presets:" in unknown_dataset("no_such_set", config)
+
+
+@pytest.mark.parametrize("name", list(MINIATURES))
+def test_each_presets_ground_truth_is_the_published_rule_on_its_miniature(tmp_path, name):
+    preset = presets()[name]
+    expected = MINIATURES[name](tmp_path / preset.dataset["path"], np.random.default_rng(0))
+    dataset = validate_config(config_with(tmp_path, targets=[name]), SCHEMA)["datasets"][name]
+    files = list_dataset(tmp_path, name, dataset)
+    truth = ground_truth(files, dataset["ground_truth"], tmp_path / dataset["path"])
+    assert [q.name for q in files.query] and sorted(q.name for q in files.query) == sorted(
+        expected
+    )
+    for query, positives in zip(files.query, truth, strict=True):
+        assert {files.reference[i].name for i in positives} == expected[query.name], query
+    assert any(len(t) for t in truth)
+
+
+@pytest.mark.workflow
+def test_every_presets_table_comes_from_its_data_alone(tmp_path):
+    """One Snakemake run over every miniature: a preset needs only its folder. The
+    models are swapped for the weight-free DAISY backbone at a small fixed size (not a
+    protocol key), and only AnyLoc-VLAD runs, which keeps the run short."""
+    data = tmp_path / "data"
+    for name, build in MINIATURES.items():
+        build(data / presets()[name].dataset["path"], np.random.default_rng(1))
+    config = config_with(data)
+    config["backbones"]["daisy"]["resolution"] = [64, 48]
+    config["vocabulary"] = {"n_clusters": 4, "n_iter": 5}
+    for name in MINIATURES:
+        config["datasets"][name] = {
+            "methods": ["anyloc_vlad"],
+            "defaults": {"features": "daisy", "segmenter": "slic"},
+        }
+    path = write_config(tmp_path, config)
+    targets = [f"results/recall_{name}.csv" for name in MINIATURES]
+    snakemake(tmp_path, path, *targets)
+    for name in MINIATURES:
+        rows = list(csv.DictReader(open(tmp_path / f"results/recall_{name}.csv")))
+        assert [r["method"] for r in rows] == ["anyloc_vlad"], name
+        assert rows[0]["protocol"] == f"preset {name}"
+        assert 0 <= float(rows[0]["recall@1"]) <= 1
+
