@@ -90,9 +90,7 @@ def test_each_presets_ground_truth_is_the_published_rule_on_its_miniature(tmp_pa
     dataset = validate_config(config_with(tmp_path, targets=[name]), SCHEMA)["datasets"][name]
     files = list_dataset(tmp_path, name, dataset)
     truth = ground_truth(files, dataset["ground_truth"], tmp_path / dataset["path"])
-    assert [q.name for q in files.query] and sorted(q.name for q in files.query) == sorted(
-        expected
-    )
+    assert [q.name for q in files.query] and sorted(q.name for q in files.query) == sorted(expected)
     for query, positives in zip(files.query, truth, strict=True):
         assert {files.reference[i].name for i in positives} == expected[query.name], query
     assert any(len(t) for t in truth)
@@ -122,4 +120,3 @@ def test_every_presets_table_comes_from_its_data_alone(tmp_path):
         assert [r["method"] for r in rows] == ["anyloc_vlad"], name
         assert rows[0]["protocol"] == f"preset {name}"
         assert 0 <= float(rows[0]["recall@1"]) <= 1
-
