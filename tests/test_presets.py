@@ -56,6 +56,15 @@ def test_a_preset_joins_when_its_folder_exists_or_the_config_names_it(tmp_path):
     assert "insideout" in names(config)
 
 
+def test_a_preset_found_by_its_folder_stays_out_of_a_config_that_cannot_run_it(tmp_path):
+    (tmp_path / "pitts30k").mkdir()
+    config = config_with(tmp_path)
+    del config["backbones"]["dinov2_vitg14"]
+    assert "pitts30k" not in validate_config(config, SCHEMA)["datasets"]
+    message = unknown_dataset("pitts30k", validate_config(config, SCHEMA))
+    assert "backbones.dinov2_vitg14" in message and "datasets.pitts30k" in message
+
+
 def test_a_config_entry_changes_only_the_keys_it_gives_and_the_table_says_which(tmp_path):
     config = config_with(tmp_path)
     config["datasets"]["pitts30k"] = {"ground_truth": {"radius": 10}, "recall_at": [1]}

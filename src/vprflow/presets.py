@@ -5,10 +5,11 @@ A preset is a dataset entry vprflow ships: the folder layout the authors' code o
 common downloader produces, the ground-truth rule, the resolution, which queries count
 and the vocabulary the paper used. It joins a config's ``datasets`` when the config
 names it (a ``datasets`` entry of that name, which may give only the keys it changes,
-or a name in ``targets``) or when its folder exists under ``data_root``; so
-``snakemake results/recall_<preset>.csv`` needs no setting beyond the data. A folder
-decides rather than the command line's targets because cluster jobs plan again from the
-config and the file system alone.
+or a name in ``targets``) or when its folder exists under ``data_root`` and the config
+defines the methods and models it runs (the shipped config does); so ``snakemake
+results/recall_<preset>.csv`` needs no setting beyond the data. A folder decides rather
+than the command line's targets because cluster jobs plan again from the config and the
+file system alone.
 """
 
 from __future__ import annotations
@@ -84,9 +85,25 @@ def with_presets(config: dict) -> dict:
     for name, preset in presets().items():
         if name in datasets:
             datasets[name] = merge_entry(preset.dataset, datasets[name] or {})
-        elif name in targets or (Path(config["data_root"]) / preset.dataset["path"]).is_dir():
+        elif name in targets or (
+            (Path(config["data_root"]) / preset.dataset["path"]).is_dir()
+            and not undefined_components(preset.dataset, config)
+        ):
             datasets[name] = copy.deepcopy(preset.dataset)
     return datasets
+
+
+def undefined_components(dataset: dict, config: dict) -> list[str]:
+    """The methods, backbones and segmenters a dataset entry names that ``config`` does
+    not define: a preset found by its folder joins only a config that can run it (a
+    small config of one's own need not define the papers' models)."""
+    defaults = dataset.get("defaults") or {}
+    wanted = [("methods", m) for m in dataset["methods"]]
+    wanted += [(section, defaults[key]) for key, section in _NAMED if key in defaults]
+    return [f"{section}.{name}" for section, name in wanted if name not in config.get(section, {})]
+
+
+_NAMED = (("features", "backbones"), ("segmenter", "segmenters"))
 
 
 def protocol(name: str, preset: dict, dataset: dict) -> str:
@@ -126,6 +143,13 @@ def unknown_dataset(name: str, config: dict) -> str:
             f"presets: {sorted(presets())}"
         )
     folder = Path(config["data_root"]) / preset.dataset["path"]
+    if folder.is_dir():
+        return (
+            f"dataset {name!r} is a vprflow preset ({preset.title}) and {folder} exists, but "
+            f"this config does not define {undefined_components(preset.dataset, config)}, "
+            f"which it runs: define them, or give `datasets.{name}` methods and defaults "
+            "that exist (config/config.yaml defines the preset's)"
+        )
     return (
         f"dataset {name!r} is a vprflow preset ({preset.title}), and its folder {folder} "
         f"does not exist. Get it from {preset.dataset['source']}. "
