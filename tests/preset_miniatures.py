@@ -78,6 +78,30 @@ def pitts30k(root: Path, rng) -> dict[str, set[str]]:
     return _within(qs, refs, 25)
 
 
+def _utm_preset(database: str, queries: str) -> Callable:
+    def build(root: Path, rng) -> dict[str, set[str]]:
+        refs, qs = utm_names(root, rng, database, queries)
+        return _within(qs, refs, 25)
+
+    return build
+
+
+def nordland(root: Path, rng) -> dict[str, set[str]]:
+    """The downloader's names: fake northing of 25/10.5 m per frame, rounded to 0.1 m,
+    so 25 m is +-10 frames (the published convention, checked here as frames)."""
+
+    def name(frame: int) -> str:
+        return f"@0@{round(frame * 25 / 10.5, 1)}@@@@@{frame:05d}@@@@@@@@.jpg"
+
+    frames = range(0, 24)
+    for frame in frames:
+        write_image(root / "images/test/database" / name(frame), rng)
+    queries = (0, 5, 11, 23)
+    for frame in queries:
+        write_image(root / "images/test/queries" / name(frame), rng)
+    return {name(q): {name(f) for f in frames if abs(f - q) <= 10} for q in queries}
+
+
 def baidu_mall(root: Path, rng) -> dict[str, set[str]]:
     """Images and one .camera file each (centre on the second-to-last line)."""
     centres = {}
@@ -134,7 +158,9 @@ def _msls(city: str) -> Callable:
             chosen = rng.choice(own, size=2, replace=False).tolist()
             cross = [i for i, p in enumerate(db) if i not in own][:1]
             positives[row] = np.array(chosen + cross, dtype=np.int64)
-            if f"/{city}/" in queries[q]:
+            if city == "all":
+                expected[Path(queries[q]).name] = {Path(db[i]).name for i in chosen + cross}
+            elif f"/{city}/" in queries[q]:
                 expected[Path(queries[q]).name] = {Path(db[i]).name for i in chosen}
         root.mkdir(parents=True, exist_ok=True)
         np.save(root / MSLS_FILES["dbImages"], np.array(db))
@@ -142,7 +168,7 @@ def _msls(city: str) -> Callable:
         np.save(root / MSLS_FILES["qIdx"], kept)
         np.save(root / MSLS_FILES["pIdx"], positives, allow_pickle=True)
         for p in db:
-            if f"/{city}/" in p:
+            if city == "all" or f"/{city}/" in p:
                 write_image(root / "database" / Path(p).name, rng)
         for name in expected:
             write_image(root / "query" / name, rng)
@@ -169,4 +195,11 @@ MINIATURES: dict[str, Callable[[Path, np.random.Generator], dict[str, set[str]]]
     "msls_sf": _msls("sf"),
     "msls_cph": _msls("cph"),
     "amstertime": amstertime,
+    "pitts250k": _utm_preset("images/test/database", "images/test/queries"),
+    "tokyo247": _utm_preset("images/test/database", "images/test/queries"),
+    "st_lucia": _utm_preset("images/test/database", "images/test/queries"),
+    "nordland": nordland,
+    "sf_xl_val": _utm_preset("database", "queries"),
+    "sf_xl_test": _utm_preset("database", "queries_v1"),
+    "msls_val": _msls("all"),
 }

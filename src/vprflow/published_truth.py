@@ -178,7 +178,9 @@ def msls_ground_truth(
 ) -> list[np.ndarray]:
     """Positives of one MSLS validation city from the published lists: the kept queries
     ``qImages[qIdx]``, their positives ``pIdx`` (indices into ``dbImages``), both
-    restricted to ``city``; images are matched by file name. A listed positive or a
+    restricted to ``city`` (Revisit-Anything's mslsSF / mslsCPH) or, with ``"all"``, as
+    they stand (the 740-query MSLS-val of MixVPR and SALAD); images are matched by file
+    name. A listed positive or a
     query that is missing from the folders is an error (it would change the recall)."""
     arrays = {}
     for key, name in MSLS_FILES.items():
@@ -200,9 +202,11 @@ def msls_ground_truth(
     ref_index = {p.name: i for i, p in enumerate(reference)}
     positives_of = {}
     for path, positives in zip(kept, arrays["pIdx"], strict=True):
-        if msls_city(path) == city:
+        if city == "all" or msls_city(path) == city:
             positives_of[Path(path).name] = [
-                int(p) for p in np.asarray(positives, dtype=np.int64) if db_city[p] == city
+                int(p)
+                for p in np.asarray(positives, dtype=np.int64)
+                if city == "all" or db_city[p] == city
             ]
     unknown = [q.name for q in query if q.name not in positives_of]
     if unknown:
