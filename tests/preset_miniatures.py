@@ -102,6 +102,26 @@ def nordland(root: Path, rng) -> dict[str, set[str]]:
     return {name(q): {name(f) for f in frames if abs(f - q) <= 10} for q in queries}
 
 
+def vp_air(root: Path, rng) -> dict[str, set[str]]:
+    """vpair_gt.npy as released: an object array of [query index, [reference indices]]
+    rows; a distractors/ folder beside, which the protocol does not read."""
+    refs = [f"{i:05d}.png" for i in range(1, 9)]
+    queries = [f"{i:05d}.png" for i in range(1, 6)]
+    for name in refs:
+        write_image(root / "reference_views" / name, rng)
+    for name in queries:
+        write_image(root / "queries" / name, rng)
+    write_image(root / "distractors" / "00001.png", rng)
+    rows = np.empty((len(queries), 2), dtype=object)
+    expected = {}
+    for q, name in enumerate(queries):
+        positives = sorted(rng.choice(len(refs), size=2, replace=False).tolist())
+        rows[q, 0], rows[q, 1] = q, positives
+        expected[name] = {refs[i] for i in positives}
+    np.save(root / "vpair_gt.npy", rows, allow_pickle=True)
+    return expected
+
+
 def baidu_mall(root: Path, rng) -> dict[str, set[str]]:
     """Images and one .camera file each (centre on the second-to-last line)."""
     centres = {}
@@ -202,4 +222,5 @@ MINIATURES: dict[str, Callable[[Path, np.random.Generator], dict[str, set[str]]]
     "sf_xl_val": _utm_preset("database", "queries"),
     "sf_xl_test": _utm_preset("database", "queries_v1"),
     "msls_val": _msls("all"),
+    "vp_air": vp_air,
 }
