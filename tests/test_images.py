@@ -16,6 +16,7 @@ takes the last pixel, otherwise two taps ``floor(s)``, ``floor(s) + 1`` with wei
 from __future__ import annotations
 
 import math
+import os
 import re
 from pathlib import Path
 
@@ -331,6 +332,21 @@ def test_a_link_to_an_image_folder_elsewhere_is_read_when_asked(tmp_path):
     # A linked role folder is the folder itself: nothing inside leaves it.
     (tmp_path / "linked").symlink_to(tmp_path / "elsewhere")
     assert len(scan_images(tmp_path / "linked", recursive=True).paths) == 2
+
+
+def test_discovery_knows_each_images_real_path_without_resolving_every_file(tmp_path):
+    # Real paths come from the folder's real path plus the name, links resolved alone:
+    # they must equal os.path.realpath through linked folders, linked files and a
+    # linked role folder.
+    write_pngs(tmp_path / "elsewhere", ["1.png", "sub/2.png"])
+    write_pngs(tmp_path / "ref", ["a/3.png"])
+    write_pngs(tmp_path / "other", ["5.png"])
+    (tmp_path / "ref/run1").symlink_to(tmp_path / "elsewhere")
+    (tmp_path / "ref/4.png").symlink_to(tmp_path / "other/5.png")
+    (tmp_path / "linked").symlink_to(tmp_path / "ref")
+    scan = scan_images(tmp_path / "linked", recursive=True, follow_links=True)
+    assert len(scan.paths) == 4
+    assert scan.real_paths == [os.path.realpath(p) for p in scan.paths]
 
 
 def test_links_to_the_folder_itself_stay_linear_and_are_named(tmp_path):

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePath
 
 from vprflow.images import IMAGE_SUFFIXES, ImageScan, natural_key, scan_images
 
@@ -70,7 +70,11 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
         if not scans[role].paths:
             raise DatasetError(f"dataset '{name}': {role} folder {entry} contains no images")
     reference, query = scans["reference"].paths, scans["query"].paths
-    check_disjoint(name, reference, query)
+    real = {}
+    for scan in scans.values():
+        if scan.real_paths is not None:  # known from discovery: spares a realpath each
+            real.update(zip(scan.paths, scan.real_paths, strict=True))
+    check_disjoint(name, reference, query, lambda p: real.get(p) or os.path.realpath(p))
     if dataset["paired"]:
         query = paired_queries(
             name,
@@ -194,8 +198,9 @@ def contents_digest(files: DatasetFiles, data_root: str | Path, dataset: dict, f
         # Named relative to the role's folder (a list file's: the dataset folder), so a
         # flat folder hashes its file names and a nested one its relative paths.
         base = root / dataset[role] if (root / dataset[role]).is_dir() else root
+        start = len(str(base)) + 1  # paths are base/<relative>: cut, not relative_to
         for path in paths:
-            label = path.relative_to(base).as_posix()
+            label = PurePath(str(path)[start:]).as_posix()
             digest.update(f"{role}/{label}:{file_hash(path, role)}\n".encode())
     for path in ground_truth_files(data_root, dataset):
         # A folder (Baidu Mall's pose files) counts by each file in it.

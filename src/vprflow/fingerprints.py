@@ -14,11 +14,15 @@ import json
 import os
 import stat
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from vprflow.config import PlanError
 from vprflow.files import write_text_atomic
 from vprflow.paths import FINGERPRINTS
 from vprflow.registry import model_kind
+
+if TYPE_CHECKING:
+    from vprflow.datasets import DatasetFiles
 
 
 def file_digest(path: str | Path) -> str:
@@ -83,9 +87,11 @@ def memoised(path: str | Path, memo: dict, digest, where: str) -> str:
     return memo[key]
 
 
-def dataset_contents(data_root: str, name: str, dataset: dict, memo: dict) -> str | None:
-    """:func:`vprflow.datasets.contents_digest` of a dataset, or ``None`` while the
-    dataset cannot be listed (its stage then fails, naming why).
+def dataset_contents(
+    data_root: str, name: str, dataset: dict, memo: dict
+) -> tuple[str | None, DatasetFiles | None]:
+    """:func:`vprflow.datasets.contents_digest` of a dataset and its listing, or
+    ``(None, None)`` while the dataset cannot be listed (its stage then fails, naming why).
 
     Each file's hash is memoised by path, size, mtime and ctime, so re-planning reads no
     image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
@@ -97,13 +103,14 @@ def dataset_contents(data_root: str, name: str, dataset: dict, memo: dict) -> st
     try:
         files = list_dataset(data_root, name, dataset)
     except (DatasetError, ImageReadError):
-        return None
-    return contents_digest(
+        return None, None
+    digest = contents_digest(
         files,
         data_root,
         dataset,
         lambda path, where: memoised(path, memo, file_digest, f"datasets.{name}.{where}"),
     )
+    return digest, files
 
 
 def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> dict:

@@ -16,10 +16,14 @@ import copy
 import hashlib
 import json
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
 from vprflow.fingerprints import dataset_contents, file_digest, memoised, source_fingerprint
 from vprflow.paths import store_path
+
+if TYPE_CHECKING:
+    from vprflow.datasets import DatasetFiles
 from vprflow.registry import (
     SEARCH_INDEXES,
     Aggregator,
@@ -116,6 +120,9 @@ class Plan:
     runs: dict[str, list[MethodRun]] = field(default_factory=dict)  # dataset -> rows
     dataset_keys: dict[str, str] = field(default_factory=dict)
     has_ground_truth: dict[str, bool] = field(default_factory=dict)
+    # The image lists the dataset keys were made from (absent: not listable), so the
+    # workflow does not list 10^5 files a second time for shard ranges.
+    dataset_files: dict[str, DatasetFiles] = field(default_factory=dict)
 
     def add(
         self,
@@ -212,6 +219,9 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
 
 
 def _plan_dataset(plan: Plan, config: dict, name: str, dataset: dict, memo: dict) -> str:
+    contents, files = dataset_contents(config["data_root"], name, dataset, memo)
+    if files is not None:
+        plan.dataset_files[name] = files
     params = {
         "name": name,
         # Every dataset setting but those read by later stages or by people only:
@@ -219,7 +229,7 @@ def _plan_dataset(plan: Plan, config: dict, name: str, dataset: dict, memo: dict
         **{k: v for k, v in dataset.items() if k not in NOT_DATASET_STAGE},
         # What the images and ground truth hold, not where they are: replaced images
         # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
-        "contents": dataset_contents(config["data_root"], name, dataset, memo),
+        "contents": contents,
     }
     return plan.add("dataset", params, {}, name)
 

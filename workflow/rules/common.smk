@@ -113,6 +113,8 @@ def dataset_entry(name):
 
 @cache
 def dataset_files(name):
+    if name in PLAN.dataset_files:  # listed while planning
+        return PLAN.dataset_files[name]
     try:
         return list_dataset(CONFIG["data_root"], name, dataset_entry(name))
     except Exception:
