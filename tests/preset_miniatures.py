@@ -122,6 +122,23 @@ def vp_air(root: Path, rng) -> dict[str, set[str]]:
     return expected
 
 
+def _snsm(name: str) -> Callable:
+    """SNSM's lists: RGB paths in <name>_rgb.txt, thermal partners line by line in
+    <name>_thr.txt, in the lists' own (not sorted) order; names differ between the two."""
+
+    def build(root: Path, rng) -> dict[str, set[str]]:
+        frames = ["0010", "0002", "0007", "0001", "0003"]
+        rgb = [f"Vis/{f}_rgb.png" for f in frames]
+        thermal = [f"Ir/{f}_ir.png" for f in frames]
+        for path in rgb + thermal:
+            write_image(root / path, rng)
+        (root / f"{name}_rgb.txt").write_text("\n".join(rgb) + "\n")
+        (root / f"{name}_thr.txt").write_text("\n".join(thermal) + "\n")
+        return {Path(t).name: {Path(r).name} for r, t in zip(rgb, thermal, strict=True)}
+
+    return build
+
+
 def baidu_mall(root: Path, rng) -> dict[str, set[str]]:
     """Images and one .camera file each (centre on the second-to-last line)."""
     centres = {}
@@ -223,4 +240,5 @@ MINIATURES: dict[str, Callable[[Path, np.random.Generator], dict[str, set[str]]]
     "sf_xl_test": _utm_preset("database", "queries_v1"),
     "msls_val": _msls("all"),
     "vp_air": vp_air,
+    **{name: _snsm(name) for name in ("m3fd", "boson", "flir", "ino", "llvip", "vot", "vtuav")},
 }
