@@ -94,11 +94,13 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
 
 def load_schema(path: str | Path) -> dict:
     """The schema file, completed with the lists the code owns: the names of backbones,
-    segmenters, aggregators and search indexes (:mod:`vprflow.registry`) and of
-    ground-truth kinds (:data:`vprflow.ground_truth.KINDS`) as enums, and each method
+    segmenters, aggregators and search indexes (:mod:`vprflow.registry`), of
+    ground-truth kinds (:data:`vprflow.ground_truth.KINDS`) and of published vocabularies
+    (:data:`vprflow.vocabularies.PUBLISHED`) as enums, and each method
     section of :data:`METHOD_DEFAULT_SECTIONS` as a top-level key, a method key and a
     dataset ``defaults`` key (each a reference to the section's definition)."""
     from vprflow.ground_truth import KINDS
+    from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 
     schema = yaml.safe_load(Path(path).read_text())
     definitions = schema["definitions"]
@@ -108,6 +110,7 @@ def load_schema(path: str | Path) -> dict:
         (AGGREGATORS, definitions["method"], "aggregator"),
         (SEARCH_INDEXES, definitions["retrieval"], "index"),
         (KINDS, definitions["dataset"]["properties"]["ground_truth"], "kind"),
+        (PUBLISHED_VOCABULARIES, definitions["vocabulary"], "name"),
     ):
         definition["properties"][key]["enum"] = list(names)
     method = definitions["method"]["properties"]

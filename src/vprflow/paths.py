@@ -21,6 +21,8 @@ FIGURE = "results/figures/{dataset}/{figure}/{method}.png"
 INDEX = f"{CACHE}/index.tsv"
 # The memo of content hashes (vprflow.fingerprints).
 FINGERPRINTS = f"{CACHE}/fingerprints.json"
+# A published vocabulary (vprflow.vocabularies), fetched once; one may be put there by hand.
+PUBLISHED_VOCABULARY = "results/downloads/vocabularies/{name}/c_centers.pt"
 
 
 def store_pattern(stage: str) -> str:

@@ -20,7 +20,8 @@ from typing import TYPE_CHECKING
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
 from vprflow.fingerprints import dataset_contents, file_digest, memoised, source_fingerprint
-from vprflow.paths import store_path
+from vprflow.paths import PUBLISHED_VOCABULARY, store_path
+from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 
 if TYPE_CHECKING:
     from vprflow.datasets import DatasetFiles
@@ -88,13 +89,16 @@ class Stage:
     # Not hashed: device, batch size, whether the stage runs on a GPU when there is one.
     run_params: dict = field(default_factory=dict)
     dataset: str = ""
+    # Files the stage reads besides stores (a published vocabulary), by input name: their
+    # content is in the record (a pinned hash), the file is fetched by its own rule.
+    files: dict[str, str] = field(default_factory=dict)
 
     @property
     def path(self) -> str:
         return store_path(self.stage, self.key)
 
     def input_paths(self) -> dict[str, str]:
-        return {name: store_path(*ref) for name, ref in self.inputs.items()}
+        return {name: store_path(*ref) for name, ref in self.inputs.items()} | self.files
 
 
 @dataclass
@@ -131,6 +135,7 @@ class Plan:
         inputs: dict[str, tuple[str, str]],
         dataset: str,
         run_params: dict | None = None,
+        files: dict[str, str] | None = None,
     ) -> str:
         record = {
             "stage": stage,
@@ -141,7 +146,7 @@ class Plan:
         }
         key = content_key(record)
         self.stages.setdefault(stage, {})[key] = Stage(
-            stage, key, record, inputs, run_params or {}, dataset
+            stage, key, record, inputs, run_params or {}, dataset, files or {}
         )
         return key
 
@@ -365,16 +370,34 @@ def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef,
 
 def _plan_vocabulary(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
     vocabulary = m.settings["vocabulary"]
-    params = {k: v for k, v in vocabulary.items() if k != "file"}
+    stores = {"dataset": m.dataset_store, "features": inputs["features"]}
+    if vocabulary["source"] == "published":
+        # The centres are the file's: nothing else of the section shapes them.
+        name = vocabulary.get("name")
+        if name not in PUBLISHED_VOCABULARIES:
+            raise PlanError(
+                f"method {m.name!r}: vocabulary source 'published' needs a `name`, one of "
+                f"{sorted(PUBLISHED_VOCABULARIES)}"
+            )
+        params = {
+            "source": "published",
+            "name": name,
+            "sha256": PUBLISHED_VOCABULARIES[name].sha256,
+        }
+        files = {"centres": PUBLISHED_VOCABULARY.format(name=name)}
+        store = (
+            "vocabulary",
+            m.plan.add("vocabulary", params, stores, m.dataset_name, files=files),
+        )
+        return store, {"vocabulary.source": "published", "vocabulary.name": name}
+    params = {k: v for k, v in vocabulary.items() if k not in ("file", "name")}
     if vocabulary["source"] == "file":
         params.update(
             file=vocabulary["file"],
             sha256=memoised(vocabulary["file"], m.memo, file_digest, "vocabulary.file"),
         )
-    store = m.add(
-        "vocabulary", params, {"dataset": m.dataset_store, "features": inputs["features"]}
-    )
-    return store, _prefixed("vocabulary", vocabulary)
+    store = m.add("vocabulary", params, stores)
+    return store, _prefixed("vocabulary", {k: v for k, v in vocabulary.items() if k != "name"})
 
 
 def _plan_pca(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef | None, dict]:

@@ -174,8 +174,9 @@ def datasets_doc() -> str:
         "plan when its folder exists, when `targets` names it or when `datasets` has an",
         "entry of its name.",
         "",
-        "| preset | dataset | positives | queries counted | size | published R@1 / R@5 |",
-        "|---|---|---|---|---|---|",
+        "| preset | dataset | positives | queries counted | size | vocabulary |"
+        " published R@1 / R@5 |",
+        "|---|---|---|---|---|---|---|",
     ]
     for preset in presets().values():
         entry = preset.dataset
@@ -186,7 +187,7 @@ def datasets_doc() -> str:
         width, height = entry["resolution"]
         lines.append(
             f"| `{preset.name}` | {preset.title} | `{_rule(entry['ground_truth'])}` | "
-            f"{entry['denominator']} | {width} x {height} | "
+            f"{entry['denominator']} | {width} x {height} | {_vocabulary(entry)} | "
             f"{published or 'see below'} |"
         )
     for preset in presets().values():
@@ -211,6 +212,13 @@ def datasets_doc() -> str:
                 for p in preset.published
             ]
     return "\n".join(lines) + "\n"
+
+
+def _vocabulary(entry: dict) -> str:
+    vocabulary = (entry.get("defaults") or {}).get("vocabulary") or {}
+    if vocabulary.get("source") == "published":
+        return f"published `{vocabulary['name']}`"
+    return "-"  # the methods' own (SNSM and the pooling baselines use none)
 
 
 def _rule(truth: dict) -> str:

@@ -3,6 +3,8 @@
 # it and lays out its folder under data_root when the folder is missing, then writes
 # this record. Nothing here lists images, so the target works while the data is absent.
 from vprflow.datasets import dataset_folder
+from vprflow.paths import PUBLISHED_VOCABULARY
+from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES, vocabulary_url
 from vprflow.download import (
     LOG as DOWNLOAD_LOG,
     RECORD as DOWNLOAD_RECORD,
@@ -17,6 +19,7 @@ WORKFLOW_DIR = Path(workflow.current_basedir).parent
 # Network access happens where Snakemake runs, not in a cluster job.
 localrules:
     download,
+    published_vocabulary,
 
 
 rule download:
@@ -37,3 +40,19 @@ rule download:
         ),
     script:
         "../scripts/download.py"
+
+
+# A vocabulary the SegVLAD authors publish (vprflow.vocabularies), fetched once; the
+# vocabulary stage checks the file's SHA-256 again, so one put here by hand must match.
+rule published_vocabulary:
+    output:
+        PUBLISHED_VOCABULARY,
+    log:
+        "logs/published_vocabulary/{name}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        url=lambda wildcards: vocabulary_url(wildcards.name),
+        sha256=lambda wildcards: PUBLISHED_VOCABULARIES[wildcards.name].sha256,
+    script:
+        "../scripts/published_vocabulary.py"

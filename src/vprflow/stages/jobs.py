@@ -87,7 +87,13 @@ def _segments(job: Job) -> None:
 def _vocabulary(job: Job) -> None:
     from vprflow.stages.vocabulary import fit_vocabulary
 
-    fit_vocabulary(job.inputs["dataset"], job.inputs["features"], job.record, job.out)
+    fit_vocabulary(
+        job.inputs["dataset"],
+        job.inputs["features"],
+        job.record,
+        job.out,
+        job.inputs.get("centres"),
+    )
 
 
 def _pca(job: Job) -> None:

@@ -6,6 +6,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow import stores
+from vprflow.fingerprints import file_digest
 from vprflow.stages.base import resolved_sources
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.features import read_features
@@ -33,18 +34,32 @@ def load_centres_file(path: str) -> np.ndarray:
     return load_c_centers(path)
 
 
-def fit_vocabulary(dataset_path: str, features_path: str, record: dict, out: str) -> None:
-    """VLAD centres ``[K, D]``: spherical k-means on sampled patch descriptors, or a file."""
+def fit_vocabulary(
+    dataset_path: str, features_path: str, record: dict, out: str, centres_path: str | None = None
+) -> None:
+    """VLAD centres ``[K, D]``: spherical k-means on sampled patch descriptors, a file, or
+    a published vocabulary (``centres_path``, fetched by its rule)."""
     from vprflow.vlad import fit_spherical_kmeans
 
     params = record["params"]
-    if params["source"] == "file":
-        centres = load_centres_file(params["file"])
+    if params["source"] in ("file", "published"):
+        if params["source"] == "published":
+            path, what = centres_path, f"published vocabulary {params['name']!r}"
+            # The file may have been put there by hand: it must be the pinned one.
+            actual = file_digest(path)
+            if actual != params["sha256"]:
+                raise ValueError(
+                    f"{what}: {path} has sha256 {actual}, not the published {params['sha256']}; "
+                    "delete it and run again to fetch it"
+                )
+            centres = load_centres_file(path)
+        else:
+            centres, what = load_centres_file(params["file"]), f"vocabulary.file {params['file']}"
         dim = int(stores.open_store(features_path).attrs["dim"])
         if centres.shape[1] != dim:
             raise ValueError(
-                f"vocabulary.file {params['file']}: centres have {centres.shape[1]} dimensions "
-                f"but the features have {dim}; the file belongs to another backbone or layer"
+                f"{what}: centres have {centres.shape[1]} dimensions but the features have "
+                f"{dim}; the vocabulary belongs to another backbone or layer"
             )
     else:
         dataset = Dataset(dataset_path)

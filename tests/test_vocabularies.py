@@ -1,0 +1,133 @@
+"""Published vocabularies by name: the schema lists them, the key holds the name and the
+pinned hash, the fetch keeps only the pinned file, the stage reads it and refuses
+another, and through Snakemake a wrong file fails the run leaving nothing behind."""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+from synthetic import make_dataset
+from workflow_helpers import snakemake, toy_config, write_config
+
+from vprflow import stores
+from vprflow.config import load_schema, validate_config
+from vprflow.download import DownloadError
+from vprflow.paths import PUBLISHED_VOCABULARY
+from vprflow.plan import build_plan
+from vprflow.stages.vocabulary import fit_vocabulary, read_centres
+from vprflow.vocabularies import (
+    PATH,
+    PUBLISHED,
+    URL_ENV,
+    fetch_vocabulary,
+    vocabulary_url,
+)
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+
+
+def test_the_schema_admits_exactly_the_published_names():
+    vocabulary = load_schema(SCHEMA)["definitions"]["vocabulary"]["properties"]
+    assert vocabulary["name"]["enum"] == list(PUBLISHED)
+    assert "published" in vocabulary["source"]["enum"]
+    assert {"urban", "indoor", "aerial", "urbanNVFinetuned"} <= set(PUBLISHED)
+
+
+def vocabulary_stage(config: dict, dataset: str = "corridor", method: str = "anyloc_vlad"):
+    plan = build_plan(validate_config(config, SCHEMA))
+    run = next(r for r in plan.runs[dataset] if r.method == method)
+    stage, key = "recall", run.recall_key
+    while stage != "vocabulary":
+        inputs = plan.get(stage, key).inputs
+        stage, key = inputs["vocabulary"] if "vocabulary" in inputs else inputs["descriptors"]
+    return plan.get("vocabulary", key)
+
+
+def test_a_published_vocabulary_is_keyed_by_its_name_and_pinned_hash_alone(tmp_path):
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    config["data_root"] = str(tmp_path)
+    config["vocabulary"] = {"source": "published", "name": "urban"}
+    urban = vocabulary_stage(config)
+    assert urban.record["params"] == {
+        "source": "published",
+        "name": "urban",
+        "sha256": PUBLISHED["urban"].sha256,
+    }
+    assert urban.input_paths()["centres"] == PUBLISHED_VOCABULARY.format(name="urban")
+    other = copy.deepcopy(config)
+    other["vocabulary"]["n_clusters"] = 7  # does not apply to a published vocabulary
+    assert vocabulary_stage(other).key == urban.key
+    other["vocabulary"]["name"] = "indoor"
+    assert vocabulary_stage(other).key != urban.key
+
+
+def test_the_url_follows_a_mirror_when_one_is_set(monkeypatch):
+    monkeypatch.delenv(URL_ENV, raising=False)
+    assert vocabulary_url("urban").startswith("https://raw.githubusercontent.com/AnyLoc/")
+    monkeypatch.setenv(URL_ENV, "file:///mirror/")
+    assert vocabulary_url("urban") == "file:///mirror/" + PATH.format(name="urban")
+
+
+def tiny_centres(path: Path) -> str:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(torch.arange(12, dtype=torch.float32).reshape(4, 3) / 10, path)
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def test_a_fetch_keeps_the_file_only_when_its_hash_is_the_pinned_one(tmp_path):
+    sha256 = tiny_centres(tmp_path / "mirror" / "c.pt")
+    url = (tmp_path / "mirror" / "c.pt").as_uri()
+    out = tmp_path / "got" / "c_centers.pt"
+    with pytest.raises(DownloadError, match=f"expected sha256 {'0' * 64}, got {sha256}"):
+        fetch_vocabulary(url, "0" * 64, out)
+    assert not out.exists() and not list(out.parent.iterdir())
+    fetch_vocabulary(url, sha256, out)
+    assert hashlib.sha256(out.read_bytes()).hexdigest() == sha256
+
+
+def features_store(path: Path, dim: int) -> str:
+    with stores.atomic_store(path, {"stage": "features", "dim": dim}):
+        pass
+    return str(path)
+
+
+def test_the_stage_reads_the_pinned_file_and_refuses_another(tmp_path):
+    centres = tmp_path / "c_centers.pt"
+    sha256 = tiny_centres(centres)
+    features = features_store(tmp_path / "features.zarr", 3)
+    record = {"params": {"source": "published", "name": "urban", "sha256": sha256}}
+    fit_vocabulary("", features, record, str(tmp_path / "v.zarr"), str(centres))
+    expected = np.arange(12, dtype=np.float64).reshape(4, 3) / 10
+    np.testing.assert_allclose(read_centres(str(tmp_path / "v.zarr")), expected, rtol=1e-7)
+    record["params"]["sha256"] = "f" * 64  # a file put there by hand, not the published one
+    with pytest.raises(ValueError, match="not the published"):
+        fit_vocabulary("", features, record, str(tmp_path / "w.zarr"), str(centres))
+    record["params"]["sha256"] = sha256
+    wider = features_store(tmp_path / "features4.zarr", 4)
+    with pytest.raises(ValueError, match="3 dimensions but the features have 4"):
+        fit_vocabulary("", wider, record, str(tmp_path / "x.zarr"), str(centres))
+
+
+@pytest.mark.workflow
+def test_a_mirror_serving_another_file_fails_the_run_and_leaves_nothing(tmp_path, monkeypatch):
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = toy_config(tmp_path / "data", methods=["anyloc_vlad"])
+    config["vocabulary"] = {"source": "published", "name": "indoor"}
+    mirror = tmp_path / "mirror"
+    tiny_centres(mirror / PATH.format(name="indoor"))
+    monkeypatch.setenv(URL_ENV, mirror.as_uri())
+    result = snakemake(
+        tmp_path, write_config(tmp_path, config), "results/recall_toy.csv", check=False
+    )
+    assert result.returncode != 0
+    log = (tmp_path / "logs" / "published_vocabulary" / "indoor.log").read_text()
+    assert PUBLISHED["indoor"].sha256 in log and "checksum mismatch" in log
+    assert not (tmp_path / PUBLISHED_VOCABULARY.format(name="indoor")).exists()
+    assert not list((tmp_path / "results" / "cache" / "vocabulary").glob("*.zarr"))
