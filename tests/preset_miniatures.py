@@ -139,6 +139,32 @@ def _snsm(name: str) -> Callable:
     return build
 
 
+def _pose_list(n_db: int, query_rows: tuple[int, int]) -> Callable:
+    """AnyLoc's pose_topic_list.npy: one object array of poses (x, y, z, yaw) for both
+    roles, the database in rows 0..n_db, the queries in ``query_rows``, other rows
+    unused; images named so that natsorted order is not vprflow's (``img10`` vs
+    ``Img9``)."""
+
+    def build(root: Path, rng) -> dict[str, set[str]]:
+        start, stop = query_rows
+        poses = np.empty((stop, 4), dtype=object)
+        poses[:] = rng.uniform(0, 60, (stop, 4)).round(3).tolist()
+        names = {"db_images": [f"{'I' if i % 7 == 0 else 'i'}mg{i}.png" for i in range(n_db)]}
+        names["q_images"] = [f"{'Q' if i % 5 == 0 else 'q'}{i}.png" for i in range(stop - start)]
+        points = {}
+        for folder, first in (("db_images", 0), ("q_images", start)):
+            order = published_order(names[folder])
+            for row, i in enumerate(order):
+                write_image(root / folder / names[folder][i], rng)
+                points.setdefault(folder, {})[names[folder][i]] = tuple(
+                    float(v) for v in poses[first + row, :2]
+                )
+        np.save(root / "pose_topic_list.npy", poses, allow_pickle=True)
+        return _within(points["q_images"], points["db_images"], 8)
+
+    return build
+
+
 def baidu_mall(root: Path, rng) -> dict[str, set[str]]:
     """Images and one .camera file each (centre on the second-to-last line)."""
     centres = {}
@@ -241,4 +267,6 @@ MINIATURES: dict[str, Callable[[Path, np.random.Generator], dict[str, set[str]]]
     "msls_val": _msls("all"),
     "vp_air": vp_air,
     **{name: _snsm(name) for name in ("m3fd", "boson", "flir", "ino", "llvip", "vot", "vtuav")},
+    "hawkins": _pose_list(127, (127, 245)),
+    "laurel_caverns": _pose_list(141, (229, 341)),
 }

@@ -203,3 +203,14 @@ def test_an_msls_positive_missing_from_the_reference_folder_is_refused(tmp_path)
     ]
     with pytest.raises(DatasetError, match=f"missing from the reference folder.*{absent}"):
         msls_ground_truth(tmp_path, "cph", refs, [tmp_path / "query" / "cq0.jpg"])
+
+
+def test_rows_and_leading_columns_of_one_pose_list_give_each_roles_positions(tmp_path):
+    poses = np.arange(40, dtype=np.float64).reshape(10, 4)  # x, y, z, yaw
+    np.save(tmp_path / "poses.npy", poses.astype(object), allow_pickle=True)
+    table = read_position_array(tmp_path / "poses.npy", 3, "q", rows=[6, 9], dims=2)
+    np.testing.assert_array_equal(table, poses[6:9, :2])
+    with pytest.raises(DatasetError, match=r"rows \[6, 11\] of .*which has 10 rows"):
+        read_position_array(tmp_path / "poses.npy", 5, "q", rows=[6, 11], dims=2)
+    with pytest.raises(DatasetError, match="expected numbers"):  # 4 columns, no dims
+        read_position_array(tmp_path / "poses.npy", 3, "q", rows=[6, 9])

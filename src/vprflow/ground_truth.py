@@ -269,7 +269,13 @@ def _role_positions(files: DatasetFiles, entry: dict, folder: Path, role: str) -
     images = files.reference if role == "reference" else files.query
     if path.is_dir():
         return camera_centres(path, images, f"ground_truth.{key}")
-    table = read_position_array(path, len(images), f"ground_truth.{key}")
+    table = read_position_array(
+        path,
+        len(images),
+        f"ground_truth.{key}",
+        rows=entry.get(f"{role}_rows"),
+        dims=entry.get("dims"),
+    )
     return in_published_order(table, images)
 
 

@@ -76,14 +76,18 @@ def load_object_npy(path: str | Path) -> np.ndarray:
     return np.load(path, allow_pickle=False)
 
 
-def read_position_array(path: Path, n: int, what: str) -> np.ndarray:
+def read_position_array(
+    path: Path, n: int, what: str, rows: list[int] | None = None, dims: int | None = None
+) -> np.ndarray:
     """``[n, 2]`` or ``[n, 3]`` float64 coordinates from a ``.npy`` or a pickle of plain
-    numbers (``what`` names the config key in errors)."""
+    numbers (``what`` names the config key in errors): rows ``rows = [start, stop]`` of
+    the file (AnyLoc's Hawkins and Laurel Caverns keep both roles in one pose list) and
+    its first ``dims`` columns (the rest of a pose: orientation), or all of either."""
     if not path.is_file():
         raise DatasetError(f"{what}: {path} does not exist")
     try:
-        if path.suffix == ".npy":
-            raw = np.load(path, allow_pickle=False)
+        if path.suffix == ".npy":  # may be an object array (AnyLoc saves with pickle)
+            raw = load_object_npy(path)
         else:
             with open(path, "rb") as f:
                 raw = _PlainUnpickler(f).load()
@@ -92,6 +96,18 @@ def read_position_array(path: Path, n: int, what: str) -> np.ndarray:
         raise DatasetError(
             f"{what}: cannot read {path} as an array of numbers without running code ({error})"
         ) from error
+    if table.dtype == object:  # numbers held as Python objects: plain floats or nothing
+        try:
+            table = np.asarray(table.tolist(), dtype=np.float64)
+        except (TypeError, ValueError):
+            pass  # refused below, naming the dtype
+    if rows is not None:
+        n_rows = len(table) if table.ndim else 0
+        if not rows[0] < rows[1] <= n_rows:
+            raise DatasetError(f"{what}: rows {rows} of {path}, which has {n_rows} rows")
+        table = table[rows[0] : rows[1]]
+    if dims is not None and table.ndim == 2:
+        table = table[:, :dims]
     if table.ndim != 2 or table.shape[1] not in (2, 3) or table.dtype.kind not in "iuf":
         raise DatasetError(
             f"{what}: {path} holds {table.dtype} {table.shape}; expected numbers [N, 2] or "
