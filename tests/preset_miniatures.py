@@ -116,7 +116,7 @@ def vp_air(root: Path, rng) -> dict[str, set[str]]:
     expected = {}
     for q, name in enumerate(queries):
         positives = sorted(rng.choice(len(refs), size=2, replace=False).tolist())
-        rows[q, 0], rows[q, 1] = q, positives
+        rows[q, 0], rows[q, 1] = q + 1, positives  # read by position: the field is ignored
         expected[name] = {refs[i] for i in positives}
     np.save(root / "vpair_gt.npy", rows, allow_pickle=True)
     return expected
@@ -163,6 +163,43 @@ def _pose_list(n_db: int, query_rows: tuple[int, int]) -> Callable:
         return _within(points["q_images"], points["db_images"], 8)
 
     return build
+
+
+def mid_atlantic_ridge(root: Path, rng) -> dict[str, set[str]]:
+    """eiffel_gt.npy: 202 rows of [index, positives], the queries' from row 101 on."""
+    refs = [f"db_{i}.png" for i in range(6)]
+    queries = [f"q_{i}.png" for i in range(101)]
+    for name in refs:
+        write_image(root / "db_images" / name, rng)
+    for name in queries:
+        write_image(root / "q_images" / name, rng)
+    rows = np.empty((202, 2), dtype=object)
+    expected = {}
+    for row in range(202):
+        positives = sorted(rng.choice(6, size=2, replace=False).tolist())
+        rows[row, 0], rows[row, 1] = row, positives
+        if row >= 101:
+            expected[queries[row - 101]] = {refs[i] for i in positives}
+    np.save(root / "eiffel_gt.npy", rows, allow_pickle=True)
+    return expected
+
+
+def nardo_air(root: Path, rng) -> dict[str, set[str]]:
+    """gt_matches.csv: per query row, its five top reference indices."""
+    refs = [f"ref_{i:03d}.png" for i in range(9)]
+    queries = [f"query_{i:03d}.png" for i in range(4)]
+    for name in refs:
+        write_image(root / "reference_images" / name, rng)
+    for name in queries:
+        write_image(root / "query_images" / name, rng)
+    lines = ["query_ind,top_1_ref_ind,top_2_ref_ind,top_3_ref_ind,top_4_ref_ind,top_5_ref_ind"]
+    expected = {}
+    for q, name in enumerate(queries):
+        top = rng.choice(9, size=5, replace=False).tolist()
+        lines.append(",".join(str(v) for v in [q, *top]))
+        expected[name] = {refs[i] for i in top}
+    (root / "gt_matches.csv").write_text("\n".join(lines) + "\n")
+    return expected
 
 
 def baidu_mall(root: Path, rng) -> dict[str, set[str]]:
@@ -269,4 +306,7 @@ MINIATURES: dict[str, Callable[[Path, np.random.Generator], dict[str, set[str]]]
     **{name: _snsm(name) for name in ("m3fd", "boson", "flir", "ino", "llvip", "vot", "vtuav")},
     "hawkins": _pose_list(127, (127, 245)),
     "laurel_caverns": _pose_list(141, (229, 341)),
+    "mid_atlantic_ridge": mid_atlantic_ridge,
+    "nardo_air": nardo_air,
+    "nardo_air_r": nardo_air,
 }

@@ -156,7 +156,7 @@ def test_vprbench_duplicate_query_rows_are_rejected_with_rows_and_gaps(tmp_path)
 def test_ground_truth_without_any_positive_names_the_file(tmp_path):
     write_vprbench(tmp_path / "gt.npy", [(0, []), (1, [7])])
     files = DatasetFiles(reference=[Path("a.jpg"), Path("b.jpg")], query=[Path("c"), Path("d")])
-    spec = {"kind": "vprbench", "file": "gt.npy", "drop_out_of_range": True}
+    spec = truth_spec(kind="vprbench", file="gt.npy", drop_out_of_range=True)
     with pytest.raises(DatasetError, match=r"gt\.npy: no query has a positive"):
         ground_truth(files, spec, tmp_path)
 

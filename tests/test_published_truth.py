@@ -214,3 +214,31 @@ def test_rows_and_leading_columns_of_one_pose_list_give_each_roles_positions(tmp
         read_position_array(tmp_path / "poses.npy", 5, "q", rows=[6, 11], dims=2)
     with pytest.raises(DatasetError, match="expected numbers"):  # 4 columns, no dims
         read_position_array(tmp_path / "poses.npy", 3, "q", rows=[6, 9])
+
+
+def test_a_matches_table_gives_row_is_positives_and_names_a_bad_index(tmp_path):
+    from vprflow.published_truth import matches_csv_ground_truth
+
+    path = tmp_path / "gt_matches.csv"
+    path.write_text("query_ind,top_2_ref_ind,top_1_ref_ind\n7,3,1\n9,0,0\n")
+    truth = matches_csv_ground_truth(path, 2, 4)
+    assert [t.tolist() for t in truth] == [[1, 3], [0]]  # by row, query_ind not read
+    path.write_text("query_ind,top_1_ref_ind\n0,2.5\n")
+    with pytest.raises(DatasetError, match=r"row 2: top_1_ref_ind = '2.5' is not a reference"):
+        matches_csv_ground_truth(path, 1, 4)
+    path.write_text("query_ind,top_1_ref_ind\n0,4\n")
+    with pytest.raises(DatasetError, match="is not a reference index"):
+        matches_csv_ground_truth(path, 1, 4)
+
+
+def test_a_vprbench_file_read_by_position_ignores_the_first_field_and_keeps_rows(tmp_path):
+    from vprflow.ground_truth import vprbench_ground_truth
+
+    rows = np.empty((4, 2), dtype=object)
+    for i, (q, refs) in enumerate([(0, [0]), (1, [1]), (11, [2]), (12, [0, 2])]):
+        rows[i, 0], rows[i, 1] = q, refs
+    np.save(tmp_path / "gt.npy", rows, allow_pickle=True)
+    truth = vprbench_ground_truth(tmp_path / "gt.npy", 2, 3, rows=[2, 4], query_index="position")
+    assert [t.tolist() for t in truth] == [[2], [0, 2]]
+    with pytest.raises(DatasetError, match="query index 11, outside 0..1"):
+        vprbench_ground_truth(tmp_path / "gt.npy", 2, 3, rows=[2, 4], query_index="column")

@@ -16,6 +16,8 @@ its name in results tables and the files it reads. The kinds:
 - ``positions``: references within ``radius`` of each query (Euclidean, in the
   positions' units), positions per role from a folder of Baidu Mall ``.camera`` files or
   an array file in the authors' image order (InsideOut's pickles);
+- ``matches_csv``: a table of ranked matches, row ``i`` query ``i``'s positives in
+  its ``top_<k>_ref_ind`` columns (AnyLoc's Nardo-Air ``gt_matches.csv``);
 - ``msls``: the published MSLS validation lists of one ``city``;
 - ``none``: no ground truth; the workflow ranks and draws, but computes no recall.
 
@@ -44,6 +46,7 @@ from vprflow.published_truth import (
     camera_centres,
     in_published_order,
     load_object_npy,
+    matches_csv_ground_truth,
     msls_ground_truth,
     radius_ground_truth,
     read_position_array,
@@ -102,10 +105,17 @@ def vprbench_ground_truth(
     n_ref: int,
     drop_out_of_range: bool = False,
     *,
+    rows: list[int] | None = None,
+    query_index: str = "column",
     query_folders: str = "",
     reference_folders: str = "",
 ) -> list[np.ndarray]:
     """Per-query reference indices from a VPR-Bench ``ground_truth_new.npy``.
+
+    ``rows = [start, stop]`` keeps those rows of the file (AnyLoc's Mid-Atlantic Ridge
+    uses rows 101 on); ``query_index="position"`` makes row ``i`` the positives of
+    query ``i`` whatever its first field says (AnyLoc's and Revisit-Anything's readers
+    of such files), ``"column"`` reads the query from the first field (VPR-Bench).
 
     Rows are ``[query_index, [ref indices]]``: integers or integral floats, positives
     a list, tuple, 1-D array or single index; anything else (fractions, booleans,
@@ -123,14 +133,21 @@ def vprbench_ground_truth(
         raise DatasetError(
             f"{path}: expected rows of [query_index, [ref indices]], got {table.shape}"
         )
+    if rows is not None:
+        if not rows[0] < rows[1] <= len(table):
+            raise DatasetError(f"{path}: rows {rows} asked of a file of {len(table)} rows")
+        table = table[rows[0] : rows[1]]
     if len(table) != n_query:
         raise DatasetError(
             f"{path} has {len(table)} ground-truth rows but the dataset has {n_query} query "
             f"images{query_folders}"
         )
-    query_indices = [
-        _as_index(q, f"{path} row {row}: query index") for row, q in enumerate(table[:, 0])
-    ]
+    if query_index == "position":
+        query_indices = list(range(len(table)))
+    else:
+        query_indices = [
+            _as_index(q, f"{path} row {row}: query index") for row, q in enumerate(table[:, 0])
+        ]
     outside = [(row, q) for row, q in enumerate(query_indices) if not 0 <= q < n_query]
     if outside:
         row, q = outside[0]
@@ -200,6 +217,8 @@ def _vprbench_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.n
         len(files.query),
         len(files.reference),
         entry["drop_out_of_range"],
+        rows=entry.get("rows"),
+        query_index=entry["query_index"],
         query_folders=role_folders(files.query, folder),
         reference_folders=role_folders(files.reference, folder),
     )
@@ -290,6 +309,10 @@ def _positions_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.
     return radius_ground_truth(reference, query, float(entry["radius"]))
 
 
+def _matches_csv_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
+    return matches_csv_ground_truth(folder / entry["file"], len(files.query), len(files.reference))
+
+
 def _msls_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
     return msls_ground_truth(folder, entry["city"], files.reference, files.query)
 
@@ -333,6 +356,11 @@ KINDS: dict[str, Kind] = {
         _positions_truth,
         lambda entry: f"positions:{entry['reference_positions']}:{entry['radius']}",
         lambda entry: [entry["reference_positions"], entry["query_positions"]],
+    ),
+    "matches_csv": Kind(
+        _matches_csv_truth,
+        lambda entry: f"matches_csv:{entry['file']}",
+        lambda entry: [entry["file"]],
     ),
     "msls": Kind(
         _msls_truth, lambda entry: f"msls:{entry['city']}", lambda entry: list(MSLS_FILES.values())

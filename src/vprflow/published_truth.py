@@ -242,3 +242,42 @@ def msls_ground_truth(
             )
         truth.append(np.unique(np.array([ref_index[n] for n in names], dtype=np.int64)))
     return truth
+
+
+def matches_csv_ground_truth(path: Path, n_query: int, n_ref: int) -> list[np.ndarray]:
+    """Positives from a table of ranked matches, AnyLoc's Nardo-Air ``gt_matches.csv``:
+    row ``i`` (after the header) holds query ``i``'s positives in its ``top_<k>_ref_ind``
+    columns (the authors' ``aerial_dataloader`` reads rows by position; ``query_ind`` is
+    not consulted). Indices must be integers within the references."""
+    import csv
+
+    if not path.is_file():
+        raise DatasetError(f"ground_truth.file {path} does not exist")
+    with open(path, newline="", encoding="utf-8-sig") as f:
+        reader = csv.DictReader(f)
+        columns = [c for c in reader.fieldnames or [] if re.fullmatch(r"top_\d+_ref_ind", c)]
+        if not columns:
+            raise DatasetError(
+                f"{path}: no top_<k>_ref_ind columns (header: {reader.fieldnames}); expected "
+                "AnyLoc's gt_matches.csv"
+            )
+        columns.sort(key=lambda c: int(c.split("_")[1]))
+        truth = []
+        for row, record in enumerate(reader):
+            indices = []
+            for column in columns:
+                text = (record[column] or "").strip()
+                try:
+                    value = float(text)
+                except ValueError:
+                    value = float("nan")
+                if not value.is_integer() or not 0 <= value < n_ref:
+                    raise DatasetError(
+                        f"{path} row {row + 2}: {column} = {text!r} is not a reference index "
+                        f"(0..{n_ref - 1})"
+                    )
+                indices.append(int(value))
+            truth.append(np.unique(np.array(indices, dtype=np.int64)))
+    if len(truth) != n_query:
+        raise DatasetError(f"{path} has {len(truth)} rows but the dataset has {n_query} queries")
+    return truth
