@@ -174,6 +174,10 @@ def datasets_doc() -> str:
         "plan when its folder exists, when `targets` names it or when `datasets` has an",
         "entry of its name.",
         "",
+        "Published recall is listed where vprflow's sources state it (the papers' tables",
+        "are not in their repositories); otherwise the table says see the paper. Each",
+        "preset's section names the code its layout and rule were read from.",
+        "",
         "| preset | dataset | positives | queries counted | size | vocabulary |"
         " published R@1 / R@5 |",
         "|---|---|---|---|---|---|---|",
@@ -188,7 +192,7 @@ def datasets_doc() -> str:
         lines.append(
             f"| `{preset.name}` | {preset.title} | `{_rule(entry['ground_truth'])}` | "
             f"{entry['denominator']} | {width} x {height} | {_vocabulary(entry)} | "
-            f"{published or 'see below'} |"
+            f"{published or 'see the paper'} |"
         )
     for preset in presets().values():
         lines += [
