@@ -25,8 +25,10 @@ import pytest
 from PIL import Image
 
 from vprflow.images import (
+    EXIF_ORIENTATIONS,
     RESIZE_METHODS,
     ImageReadError,
+    image_size,
     natural_key,
     read_image,
     resize_image,
@@ -201,6 +203,21 @@ def test_exif_orientation_is_applied_by_default_and_ignored_on_request(tmp_path)
     np.testing.assert_array_equal(upright, pixels.astype(np.float32) / 255.0)
     stored = read_image(tmp_path / "photo.png", exif_orientation="ignore")
     np.testing.assert_array_equal(stored, np.rot90(pixels, k=1).astype(np.float32) / 255.0)
+
+
+@pytest.mark.parametrize("orientation", range(1, 9))
+def test_image_size_from_the_header_is_the_read_images_size(tmp_path, orientation):
+    pixels = np.zeros((6, 10, 3), dtype=np.uint8)
+    exif_rotated(pixels, tmp_path / "photo.png", orientation)
+    for exif in EXIF_ORIENTATIONS:
+        height, width = read_image(tmp_path / "photo.png", exif_orientation=exif).shape[:2]
+        assert image_size(tmp_path / "photo.png", exif) == (width, height)
+
+
+def test_image_size_of_a_file_that_is_not_an_image_names_it(tmp_path):
+    (tmp_path / "a.jpg").write_text("not an image")
+    with pytest.raises(ImageReadError, match="a.jpg"):
+        image_size(tmp_path / "a.jpg")
 
 
 def test_exif_orientation_matches_cv2_imread(tmp_path):

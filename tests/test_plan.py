@@ -459,3 +459,42 @@ def test_a_parameter_the_index_does_not_take_is_refused_when_planning(config):
     config["methods"]["segvlad"]["retrieval"] = {"index": "hnsw", "params": {"nprobe": 8}}
     with pytest.raises(PlanError, match=r"method 'segvlad'.*\['nprobe'\].*index 'hnsw'"):
         build_plan(config)
+
+
+def test_native_resolution_plans_the_images_own_size_and_the_stage_refuses_another(tmp_path):
+    from PIL import Image
+    from synthetic import make_dataset
+    from workflow_helpers import toy_config
+
+    from vprflow.datasets import DatasetError
+    from vprflow.stages.dataset import build_dataset
+
+    make_dataset(tmp_path / "toy", n_places=3, width=80, height=60)
+    native = validate_config(toy_config(tmp_path, resolution="native"), SCHEMA)
+    sized = validate_config(toy_config(tmp_path, resolution=[80, 60]), SCHEMA)
+
+    def resolutions(config):
+        plan = build_plan(config)
+        return {
+            stage: [s.record["params"]["resolution"] for s in plan.stages[stage].values()]
+            for stage in ("features", "segments")
+        }
+
+    assert (
+        resolutions(native)
+        == resolutions(sized)
+        == {
+            "features": [[80, 60]],
+            "segments": [[40, 30]],
+        }
+    )
+    assert native["datasets"]["toy"]["resolution"] == "native"  # the caller's config as given
+    (stage,) = build_plan(native).stages["dataset"].values()
+    assert stage.record["params"]["native_size"] == [80, 60]
+    build_dataset("toy", stage.record, str(tmp_path), str(tmp_path / "ok.zarr"))
+
+    Image.new("RGB", (60, 80)).save(tmp_path / "toy" / "query" / "zz_portrait.png")
+    (stage,) = build_plan(native).stages["dataset"].values()
+    with pytest.raises(DatasetError, match=r"zz_portrait\.png is 60 x 80.*resolution: \[width"):
+        build_dataset("toy", stage.record, str(tmp_path), str(tmp_path / "bad.zarr"))
+    assert not (tmp_path / "bad.zarr").exists()

@@ -118,6 +118,26 @@ def decode_image(data: bytes, path: str | Path, exif_orientation: str = "apply")
 RESIZE_METHODS = ("linear", "antialias")
 
 
+# EXIF Orientation values that turn the stored pixels by 90 degrees (swap width and height).
+_TRANSPOSING_ORIENTATIONS = (5, 6, 7, 8)
+
+
+def image_size(path: str | Path, exif_orientation: str = "apply") -> tuple[int, int]:
+    """``(width, height)`` of an image as :func:`read_image` returns it, from its header
+    alone (no pixels decoded)."""
+    if exif_orientation not in EXIF_ORIENTATIONS:
+        raise ValueError(f"exif_orientation must be one of {EXIF_ORIENTATIONS}")
+    try:
+        with Image.open(path) as image:
+            width, height = image.size
+            orientation = image.getexif().get(0x0112) if exif_orientation == "apply" else None
+    except (OSError, UnidentifiedImageError) as error:
+        raise ImageReadError(f"cannot read image {path}: {error}") from error
+    if orientation in _TRANSPOSING_ORIENTATIONS:
+        return height, width
+    return width, height
+
+
 def resize_image(image: np.ndarray, width: int, height: int, method: str = "linear") -> np.ndarray:
     """Resize a float image ``[H, W, C]`` to float32 ``[height, width, C]`` in ``[0, 1]``.
 

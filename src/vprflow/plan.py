@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
 from vprflow.fingerprints import dataset_contents, file_digest, memoised, source_fingerprint
+from vprflow.images import ImageReadError, image_size
 from vprflow.paths import PUBLISHED_VOCABULARY, store_path
 from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 
@@ -212,8 +213,11 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
     """
     memo = {} if memo is None else memo
     plan = Plan()
+    # Native resolutions become sizes here; the caller's config stays as given.
+    config = {**config, "datasets": dict(config["datasets"])}
     for dataset_name, dataset in sorted(config["datasets"].items()):
         dataset_key = _plan_dataset(plan, config, dataset_name, dataset, memo)
+        dataset = config["datasets"][dataset_name]
         plan.dataset_keys[dataset_name] = dataset_key
         plan.has_ground_truth[dataset_name] = dataset["ground_truth"]["kind"] != "none"
         plan.runs[dataset_name] = [
@@ -236,6 +240,16 @@ def _plan_dataset(plan: Plan, config: dict, name: str, dataset: dict, memo: dict
         # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
         "contents": contents,
     }
+    if dataset["resolution"] == "native" and files is not None:
+        # Later stages are keyed by the size itself; the dataset stage checks that
+        # every image has it (the first image stands for all at planning time).
+        try:
+            size = list(image_size((files.reference + files.query)[0], dataset["exif_orientation"]))
+        except ImageReadError:
+            size = None  # the dataset stage decodes every image and names this one
+        if size is not None:
+            params["native_size"] = size
+            config["datasets"][name] = {**dataset, "resolution": size}
     return plan.add("dataset", params, {}, name)
 
 
@@ -340,7 +354,7 @@ def _plan_features(m: _Method) -> tuple[_StoreRef, dict]:
         "resolution": _resolution(m.dataset, backbone),
     }
     patch = backbone.get("patch_size")
-    if patch and min(params["resolution"]) < patch:
+    if patch and params["resolution"] != "native" and min(params["resolution"]) < patch:
         where = (
             f"datasets.{m.dataset_name}.resolution"
             if backbone["resolution"] == "dataset"
@@ -474,15 +488,19 @@ def _hashed(params: dict) -> dict:
     return {k: v for k, v in params.items() if k not in EXECUTION_ONLY}
 
 
-def _resolution(dataset: dict, profile: dict) -> list[int]:
-    if profile["resolution"] == "dataset":
-        return list(dataset["resolution"])
-    return list(profile["resolution"])
+def _resolution(dataset: dict, profile: dict) -> list[int] | str:
+    if profile["resolution"] != "dataset":
+        return list(profile["resolution"])
+    if dataset["resolution"] == "native":
+        return "native"  # the dataset cannot be listed: its stage fails first, naming why
+    return list(dataset["resolution"])
 
 
-def _segment_resolution(dataset: dict, segmenter: dict) -> list[int]:
+def _segment_resolution(dataset: dict, segmenter: dict) -> list[int] | str:
     if segmenter.get("resolution") not in (None, "dataset"):
         return list(segmenter["resolution"])
+    if dataset["resolution"] == "native":
+        return "native"  # as in _resolution
     width, height = dataset["resolution"]
     scale = segmenter["resolution_scale"]
     return [max(1, round(width * scale)), max(1, round(height * scale))]

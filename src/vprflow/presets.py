@@ -174,8 +174,15 @@ def datasets_doc() -> str:
         "plan when its folder exists, when `targets` names it or when `datasets` has an",
         "entry of its name.",
         "",
-        "Published recall is listed where vprflow's sources state it (the papers' tables",
-        "are not in their repositories); otherwise the table says see the paper. Each",
+        "Published recall (percent) is for orientation: what the papers report with the",
+        "authors' weights, DINOv2 ViT-G/14 (layer 31, value facet) for AnyLoc-VLAD and",
+        "SegVLAD-PreT, a fine-tuned DINOv2 ViT-B/14 for SegVLAD-FineT (its checkpoint is",
+        "the authors' own file). (M) marks the map vocabulary, (D) the domain vocabulary",
+        "the presets use by default. The numbers were transcribed from the papers' tables",
+        '(named with each); check them against the paper before you cite them. "none',
+        'found" means neither the AnyLoc nor the Revisit Anything paper reports the',
+        "dataset and the SNSM paper's tables could not be read here. `native` size: every",
+        "image as stored (its size, the first image's, must be every image's). Each",
         "preset's section names the code its layout and rule were read from.",
         "",
         "| preset | dataset | positives | queries counted | size | vocabulary |"
@@ -188,11 +195,12 @@ def datasets_doc() -> str:
             f"{p['method']} {p['recall@1']} / {p['recall@5']} ({p['paper']})"
             for p in preset.published
         )
-        width, height = entry["resolution"]
+        size = entry["resolution"]
+        size = "native" if size == "native" else f"{size[0]} x {size[1]}"
         lines.append(
             f"| `{preset.name}` | {preset.title} | `{_rule(entry['ground_truth'])}` | "
-            f"{entry['denominator']} | {width} x {height} | {_vocabulary(entry)} | "
-            f"{published or 'see the paper'} |"
+            f"{entry['denominator']} | {size} | {_vocabulary(entry)} | "
+            f"{published or 'none found'} |"
         )
     for preset in presets().values():
         lines += [

@@ -48,6 +48,8 @@ def build_dataset(
     )
     if contents != params["contents"]:
         raise DatasetError(_changed_since_planning(name, paths, by_path, fingerprints))
+    if "native_size" in params:
+        _check_native_size(name, paths, sizes, params["native_size"])
     # A copied folder: the same images under other names.
     datasets.check_disjoint(
         name, files.reference, files.query, by_path.get, "are byte-identical copies of references"
@@ -93,6 +95,22 @@ def build_dataset(
         len(files.query),
         folder.resolve(),
     )
+
+
+def _check_native_size(name: str, paths: list[Path], sizes: np.ndarray, size: list[int]) -> None:
+    """``resolution: native`` keys later stages by one size (``[width, height]``, the
+    first image's at planning time): an image of another size is refused, by name."""
+    width, height = size
+    wrong = np.flatnonzero((sizes[:, 0] != height) | (sizes[:, 1] != width))
+    if len(wrong):
+        first = wrong[0]
+        raise DatasetError(
+            f"dataset {name!r} has resolution: native, planned at {width} x {height} (the size "
+            f"of {paths[0]}), but {paths[first]} is {sizes[first, 1]} x {sizes[first, 0]}"
+            f"{f' (and {len(wrong) - 1} more images differ)' if len(wrong) > 1 else ''}: "
+            "native resolution needs one size for every image; give the dataset a "
+            "`resolution: [width, height]` to resize them all"
+        )
 
 
 def _read_bytes(path: Path) -> bytes:
