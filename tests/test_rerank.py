@@ -1,0 +1,341 @@
+"""Re-ranking by local patch matches (vprflow.rerank) against direct loops in float64.
+
+Mutual nearest neighbours: float32 inputs, the direct double loop computes every dot
+product in float64 and breaks ties by the lower index; similarities agree to 1e-6. The
+exact-tie cases use small integer descriptors, whose dot products are exact in float32
+whatever the summation order, so float32 and float64 see the same ties. RANSAC: synthetic
+correspondences from a known homography plus uniform outliers.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from vprflow.rerank import (
+    mnn_score,
+    mutual_nearest_neighbours,
+    patch_centres,
+    ransac_inliers,
+    rerank,
+    rerank_scores,
+)
+
+
+def unit_rows(rng: np.random.Generator, n: int, dim: int) -> np.ndarray:
+    x = rng.normal(size=(n, dim))
+    return (x / np.linalg.norm(x, axis=1, keepdims=True)).astype(np.float32)
+
+
+def direct_mnn(query: np.ndarray, candidate: np.ndarray):
+    """Pairs ``(i, j, similarity)`` by a double loop in float64; on ties the lower index
+    wins (only a strictly larger similarity replaces the best so far)."""
+    q, c = query.astype(np.float64), candidate.astype(np.float64)
+    sim = [[float(np.dot(q[i], c[j])) for j in range(len(c))] for i in range(len(q))]
+    forward = []
+    for i in range(len(q)):
+        best = 0
+        for j in range(1, len(c)):
+            if sim[i][j] > sim[i][best]:
+                best = j
+        forward.append(best)
+    backward = []
+    for j in range(len(c)):
+        best = 0
+        for i in range(1, len(q)):
+            if sim[i][j] > sim[best][j]:
+                best = i
+        backward.append(best)
+    pairs = [
+        (i, forward[i], sim[i][forward[i]]) for i in range(len(q)) if backward[forward[i]] == i
+    ]
+    return pairs
+
+
+def integer_rows_with_ties(rng: np.random.Generator, n: int, dim: int) -> np.ndarray:
+    """Small integer descriptors with duplicated rows, so that nearest neighbours tie."""
+    x = rng.integers(-2, 3, size=(n, dim)).astype(np.float32)
+    x[n // 2 :] = x[: n - n // 2]  # the second half repeats the first
+    return x
+
+
+def has_tie(query: np.ndarray, candidate: np.ndarray) -> bool:
+    sim = query.astype(np.float64) @ candidate.astype(np.float64).T
+    best_forward = (sim == sim.max(axis=1, keepdims=True)).sum(axis=1)
+    best_backward = (sim == sim.max(axis=0, keepdims=True)).sum(axis=0)
+    return bool((best_forward > 1).any() or (best_backward > 1).any())
+
+
+def check_against_direct(query: np.ndarray, candidate: np.ndarray) -> None:
+    i, j, similarity = mutual_nearest_neighbours(
+        torch.from_numpy(query), torch.from_numpy(candidate)
+    )
+    expected = direct_mnn(query, candidate)
+    assert i.dtype == np.int64 and j.dtype == np.int64
+    assert list(zip(i.tolist(), j.tolist(), strict=True)) == [(a, b) for a, b, _ in expected]
+    np.testing.assert_allclose(similarity, [s for _, _, s in expected], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_mutual_nearest_neighbours_match_a_double_loop_on_random_unit_descriptors(seed):
+    rng = np.random.default_rng(seed)
+    query, candidate = unit_rows(rng, 23, 16), unit_rows(rng, 31, 16)
+    # Some near-duplicates so that the mutual set is not only chance pairs.
+    candidate[:8] = query[5:13] + 0.05 * unit_rows(rng, 8, 16)
+    check_against_direct(query, candidate)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_mutual_nearest_neighbours_break_exact_ties_by_the_lower_index_like_the_loop(seed):
+    rng = np.random.default_rng(100 + seed)
+    query, candidate = integer_rows_with_ties(rng, 14, 6), integer_rows_with_ties(rng, 18, 6)
+    candidate[:4] = query[:4]
+    assert has_tie(query, candidate)
+    check_against_direct(query, candidate)
+
+
+def test_the_lower_index_wins_a_tie_on_either_side():
+    one = torch.tensor([[1.0, 0.0]])
+    two = torch.tensor([[1.0, 0.0], [1.0, 0.0]])
+    i, j, similarity = mutual_nearest_neighbours(one, two)
+    assert (i.tolist(), j.tolist(), similarity.tolist()) == ([0], [0], [1.0])
+    i, j, _ = mutual_nearest_neighbours(two, one)
+    assert (i.tolist(), j.tolist()) == ([0], [0])
+
+
+def test_mutual_nearest_neighbours_of_an_empty_set_are_empty():
+    i, j, similarity = mutual_nearest_neighbours(torch.zeros(0, 4), torch.ones(3, 4))
+    assert len(i) == len(j) == len(similarity) == 0
+
+
+def test_mutual_nearest_neighbours_accept_numpy_and_return_numpy():
+    rng = np.random.default_rng(7)
+    query, candidate = unit_rows(rng, 9, 8), unit_rows(rng, 11, 8)
+    from_numpy = mutual_nearest_neighbours(query, candidate)
+    from_torch = mutual_nearest_neighbours(torch.from_numpy(query), torch.from_numpy(candidate))
+    for a, b in zip(from_numpy, from_torch, strict=True):
+        assert isinstance(a, np.ndarray)
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_mnn_score_counts_or_sums_the_mutual_pairs_as_the_direct_formula(seed):
+    rng = np.random.default_rng(200 + seed)
+    query, candidate = unit_rows(rng, 20, 12), unit_rows(rng, 25, 12)
+    candidate[:10] = query[:10] + 0.1 * unit_rows(rng, 10, 12)
+    pairs = direct_mnn(query, candidate)
+    similarities = np.array([s for _, _, s in pairs])
+    assert mnn_score(query, candidate) == len(pairs)
+    assert mnn_score(query, candidate, "similarity") == pytest.approx(similarities.sum(), abs=1e-5)
+    cut = float(np.median(similarities))
+    kept = similarities[similarities >= cut]
+    assert mnn_score(query, candidate, "count", min_similarity=cut) == len(kept)
+    assert mnn_score(query, candidate, "similarity", min_similarity=cut) == pytest.approx(
+        kept.sum(), abs=1e-5
+    )
+
+
+def test_mnn_score_keeps_a_pair_exactly_at_min_similarity():
+    query = torch.tensor([[2.0, 0.0], [0.0, 1.0]])
+    candidate = torch.tensor([[1.0, 0.0], [0.0, 3.0]])  # mutual pairs with similarity 2 and 3
+    assert mnn_score(query, candidate, min_similarity=2.0) == 2
+    assert mnn_score(query, candidate, min_similarity=2.5) == 1
+    assert mnn_score(query, candidate, "similarity", min_similarity=2.0) == 5.0
+
+
+def test_patch_centres_are_row_major_pixel_centres_of_each_patch():
+    expected = [[7, 7], [21, 7], [35, 7], [7, 21], [21, 21], [35, 21]]
+    np.testing.assert_array_equal(patch_centres(2, 3, 14), expected)
+
+
+def synthetic_correspondences(seed: int, n_in: int = 60, n_out: int = 60, noise: float = 0.5):
+    """``(query_xy, candidate_xy, true_inliers)``: candidate points mapped through a known
+    homography (plus noise) for the first ``n_in`` rows, uniform points for the rest;
+    the true count is of rows within 3 px of the true mapping."""
+    rng = np.random.default_rng(seed)
+    homography = np.array([[1.02, 0.04, 15.0], [-0.03, 0.98, -9.0], [2e-4, -1e-4, 1.0]])
+    candidate = rng.uniform(0, 320, size=(n_in + n_out, 2))
+    mapped = np.c_[candidate, np.ones(len(candidate))] @ homography.T
+    exact = mapped[:, :2] / mapped[:, 2:]
+    query = exact.copy()
+    query[:n_in] += rng.normal(0, noise, size=(n_in, 2))
+    query[n_in:] = rng.uniform(0, 320, size=(n_out, 2))
+    true_inliers = int((np.linalg.norm(query - exact, axis=1) <= 3.0).sum())
+    return query, candidate, true_inliers
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_ransac_inliers_recover_the_true_inliers_of_a_known_homography(seed):
+    pytest.importorskip("cv2")
+    query, candidate, true_inliers = synthetic_correspondences(seed)
+    assert abs(ransac_inliers(query, candidate, threshold=3.0) - true_inliers) <= 2
+
+
+def test_ransac_inliers_fit_an_affine_model_too():
+    pytest.importorskip("cv2")
+    rng = np.random.default_rng(3)
+    candidate = rng.uniform(0, 200, size=(50, 2))
+    query = candidate @ np.array([[0.9, 0.1], [-0.1, 1.1]]).T + [5.0, -3.0]
+    query[35:] = rng.uniform(0, 200, size=(15, 2))
+    assert ransac_inliers(query, candidate, threshold=1.0, model="affine") == 35
+
+
+def test_ransac_inliers_are_the_same_for_the_same_seed_whatever_opencvs_global_rng():
+    cv2 = pytest.importorskip("cv2")
+    query, candidate, _ = synthetic_correspondences(5, n_in=30, n_out=120, noise=1.0)
+    cv2.setRNGSeed(1)
+    first = ransac_inliers(query, candidate, threshold=3.0, seed=11, max_iters=50)
+    cv2.setRNGSeed(2)
+    second = ransac_inliers(query, candidate, threshold=3.0, seed=11, max_iters=50)
+    assert first == second
+
+
+def test_ransac_inliers_draw_different_samples_for_different_seeds():
+    pytest.importorskip("cv2")
+    # Twenty iterations on a set with 20% inliers: which samples are drawn decides whether
+    # the fit finds the homography, so different seeds give different counts if and only
+    # if the seed reaches the sampler.
+    query, candidate, _ = synthetic_correspondences(2, n_in=30, n_out=120)
+    counts = {ransac_inliers(query, candidate, 3.0, seed=s, max_iters=20) for s in range(10)}
+    assert len(counts) > 1
+
+
+@pytest.mark.parametrize("n", range(4))
+def test_ransac_inliers_of_fewer_than_four_correspondences_are_zero(n):
+    points = np.arange(2 * n, dtype=np.float64).reshape(n, 2)
+    assert ransac_inliers(points, points, threshold=1.0) == 0
+
+
+def test_ransac_inliers_of_collinear_points_are_zero():
+    pytest.importorskip("cv2")
+    line = np.c_[np.arange(10.0), np.arange(10.0)]
+    assert ransac_inliers(line + 1, line, threshold=1.0) == 0
+
+
+def toy_candidates(seed: int, h: int = 6, w: int = 8, dim: int = 32):
+    """Query patches ``[h*w, D]`` and three candidates ``[3, h*w, D]``: unrelated
+    features; the query's patches scrambled over the grid; the query's patches shifted
+    one patch to the right (the vacated column holds new features)."""
+    rng = np.random.default_rng(seed)
+    query = unit_rows(rng, h * w, dim)
+    grid = query.reshape(h, w, dim)
+    unrelated = unit_rows(rng, h * w, dim)
+    scrambled = query[rng.permutation(h * w)]
+    shifted = np.empty_like(grid)
+    shifted[:, 1:] = grid[:, :-1]
+    shifted[:, 0] = unit_rows(rng, h, dim)
+    return query, np.stack([unrelated, scrambled, shifted.reshape(h * w, dim)])
+
+
+def test_mnn_ranks_a_candidate_with_the_querys_patches_first_wherever_they_are():
+    query, candidates = toy_candidates(0)
+    scores = rerank_scores(query, candidates, (6, 8), 14, "mnn")
+    assert scores.dtype == np.float64 and scores.shape == (3,)
+    assert scores[1] == 48  # every patch, scrambled or not, is its own mutual match
+    assert scores.argmax() == 1
+    assert scores[2] > scores[0]
+
+
+def test_ransac_ranks_the_shifted_view_of_the_query_above_a_scrambled_one():
+    pytest.importorskip("cv2")
+    query, candidates = toy_candidates(0)
+    scores = rerank_scores(query, candidates, (6, 8), 14, "ransac", threshold=0.5)
+    assert scores.argmax() == 2
+    assert scores[2] == 6 * 7  # the shifted columns fit a translation exactly
+    assert scores[1] < 10
+
+
+def test_rerank_scores_min_similarity_drops_weak_pairs_before_counting():
+    query, candidates = toy_candidates(1)
+    everything = rerank_scores(query, candidates, (6, 8), 14, "mnn")
+    strong = rerank_scores(query, candidates, (6, 8), 14, "mnn", min_similarity=0.99)
+    np.testing.assert_array_equal(strong, [0, 48, 42])
+    assert (everything >= strong).all()
+
+
+def test_rerank_scores_of_no_candidates_are_empty():
+    query, _ = toy_candidates(2)
+    scores = rerank_scores(query, np.zeros((0, 48, 32), np.float32), (6, 8), 14, "ransac")
+    assert scores.shape == (0,) and scores.dtype == np.float64
+
+
+def test_rerank_sorts_by_decreasing_score_keeping_retrieval_order_on_ties():
+    ranking = np.array([10, 11, 12, 13, 14], dtype=np.int64)
+    scores = np.array([1.0, 3.0, 2.0, 3.0, 1.0])
+    new_ranking, new_scores = rerank(ranking, scores)
+    np.testing.assert_array_equal(new_ranking, [11, 13, 12, 10, 14])
+    np.testing.assert_array_equal(new_scores, [3.0, 3.0, 2.0, 1.0, 1.0])
+    assert new_ranking.dtype == np.int64 and new_scores.dtype == np.float64
+
+
+def test_rerank_keeps_missing_candidates_last_whatever_their_score():
+    ranking = np.array([10, -1, 11, -1, 12], dtype=np.int64)
+    scores = np.array([1.0, 99.0, 3.0, -np.inf, -np.inf])
+    new_ranking, new_scores = rerank(ranking, scores)
+    np.testing.assert_array_equal(new_ranking, [11, 10, 12, -1, -1])
+    np.testing.assert_array_equal(new_scores, [3.0, 1.0, -np.inf, 99.0, -np.inf])
+
+
+@pytest.mark.parametrize(
+    ("call", "named"),
+    [
+        (lambda: mutual_nearest_neighbours(torch.zeros(4), torch.zeros(3, 4)), "query"),
+        (lambda: mutual_nearest_neighbours(torch.zeros(2, 4), torch.zeros(3, 5)), "candidate"),
+        (lambda: mutual_nearest_neighbours(torch.zeros(2, 4), torch.zeros(3, 4, 1)), "candidate"),
+        (lambda: mnn_score(torch.eye(3), torch.eye(3), "mean"), "weighting"),
+        (
+            lambda: mnn_score(torch.eye(3), torch.eye(3), min_similarity=float("nan")),
+            "min_similarity",
+        ),
+        (lambda: patch_centres(2, 0, 14), "grid_w"),
+        (lambda: patch_centres(2, 3, 0), "patch"),
+        (lambda: ransac_inliers(np.zeros((5, 2)), np.zeros((4, 2)), 1.0), "candidate_xy"),
+        (lambda: ransac_inliers(np.zeros((5, 3)), np.zeros((5, 3)), 1.0), "query_xy"),
+        (lambda: ransac_inliers(np.zeros((5, 2)), np.zeros((5, 2)), 0.0), "threshold"),
+        (lambda: ransac_inliers(np.zeros((5, 2)), np.zeros((5, 2)), 1.0, "similarity"), "model"),
+        (lambda: ransac_inliers(np.zeros((5, 2)), np.zeros((5, 2)), 1.0, seed=-1), "seed"),
+        (lambda: ransac_inliers(np.zeros((5, 2)), np.zeros((5, 2)), 1.0, max_iters=0), "max_iters"),
+        (
+            lambda: ransac_inliers(np.zeros((5, 2)), np.zeros((5, 2)), 1.0, confidence=1),
+            "confidence",
+        ),
+        (
+            lambda: rerank_scores(np.zeros((6, 4)), np.zeros((2, 6, 4)), (2, 3), 14, "sift"),
+            "method",
+        ),
+        (
+            lambda: rerank_scores(np.zeros((6, 4)), np.zeros((6, 4)), (2, 3), 14, "mnn"),
+            "candidates_features",
+        ),
+        (
+            lambda: rerank_scores(np.zeros(6), np.zeros((2, 6, 4)), (2, 3), 14, "mnn"),
+            "query_features",
+        ),
+        (lambda: rerank_scores(np.zeros((6, 4)), np.zeros((2, 6, 4)), (3, 3), 14, "mnn"), "grid"),
+        (
+            lambda: rerank_scores(np.zeros((6, 4)), np.zeros((2, 6, 5)), (2, 3), 14, "mnn"),
+            "dimension",
+        ),
+        (
+            lambda: rerank_scores(
+                np.zeros((6, 4)), np.zeros((0, 6, 4)), (2, 3), 14, "ransac", threshold=-1
+            ),
+            "threshold",
+        ),
+        (lambda: rerank(np.array([1, 2]), np.array([1.0])), "scores"),
+        (lambda: rerank(np.array([[1, 2]]), np.array([[1.0, 2.0]])), "ranking_row"),
+        (lambda: rerank(np.array([1, -2]), np.array([1.0, 2.0])), "ranking_row"),
+        (lambda: rerank(np.array([1, 2]), np.array([1.0, np.nan])), "NaN"),
+    ],
+)
+def test_bad_arguments_raise_value_errors_that_name_them(call, named):
+    with pytest.raises(ValueError, match=named):
+        call()
+
+
+def test_rerank_scores_rejects_options_of_the_other_method_by_name():
+    with pytest.raises(TypeError, match="weighting"):
+        rerank_scores(
+            np.zeros((6, 4)), np.zeros((1, 6, 4)), (2, 3), 14, "ransac", weighting="count"
+        )
