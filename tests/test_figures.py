@@ -3,6 +3,8 @@ match between a query and its reference, recall curves against a direct count.""
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -137,6 +139,52 @@ def test_recall_table_page_shows_each_method_its_recall_and_marks_the_best():
     assert "<b>0.500</b>" not in page and "<td>0.800</td>" in page
     assert "<th>n_queries</th>" in page and "counted: 10 queries" in page
     assert "<th>ground_truth</th>" not in page  # one rule per dataset: said in the notes
+
+
+def test_recall_table_page_shows_map_precision_recall_and_cost_and_bolds_only_scores():
+    base = {
+        "dataset": "d",
+        "aggregator": "x",
+        "recall@1": "0.5",
+        "map@5": "0.4",
+        "auc_pr": "0.6",
+        "recall_at_100_precision": "0.1",
+        "extended_precision": "0.55",
+        "descriptor_bytes_per_image": "2048",
+        "search_ms_per_query": "0.2",
+        "rerank_ms_per_query": "",
+        "segvlad.order": "3",
+    }
+    rows = [
+        {**base, "method": "a", "reranker": ""},
+        {**base, "method": "a+mnn", "reranker": "mnn", "auc_pr": "0.8",
+         "descriptor_bytes_per_image": "4096", "rerank_ms_per_query": "12.5"},
+    ]  # fmt: skip
+    page = figures.recall_table_html(rows, "d", [])
+    header = re.findall(r"<th>([^<]*)</th>", page)
+    assert header == [
+        "method", "aggregator", "reranker", "recall@1", "map@5", "auc_pr",
+        "recall_at_100_precision", "extended_precision", "descriptor_bytes_per_image",
+        "search_ms_per_query", "rerank_ms_per_query",
+    ]  # fmt: skip
+    assert "<b>0.800</b>" in page and "<td>0.600</td>" in page
+    # Costs are shown as stored, never bolded (lower is better there).
+    assert "<td>4096</td>" in page and "<td>12.5</td>" in page and "<b>4096" not in page
+
+
+def test_the_recall_figure_draws_precision_recall_curves_in_a_second_panel():
+    curves = {"a": np.linspace(0.2, 1, 10), "a+mnn": np.linspace(0.4, 1, 10)}
+    pr = {"a": (np.array([1.0, 0.5, 0.6]), np.array([0.5, 0.5, 1.0]))}
+    figure = figures.recall_curve_figure(curves, "t", [1, 5], precision_recall=pr)
+    left, right = figure.axes
+    assert [line.get_label() for line in left.get_lines()][::2] == ["a", "a+mnn"]
+    (line,) = right.get_lines()  # a+mnn had no correct top-1: no curve
+    # VPR-Bench's curve starts at (recall 0, precision 1).
+    np.testing.assert_array_equal(line.get_xdata(), [0.0, 0.5, 0.5, 1.0])
+    np.testing.assert_array_equal(line.get_ydata(), [1.0, 1.0, 0.5, 0.6])
+    assert line.get_color() == left.get_lines()[0].get_color()
+    assert len(figures.recall_curve_figure(curves, "t").axes) == 1
+    figures._pyplot().close("all")
 
 
 def test_a_16_bit_grayscale_image_keeps_its_range_in_a_thumbnail(tmp_path):

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 from conftest import in_ci
+from workflow_helpers import repo_config
 
 pytestmark = [pytest.mark.workflow, pytest.mark.data]
 
@@ -36,7 +37,11 @@ def test_report_holds_the_table_the_curve_and_the_montages(corridor_run):
     # by method inside per-figure folders, so compare them as the report embeds them.
     montages = sorted((results / "figures" / "corridor" / "retrievals").glob("*.png"))
     matches = sorted((results / "figures" / "corridor" / "segment_matches").glob("*.png"))
-    assert len(montages) == 5 and len(matches) == 4
+    # Each re-ranked row (method+reranker) has its own montage, re-ranked beside retrieved.
+    corridor = repo_config()["datasets"]["corridor"]
+    rows = len(corridor["methods"]) + sum(len(r) for r in corridor["rerank"].values())
+    assert rows > len(corridor["methods"])
+    assert len(montages) == rows and len(matches) == 4
     text = report.read_text()
     for png in (montages[0], matches[0]):
         data = base64.b64encode(png.read_bytes()).decode()

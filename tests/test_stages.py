@@ -91,7 +91,12 @@ def pipeline(tmp_path_factory):
         recall_at=[1, 3],
         methods=METHODS,
         defaults={"pca": {"dim": 8, "whiten": False}, "segvlad": {"order": 1}},
+        rerank={"anyloc_vlad": ["mnn"], "segvlad": ["ransac"]},
     )
+    config["rerankers"] = {
+        "mnn": {"kind": "mnn", "features": "daisy", "top_k": 4},
+        "ransac": {"kind": "ransac", "features": "daisy", "min_similarity": 0.5},
+    }
     config["vocabulary"].update(n_clusters=3, n_iter=5)
     config["segmenters"]["slic"].update(n_segments=6, resolution_scale=1.0)
     config = validate_config(config, SCHEMA)
@@ -223,6 +228,65 @@ def test_global_recall_matches_a_direct_ranking(pipeline):
     np.testing.assert_array_equal(np.asarray(result["ranking"][...])[:, :3], order[:, :3])
 
 
+def rerank_store(pipeline, method: str):
+    plan, runner, _, _ = pipeline
+    run = {r.method: r for r in plan.runs["toy"]}[method]
+    return stores.open_store(runner.path(*plan.get("recall", run.recall_key).inputs["rerank"]))
+
+
+def test_reranked_rows_sort_the_retrieval_top_k_by_directly_counted_mutual_matches(pipeline):
+    """anyloc_vlad+mnn: each candidate's score is the number of mutual nearest patch
+    pairs, counted here in float64 with loops; the order is the retrieval's top 4
+    sorted by that count, ties kept in retrieval order."""
+    reranked = rerank_store(pipeline, "anyloc_vlad+mnn")
+    features = stores.open_store(stage_path(pipeline, "features", "anyloc_vlad"))
+    patches = np.asarray(features["features"][...], dtype=np.float64)
+    patches = patches.reshape(len(patches), -1, patches.shape[-1])
+    retrieved = np.asarray(reranked["retrieval_ranking"][...])
+    recall = stores.open_store(stage_path(pipeline, "recall", "anyloc_vlad"))
+    assert retrieved.shape == (N_PLACES, 4)
+    np.testing.assert_array_equal(retrieved, np.asarray(recall["ranking"][...])[:, :4])
+
+    def mutual_pairs(a, b):
+        sim = a @ b.T
+        return sum(
+            1
+            for i in range(len(a))
+            for j in range(len(b))
+            if sim[i, j] == sim[i].max() and sim[i, j] == sim[:, j].max()
+        )
+
+    for q in range(N_PLACES):
+        counts = [mutual_pairs(patches[N_PLACES + q], patches[r]) for r in retrieved[q]]
+        order = sorted(range(4), key=lambda c: -counts[c])  # stable: retrieval order on ties
+        np.testing.assert_array_equal(reranked["ranking"][q], retrieved[q][order])
+        np.testing.assert_array_equal(reranked["scores"][q], np.array(counts)[order])
+    assert reranked.attrs["score"] == "matches"
+
+
+def test_reranked_recall_reads_the_reranked_ranking_and_states_its_cost(pipeline):
+    plan, runner, _, _ = pipeline
+    truth = Dataset(stage_path(pipeline, "dataset")).truth()
+    for method in ("anyloc_vlad+mnn", "segvlad+ransac"):
+        run = {r.method: r for r in plan.runs["toy"]}[method]
+        result = stores.open_store(runner.path("recall", run.recall_key))
+        reranked = rerank_store(pipeline, method)
+        ranking = np.asarray(reranked["ranking"][...])
+        np.testing.assert_array_equal(result["ranking"][...], ranking)
+        # What was re-ordered is kept for the report's before/after montage.
+        np.testing.assert_array_equal(
+            result["retrieval_ranking"][...], reranked["retrieval_ranking"][...]
+        )
+        direct = np.mean([ranking[q, 0] in truth[q] for q in range(N_PLACES)])
+        assert result.attrs["recall"]["1"] == pytest.approx(direct, abs=1e-12)
+        assert result.attrs["cost"]["rerank_ms_per_query"] > 0
+    retrieval = stores.open_store(stage_path(pipeline, "recall", "anyloc_vlad"))
+    assert retrieval.attrs["cost"]["rerank_ms_per_query"] is None
+    assert "retrieval_ranking" not in retrieval
+    dim = retrieval.attrs["descriptor_dim"]
+    assert retrieval.attrs["cost"]["descriptor_bytes_per_image"] == 4 * dim
+
+
 def test_report_writes_one_row_per_method_and_every_prediction(pipeline, tmp_path):
     plan, _, recalls, _ = pipeline
     runs = [{"method": r.method, "params": r.row_params} for r in plan.runs["toy"]]
@@ -232,13 +296,26 @@ def test_report_writes_one_row_per_method_and_every_prediction(pipeline, tmp_pat
     write_predictions(dataset, runs, recalls, str(predictions_out))
     with open(csv_out) as f:
         rows = list(csv.DictReader(f))
-    assert [r["method"] for r in rows] == METHODS
+    # Each method's row, its re-ranked rows right after it.
+    rows_expected = [
+        m
+        for m in METHODS
+        for m in (
+            m,
+            *{"anyloc_vlad": ["anyloc_vlad+mnn"], "segvlad": ["segvlad+ransac"]}.get(m, []),
+        )
+    ]
+    assert [r["method"] for r in rows] == rows_expected
     for row, path in zip(rows, recalls, strict=True):
-        recall = stores.open_store(path).attrs["recall"]
-        assert float(row["recall@1"]) == pytest.approx(recall["1"], abs=1e-6)
+        attrs = stores.open_store(path).attrs
+        assert float(row["recall@1"]) == pytest.approx(attrs["recall"]["1"], abs=1e-6)
+        for name, value in attrs["precision_recall"].items():
+            assert float(row[name]) == pytest.approx(value, abs=1e-6)
+        assert (row["reranker"] != "") == ("+" in row["method"])
+        assert (row["rerank_ms_per_query"] != "") == ("+" in row["method"])
     with open(predictions_out) as f:
         predictions = list(csv.DictReader(f))
-    assert len(predictions) == len(METHODS) * N_PLACES
+    assert len(predictions) == len(rows_expected) * N_PLACES
     # Same inputs, same bytes.
     again = tmp_path / "again.csv"
     write_report("toy", runs, recalls, str(again))
@@ -344,7 +421,7 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     (recall,) = [
         s
         for s in plan.stages["recall"].values()
-        if s.inputs.get("search") == ("search", search.key)
+        if s.inputs.get("search") == ("search", search.key) and "rerank" not in s.inputs
     ]
     result = str(tmp_path / "recall.zarr")
     evaluate(inputs["dataset"], inputs["descriptors"], recall.record, result, out, out)
@@ -364,6 +441,7 @@ def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
     ("method", "figure"),
     [
         ("anyloc_vlad", "retrievals"),
+        ("anyloc_vlad+mnn", "retrievals"),  # re-ranked and retrieved rows
         ("segvlad", "segment_matches"),
         ("segment_gem", "segment_matches"),
         ("snsm", "support_maps"),
@@ -387,6 +465,22 @@ def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure)
     draw_figure(figure, stores_used, str(root / "data"), method, {**settings, "height": 32}, out)
     with Image.open(out) as image:
         assert image.format == "PNG" and min(image.size) > 100
+
+
+def test_the_recall_plot_draws_each_methods_precision_recall_curve_beside_recall(
+    pipeline, tmp_path
+):
+    from PIL import Image
+
+    from vprflow.stages.figures import plot_recall
+
+    plan, _, recalls, _ = pipeline
+    methods = [r.method for r in plan.runs["toy"]]
+    out = tmp_path / "recall.png"
+    plot_recall("toy", stage_path(pipeline, "dataset"), methods, recalls, str(out))
+    with Image.open(out) as image:
+        width, height = image.size
+    assert width > 1.6 * height  # two panels side by side
 
 
 def test_a_method_has_the_figures_of_its_aggregator(pipeline):

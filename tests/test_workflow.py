@@ -38,6 +38,9 @@ METHODS = [
     "segvlad",
     "segment_gem",
 ]
+RERANK = {"anyloc_vlad": ["mnn", "ransac"], "segvlad": ["mnn"]}  # config.yaml's re-rankers
+# The table: each method's row, then its re-ranked rows.
+ROWS = [row for m in METHODS for row in (m, *(f"{m}+{r}" for r in RERANK.get(m, [])))]
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +48,7 @@ def toy_run(tmp_path_factory):
     """One complete run of the workflow on the toy dataset (shared by the tests below)."""
     workdir = tmp_path_factory.mktemp("workflow")
     make_dataset(workdir / "data" / "toy")
-    config = toy_config(workdir / "data", methods=METHODS)
+    config = toy_config(workdir / "data", methods=METHODS, rerank=RERANK)
     config_path = write_config(workdir, config)
     snakemake(workdir, config_path, TARGET)
     return workdir, config
@@ -59,10 +62,10 @@ def read_rows(path: Path) -> list[dict]:
 def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     workdir, config = toy_run
     rows = read_rows(workdir / TARGET)
-    assert [r["method"] for r in rows] == METHODS
+    assert [r["method"] for r in rows] == ROWS
     header = list(rows[0])
     assert header[:2] == ["dataset", "method"]
-    assert header[-13:] == [
+    assert header[-19:] == [
         "descriptor_dim",
         "ground_truth",
         "denominator",
@@ -76,6 +79,12 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
         "map@5",
         "map@10",
         "map@20",
+        "auc_pr",
+        "recall_at_100_precision",
+        "extended_precision",
+        "descriptor_bytes_per_image",
+        "search_ms_per_query",
+        "rerank_ms_per_query",
     ]
     for row in rows:
         assert row["dataset"] == "toy"
@@ -113,8 +122,16 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     # The toy places are distinctive: the classical pipeline must beat chance (3/10) clearly.
     assert float(by_method["anyloc_vlad"]["recall@1"]) >= 0.6
     assert float(by_method["segvlad_nopca"]["recall@1"]) >= 0.6
+    for name in ROWS:
+        row = by_method[name]
+        reranker = name.partition("+")[2]
+        assert row["reranker"] == reranker
+        assert (row["rerank.kind"] == reranker) if reranker else (row["rerank.kind"] == "")
+        assert (row["rerank_ms_per_query"] != "") == bool(reranker)
+        assert 0 <= float(row["auc_pr"]) <= 1 and 0 <= float(row["extended_precision"]) <= 1
+        assert float(row["descriptor_bytes_per_image"]) > 0
     predictions = read_rows(workdir / "results" / "predictions_toy.csv")
-    assert len(predictions) == 10 * len(METHODS)
+    assert len(predictions) == 10 * len(ROWS)
     assert len(predictions[0]["top"].split()) == 10
     assert len(predictions[0]["top_scores"].split()) == 10
     assert predictions[0]["top_images"].split()[0].startswith("ref/")
@@ -139,15 +156,17 @@ def test_index_and_log_links_name_the_dataset_and_methods(toy_run):
         assert (workdir / by_key[stage, key]["store"]).is_dir(), (stage, key)
     features = [r for r in rows if r["stage"] == "features"]
     assert len(features) == 1 and features[0]["dataset"] == "toy"
-    assert features[0]["methods"].split(",") == sorted(METHODS)  # one backbone, shared
+    # One backbone, shared by the methods and their re-rankers.
+    assert features[0]["methods"].split(",") == sorted(ROWS)
     pcas = {r["methods"] for r in rows if r["stage"] == "pca"}
-    # A PCA per SegVLAD order, and segment_gem's own (fitted on its descriptors).
-    assert pcas == {"segvlad_o0", "segvlad", "segment_gem"}
-    for method in METHODS:
+    # A PCA per SegVLAD order, and segment_gem's own (fitted on its descriptors); the
+    # re-ranked row re-orders segvlad's retrieval, so it uses segvlad's.
+    assert pcas == {"segvlad_o0", "segvlad,segvlad+mnn", "segment_gem"}
+    for method in ROWS:
         recall_log = workdir / "logs" / "by-method" / "toy" / method / "recall"
         assert list(recall_log.glob("*.log")), method
     link = workdir / "logs" / "by-method" / "toy" / "segvlad" / "pca"
-    (pca_row,) = [r for r in rows if r["stage"] == "pca" and r["methods"] == "segvlad"]
+    (pca_row,) = [r for r in rows if r["stage"] == "pca" and r["methods"].startswith("segvlad,")]
     assert link.resolve() == (workdir / pca_row["logs"]).resolve()
 
 
@@ -157,7 +176,7 @@ def test_stages_are_shared_and_self_describing(toy_run):
     counts = {s.name: len(list(s.glob("*.zarr"))) for s in cache.iterdir() if s.is_dir()}
     # Six methods share one features and segments store, five one vocabulary; PCA is
     # fitted once per SegVLAD neighbourhood order that uses it (orders 0 and 3), as
-    # published, and once for segment_gem.
+    # published, and once for segment_gem. Each re-ranked row adds a rerank and a recall.
     assert counts == {
         "dataset": 1,
         "features": 1,
@@ -166,7 +185,8 @@ def test_stages_are_shared_and_self_describing(toy_run):
         "pca": 3,
         "descriptors": 6,
         "search": 5,  # one segment search per per-segment method
-        "recall": 6,
+        "rerank": 3,
+        "recall": 9,
     }
     store = zarr.open_group(str(next((cache / "features").glob("*.zarr"))), mode="r")
     assert store.attrs["record"]["params"]["backbone"] == "daisy"
@@ -179,16 +199,24 @@ def test_changing_order_rebuilds_pca_descriptors_and_recall_only(toy_run):
     changed = copy.deepcopy(config)
     changed["segvlad"]["order"] = 2
     path = write_config(workdir, changed, "order2.yaml")
+    # segvlad+mnn re-ranks segvlad's retrieval, so its rerank reruns too.
     assert scheduled_stages(workdir, path, TARGET) == {
         "pca",
         "descriptors",
         "search",
+        "rerank",
         "recall",
         "report",
     }
     changed["pca"]["fit_order"] = 3  # a fixed fit order keeps the order-3 PCA
     path = write_config(workdir, changed, "order2_fit3.yaml")
-    assert scheduled_stages(workdir, path, TARGET) == {"descriptors", "search", "recall", "report"}
+    assert scheduled_stages(workdir, path, TARGET) == {
+        "descriptors",
+        "search",
+        "rerank",
+        "recall",
+        "report",
+    }
 
 
 def test_changing_segmenter_rebuilds_segments_pca_descriptors_not_features(toy_run):
@@ -201,9 +229,22 @@ def test_changing_segmenter_rebuilds_segments_pca_descriptors_not_features(toy_r
         "pca",
         "descriptors",
         "search",
+        "rerank",
         "recall",
         "report",
     }
+
+
+def test_changing_a_reranker_reruns_only_its_reranks_and_their_recall(toy_run):
+    workdir, config = toy_run
+    changed = copy.deepcopy(config)
+    changed["rerankers"]["mnn"]["min_similarity"] = 0.5
+    path = write_config(workdir, changed, "mnn_min_similarity.yaml")
+    outputs = scheduled_outputs(workdir, path, TARGET)
+    assert scheduled_stages(workdir, path, TARGET) == {"rerank", "recall", "report"}
+    # anyloc_vlad+mnn and segvlad+mnn: one rerank and one recall each; ransac's stay.
+    assert sum("results/cache/rerank/" in line for line in outputs) == 2
+    assert sum("results/cache/recall/" in line for line in outputs) == 2
 
 
 def test_changing_a_value_and_back_schedules_at_most_the_csv(toy_run):
@@ -227,7 +268,7 @@ def test_figures_are_drawn_and_a_figure_setting_reruns_only_figures(toy_run):
     snakemake(workdir, original)  # the default target: `targets` datasets with figures
     figures = workdir / "results" / "figures" / "toy"
     assert sorted(p.name for p in (figures / "retrievals").iterdir()) == sorted(
-        f"{m}.png" for m in METHODS
+        f"{m}.png" for m in ROWS
     )
     # Every per-segment method gets the segment-match figure, segment_gem included.
     per_segment = [m for m in METHODS if m != "anyloc_vlad"]
@@ -335,7 +376,14 @@ def test_same_inputs_give_a_byte_identical_csv_and_sharding_changes_nothing(toy_
     sharded["shard_size"] = 3
     sharded["search_shard_size"] = 4  # 10 references: segment search in 3 jobs, merged
     snakemake(tmp_path, write_config(tmp_path, sharded), TARGET)
-    assert (tmp_path / TARGET).read_bytes() == (workdir / TARGET).read_bytes()
+    # Byte for byte but the milliseconds a query, which time this run's stores.
+    timed = ("search_ms_per_query", "rerank_ms_per_query")
+    ours, theirs = read_rows(tmp_path / TARGET), read_rows(workdir / TARGET)
+    assert all(float(row["search_ms_per_query"]) > 0 for row in ours)
+    for row in ours + theirs:
+        for column in timed:
+            row[column] = ""
+    assert ours == theirs and list(ours[0]) == list(theirs[0])
     assert (tmp_path / "results" / "predictions_toy.csv").read_bytes() == (
         workdir / "results" / "predictions_toy.csv"
     ).read_bytes()

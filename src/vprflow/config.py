@@ -22,6 +22,7 @@ import yaml
 from vprflow.registry import (
     AGGREGATORS,
     BACKBONES,
+    RERANKERS,
     SEARCH_INDEXES,
     SEGMENTERS,
     with_defaults,
@@ -109,6 +110,7 @@ def load_schema(path: str | Path) -> dict:
         (SEGMENTERS, definitions["segmenter"], "segmenter"),
         (AGGREGATORS, definitions["method"], "aggregator"),
         (SEARCH_INDEXES, definitions["retrieval"], "index"),
+        (RERANKERS, definitions["reranker"], "kind"),
         (KINDS, definitions["dataset"]["properties"]["ground_truth"], "kind"),
         (PUBLISHED_VOCABULARIES, definitions["vocabulary"], "name"),
     ):

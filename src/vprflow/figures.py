@@ -116,17 +116,27 @@ def sample_queries(candidates: np.ndarray, count: int, seed: int) -> np.ndarray:
     return np.sort(rng.choice(candidates, size=count, replace=False))
 
 
+# The HTML table's columns besides Recall@N and mAP@N, as the CSV names them: scores
+# (higher is better, the best in bold), then what a query costs, then the counting.
+TABLE_SCORES = ("auc_pr", "recall_at_100_precision", "extended_precision")
+TABLE_COSTS = ("descriptor_bytes_per_image", "search_ms_per_query", "rerank_ms_per_query")
+TABLE_COUNTS = ("descriptor_dim", "n_queries", "n_short_rankings")
+
+
 def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[str] = ()) -> str:
     """An HTML page of a results table (``rows`` as read from the CSV): the method, its
-    Recall@N columns (the best of each column in bold), then the counting columns; every
-    other column of the CSV stays in the CSV. ``notes`` are paragraphs under the title."""
+    Recall@N and mAP@N columns and the precision-recall summary (the best of each column
+    in bold), then the cost and counting columns; every other column of the CSV stays in
+    the CSV. ``notes`` are paragraphs under the title."""
     from html import escape
 
     columns = list(rows[0]) if rows else []
-    recall = [c for c in columns if c.startswith(("recall@", "exact_recall@"))]
-    counting = ["descriptor_dim", "n_queries", "n_short_rankings"]
-    shown = ["method", "aggregator", *recall, *[c for c in counting if c in columns]]
-    best = {c: max((float(r[c]) for r in rows if r[c] != ""), default=None) for c in recall}
+    scored = [c for c in columns if c.startswith(("recall@", "map@", "exact_recall@"))]
+    scored += [c for c in TABLE_SCORES if c in columns]
+    costs = [c for c in (*TABLE_COSTS, *TABLE_COUNTS) if c in columns]
+    named = [c for c in ("method", "aggregator", "reranker") if c in columns]
+    shown = [*named, *scored, *costs]
+    best = {c: max((float(r[c]) for r in rows if r[c] != ""), default=None) for c in scored}
     head = "".join(f"<th>{escape(c)}</th>" for c in shown)
     body = []
     for row in rows:
@@ -175,14 +185,26 @@ def save_figure(figure, path: str | Path, dpi: int = 100) -> None:
             _pyplot().close(figure)
 
 
-def recall_curve_figure(curves: dict[str, np.ndarray], title: str, marks: Sequence[int] = ()):
+def recall_curve_figure(
+    curves: dict[str, np.ndarray],
+    title: str,
+    marks: Sequence[int] = (),
+    precision_recall: dict[str, tuple[np.ndarray, np.ndarray]] | None = None,
+):
     """One line per method: ``curves[method] [n_max]`` is Recall@1..n_max. ``marks`` are
-    the table's N values, drawn as points."""
+    the table's N values, drawn as points. With ``precision_recall[method] = (precision
+    [T], recall [T])`` (a method may lack one: no correct top-1 match), a second panel
+    beside it draws those curves from the point (recall 0, precision 1), as VPR-Bench
+    plots them."""
     plt = _pyplot()
-    figure, axes = plt.subplots(figsize=(7, 4.5))
+    panels = 2 if precision_recall is not None else 1
+    figure, all_axes = plt.subplots(1, panels, figsize=(7 * panels, 4.5), squeeze=False)
+    axes = all_axes[0, 0]
+    colours = {}
     for method, curve in curves.items():
         n = np.arange(1, len(curve) + 1)
         (line,) = axes.plot(n, curve, label=method, linewidth=1.6)
+        colours[method] = line.get_color()
         at = [m for m in marks if 1 <= m <= len(curve)]
         axes.plot(at, curve[np.array(at, dtype=int) - 1], "o", color=line.get_color(), ms=4)
     from matplotlib.ticker import MaxNLocator
@@ -193,8 +215,24 @@ def recall_curve_figure(curves: dict[str, np.ndarray], title: str, marks: Sequen
     axes.set_ylim(0, 1.02)
     axes.set_xlim(1, max((len(c) for c in curves.values()), default=1))
     axes.grid(alpha=0.3)
-    axes.set_title(title)
     axes.legend(loc="lower right", fontsize=8)
+    if precision_recall is not None:
+        axes = all_axes[0, 1]
+        for method, (precision, recall) in precision_recall.items():
+            axes.plot(
+                np.concatenate([[0.0], recall]),
+                np.concatenate([[1.0], precision]),
+                label=method,
+                linewidth=1.6,
+                color=colours.get(method),
+            )
+        axes.set_xlabel("recall (of the correct top-1 matches)")
+        axes.set_ylabel("precision (of the accepted top-1 matches)")
+        axes.set_xlim(0, 1.02)
+        axes.set_ylim(0, 1.02)
+        axes.grid(alpha=0.3)
+        axes.set_title("top-1 precision-recall over a score threshold", fontsize=10)
+    figure.suptitle(title, fontsize=11)
     return figure
 
 
@@ -208,6 +246,7 @@ class RetrievalRow:
     references: list[np.ndarray]
     reference_names: list[str]
     correct: list[bool | None]
+    label: str = "query"  # the query cell's caption, before its name
 
 
 def retrieval_figure(rows: list[RetrievalRow], title: str, height: int = 120):
@@ -222,7 +261,7 @@ def retrieval_figure(rows: list[RetrievalRow], title: str, height: int = 120):
     for axis in axes.ravel():
         axis.axis("off")
     for r, row in enumerate(rows):
-        cells = [(row.query, f"query {row.query_name}", None)]
+        cells = [(row.query, f"{row.label} {row.query_name}", None)]
         cells += [
             (image, f"{rank}. {name}", ok)
             for rank, (image, name, ok) in enumerate(

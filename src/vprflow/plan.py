@@ -27,6 +27,7 @@ from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 if TYPE_CHECKING:
     from vprflow.datasets import DatasetFiles
 from vprflow.registry import (
+    RERANKERS,
     SEARCH_INDEXES,
     Aggregator,
     aggregator,
@@ -47,7 +48,10 @@ FORMAT_VERSIONS = {
     # numpy, one BLAS thread per image (float32 rounding differs from torch's)
     "descriptors": 4,
     "search": 1,
-    "recall": 4,  # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP
+    # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
+    # summary and cost per query, re-ranked lists
+    "recall": 5,
+    "rerank": 1,
 }
 
 # Dataset settings that do not shape the dataset store (later stages read them, or
@@ -61,6 +65,7 @@ NOT_DATASET_STAGE = (
     "source",
     "download",
     "protocol",
+    "rerank",
 )
 
 # Settings that change how a stage runs but not what it computes: kept out of keys.
@@ -110,12 +115,13 @@ class MethodRun:
     recall_key: str
     row_params: dict  # flattened parameters for the CSV
     aggregator_name: str
+    reranked: bool = False  # a method's retrieval re-ranked: "<method>+<reranker>"
 
     @property
     def figures(self) -> tuple[str, ...]:
         """The report's figures of this method: its retrievals, and its aggregator's
-        explanation when it has one."""
-        explanation = aggregator(self.aggregator_name).explanation
+        explanation when it has one (the retrieval's row shows it, not the re-ranked)."""
+        explanation = not self.reranked and aggregator(self.aggregator_name).explanation
         return ("retrievals", explanation) if explanation else ("retrievals",)
 
 
@@ -221,9 +227,16 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
         plan.dataset_keys[dataset_name] = dataset_key
         plan.has_ground_truth[dataset_name] = dataset["ground_truth"]["kind"] != "none"
         plan.runs[dataset_name] = [
-            _plan_method(plan, config, memo, dataset_name, dataset_key, method_name)
+            run
             for method_name in dataset["methods"]
+            for run in _plan_method(plan, config, memo, dataset_name, dataset_key, method_name)
         ]
+        unknown = sorted(set(dataset["rerank"]) - set(dataset["methods"]))
+        if unknown:
+            raise PlanError(
+                f"datasets.{dataset_name}.rerank names {unknown}, which are not among the "
+                f"dataset's methods {dataset['methods']}"
+            )
     return plan
 
 
@@ -302,11 +315,11 @@ class _Method:
 
 def _plan_method(
     plan: Plan, config: dict, memo: dict, dataset_name: str, dataset_key: str, method_name: str
-) -> MethodRun:
-    """Plan one method's stages (as its registry entry needs them) and its CSV row:
+) -> list[MethodRun]:
+    """Plan one method's stages (as its registry entry needs them) and its CSV rows:
     features, the stages its aggregator needs, descriptors, then recall (through the
-    segment search for a per-segment method). Each stage's planner returns its store
-    and its CSV columns."""
+    segment search for a per-segment method), and a re-ranked row per re-ranker the
+    dataset names for it. Each stage's planner returns its store and its CSV columns."""
     dataset = config["datasets"][dataset_name]
     settings = resolve_method(config, method_name, dataset)
     agg = aggregator(settings["aggregator"])
@@ -336,13 +349,30 @@ def _plan_method(
         row.update(columns)
     row.update(agg.columns(settings))
     descriptors = m.add("descriptors", {"aggregator": agg.name, **m.options}, inputs)
-    (_, recall_key), columns = _plan_recall(m, descriptors)
+    retrieval, recall_params, columns = _plan_retrieval(m, descriptors)
     row.update(columns)
-    return MethodRun(method_name, recall_key, _flat(row), agg.name)
+    recall_key = m.add("recall", recall_params, retrieval)[1]
+    runs = [MethodRun(method_name, recall_key, _flat(row), agg.name)]
+    for reranker in dataset["rerank"].get(method_name, []):
+        rerank, columns = _plan_rerank(m, retrieval, recall_params, reranker)
+        # The retrieval's exact twin (an approximate search's) is the retrieval row's.
+        used = {k: v for k, v in retrieval.items() if k != "exact_search"}
+        recall_key = m.add("recall", recall_params, {**used, "rerank": rerank})[1]
+        runs.append(
+            MethodRun(
+                f"{method_name}+{reranker}",
+                recall_key,
+                _flat({**row, **columns}),
+                agg.name,
+                reranked=True,
+            )
+        )
+    return runs
 
 
-def _plan_features(m: _Method) -> tuple[_StoreRef, dict]:
-    name = m.settings["features"]
+def _plan_features(m: _Method, name: str | None = None) -> tuple[_StoreRef, dict]:
+    """The features store of backbone entry ``name`` (default: the method's)."""
+    name = name or m.settings["features"]
     backbone = m.entry("backbones", name)
     if backbone["resize"] == "method":
         # The published pipeline's reader: one backbone entry serves SegVLAD (OpenCV)
@@ -441,9 +471,10 @@ _NEEDED_STAGES = {
 }
 
 
-def _plan_recall(m: _Method, descriptors: _StoreRef) -> tuple[_StoreRef, dict]:
-    """Recall of the method's descriptors: directly for a per-image method, through
-    the segment search and voting for a per-segment one."""
+def _plan_retrieval(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict, dict]:
+    """What ranks the references for each query, for recall and re-ranking alike: the
+    inputs (descriptors; and the segment search a per-segment method votes over), the
+    recall stage's params, and the CSV columns."""
     inputs = {"dataset": m.dataset_store, "descriptors": descriptors}
     params = {
         "recall_at": m.dataset["recall_at"],
@@ -455,7 +486,32 @@ def _plan_recall(m: _Method, descriptors: _StoreRef) -> tuple[_StoreRef, dict]:
         searches, columns = _plan_search(m, descriptors)
         inputs.update(searches)
         params["vote_ranking"] = m.settings["voting"]["vote_ranking"]
-    return m.add("recall", params, inputs), columns
+    return inputs, params, columns
+
+
+def _plan_rerank(
+    m: _Method, retrieval: dict[str, _StoreRef], recall_params: dict, name: str
+) -> tuple[_StoreRef, dict]:
+    """The ``rerank`` stage of re-ranker entry ``name`` over the method's retrieval, and
+    the re-ranked row's extra CSV columns."""
+    if name not in m.config["rerankers"]:
+        raise PlanError(
+            f"datasets.{m.dataset_name}.rerank: {m.name!r} names re-ranker {name!r}, which "
+            f"is not defined under rerankers: {sorted(m.config['rerankers'])}"
+        )
+    entry = m.config["rerankers"][name]
+    features, _ = _plan_features(m, entry["features"])
+    params = {
+        "kind": entry["kind"],
+        "top_k": entry["top_k"],
+        "options": {k: entry[k] for k in RERANKERS[entry["kind"]].options},
+    }
+    if "vote_ranking" in recall_params:
+        params["vote_ranking"] = recall_params["vote_ranking"]
+    used = {k: v for k, v in retrieval.items() if k != "exact_search"}
+    run_params = {**m.execution, "uses_gpu": True}
+    store = m.add("rerank", params, {**used, "features": features}, run_params)
+    return store, {"reranker": name, **_prefixed("rerank", entry)}
 
 
 def _plan_search(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict]:

@@ -1,8 +1,9 @@
 """Recall@N and mAP@N of rankings against a ground truth (docs/methods.md §8).
 
 Which queries count is the ``denominator``: ``"with_positives"`` (the published SegVLAD
-and AnyLoc code skip queries that have no positive) or ``"all"`` (VPR-methods-evaluation
-divides by every query, so a query without a positive is a miss).
+code skips queries that have no positive) or ``"all"`` (AnyLoc's ``get_top_k_recall``
+and VPR-methods-evaluation divide by every query, so a query without a positive is a
+miss).
 """
 
 from __future__ import annotations

@@ -430,6 +430,25 @@ def _check_search_params(index: SearchIndex, params: dict, what: str) -> None:
         )
 
 
+@dataclass(frozen=True)
+class Reranker:
+    """A ``rerankers.<name>.kind``: the entry's keys that shape its scores (the rest of
+    the entry, ``features`` and ``top_k``, reach the key through the plan), filled from
+    the schema's defaults; :func:`vprflow.rerank.rerank_scores` computes them."""
+
+    name: str
+    options: tuple[str, ...]
+
+
+RERANKERS: dict[str, Reranker] = {
+    r.name: r
+    for r in (
+        Reranker("mnn", ("weighting", "min_similarity")),
+        Reranker("ransac", ("min_similarity", "threshold", "seed")),
+    )
+}
+
+
 def aggregator(name: str) -> Aggregator:
     if name not in AGGREGATORS:
         raise ValueError(f"unknown aggregator {name!r}; expected one of {sorted(AGGREGATORS)}")

@@ -30,12 +30,15 @@ def _with_positives(dataset: Dataset) -> np.ndarray:
 def plot_recall(
     dataset_name: str, dataset_path: str, methods: list[str], recall_paths: list[str], out: str
 ) -> None:
-    """All methods' Recall@N for N = 1 .. the largest configured N, on one figure."""
+    """All methods' Recall@N for N = 1 .. the largest configured N, and beside them the
+    precision-recall curves of their top-1 matches (the table's counting), on one figure."""
+    from vprflow.precision_recall import precision_recall_curve
     from vprflow.recall import counted_queries
+    from vprflow.stages.recall import top1_matches
 
     dataset = Dataset(dataset_path)
     truth = dataset.truth()
-    curves, marks, denominators = {}, set(), set()
+    curves, precision_recall, marks, denominators = {}, {}, set(), set()
     for method, path in zip(methods, recall_paths, strict=True):
         result = stores.open_store(path)
         counted = counted_queries(truth, result.attrs["denominator"])
@@ -44,9 +47,16 @@ def plot_recall(
         marks.update(recall_at)
         n_max = min(max(recall_at), dataset.n_reference)
         curves[method] = figures.recall_curve(result["first_correct"][...], counted, n_max)
+        ranking = np.asarray(result["ranking"][...])
+        matches = top1_matches(
+            ranking, result["scores"][...], result.attrs["score"], truth, counted
+        )
+        if matches is not None:
+            precision_recall[method] = precision_recall_curve(*matches)[:2]
     over = ", ".join(f"{n} queries ({name})" for name, n in sorted(denominators))
     title = f"{dataset_name}: Recall@N over {over}, {dataset.group.attrs['ground_truth_rule']}"
-    figures.save_figure(figures.recall_curve_figure(curves, title, sorted(marks)), out)
+    figure = figures.recall_curve_figure(curves, title, sorted(marks), precision_recall)
+    figures.save_figure(figure, out)
 
 
 def write_recall_table(dataset_name: str, csv_path: str, out: str) -> None:
@@ -69,9 +79,15 @@ def write_recall_table(dataset_name: str, csv_path: str, out: str) -> None:
         f"Counted: {'; '.join(counted[d] for d in denominators)}; n_queries says how many. "
         "n_short_rankings: queries that ranked fewer references than the largest N "
         "(SegVLAD ranks only voted images); a missing rank is a miss.",
+        "auc_pr, recall_at_100_precision, extended_precision: VPR-Bench's precision-recall "
+        "summary of the top-1 matches over a threshold on their score (docs/methods.md §8; "
+        "empty when no top-1 match is correct). A row named method+reranker re-orders that "
+        "method's top K by local patch matches (§8).",
+        "Cost: descriptor bytes an image adds to the database, and this run's milliseconds "
+        "a query for the search and the re-ranking (they vary from run to run).",
         f"Every method parameter is a column of {Path(csv_path).name}.",
     ]
-    title = f"{dataset_name}: Recall@N and mAP@N"
+    title = f"{dataset_name}: Recall@N, mAP@N and top-1 precision-recall"
     write_text_atomic(out, figures.recall_table_html(rows, title, notes))
 
 
@@ -97,22 +113,31 @@ def draw_retrievals(
     first = np.asarray(result["first_correct"][...])
     truth, judged = dataset.truth(), dataset.has_ground_truth
     queries = sampled_queries(dataset, first, settings, settings["queries"])
+    # A re-ranked method shows each query twice: re-ranked, then as retrieved.
+    rankings = [("query", ranking)]
+    if "retrieval_ranking" in result:
+        retrieved = np.asarray(result["retrieval_ranking"][...])
+        rankings = [("re-ranked", ranking), ("retrieved", retrieved)]
     rows = []
     for q in queries:
-        top = [int(r) for r in ranking[q, : settings["top"]] if r >= 0]
-        rows.append(
-            figures.RetrievalRow(
-                query=dataset.read_image(dataset.n_reference + q),
-                query_name=dataset.names[dataset.n_reference + q],
-                references=[dataset.read_image(r) for r in top],
-                reference_names=[dataset.names[r] for r in top],
-                correct=[bool(np.isin(r, truth[q])) if judged else None for r in top],
+        for label, order in rankings:
+            top = [int(r) for r in order[q, : settings["top"]] if r >= 0]
+            rows.append(
+                figures.RetrievalRow(
+                    query=dataset.read_image(dataset.n_reference + q),
+                    query_name=dataset.names[dataset.n_reference + q],
+                    references=[dataset.read_image(r) for r in top],
+                    reference_names=[dataset.names[r] for r in top],
+                    correct=[bool(np.isin(r, truth[q])) if judged else None for r in top],
+                    label=label,
+                )
             )
-        )
     if not rows:
         log.warning("%s: no query to show (wrong_only and every query right at rank 1?)", method)
     what = "queries wrong at rank 1" if settings["wrong_only"] else "queries"
-    title = f"{method}: {len(rows)} sampled {what} and their top {settings['top']} references"
+    title = f"{method}: {len(queries)} sampled {what} and their top {settings['top']} references"
+    if len(rankings) > 1:
+        title += ", re-ranked (upper row) and as retrieved (lower row)"
     figures.save_figure(figures.retrieval_figure(rows, title, settings["height"]), out)
 
 

@@ -132,7 +132,14 @@ def _recall(job: Job) -> None:
         job.out,
         search_path=job.inputs.get("search"),
         exact_search_path=job.inputs.get("exact_search"),
+        rerank_path=job.inputs.get("rerank"),
     )
+
+
+def _rerank(job: Job) -> None:
+    from vprflow.stages.rerank import rerank_stage
+
+    rerank_stage(job.inputs, job.record, job.out, job.device)
 
 
 # Every stage the plan makes (vprflow.plan.FORMAT_VERSIONS), by name. Stage modules
@@ -146,6 +153,7 @@ RUNNERS: dict[str, Callable[[Job], None]] = {
     "descriptors": _descriptors,
     "search": _search,
     "recall": _recall,
+    "rerank": _rerank,
 }
 
 # Stages whose jobs each take a range of images, combined by `combine_shards`: the

@@ -4,6 +4,7 @@ mAP@N (none for a dataset without ground truth: ``ground_truth: {kind: none}``).
 from __future__ import annotations
 
 import logging
+import time
 
 import numpy as np
 
@@ -13,6 +14,77 @@ from vprflow.stages.dataset import Dataset
 log = logging.getLogger("vprflow")
 
 
+def retrieve(
+    dataset: Dataset,
+    descriptors_path: str,
+    top_k: int,
+    search_path: str | None = None,
+    vote_ranking: str | None = None,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Each query's top ``top_k`` references: ``(ranking [Nq, k], scores [Nq, k],
+    score kind)``. Per-segment descriptors are ranked by voting over the segment lists
+    of the ``search`` stage (``search_path``); scores are votes (higher is better).
+    Global ones by exact search; scores are squared L2 distances (lower is better)."""
+    from vprflow.knn.flat import flat_knn
+    from vprflow.stages.search import read_search
+    from vprflow.voting import image_of_segment, scored_vote_ranking
+
+    group = stores.open_store(descriptors_path)
+    n_ref, n_query = dataset.n_reference, dataset.n_query
+    top_k = min(top_k, n_ref)
+    if group.attrs["kind"] != "segments":
+        vectors = np.asarray(group["descriptors"][...])
+        scores, ranking = flat_knn(vectors[:n_ref], vectors[n_ref:], top_k)
+        return ranking, scores, "squared_l2"
+    if search_path is None:
+        raise ValueError(f"{descriptors_path}: per-segment descriptors need a search input")
+    offsets = np.asarray(group["descriptors_offsets"][...])
+    split = int(offsets[n_ref])
+    owner = image_of_segment(offsets)
+    distances, indices = read_search(search_path)
+    ranking, scores = scored_vote_ranking(
+        distances,
+        indices,
+        owner[split:] - n_ref,
+        owner[:split],
+        n_query,
+        n_ref,
+        top_k,
+        vote_ranking,
+    )
+    return ranking, scores, "votes"
+
+
+def descriptor_bytes_per_image(descriptors_path: str, n_images: int) -> float:
+    """Bytes of descriptors an image costs in the database, as stored: the vector of a
+    global method; every segment's vector of a per-segment one (mean over images)."""
+    array = stores.open_store(descriptors_path)["descriptors"]
+    return float(np.prod(array.shape)) * array.dtype.itemsize / max(n_images, 1)
+
+
+def top1_matches(
+    ranking: np.ndarray,
+    scores: np.ndarray,
+    score_kind: str,
+    truth: list[np.ndarray],
+    counted: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """What the precision-recall metrics judge, over the ``counted [Nq]`` queries:
+    ``(confidence, correct, has_positive)``, each ``[n counted]``, of every query's
+    top-1 match (:mod:`vprflow.precision_recall`); None when no counted query has a
+    correct top-1 match, where VPR-Bench's recall is 0 / 0."""
+    from vprflow.precision_recall import top1_confidence
+    from vprflow.recall import correct_at
+
+    counted = np.asarray(counted, dtype=bool)
+    correct = (correct_at(ranking, truth) == 0)[counted]
+    confidence = top1_confidence(scores, score_kind, ranking)[counted]
+    if not (correct & np.isfinite(confidence)).any():
+        return None
+    has_positive = np.array([len(t) > 0 for t in truth], dtype=bool)[counted]
+    return confidence, correct, has_positive
+
+
 def evaluate(
     dataset_path: str,
     descriptors_path: str,
@@ -20,77 +92,76 @@ def evaluate(
     out: str,
     search_path: str | None = None,
     exact_search_path: str | None = None,
+    rerank_path: str | None = None,
 ) -> None:
-    """Rank the references for every query and compute Recall@N.
+    """Rank the references for every query (:func:`retrieve`, or the re-ranked lists
+    of a ``rerank`` store, ``rerank_path``) and compute Recall@N, mAP@N and the
+    precision-recall summary of the top-1 matches.
 
-    Per-segment descriptors are ranked by voting over the segment lists of the
-    ``search`` stage (``search_path``); global ones by exact search here. With an
-    approximate segment search, ``exact_search_path`` holds an exact search of the
-    same descriptors: its Recall@N is stored too (``recall_exact``), so the table can
-    say what the approximation cost.
+    With an approximate segment search, ``exact_search_path`` holds an exact search of
+    the same descriptors: its Recall@N is stored too (``recall_exact``), so the table
+    can say what the approximation cost.
     """
-    from vprflow.knn.flat import flat_knn
+    from vprflow.precision_recall import summary
     from vprflow.recall import correct_at, counted_queries, map_at, recall_at
-    from vprflow.stages.search import read_search
-    from vprflow.voting import image_of_segment, scored_vote_ranking
 
     params = record["params"]
     dataset = Dataset(dataset_path)
-    group = stores.open_store(descriptors_path)
     n_ref, n_query = dataset.n_reference, dataset.n_query
-    top_k = min(params["top_k"], n_ref)
     truth = dataset.truth()
     has_truth = dataset.has_ground_truth
     denominator = params["denominator"]
     recall_exact = None
-    if group.attrs["kind"] == "segments":
-        if search_path is None:
-            raise ValueError(f"{descriptors_path}: per-segment descriptors need a search input")
-        offsets = np.asarray(group["descriptors_offsets"][...])
-        split = int(offsets[n_ref])
-        owner = image_of_segment(offsets)
-
-        def voted(path: str) -> np.ndarray:
-            distances, indices = read_search(path)
-            return scored_vote_ranking(
-                distances,
-                indices,
-                owner[split:] - n_ref,
-                owner[:split],
-                n_query,
-                n_ref,
-                top_k,
-                params["vote_ranking"],
-            )
-
-        # Scores: votes (higher is better).
-        ranking, scores = voted(search_path)
-        if exact_search_path is not None and has_truth:
-            exact_ranking = voted(exact_search_path)[0]
-            recall_exact = recall_at(exact_ranking, truth, params["recall_at"], denominator)
-    else:
-        vectors = np.asarray(group["descriptors"][...])
-        # Scores: squared L2 distances (lower is better).
-        scores, ranking = flat_knn(vectors[:n_ref], vectors[n_ref:], top_k)
+    vote_ranking = params.get("vote_ranking")
+    started = time.perf_counter()
+    ranking, scores, score_kind = retrieve(
+        dataset, descriptors_path, params["top_k"], search_path, vote_ranking
+    )
+    search_seconds = time.perf_counter() - started
+    rerank_ms = None
+    if rerank_path is not None:
+        reranked = stores.open_store(rerank_path)
+        ranking = np.asarray(reranked["ranking"][...])
+        scores = np.asarray(reranked["scores"][...])
+        score_kind = reranked.attrs["score"]
+        rerank_ms = reranked.attrs["ms_per_query"]
+    if exact_search_path is not None and has_truth:
+        exact_ranking = retrieve(
+            dataset, descriptors_path, params["top_k"], exact_search_path, vote_ranking
+        )[0]
+        recall_exact = recall_at(exact_ranking, truth, params["recall_at"], denominator)
     # N beyond the number of references is kept: it equals Recall@n_ref.
-    recalls, maps = {}, {}
+    recalls, maps, precision = {}, {}, {}
     evaluated = np.zeros(n_query, dtype=bool)
     if has_truth:
         recalls = recall_at(ranking, truth, params["recall_at"], denominator)
         maps = map_at(ranking, truth, params["recall_at"], denominator)
         evaluated = counted_queries(truth, denominator)
+        matches = top1_matches(ranking, scores, score_kind, truth, evaluated)
+        # No correct top-1 match: VPR-Bench's recall is 0 / 0; the cells stay empty.
+        if matches is not None:
+            precision = summary(*matches)
     ranked = (ranking >= 0).sum(axis=1)
     with stores.atomic_store(out, {"stage": "recall", "record": record}) as result:
         result.attrs.update(
             recall={str(n): v for n, v in recalls.items()},
             map={str(n): v for n, v in maps.items()},
+            precision_recall=precision,
             denominator=denominator,
-            score="votes" if group.attrs["kind"] == "segments" else "squared_l2",
+            score=score_kind,
             recall_exact=None
             if recall_exact is None
             else {str(n): v for n, v in recall_exact.items()},
             n_queries=int(evaluated.sum()),
-            descriptor_dim=int(group.attrs["dim"]),
+            descriptor_dim=int(stores.open_store(descriptors_path).attrs["dim"]),
+            # What a query costs: not part of the results (they vary run to run).
+            cost={
+                "descriptor_bytes_per_image": descriptor_bytes_per_image(
+                    descriptors_path, n_ref + n_query
+                ),
+                "search_ms_per_query": 1000 * search_seconds / max(n_query, 1),
+                "rerank_ms_per_query": rerank_ms,
+            },
             # Queries ranking fewer references than the largest N (or than all of them):
             # SegVLAD ranks only voted images, and a missing rank counts as a miss.
             n_short_rankings=int(
@@ -101,6 +172,9 @@ def evaluate(
         stores.write_array(result, "ranking", ranking.astype(np.int64))
         stores.write_array(result, "scores", np.asarray(scores, dtype=np.float64))
         stores.write_array(result, "first_correct", correct_at(ranking, truth))
+        if rerank_path is not None:
+            # What the re-ranker re-ordered, for the report's before/after montage.
+            stores.write_array(result, "retrieval_ranking", reranked["retrieval_ranking"][...])
     if has_truth:
         log.info("recall: %s, mAP: %s (over %d queries)", recalls, maps, int(evaluated.sum()))
     else:

@@ -11,13 +11,19 @@ from vprflow import stores
 from vprflow.files import atomic_path
 from vprflow.stages.dataset import Dataset
 
+# The precision-recall summary of the top-1 matches (vprflow.precision_recall) and what a
+# query costs (descriptor bytes are exact; milliseconds are this run's, not a result).
+PRECISION_COLUMNS = ("auc_pr", "recall_at_100_precision", "extended_precision")
+COST_COLUMNS = ("descriptor_bytes_per_image", "search_ms_per_query", "rerank_ms_per_query")
+
 
 def write_report(
     dataset_name: str, runs: list[dict], recall_paths: list[str], csv_out: str
 ) -> None:
     """The results table: one row per method (``runs[i]`` is ``{"method": name,
-    "params": {flattened parameters}}`` for ``recall_paths[i]``), with Recall@N and
-    mAP@N. Deterministic: fixed column order, no timestamps."""
+    "params": {flattened parameters}}`` for ``recall_paths[i]``), with Recall@N, mAP@N,
+    the precision-recall summary and the cost per query. Fixed column order, no
+    timestamps; only the milliseconds vary from one build of a recall store to the next."""
     results = [stores.open_store(p) for p in recall_paths]
     if any(r.attrs["ground_truth_rule"] == "none" for r in results):
         raise ValueError(
@@ -30,6 +36,7 @@ def write_report(
     header += ["denominator", "n_queries", "n_short_rankings"]
     header += [f"recall@{n}" for n in recall_columns]
     header += [f"map@{n}" for n in recall_columns]
+    header += [*PRECISION_COLUMNS, *COST_COLUMNS]
     # Rows of an approximate segment search also show an exact search's recall.
     exact = [r.attrs.get("recall_exact") or {} for r in results]
     if any(exact):
@@ -44,6 +51,8 @@ def write_report(
             + [attrs["n_queries"], attrs["n_short_rankings"]]
             + _metric_cells(attrs["recall"], recall_columns)
             + _metric_cells(attrs["map"], recall_columns)
+            + [_number(attrs["precision_recall"].get(c), ".6f") for c in PRECISION_COLUMNS]
+            + [_number(attrs["cost"].get(c), ".3g") for c in COST_COLUMNS]
             + (_metric_cells(exact_recall, recall_columns) if any(exact) else [])
         )
     _write_csv(csv_out, header, rows)
@@ -95,6 +104,10 @@ def _write_csv(path: str, header: list[str], rows: list[list]) -> None:
 
 def _metric_cells(values: dict, columns: list[int]) -> list[str]:
     return [f"{values[str(n)]:.6f}" if str(n) in values else "" for n in columns]
+
+
+def _number(value, spec: str) -> str:
+    return "" if value is None else format(value, spec)
 
 
 def _cell(value) -> str:

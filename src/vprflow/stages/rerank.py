@@ -1,0 +1,93 @@
+"""The ``rerank`` rule: re-order each query's top-K retrieved references by local
+matches between dense patch features (:mod:`vprflow.rerank`).
+
+The retrieval is the method's own (:func:`vprflow.stages.recall.retrieve`, the ranking
+its recall row is computed from, only deeper: ``top_k``); the patch features are the
+re-ranker's (any backbone entry, so they may differ from the method's).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow import stores
+from vprflow.stages.dataset import Dataset
+from vprflow.stages.recall import retrieve
+
+log = logging.getLogger("vprflow")
+
+# Reference features up to this size are read into memory once; larger sets are read
+# per candidate (a query's K candidates are scattered over the database).
+_IN_MEMORY_BYTES = 2 << 30
+
+
+def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "auto") -> None:
+    """Store ``ranking [Nq, K]`` (reference indices, -1 = none) and ``scores [Nq, K]``
+    (the re-ranker's, higher is better) and the retrieval they re-order
+    (``retrieval_ranking [Nq, K]``); ``ms_per_query`` times the re-ranking alone."""
+    from vprflow.devices import resolve_device
+    from vprflow.rerank import rerank, rerank_scores
+
+    params = record["params"]
+    dataset = Dataset(inputs["dataset"])
+    n_ref = dataset.n_reference
+    retrieved, _, _ = retrieve(
+        dataset,
+        inputs["descriptors"],
+        params["top_k"],
+        inputs.get("search"),
+        params.get("vote_ranking"),
+    )
+    features = stores.open_store(inputs["features"])
+    array = features["features"]
+    grid = tuple(int(v) for v in features.attrs["grid"])
+    patch = int(features.attrs["patch_size"])
+    per_image = 4 * int(np.prod(array.shape[1:]))
+    in_memory = per_image * n_ref <= _IN_MEMORY_BYTES
+    references = np.asarray(array[:n_ref], dtype=np.float32) if in_memory else None
+    torch_device = resolve_device(device)
+    options = params["options"]
+    ranking = np.full_like(retrieved, -1)
+    scores = np.zeros(retrieved.shape)  # padding (rank -1) scores 0, as in voting
+    started = time.perf_counter()
+    for q in tqdm(range(dataset.n_query), desc=f"rerank ({params['kind']})", unit="query"):
+        candidates = retrieved[q][retrieved[q] >= 0]
+        if not len(candidates):
+            continue
+        query = np.asarray(array[n_ref + q], dtype=np.float32)
+        if references is not None:
+            stack = references[candidates]
+        else:
+            stack = np.stack([np.asarray(array[int(r)], dtype=np.float32) for r in candidates])
+        found = rerank_scores(
+            query.reshape(-1, query.shape[-1]),
+            stack.reshape(len(candidates), -1, stack.shape[-1]),
+            grid,
+            patch,
+            params["kind"],
+            device=torch_device,
+            **options,
+        )
+        order, ordered = rerank(retrieved[q][: len(candidates)], found)
+        ranking[q, : len(candidates)] = order
+        scores[q, : len(candidates)] = ordered
+    seconds = time.perf_counter() - started
+    with stores.atomic_store(out, {"stage": "rerank", "record": record}) as group:
+        group.attrs.update(
+            score="matches",
+            ms_per_query=1000 * seconds / max(dataset.n_query, 1),
+            top_k=int(retrieved.shape[1]),
+        )
+        stores.write_array(group, "ranking", ranking.astype(np.int64))
+        stores.write_array(group, "scores", scores.astype(np.float64))
+        stores.write_array(group, "retrieval_ranking", retrieved.astype(np.int64))
+    log.info(
+        "re-ranked the top %d of %d queries in %.1f ms a query",
+        retrieved.shape[1],
+        dataset.n_query,
+        1000 * seconds / max(dataset.n_query, 1),
+    )
