@@ -500,3 +500,38 @@ def test_native_resolution_plans_the_images_own_size_and_the_stage_refuses_anoth
     with pytest.raises(DatasetError, match=r"zz_portrait\.png is 60 x 80.*resolution: \[width"):
         build_dataset("toy", stage.record, str(tmp_path), str(tmp_path / "bad.zarr"))
     assert not (tmp_path / "bad.zarr").exists()
+
+
+def test_a_reranker_setting_changes_only_its_rerank_and_the_reranked_recall(config):
+    changed = copy.deepcopy(config)
+    changed["rerankers"]["mnn"]["min_similarity"] = 0.5
+    assert changed_stages(config, changed, method="segvlad+mnn") == {"rerank", "recall"}
+    assert changed_stages(config, changed, method="segvlad+ransac") == set()
+    assert changed_stages(config, changed, method="segvlad") == set()
+    # Another backbone's features: only the re-ranker's features and what follows change.
+    changed["rerankers"]["mnn"]["features"] = "dino_vitb8"
+    stages = changed_stages(config, changed, method="segvlad+mnn")
+    assert stages == {"rerank", "recall"}
+    plan = build_plan(changed)
+    run = next(r for r in plan.runs["corridor"] if r.method == "segvlad+mnn")
+    rerank = plan.get(*plan.get("recall", run.recall_key).inputs["rerank"])
+    features = plan.get(*rerank.inputs["features"])
+    assert features.record["params"]["backbone"] == "dino"
+
+
+def test_a_preset_reranks_only_the_methods_a_config_keeps_and_a_typo_is_named():
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    raw["datasets"]["17places"] = {"methods": ["anyloc_vlad"]}
+    config = validate_config(raw, SCHEMA)
+    plan = build_plan(config)
+    assert [r.method for r in plan.runs["17places"]] == [
+        "anyloc_vlad",
+        "anyloc_vlad+mnn_dinov2",
+        "anyloc_vlad+ransac_dinov2",
+    ]
+    config["datasets"]["corridor"]["rerank"] = {"segvald": ["mnn"]}
+    with pytest.raises(PlanError, match=r"datasets\.corridor\.rerank names \['segvald'\]"):
+        build_plan(config)
+    config["datasets"]["corridor"]["rerank"] = {"segvlad": ["mmn"]}
+    with pytest.raises(PlanError, match=r"names re-ranker 'mmn'.*rerankers"):
+        build_plan(config)

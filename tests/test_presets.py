@@ -59,6 +59,9 @@ def test_a_preset_joins_when_its_folder_exists_or_the_config_names_it(tmp_path):
 def test_a_preset_found_by_its_folder_stays_out_of_a_config_that_cannot_run_it(tmp_path):
     (tmp_path / "pitts30k").mkdir()
     config = config_with(tmp_path)
+    del config["rerankers"]["ransac_dinov2"]
+    assert "pitts30k" not in validate_config(config, SCHEMA)["datasets"]
+    assert "rerankers.ransac_dinov2" in unknown_dataset("pitts30k", validate_config(config, SCHEMA))
     del config["backbones"]["dinov2_vitg14"]
     assert "pitts30k" not in validate_config(config, SCHEMA)["datasets"]
     message = unknown_dataset("pitts30k", validate_config(config, SCHEMA))
@@ -116,17 +119,27 @@ def test_every_presets_table_comes_from_its_data_alone(tmp_path):
     config = config_with(data)
     config["backbones"]["daisy"]["resolution"] = [64, 48]
     config["vocabulary"] = {"n_clusters": 4, "n_iter": 5}
+    # The presets' re-rankers match the (swapped) DINOv2 entry's features; one preset
+    # keeps them, to show its re-ranked rows, the others turn them off (an empty list) to
+    # keep the run short.
+    for reranker in ("mnn_dinov2", "ransac_dinov2"):
+        config["rerankers"][reranker]["features"] = "daisy"
+    reranked = "pitts30k"
     for name in MINIATURES:
         config["datasets"][name] = {
             "methods": ["anyloc_vlad"],
             # The published vocabularies are DINOv2-G's (and fetched): fitted here.
             "defaults": {"features": "daisy", "segmenter": "slic", "vocabulary": {"source": "map"}},
+            **({} if name == reranked else {"rerank": {"anyloc_vlad": [], "segvlad": []}}),
         }
     path = write_config(tmp_path, config)
     targets = [f"results/recall_{name}.csv" for name in MINIATURES]
     snakemake(tmp_path, path, *targets)
     for name in MINIATURES:
         rows = list(csv.DictReader(open(tmp_path / f"results/recall_{name}.csv")))
-        assert [r["method"] for r in rows] == ["anyloc_vlad"], name
+        expected = ["anyloc_vlad"]
+        if name == reranked:
+            expected += ["anyloc_vlad+mnn_dinov2", "anyloc_vlad+ransac_dinov2"]
+        assert [r["method"] for r in rows] == expected, name
         assert rows[0]["protocol"] == f"preset {name}"
         assert 0 <= float(rows[0]["recall@1"]) <= 1

@@ -231,11 +231,13 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
             for method_name in dataset["methods"]
             for run in _plan_method(plan, config, memo, dataset_name, dataset_key, method_name)
         ]
-        unknown = sorted(set(dataset["rerank"]) - set(dataset["methods"]))
+        # A preset re-ranks methods a config may drop from its list: only a name that is
+        # no method at all is a mistake.
+        unknown = sorted(set(dataset["rerank"]) - set(config["methods"]))
         if unknown:
             raise PlanError(
-                f"datasets.{dataset_name}.rerank names {unknown}, which are not among the "
-                f"dataset's methods {dataset['methods']}"
+                f"datasets.{dataset_name}.rerank names {unknown}, which are not defined "
+                f"under methods: {sorted(config['methods'])}"
             )
     return plan
 

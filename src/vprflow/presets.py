@@ -24,7 +24,7 @@ import yaml
 PRESETS_FILE = Path(__file__).with_name("presets.yaml")
 # Dataset keys that do not change what is evaluated or how it is counted: a config that
 # changes only these still runs the preset's protocol.
-NOT_PROTOCOL = ("methods", "defaults", "recall_at", "source", "download", "path")
+NOT_PROTOCOL = ("methods", "defaults", "recall_at", "source", "download", "path", "rerank")
 
 
 @dataclass(frozen=True)
@@ -94,12 +94,14 @@ def with_presets(config: dict) -> dict:
 
 
 def undefined_components(dataset: dict, config: dict) -> list[str]:
-    """The methods, backbones and segmenters a dataset entry names that ``config`` does
-    not define: a preset found by its folder joins only a config that can run it (a
-    small config of one's own need not define the papers' models)."""
+    """The methods, backbones, segmenters and re-rankers a dataset entry names that
+    ``config`` does not define: a preset found by its folder joins only a config that can
+    run it (a small config of one's own need not define the papers' models)."""
     defaults = dataset.get("defaults") or {}
     wanted = [("methods", m) for m in dataset["methods"]]
     wanted += [(section, defaults[key]) for key, section in _NAMED if key in defaults]
+    rerank = dataset.get("rerank") or {}
+    wanted += [("rerankers", r) for m in dataset["methods"] for r in rerank.get(m, ())]
     return [f"{section}.{name}" for section, name in wanted if name not in config.get(section, {})]
 
 
@@ -173,6 +175,12 @@ def datasets_doc() -> str:
         "`protocol` column then lists the protocol keys you changed. A preset joins the",
         "plan when its folder exists, when `targets` names it or when `datasets` has an",
         "entry of its name.",
+        "",
+        "The DINOv2 presets also re-rank AnyLoc-VLAD's and SegVLAD's top 100 by local",
+        "matches of the same DINOv2 features (rows `<method>+mnn_dinov2` and",
+        "`<method>+ransac_dinov2`, docs/methods.md \u00a78); the papers do not, and the",
+        "retrieval rows are theirs. `rerank: {anyloc_vlad: [], segvlad: []}` in the",
+        "dataset's entry turns it off.",
         "",
         "Published recall (percent) is for orientation: what the papers report with the",
         "authors' weights, DINOv2 ViT-G/14 (layer 31, value facet) for AnyLoc-VLAD and",
