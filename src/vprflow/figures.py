@@ -255,9 +255,10 @@ def retrieval_figure(rows: list[RetrievalRow], title: str, height: int = 120):
     plt = _pyplot()
     n_cols = 1 + max((len(r.references) for r in rows), default=0)
     border = max(2, round(FRAME_FRACTION * height))
-    figure, axes = plt.subplots(
-        len(rows), n_cols, figsize=(1.9 * n_cols, 1.7 * len(rows) + 0.6), squeeze=False
-    )
+    height_in = 1.7 * len(rows) + 0.6
+    figure, axes = plt.subplots(len(rows), n_cols, figsize=(1.9 * n_cols, height_in), squeeze=False)
+    # The title's 0.6 inches, not matplotlib's 12 % of the height (inches on a tall figure).
+    figure.subplots_adjust(top=1 - 0.6 / height_in)
     for axis in axes.ravel():
         axis.axis("off")
     for r, row in enumerate(rows):

@@ -52,7 +52,11 @@ def write_report(
             + _metric_cells(attrs["recall"], recall_columns)
             + _metric_cells(attrs["map"], recall_columns)
             + [_number(attrs["precision_recall"].get(c), ".6f") for c in PRECISION_COLUMNS]
-            + [_number(attrs["cost"].get(c), ".3g") for c in COST_COLUMNS]
+            # Bytes whole (a per-segment method's are a mean over images), ms to 3 digits.
+            + [
+                _number(attrs["cost"].get(c), ".0f" if "bytes" in c else ".3g")
+                for c in COST_COLUMNS
+            ]
             + (_metric_cells(exact_recall, recall_columns) if any(exact) else [])
         )
     _write_csv(csv_out, header, rows)
