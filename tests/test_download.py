@@ -321,3 +321,32 @@ def test_download_rule_then_recall_through_the_snakefile(tmp_path, server, toy_f
         rows = list(csv.DictReader(f))
     assert len(rows) == len(config["datasets"]["toy"]["methods"])
     assert all(row["n_queries"] == "10" for row in rows)
+    # After a complete run, the cached stores never stand in for a dataset that is not
+    # there: a run pointed at an empty data_root names the dataset and the remedy, not a
+    # stage that failed to find its files (no "Missing files after 5 seconds").
+    elsewhere = write_config(workdir, {**config, "data_root": str(tmp_path / "empty")}, "b.yaml")
+    for target in ("results/recall_toy.csv", "all"):
+        failed = snakemake(workdir, elsewhere, *([] if target == "all" else [target]), check=False)
+        console = failed.stdout + failed.stderr
+        assert failed.returncode != 0, target
+        assert "dataset 'toy'" in console and "does not exist" in console, target
+        assert "snakemake --cores 1 results/downloads/toy.json" in console, target
+        assert "Missing files after" not in console, target
+
+
+@pytest.mark.workflow
+def test_a_failed_download_says_on_the_console_which_dataset_and_what_to_do(tmp_path, server):
+    _, base = server
+    workdir = tmp_path / "work"
+    workdir.mkdir()
+    config = toy_config(workdir / "data", download=spec_for(f"{base}/gone.tar.gz"))
+    failed = snakemake(
+        workdir, write_config(workdir, config), "results/downloads/toy.json", check=False
+    )
+    console = failed.stdout + failed.stderr
+    assert failed.returncode != 0
+    # Snakemake's job line says what ran (not "message: None"), the error why and what next.
+    assert "dataset toy: downloading into" in console
+    assert "dataset 'toy'" in console and "HTTP 404" in console
+    assert "put the dataset at" in console and "data_root" in console
+    assert not (workdir / "data" / "toy").exists()

@@ -120,7 +120,7 @@ def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
         raise DownloadError(f"download of {url} failed: HTTP {error.code} {error.reason}") from None
     except urllib.error.URLError as error:
         raise DownloadError(
-            f"cannot download {url}: {error.reason} (no network? see the dataset's source)"
+            f"cannot download {url}: {error.reason} (no network?)"
         ) from None
     except (TimeoutError, ConnectionError) as error:
         raise DownloadError(
@@ -357,6 +357,13 @@ def download_dataset(
         files = extract_layout(archive, url, entry["layout"], staged, int(entry["strip"]), manifest)
         archive.unlink()
         os.replace(staged, folder)
+    except DownloadError as error:
+        # The console shows this line: name the dataset and what to do, not only the URL.
+        raise DownloadError(
+            f"dataset {name!r}: {error}. Nothing was laid out at {folder}. Run this target "
+            f"again once the URL is reachable, or put the dataset at {folder} yourself "
+            "(or run with --config data_root=<folder holding it>)"
+        ) from None
     finally:
         shutil.rmtree(work, ignore_errors=True)
     log.info("dataset %s: %d files laid out in %s", name, len(files), folder)

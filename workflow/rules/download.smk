@@ -38,6 +38,8 @@ rule download:
         folder=lambda wildcards: str(
             dataset_folder(CONFIG["data_root"], CONFIG["datasets"][wildcards.dataset])
         ),
+    message:
+        "vprflow: dataset {wildcards.dataset}: downloading into {params.folder} (progress: {log})"
     script:
         "../scripts/download.py"
 
