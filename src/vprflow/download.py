@@ -119,9 +119,7 @@ def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
     except urllib.error.HTTPError as error:
         raise DownloadError(f"download of {url} failed: HTTP {error.code} {error.reason}") from None
     except urllib.error.URLError as error:
-        raise DownloadError(
-            f"cannot download {url}: {error.reason} (no network?)"
-        ) from None
+        raise DownloadError(f"cannot download {url}: {error.reason} (no network?)") from None
     except (TimeoutError, ConnectionError) as error:
         raise DownloadError(
             f"download of {url} broke off after {received} bytes: {error}"
