@@ -29,17 +29,6 @@ def test_frames_are_green_for_correct_red_for_wrong_and_leave_the_inside():
     np.testing.assert_array_equal(figures.framed(image, figures.WRONG, 0), image)
 
 
-def test_distinct_colours_are_far_apart():
-    colours = figures.distinct_colours(40)
-    assert colours.shape == (40, 3) and colours.min() >= 0 and colours.max() <= 1
-    gaps = np.linalg.norm(colours[:, None] - colours[None], axis=2)[np.triu_indices(40, 1)]
-    # Consecutive segments differ clearly; no two of the first 12 are near-identical.
-    assert np.linalg.norm(np.diff(colours, axis=0), axis=1).min() > 0.3
-    first = np.linalg.norm(colours[:12, None] - colours[None, :12], axis=2)
-    assert first[np.triu_indices(12, 1)].min() > 0.1
-    assert gaps.min() > 0
-
-
 def test_upsampled_masks_use_segvlads_nearest_mapping():
     rng = np.random.default_rng(0)
     masks = rng.random((3, 5, 7)) > 0.5
@@ -49,26 +38,38 @@ def test_upsampled_masks_use_segvlads_nearest_mapping():
         np.testing.assert_array_equal(out[s], masks[s][np.ix_(rows, cols)])
 
 
-def test_matched_reference_segments_take_their_query_segments_colour():
-    matches = [
-        figures.SegmentMatch(0, 2, 0.9),
-        figures.SegmentMatch(1, None, None),
-        figures.SegmentMatch(2, 0, 0.5),
-        figures.SegmentMatch(3, 2, 0.4),  # also segment 2, but less similar than query 0
+def test_the_segment_figure_numbers_the_most_similar_matched_pairs_only():
+    matches = [figures.SegmentMatch(i, i % 3 if i % 4 else None, 0.5 + i / 100) for i in range(30)]
+    shown = figures.shown_pairs(matches)
+    assert len(shown) == figures.MAX_PAIRS
+    assert all(m.reference_segment is not None for m in shown)
+    kept = sorted((m.similarity for m in matches if m.reference_segment is not None), reverse=True)
+    assert [m.similarity for m in shown] == kept[: figures.MAX_PAIRS]
+    palette = figures.pair_palette()
+    gaps = np.linalg.norm(palette[:, None] - palette[None], axis=2)[
+        np.triu_indices(len(palette), 1)
     ]
-    q_colours, r_colours, painted = figures.match_colours(matches, 4, 3)
-    np.testing.assert_array_equal(r_colours[2], q_colours[0])
-    np.testing.assert_array_equal(r_colours[0], q_colours[2])
-    assert sorted(painted) == [0, 2]
-    # Painted pixels carry the colour: segment 2 of the reference, blended at alpha.
-    reference = np.zeros((4, 6, 3), np.float32)
-    masks = np.zeros((3, 4, 6), bool)
-    masks[2, :2] = True
-    masks[0, 2:, :3] = True
-    out = figures.paint_segments(reference, masks, r_colours, alpha=1.0, painted=painted)
-    np.testing.assert_allclose(out[0, 0], q_colours[0], atol=1e-6)
-    np.testing.assert_allclose(out[3, 0], q_colours[2], atol=1e-6)
-    np.testing.assert_array_equal(out[3, 5], 0)  # in no painted segment: greyed black
+    assert len(palette) == figures.MAX_PAIRS and gaps.min() > 0.2  # told apart
+
+
+def test_outlined_segments_keep_the_scene_and_draw_their_edge_in_full_colour():
+    image = np.full((12, 16, 3), 0.5, np.float32)
+    masks = np.zeros((2, 6, 8), bool)
+    masks[0, 1:5, 1:5] = True  # upsampled x2: rows 2..9, columns 2..9
+    colour = np.array([1.0, 0.0, 0.0])
+    out = figures.outline_segments(image, masks, {0: colour}, alpha=0.25)
+    np.testing.assert_allclose(out[2, 5], colour, atol=1e-6)  # on the edge
+    np.testing.assert_allclose(out[6, 6], 0.75 * 0.5 + 0.25 * colour, atol=1e-6)  # tinted
+    np.testing.assert_array_equal(out[0, 0], image[0, 0])  # outside: untouched
+    np.testing.assert_array_equal(out[:, 12:], image[:, 12:])  # segment 1 not drawn
+
+
+def test_a_segment_number_sits_inside_its_segment_even_when_concave():
+    mask = np.zeros((20, 20), bool)
+    mask[2:18, 2:6] = True
+    mask[14:18, 2:18] = True  # an L: its centroid lies outside it
+    x, y = figures.label_point(mask)
+    assert mask[int(y), int(x)]
 
 
 def test_segment_matches_take_the_nearest_segment_inside_the_reference_image():
@@ -170,6 +171,16 @@ def test_recall_table_page_shows_map_precision_recall_and_cost_and_bolds_only_sc
     assert "<b>0.800</b>" in page and "<td>0.600</td>" in page
     # Costs are shown as stored, never bolded (lower is better there).
     assert "<td>4096</td>" in page and "<td>12.5</td>" in page and "<b>4096" not in page
+
+
+def test_the_recall_axis_starts_a_tenth_below_the_lowest_curve_and_shows_n_1_whole():
+    high = {"a": np.array([0.66, 0.9, 1.0]), "b": np.array([0.71, 0.8, 0.95])}
+    assert figures.recall_axis_floor(high) == pytest.approx(0.5)
+    assert figures.recall_axis_floor({"a": np.array([0.05, 0.5])}) == 0.0
+    figure = figures.recall_curve_figure(high, "t", [1, 3])
+    (axes,) = figure.axes
+    assert axes.get_ylim()[0] == pytest.approx(0.5) and axes.get_xlim()[0] < 1
+    figures._pyplot().close("all")
 
 
 def test_the_recall_figure_draws_precision_recall_curves_in_a_second_panel():

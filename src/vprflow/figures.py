@@ -10,7 +10,6 @@ PNG to a temporary name first, so an interrupted job leaves no complete-looking 
 
 from __future__ import annotations
 
-import colorsys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -51,15 +50,6 @@ def frame_colour(correct: bool | None) -> tuple[float, float, float]:
     return CORRECT if correct else WRONG
 
 
-def distinct_colours(n: int) -> np.ndarray:
-    """``[n, 3]`` saturated colours, neighbours far apart in hue (golden-ratio steps), so
-    that every segment of an image is told apart from the others."""
-    hues = (np.arange(n) * 0.618033988749895) % 1.0
-    values = np.where(np.arange(n) % 2 == 0, 0.95, 0.75)
-    colours = [colorsys.hsv_to_rgb(h, 0.85, v) for h, v in zip(hues, values, strict=True)]
-    return np.array(colours, dtype=np.float64).reshape(n, 3)
-
-
 def upsample_masks(masks: np.ndarray, height: int, width: int) -> np.ndarray:
     """Nearest-neighbour upsampling of bool ``masks [S, Hm, Wm]`` to ``[S, height, width]``
     (the mapping SegVLAD uses from mask to image pixels)."""
@@ -67,28 +57,6 @@ def upsample_masks(masks: np.ndarray, height: int, width: int) -> np.ndarray:
     rows = np.minimum((np.arange(height) * hm) // height, hm - 1)
     cols = np.minimum((np.arange(width) * wm) // width, wm - 1)
     return masks[:, rows][:, :, cols]
-
-
-def paint_segments(
-    image: np.ndarray,
-    masks: np.ndarray,
-    colours: np.ndarray,
-    alpha: float = 0.55,
-    painted: Sequence[int] | None = None,
-) -> np.ndarray:
-    """``image [H, W, 3]`` with segment ``s`` (``masks [S, Hm, Wm]``, any resolution)
-    blended with ``colours[s]``; only the segments in ``painted`` when it is given (the
-    rest are greyed out). Where segments overlap, the later one is on top."""
-    height, width = image.shape[:2]
-    full = upsample_masks(np.asarray(masks, dtype=bool), height, width)
-    chosen = range(len(full)) if painted is None else painted
-    out = np.array(image, dtype=np.float32, copy=True)
-    if painted is not None:
-        grey = out.mean(axis=2, keepdims=True)
-        out = 0.35 * out + 0.65 * grey
-    for s in chosen:
-        out[full[s]] = (1 - alpha) * out[full[s]] + alpha * np.asarray(colours[s], np.float32)
-    return out
 
 
 def recall_curve(first_correct: np.ndarray, evaluated: np.ndarray, n_max: int) -> np.ndarray:
@@ -185,6 +153,13 @@ def save_figure(figure, path: str | Path, dpi: int = 100) -> None:
             _pyplot().close(figure)
 
 
+def recall_axis_floor(curves: dict[str, np.ndarray]) -> float:
+    """The Recall@N axis's lower end: 0.1 below the lowest value drawn, rounded down to
+    a tenth (0 at most), so curves that all lie high are not squeezed into the top."""
+    lowest = min((float(np.min(c)) for c in curves.values() if len(c)), default=0.0)
+    return max(0.0, np.floor((lowest - 0.1) * 10) / 10)
+
+
 def recall_curve_figure(
     curves: dict[str, np.ndarray],
     title: str,
@@ -212,8 +187,9 @@ def recall_curve_figure(
     axes.xaxis.set_major_locator(MaxNLocator(integer=True))
     axes.set_xlabel("N (references retrieved)")
     axes.set_ylabel("Recall@N")
-    axes.set_ylim(0, 1.02)
-    axes.set_xlim(1, max((len(c) for c in curves.values()), default=1))
+    axes.set_ylim(recall_axis_floor(curves), 1.02)
+    # Half a step of room each side, so the points at N = 1 and the last N are whole.
+    axes.set_xlim(0.5, max((len(c) for c in curves.values()), default=1) + 0.5)
     axes.grid(alpha=0.3)
     axes.legend(loc="lower right", fontsize=8)
     if precision_recall is not None:
@@ -262,7 +238,7 @@ def retrieval_figure(rows: list[RetrievalRow], title: str, height: int = 120):
     for axis in axes.ravel():
         axis.axis("off")
     for r, row in enumerate(rows):
-        cells = [(row.query, f"{row.label} {row.query_name}", None)]
+        cells = [(row.query, f"{row.label}\n{row.query_name}", None)]
         cells += [
             (image, f"{rank}. {name}", ok)
             for rank, (image, name, ok) in enumerate(
@@ -287,27 +263,6 @@ class SegmentMatch:
     similarity: float | None
 
 
-def match_colours(matches: list[SegmentMatch], n_query: int, n_reference: int):
-    """Colours of the query's segments (distinct) and of the reference's segments: each
-    matched reference segment takes the colour of the query segment that retrieved it
-    (the best-matching one when several did). Returns ``(query [Sq, 3], reference
-    [Sr, 3], painted reference segments)``."""
-    query_colours = distinct_colours(n_query)
-    reference_colours = np.zeros((n_reference, 3))
-    painted: list[int] = []
-    best: dict[int, float] = {}
-    for match in matches:
-        r = match.reference_segment
-        if r is None:
-            continue
-        if r not in best or match.similarity > best[r]:
-            best[r] = match.similarity
-            reference_colours[r] = query_colours[match.query_segment]
-            if r not in painted:
-                painted.append(r)
-    return query_colours, reference_colours, painted
-
-
 @dataclass
 class SegmentExplanation:
     """One query explained: its image and masks ``[Sq, Hm, Wm]``, its top-1 reference's
@@ -323,44 +278,112 @@ class SegmentExplanation:
     correct: bool | None
 
 
+# Pairs a segment figure draws: the most similar ones, each in a colour of matplotlib's
+# "tab10" (ten hues told apart at a glance, also by most colour-blind readers).
+MAX_PAIRS = 10
+
+
+def pair_palette() -> np.ndarray:
+    """``[MAX_PAIRS, 3]`` colours of the numbered pairs (matplotlib's tab10)."""
+    from matplotlib import colormaps
+
+    return np.asarray(colormaps["tab10"].colors[:MAX_PAIRS], dtype=np.float64)
+
+
+def outline_segments(
+    image: np.ndarray, masks: np.ndarray, colours: dict[int, np.ndarray], alpha: float = 0.25
+) -> np.ndarray:
+    """``image [H, W, 3]`` with each segment ``s`` in ``colours`` (``masks [S, Hm, Wm]``,
+    any resolution) tinted at ``alpha`` and outlined in its colour (2 pixels wide), so
+    the scene stays visible; the other segments are left as they are."""
+    from scipy.ndimage import binary_dilation
+    from skimage.segmentation import find_boundaries
+
+    height, width = image.shape[:2]
+    out = np.array(image, dtype=np.float32, copy=True)
+    for s, colour in colours.items():
+        mask = upsample_masks(np.asarray(masks[s : s + 1], dtype=bool), height, width)[0]
+        colour = np.asarray(colour, np.float32)
+        out[mask] = (1 - alpha) * out[mask] + alpha * colour
+        edge = binary_dilation(find_boundaries(mask, mode="inner")) & mask
+        out[edge] = colour
+    return out
+
+
+def label_point(mask: np.ndarray) -> tuple[float, float]:
+    """``(x, y)`` of the pixel of bool ``mask [H, W]`` farthest from its border: where a
+    segment's number is written (a centroid can fall outside a concave segment)."""
+    from scipy.ndimage import distance_transform_edt
+
+    distance = distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
+    y, x = np.unravel_index(int(np.argmax(distance)), mask.shape)
+    return float(x), float(y)
+
+
+def shown_pairs(matches: list[SegmentMatch]) -> list[SegmentMatch]:
+    """The pairs a segment figure numbers: matched ones, most similar first, at most
+    :data:`MAX_PAIRS`."""
+    found = [m for m in matches if m.reference_segment is not None]
+    return sorted(found, key=lambda m: -m.similarity)[:MAX_PAIRS]
+
+
 def segment_match_figure(explanations: list[SegmentExplanation], title: str):
-    """Per explanation: the query's segments in distinct colours beside its top-1
-    reference, each matched reference segment in its query segment's colour (the
-    reference framed green or red), and a strip of the matches' cosine similarities."""
+    """Per explanation, one row: the query and its top-1 reference (framed green or red)
+    with the :func:`shown_pairs` numbered 1.. in both images, each pair tinted and
+    outlined in its own colour, and under them the pairs' cosine similarities; the row's
+    heading says how many pairs matched and how many are shown."""
     plt = _pyplot()
-    figure = plt.figure(figsize=(9, 4.6 * len(explanations) + 0.4))
-    grid = figure.add_gridspec(2 * len(explanations), 2, height_ratios=[3, 1] * len(explanations))
-    for e, item in enumerate(explanations):
-        q_colours, r_colours, painted = match_colours(
-            item.matches, len(item.query_masks), len(item.reference_masks)
-        )
-        left = figure.add_subplot(grid[2 * e, 0])
-        right = figure.add_subplot(grid[2 * e, 1])
+    palette = pair_palette()
+    figure = plt.figure(figsize=(11, 5.2 * len(explanations) + 0.5), layout="constrained")
+    rows = figure.subfigures(len(explanations), 1, squeeze=False)[:, 0]
+    for row, item in zip(rows, explanations, strict=True):
+        pairs = shown_pairs(item.matches)
+        n_matched = sum(m.reference_segment is not None for m in item.matches)
+        query_colours = {m.query_segment: palette[i] for i, m in enumerate(pairs)}
+        reference_colours: dict[int, np.ndarray] = {}
+        numbers: dict[int, list[str]] = {}
+        for i, m in enumerate(pairs):
+            # A reference segment several query segments found keeps the best's colour.
+            reference_colours.setdefault(m.reference_segment, palette[i])
+            numbers.setdefault(m.reference_segment, []).append(str(i + 1))
+        axes = row.subplots(1, 2)
         border = max(2, round(FRAME_FRACTION * item.reference.shape[0] / 2))
-        left.imshow(paint_segments(item.query, item.query_masks, q_colours))
-        left.set_title(f"{item.title}\nquery segments", fontsize=8, loc="left")
-        shown = paint_segments(item.reference, item.reference_masks, r_colours, painted=painted)
-        right.imshow(framed(shown, frame_colour(item.correct), border))
-        right.set_title("top-1 reference: matched segments", fontsize=8)
-        for axis in (left, right):
+        query = outline_segments(item.query, item.query_masks, query_colours)
+        reference = outline_segments(item.reference, item.reference_masks, reference_colours)
+        axes[0].imshow(query)
+        axes[1].imshow(framed(reference, frame_colour(item.correct), border))
+        query_numbers = {m.query_segment: [str(i + 1)] for i, m in enumerate(pairs)}
+        labelled = (
+            (axes[0], item.query, item.query_masks, query_numbers, query_colours),
+            (axes[1], item.reference, item.reference_masks, numbers, reference_colours),
+        )
+        for axis, image, masks, names, colours in labelled:
+            height, width = image.shape[:2]
+            for s, text in names.items():
+                mask = upsample_masks(np.asarray(masks[s : s + 1], dtype=bool), height, width)[0]
+                x, y = label_point(mask)
+                box = {"boxstyle": "round,pad=0.2", "facecolor": colours[s], "edgecolor": "none"}
+                axis.text(
+                    x, y, ",".join(text), fontsize=10, fontweight="bold", color="white",
+                    ha="center", va="center", bbox=box,
+                )  # fmt: skip
             axis.axis("off")
-        strip = figure.add_subplot(grid[2 * e + 1, :])
-        strip.axis("off")
-        found = sorted(
-            (m for m in item.matches if m.reference_segment is not None),
-            key=lambda m: -m.similarity,
+        axes[0].set_title("query", fontsize=10)
+        verdict = {True: "a true positive", False: "wrong", None: "not judged"}[item.correct]
+        axes[1].set_title(f"top-1 reference ({verdict})", fontsize=10)
+        cut = (
+            f"the {len(pairs)} most similar are numbered"
+            if n_matched > len(pairs)
+            else "all are numbered"
         )
-        for i, match in enumerate(found[:24]):
-            x, y = (i % 8) / 8, 1 - (i // 8) / 3
-            colour = q_colours[match.query_segment]
-            strip.add_patch(plt.Rectangle((x, y - 0.3), 0.025, 0.25, color=colour))
-            strip.text(x + 0.03, y - 0.18, f"{match.similarity:.3f}", fontsize=8, va="center")
-        strip.set_xlim(0, 1)
-        strip.set_ylim(0, 1.05)
-        strip.set_title(
-            "cosine similarity of each matched pair (colour: query segment)", fontsize=8
+        row.suptitle(
+            f"{item.title}\n{n_matched} of {len(item.matches)} query segments matched a "
+            f"segment of this reference; {cut}",
+            fontsize=10,
         )
-    figure.suptitle(title, fontsize=10)
+        similarities = "   ".join(f"{i + 1}: {m.similarity:.3f}" for i, m in enumerate(pairs))
+        row.supxlabel(f"cosine similarity of each numbered pair   {similarities}", fontsize=9)
+    figure.suptitle(title, fontsize=11)
     return figure
 
 

@@ -203,7 +203,6 @@ def draw_segment_matches(
             range(int(offsets[top1]), int(offsets[top1 + 1])),
             group["descriptors"],
         )
-        n_matched = sum(m.reference_segment is not None for m in matches)
         explanations.append(
             figures.SegmentExplanation(
                 dataset.read_image(image),
@@ -211,8 +210,7 @@ def draw_segment_matches(
                 dataset.read_image(top1),
                 masks(top1),
                 matches,
-                f"query {dataset.names[image]} -> {dataset.names[top1]}: {n_matched} of "
-                f"{len(matches)} query segments matched a segment of it",
+                f"{dataset.names[image]} -> {dataset.names[top1]}",
                 bool(np.isin(top1, truth[q])) if dataset.has_ground_truth else None,
             )
         )
