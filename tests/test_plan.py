@@ -529,6 +529,14 @@ def test_a_preset_reranks_only_the_methods_a_config_keeps_and_a_typo_is_named():
         "anyloc_vlad+mnn_dinov2",
         "anyloc_vlad+ransac_dinov2",
     ]
+    # A cluster GPU for re-ranking on a model's features, none for DAISY's.
+    for dataset, method, gpu in (
+        ("17places", "anyloc_vlad+mnn_dinov2", True),
+        ("corridor", "anyloc_vlad+mnn", False),
+    ):
+        run = next(r for r in plan.runs[dataset] if r.method == method)
+        rerank = plan.get(*plan.get("recall", run.recall_key).inputs["rerank"])
+        assert rerank.run_params["uses_gpu"] is gpu, method
     config["datasets"]["corridor"]["rerank"] = {"segvald": ["mnn"]}
     with pytest.raises(PlanError, match=r"datasets\.corridor\.rerank names \['segvald'\]"):
         build_plan(config)

@@ -511,7 +511,10 @@ def _plan_rerank(
     if "vote_ranking" in recall_params:
         params["vote_ranking"] = recall_params["vote_ranking"]
     used = {k: v for k, v in retrieval.items() if k != "exact_search"}
-    run_params = {**m.execution, "uses_gpu": True}
+    # Matching a model's wide features is GPU work; DAISY's (~100-d) is not worth asking
+    # a cluster for a GPU (the stage still uses one when `device` finds it).
+    backbone = m.entry("backbones", entry["features"])
+    run_params = {**m.execution, "uses_gpu": model_kind("features", backbone).uses_gpu}
     store = m.add("rerank", params, {**used, "features": features}, run_params)
     return store, {"reranker": name, **_prefixed("rerank", entry)}
 
