@@ -113,3 +113,47 @@ def test_the_profiles_readme_describes_every_profile():
     for profile in profiles:
         assert (profile / "config.yaml").is_file(), profile
         assert f"`{profile.name}`" in readme, f"workflow/profiles/README.md omits {profile.name}"
+
+
+def readme_yaml_blocks() -> list[dict]:
+    text = (REPO / "README.md").read_text()
+    return [yaml.safe_load(block) for block in re.findall(r"```yaml\n(.*?)```", text, re.S)]
+
+
+def test_the_readmes_own_image_recipes_validate_and_plan(tmp_path):
+    """Both recipes of "Your own images" are whole dataset entries the shipped config can
+    run: they validate, and the plan is built for a folder of images laid out as said."""
+    from synthetic import make_dataset
+    from workflow_helpers import repo_config
+
+    from vprflow.config import validate_config
+    from vprflow.plan import build_plan
+
+    recipes = readme_yaml_blocks()
+    assert len(recipes) == 2
+    make_dataset(tmp_path / "toy")
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "toy" / "ref").rename(tmp_path / "mine" / "db")
+    (tmp_path / "toy" / "query").rename(tmp_path / "mine" / "queries")
+    for recipe in recipes:
+        config = repo_config()
+        config["data_root"] = str(tmp_path)
+        config["datasets"].update(recipe["datasets"])
+        mine = config["datasets"]["mine"]
+        mine["ground_truth"] = {"kind": "none"}  # the recipes' gps.csv is the user's
+        plan = build_plan(validate_config(config, WORKFLOW / "schemas" / "config.schema.yaml"))
+        rerank = mine.get("rerank", {})
+        expected = [
+            r for m in mine["methods"] for r in (m, *(f"{m}+{x}" for x in rerank.get(m, [])))
+        ]
+        assert [run.method for run in plan.runs["mine"]] == expected
+
+
+def test_the_readme_names_only_methods_the_shipped_config_defines():
+    from workflow_helpers import repo_config
+
+    text = (REPO / "README.md").read_text()
+    config = repo_config()
+    first_cells = re.findall(r"^\| (`[^|]*)\|", text, re.M)
+    named = {name for cell in first_cells for name in re.findall(r"`([a-z0-9_]+)`", cell)}
+    assert len(named) > 10 and named <= set(config["methods"]), named - set(config["methods"])
