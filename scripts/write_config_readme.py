@@ -5,8 +5,11 @@ python scripts/write_config_readme.py
 
 from pathlib import Path
 
+import yaml
+
 from vprflow.config import config_readme, load_schema
 
 REPO = Path(__file__).resolve().parents[1]
 schema = load_schema(REPO / "workflow" / "schemas" / "config.schema.yaml")
-(REPO / "config" / "README.md").write_text(config_readme(schema))
+shipped = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+(REPO / "config" / "README.md").write_text(config_readme(schema, shipped))

@@ -213,7 +213,7 @@ also get their kind's defaults, and a method's `retrieval.params` its index's, f
 condition in brackets applies only then. What the methods compute is in
 `docs/methods.md`.
 
-This file is generated from the schema's descriptions by
+This file is generated from the schema's descriptions and config/config.yaml by
 `python scripts/write_config_readme.py`; `tests/test_registry.py` checks it is current.
 """
 
@@ -297,12 +297,16 @@ def _search_index_table() -> list[str]:
     return [*lines, ""]
 
 
-def config_readme(schema: dict) -> str:
-    """``config/README.md``: every key of the schema, its allowed values, default (the
+def config_readme(schema: dict, shipped: dict | None = None) -> str:
+    """``config/README.md``: what the shipped config (``shipped``, config/config.yaml as
+    read) defines, then every key of the schema, its allowed values, default (the
     schema's, its kind's from the registry) and meaning (the schema's ``description``s),
     and each search index's parameter defaults."""
     sections = ", ".join(f"`{name}`" for name in METHOD_DEFAULT_SECTIONS)
-    lines = [_README_HEAD.replace("{sections}", sections), *_table("top level", schema)]
+    lines = [_README_HEAD.replace("{sections}", sections)]
+    if shipped is not None:
+        lines += _shipped_tables(shipped)
+    lines += _table("top level", schema)
     kinds = {"backbone": BACKBONES, "segmenter": SEGMENTERS}
     for name, definition in schema["definitions"].items():
         if "properties" not in definition:
@@ -314,3 +318,54 @@ def config_readme(schema: dict) -> str:
         if name == "retrieval":
             lines += _search_index_table()
     return "\n".join(lines).rstrip() + "\n"
+
+
+# What a shipped entry is, in a table cell: the keys that tell entries apart.
+_SHIPPED_KEYS = {
+    "backbones": ("backbone", "model", "layer", "facet", "file"),
+    "segmenters": ("segmenter", "model", "n_segments", "file"),
+    "rerankers": ("kind", "features"),
+}
+
+
+def _flow(value) -> str:
+    """``value`` as one line of YAML, as a config would write it."""
+    return yaml.safe_dump(value, default_flow_style=True, width=10**6).strip()
+
+
+def _shipped_tables(shipped: dict) -> list[str]:
+    """The entries config/config.yaml defines (backbones, segmenters, re-rankers,
+    methods, datasets) and its ``data_root``, one table row each."""
+
+    def cell(entry: dict, keys) -> str:
+        return ", ".join(f"{k}: `{entry[k]}`" for k in keys if entry.get(k) is not None)
+
+    lines = [
+        "## What `config/config.yaml` ships",
+        "",
+        f"`data_root` is `{shipped['data_root']}` (relative to the directory Snakemake runs "
+        "in; `--config data_root=...` points elsewhere). `device` is "
+        f"`{shipped.get('device', 'auto')}`; `targets`: "
+        f"{', '.join(f'`{t}`' for t in shipped.get('targets', [])) or 'none'}.",
+        "",
+    ]
+    for section, keys in _SHIPPED_KEYS.items():
+        lines += [f"`{section}`:", "", "| name | what |", "|---|---|"]
+        lines += [f"| `{n}` | {cell(e, keys)} |" for n, e in shipped.get(section, {}).items()]
+        lines.append("")
+    lines += ["`methods` (an aggregator, and what the method overrides):", ""]
+    lines += ["| name | aggregator | overrides |", "|---|---|---|"]
+    for name, method in shipped["methods"].items():
+        overrides = {k: v for k, v in method.items() if k != "aggregator"}
+        text = ", ".join(f"`{_flow({k: v})}`" for k, v in overrides.items()) or "-"
+        lines.append(f"| `{name}` | `{method['aggregator']}` | {text} |")
+    lines += ["", "`datasets` (the papers' datasets are presets: docs/datasets.md):", ""]
+    lines += ["| name | methods | re-ranked |", "|---|---|---|"]
+    for name, dataset in shipped.get("datasets", {}).items():
+        methods = ", ".join(f"`{m}`" for m in dataset.get("methods", []))
+        rerank = "; ".join(
+            f"`{m}` by {', '.join(f'`{r}`' for r in rs)}"
+            for m, rs in (dataset.get("rerank") or {}).items()
+        )
+        lines.append(f"| `{name}` | {methods} | {rerank or '-'} |")
+    return [*lines, ""]
