@@ -124,7 +124,7 @@ def test_the_readmes_own_image_recipes_validate_and_plan(tmp_path):
     """Both recipes of "Your own images" are whole dataset entries the shipped config can
     run: they validate, and the plan is built for a folder of images laid out as said."""
     from synthetic import make_dataset
-    from workflow_helpers import repo_config
+    from workflow_helpers import expected_rows, repo_config
 
     from vprflow.config import validate_config
     from vprflow.plan import build_plan
@@ -142,11 +142,7 @@ def test_the_readmes_own_image_recipes_validate_and_plan(tmp_path):
         mine = config["datasets"]["mine"]
         mine["ground_truth"] = {"kind": "none"}  # the recipes' gps.csv is the user's
         plan = build_plan(validate_config(config, WORKFLOW / "schemas" / "config.schema.yaml"))
-        rerank = mine.get("rerank", {})
-        expected = [
-            r for m in mine["methods"] for r in (m, *(f"{m}+{x}" for x in rerank.get(m, [])))
-        ]
-        assert [run.method for run in plan.runs["mine"]] == expected
+        assert [run.method for run in plan.runs["mine"]] == expected_rows(mine)
 
 
 def test_the_readme_names_only_methods_the_shipped_config_defines():

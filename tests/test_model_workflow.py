@@ -12,7 +12,7 @@ import pytest
 import torch
 from synthetic import make_dataset
 from tiny_models import save_tiny_dino, save_tiny_dinov2, save_tiny_sam
-from workflow_helpers import repo_config, snakemake, toy_config, write_config
+from workflow_helpers import expected_rows, repo_config, snakemake, toy_config, write_config
 
 from vprflow.images import scan_images
 
@@ -42,16 +42,19 @@ def test_corridor_with_tiny_dinov2_and_tiny_sam(tmp_path, data_root):
         "segmenter": "sam_vith",
         "pca": {"dim": 32},
     }
+    # One re-ranked row, on the same (model) features.
+    config["rerankers"]["mnn"]["features"] = "dinov2_vitg14"
+    config["datasets"]["corridor"]["rerank"] = {"anyloc_vlad": ["mnn"]}
     config["vocabulary"]["n_clusters"] = 8
     path = write_config(tmp_path, config)
     dry = snakemake(tmp_path, path, "-n", "results/recall_corridor.csv").stdout
     # Model stages ask the scheduler for a GPU (device auto), the others do not.
     jobs = re.findall(r"rule (\w+):.*?resources: ([^\n]*)", dry, flags=re.DOTALL)
     gpu = {rule: "gpu=1" in resources for rule, resources in jobs}
-    assert gpu["features"] and gpu["segments"] and not gpu["vocabulary"]
+    assert gpu["features"] and gpu["segments"] and gpu["rerank"] and not gpu["vocabulary"]
     snakemake(tmp_path, path, "results/recall_corridor.csv")
     rows = rows_of(tmp_path / "results" / "recall_corridor.csv")
-    assert [r["method"] for r in rows] == config["datasets"]["corridor"]["methods"]
+    assert [r["method"] for r in rows] == expected_rows(config["datasets"]["corridor"])
     for row in rows:
         assert row["features.backbone"] == "dinov2" and row["features.layer"] == "1"
         assert 0.0 <= float(row["recall@1"]) <= float(row["recall@20"]) <= 1.0

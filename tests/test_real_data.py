@@ -6,7 +6,7 @@ import csv
 from pathlib import Path
 
 import pytest
-from workflow_helpers import repo_config, snakemake, write_config
+from workflow_helpers import expected_rows, repo_config, snakemake, write_config
 
 pytestmark = [pytest.mark.workflow, pytest.mark.data]
 
@@ -19,7 +19,7 @@ def run_dataset(workdir: Path, data_root: Path, dataset: str) -> dict[str, dict]
     snakemake(workdir, write_config(workdir, config))
     with open(workdir / f"results/recall_{dataset}.csv") as f:
         rows = list(csv.DictReader(f))
-    assert [r["method"] for r in rows] == config["datasets"][dataset]["methods"]
+    assert [r["method"] for r in rows] == expected_rows(config["datasets"][dataset])
     return {r["method"]: r for r in rows}
 
 
@@ -31,7 +31,8 @@ def assert_figures_drawn(workdir: Path, dataset: str, rows: dict[str, dict]) -> 
     for method, row in rows.items():
         expected.append(workdir / f"results/figures/{dataset}/retrievals/{method}.png")
         explanation = {"segvlad": "segment_matches", "snsm": "support_maps"}
-        if row["aggregator"] in explanation:
+        # A re-ranked row's explanation is its method's row's.
+        if row["aggregator"] in explanation and not row.get("reranker"):
             figure = explanation[row["aggregator"]]
             expected.append(workdir / f"results/figures/{dataset}/{figure}/{method}.png")
     for path in expected:
@@ -43,7 +44,7 @@ def test_corridor_recall_is_well_above_chance(corridor_run):
     workdir, _ = corridor_run
     with open(workdir / "results/recall_corridor.csv") as f:
         rows = {r["method"]: r for r in csv.DictReader(f)}
-    assert list(rows) == repo_config()["datasets"]["corridor"]["methods"]
+    assert list(rows) == expected_rows(repo_config()["datasets"]["corridor"])
     assert_figures_drawn(workdir, "corridor", rows)
     # 111 references, about 5 positives per query: chance Recall@1 is about 0.045.
     for method, row in rows.items():

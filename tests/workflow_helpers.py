@@ -120,3 +120,32 @@ def scheduled_stages(workdir: Path, config_path: Path, target: str) -> set[str]:
             match = re.match(r"results/cache/([a-z]+)/", output.strip())
             stages.add(match.group(1) if match else "report")
     return stages
+
+
+def expected_rows(dataset: dict) -> list[str]:
+    """The rows a dataset entry's table has, in order: each method, then its re-ranked
+    rows ``<method>+<reranker>``."""
+    rerank = dataset.get("rerank") or {}
+    rows = []
+    for method in dataset["methods"]:
+        rows += [method, *(f"{method}+{r}" for r in rerank.get(method, []))]
+    return rows
+
+
+# Columns that time the run that built a row: the only ones that differ between runs.
+TIMED_COLUMNS = ("search_ms_per_query", "rerank_ms_per_query")
+
+
+def untimed_table(path: Path) -> tuple[list[str], list[dict]]:
+    """A results CSV's header and rows with the :data:`TIMED_COLUMNS` blanked, after
+    checking every search was timed."""
+    import csv
+
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        rows = list(reader)
+    assert rows and all(float(row["search_ms_per_query"]) > 0 for row in rows), path
+    for row in rows:
+        for column in TIMED_COLUMNS:
+            row[column] = ""
+    return list(reader.fieldnames), rows
