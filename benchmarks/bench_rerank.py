@@ -31,8 +31,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 # (name, grid h, grid w, descriptor dim, patch pixels)
 CASES = {
-    # DAISY on corridor (the shipped weight-free backbone): 9 x 12 patches at 8 px.
-    "daisy_corridor": (9, 12, 200, 8),
+    # DAISY on corridor (the shipped weight-free backbone, 160 x 120): 15 x 20 patches of
+    # 104 at 8 px.
+    "daisy_corridor": (15, 20, 104, 8),
     # DINOv2 ViT-B/14 at 224 x 224: 16 x 16 patches of 768.
     "dinov2_b_224": (16, 16, 768, 14),
     # DINOv2 ViT-G/14 value facet at 322 x 322 (AnyLoc's 17places-like shape): 23 x 23.
