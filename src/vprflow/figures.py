@@ -84,10 +84,7 @@ def sample_queries(candidates: np.ndarray, count: int, seed: int) -> np.ndarray:
     return np.sort(rng.choice(candidates, size=count, replace=False))
 
 
-# The HTML table's columns besides Recall@N and mAP@N, as the CSV names them: scores
-# (higher is better, the best in bold), then what a query costs, then the counting.
-TABLE_SCORES = ("auc_pr", "recall_at_100_precision", "extended_precision")
-TABLE_COSTS = ("descriptor_bytes_per_image", "search_ms_per_query", "rerank_ms_per_query")
+# The HTML table's counting columns, after its scores and costs.
 TABLE_COUNTS = ("descriptor_dim", "n_queries", "n_short_rankings")
 
 
@@ -98,10 +95,13 @@ def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[st
     the CSV. ``notes`` are paragraphs under the title."""
     from html import escape
 
+    # The results table's own column names (vprflow.stages.report).
+    from vprflow.stages.report import COST_COLUMNS, PRECISION_COLUMNS
+
     columns = list(rows[0]) if rows else []
     scored = [c for c in columns if c.startswith(("recall@", "map@", "exact_recall@"))]
-    scored += [c for c in TABLE_SCORES if c in columns]
-    costs = [c for c in (*TABLE_COSTS, *TABLE_COUNTS) if c in columns]
+    scored += [c for c in PRECISION_COLUMNS if c in columns]
+    costs = [c for c in (*COST_COLUMNS, *TABLE_COUNTS) if c in columns]
     named = [c for c in ("method", "aggregator", "reranker") if c in columns]
     shown = [*named, *scored, *costs]
     best = {c: max((float(r[c]) for r in rows if r[c] != ""), default=None) for c in scored}

@@ -355,10 +355,10 @@ def _plan_method(
     row.update(columns)
     recall_key = m.add("recall", recall_params, retrieval)[1]
     runs = [MethodRun(method_name, recall_key, _flat(row), agg.name)]
+    # What a re-ranker re-orders; an approximate search's exact twin is the retrieval row's.
+    used = {k: v for k, v in retrieval.items() if k != "exact_search"}
     for reranker in dataset["rerank"].get(method_name, []):
-        rerank, columns = _plan_rerank(m, retrieval, recall_params, reranker)
-        # The retrieval's exact twin (an approximate search's) is the retrieval row's.
-        used = {k: v for k, v in retrieval.items() if k != "exact_search"}
+        rerank, columns = _plan_rerank(m, used, recall_params, reranker)
         recall_key = m.add("recall", recall_params, {**used, "rerank": rerank})[1]
         runs.append(
             MethodRun(
@@ -494,8 +494,8 @@ def _plan_retrieval(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _Stor
 def _plan_rerank(
     m: _Method, retrieval: dict[str, _StoreRef], recall_params: dict, name: str
 ) -> tuple[_StoreRef, dict]:
-    """The ``rerank`` stage of re-ranker entry ``name`` over the method's retrieval, and
-    the re-ranked row's extra CSV columns."""
+    """The ``rerank`` stage of re-ranker entry ``name`` over the method's ``retrieval``
+    stores (without an exact twin), and the re-ranked row's extra CSV columns."""
     if name not in m.config["rerankers"]:
         raise PlanError(
             f"datasets.{m.dataset_name}.rerank: {m.name!r} names re-ranker {name!r}, which "
@@ -510,12 +510,11 @@ def _plan_rerank(
     }
     if "vote_ranking" in recall_params:
         params["vote_ranking"] = recall_params["vote_ranking"]
-    used = {k: v for k, v in retrieval.items() if k != "exact_search"}
     # Matching a model's wide features is GPU work; DAISY's (~100-d) is not worth asking
     # a cluster for a GPU (the stage still uses one when `device` finds it).
     backbone = m.entry("backbones", entry["features"])
     run_params = {**m.execution, "uses_gpu": model_kind("features", backbone).uses_gpu}
-    store = m.add("rerank", params, {**used, "features": features}, run_params)
+    store = m.add("rerank", params, {**retrieval, "features": features}, run_params)
     return store, {"reranker": name, **_prefixed("rerank", entry)}
 
 

@@ -203,14 +203,18 @@ def extended_precision(precision: np.ndarray, recall: np.ndarray) -> float:
     return (first_precision + full) / 2
 
 
+# The summary's metrics by the names the results table gives them, in its column order.
+SUMMARY = {
+    "auc_pr": auc_pr,
+    "recall_at_100_precision": recall_at_100_precision,
+    "extended_precision": extended_precision,
+}
+
+
 def summary(
     confidence: np.ndarray, correct: np.ndarray, has_positive: np.ndarray
 ) -> dict[str, float]:
-    """``{"auc_pr", "recall_at_100_precision", "extended_precision"}`` as Python floats, of
-    the curve :func:`precision_recall_curve` gives for these ``[Nq]`` arrays."""
+    """Each :data:`SUMMARY` metric, by name, as a Python float, of the curve
+    :func:`precision_recall_curve` gives for these ``[Nq]`` arrays."""
     precision, recall, _ = precision_recall_curve(confidence, correct, has_positive)
-    return {
-        "auc_pr": auc_pr(precision, recall),
-        "recall_at_100_precision": recall_at_100_precision(precision, recall),
-        "extended_precision": extended_precision(precision, recall),
-    }
+    return {name: metric(precision, recall) for name, metric in SUMMARY.items()}

@@ -55,11 +55,28 @@ def retrieve(
     return ranking, scores, "votes"
 
 
-def descriptor_bytes_per_image(descriptors_path: str, n_images: int) -> float:
-    """Bytes of descriptors an image costs in the database, as stored: the vector of a
-    global method; every segment's vector of a per-segment one (mean over images)."""
-    array = stores.open_store(descriptors_path)["descriptors"]
-    return float(np.prod(array.shape)) * array.dtype.itemsize / max(n_images, 1)
+# What a query costs, as the recall store's `cost` and the results table name it.
+COST_COLUMNS = ("descriptor_bytes_per_image", "search_ms_per_query", "rerank_ms_per_query")
+
+
+def descriptor_bytes_per_image(descriptors, n_images: int) -> float:
+    """Bytes of descriptors an image costs in the database, as stored (``descriptors``:
+    the store's array): the vector of a global method; every segment's vector of a
+    per-segment one (mean over images)."""
+    return float(np.prod(descriptors.shape)) * descriptors.dtype.itemsize / max(n_images, 1)
+
+
+def timed_retrieve(
+    dataset: Dataset,
+    descriptors_path: str,
+    top_k: int,
+    search_path: str | None = None,
+    vote_ranking: str | None = None,
+) -> tuple[tuple[np.ndarray, np.ndarray, str], float]:
+    """:func:`retrieve`'s result, and the milliseconds it took per query."""
+    started = time.perf_counter()
+    found = retrieve(dataset, descriptors_path, top_k, search_path, vote_ranking)
+    return found, 1000 * (time.perf_counter() - started) / max(dataset.n_query, 1)
 
 
 def top1_matches(
@@ -74,14 +91,14 @@ def top1_matches(
     top-1 match (:mod:`vprflow.precision_recall`); None when no counted query has a
     correct top-1 match, where VPR-Bench's recall is 0 / 0."""
     from vprflow.precision_recall import top1_confidence
-    from vprflow.recall import correct_at
+    from vprflow.recall import correct_at, counted_queries
 
     counted = np.asarray(counted, dtype=bool)
     correct = (correct_at(ranking, truth) == 0)[counted]
     confidence = top1_confidence(scores, score_kind, ranking)[counted]
     if not (correct & np.isfinite(confidence)).any():
         return None
-    has_positive = np.array([len(t) > 0 for t in truth], dtype=bool)[counted]
+    has_positive = counted_queries(truth, "with_positives")[counted]
     return confidence, correct, has_positive
 
 
@@ -113,18 +130,18 @@ def evaluate(
     denominator = params["denominator"]
     recall_exact = None
     vote_ranking = params.get("vote_ranking")
-    started = time.perf_counter()
-    ranking, scores, score_kind = retrieve(
-        dataset, descriptors_path, params["top_k"], search_path, vote_ranking
-    )
-    search_seconds = time.perf_counter() - started
     rerank_ms = None
-    if rerank_path is not None:
+    if rerank_path is None:
+        (ranking, scores, score_kind), search_ms = timed_retrieve(
+            dataset, descriptors_path, params["top_k"], search_path, vote_ranking
+        )
+    else:
+        # The rerank stage ran (and timed) the retrieval it re-ordered.
         reranked = stores.open_store(rerank_path)
         ranking = np.asarray(reranked["ranking"][...])
         scores = np.asarray(reranked["scores"][...])
         score_kind = reranked.attrs["score"]
-        rerank_ms = reranked.attrs["ms_per_query"]
+        search_ms, rerank_ms = reranked.attrs["search_ms_per_query"], reranked.attrs["ms_per_query"]
     if exact_search_path is not None and has_truth:
         exact_ranking = retrieve(
             dataset, descriptors_path, params["top_k"], exact_search_path, vote_ranking
@@ -142,6 +159,8 @@ def evaluate(
         if matches is not None:
             precision = summary(*matches)
     ranked = (ranking >= 0).sum(axis=1)
+    descriptors = stores.open_store(descriptors_path)
+    bytes_per_image = descriptor_bytes_per_image(descriptors["descriptors"], n_ref + n_query)
     with stores.atomic_store(out, {"stage": "recall", "record": record}) as result:
         result.attrs.update(
             recall={str(n): v for n, v in recalls.items()},
@@ -153,15 +172,9 @@ def evaluate(
             if recall_exact is None
             else {str(n): v for n, v in recall_exact.items()},
             n_queries=int(evaluated.sum()),
-            descriptor_dim=int(stores.open_store(descriptors_path).attrs["dim"]),
-            # What a query costs: not part of the results (they vary run to run).
-            cost={
-                "descriptor_bytes_per_image": descriptor_bytes_per_image(
-                    descriptors_path, n_ref + n_query
-                ),
-                "search_ms_per_query": 1000 * search_seconds / max(n_query, 1),
-                "rerank_ms_per_query": rerank_ms,
-            },
+            descriptor_dim=int(descriptors.attrs["dim"]),
+            # What a query costs: not part of the results (the ms vary run to run).
+            cost=dict(zip(COST_COLUMNS, (bytes_per_image, search_ms, rerank_ms), strict=True)),
             # Queries ranking fewer references than the largest N (or than all of them):
             # SegVLAD ranks only voted images, and a missing rank counts as a miss.
             n_short_rankings=int(

@@ -9,12 +9,13 @@ import numpy as np
 
 from vprflow import stores
 from vprflow.files import atomic_path
+from vprflow.precision_recall import SUMMARY
 from vprflow.stages.dataset import Dataset
+from vprflow.stages.recall import COST_COLUMNS
 
-# The precision-recall summary of the top-1 matches (vprflow.precision_recall) and what a
-# query costs (descriptor bytes are exact; milliseconds are this run's, not a result).
-PRECISION_COLUMNS = ("auc_pr", "recall_at_100_precision", "extended_precision")
-COST_COLUMNS = ("descriptor_bytes_per_image", "search_ms_per_query", "rerank_ms_per_query")
+# The precision-recall summary of the top-1 matches and what a query costs (descriptor
+# bytes are exact; milliseconds are this run's, not a result).
+PRECISION_COLUMNS = tuple(SUMMARY)
 
 
 def write_report(
