@@ -9,6 +9,20 @@ from pathlib import Path
 import pytest
 from slurm_fixtures import slurm_cluster  # noqa: F401  (re-exported fixture)
 
+# The SLURM executor plugin, where installed (the `slurm` extra), runs `scontrol show
+# config` when Snakemake imports it, at every start: 9 s where a slurm.conf names a
+# controller that does not answer (or its DNS look-up hangs). Local runs need no cluster,
+# so every test not marked `slurm` points SLURM at an empty configuration, which scontrol
+# refuses at once; the SLURM tests keep the machine's own.
+NO_CLUSTER = {"SLURM_CONF": os.devnull}
+
+
+@pytest.fixture(autouse=True)
+def no_cluster_probe(request, monkeypatch):
+    if request.node.get_closest_marker("slurm") is None:
+        for name, value in NO_CLUSTER.items():
+            monkeypatch.setenv(name, value)
+
 
 def in_ci() -> bool:
     return os.environ.get("CI", "").lower() in {"1", "true", "yes"}
@@ -37,8 +51,12 @@ def corridor_run(tmp_path_factory, data_root):
     config = repo_config()
     config["data_root"] = str(data_root)
     config_path = write_config(workdir, config)
-    snakemake(workdir, config_path)
-    snakemake(workdir, config_path, "--report", "report.html")
+    # A session fixture is set up before the function-scoped no_cluster_probe.
+    with pytest.MonkeyPatch.context() as patch:
+        for name, value in NO_CLUSTER.items():
+            patch.setenv(name, value)
+        snakemake(workdir, config_path)
+        snakemake(workdir, config_path, "--report", "report.html")
     return workdir, workdir / "report.html"
 
 

@@ -19,6 +19,7 @@ fails it when CI=true (CI must not silently lose the SLURM coverage).
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import json
 import os
 import re
@@ -48,6 +49,8 @@ def _in_ci() -> bool:
 
 def slurm_unavailable_reason() -> str | None:
     """Why a local SLURM cluster cannot be started here, or None if it can."""
+    if importlib.util.find_spec("snakemake_executor_plugin_slurm") is None:
+        return 'the SLURM executor is an extra: pip install -e ".[slurm]"'
     if os.geteuid() != 0:
         return "the local SLURM cluster needs root"
     if shutil.which("sbatch") is None:
