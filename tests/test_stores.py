@@ -2,7 +2,14 @@
 
 from __future__ import annotations
 
+import errno
+import multiprocessing
+import os
 import re
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +24,7 @@ from vprflow.stores import (
     open_store,
     pack_masks,
     read_strings,
-    temporary_path,
+    temporary_paths,
     unpack_masks,
     write_array,
 )
@@ -31,17 +38,17 @@ def test_failed_block_leaves_no_store(tmp_path):
     out = tmp_path / "stage" / "key.zarr"
     with pytest.raises(Boom), atomic_store(out, attrs={"stage": "x"}) as group:
         write_array(group, "data", np.arange(10))
-        assert temporary_path(out).exists() and not out.exists()
+        assert temporary_paths(out) and not out.exists()
         raise Boom("interrupted")
     assert not out.exists()
-    assert not temporary_path(out).exists()
+    assert not temporary_paths(out)
     with pytest.raises(FileNotFoundError, match="does not exist"):
         open_store(out)
 
 
 def test_successful_block_appears_atomically_and_stale_tmp_is_removed(tmp_path):
     out = tmp_path / "key.zarr"
-    stale = temporary_path(out)
+    stale = out.with_name(out.name + ".tmp")  # the name before writer tags
     stale.mkdir()
     (stale / "leftover").write_text("from an interrupted run")
     out.mkdir()  # Snakemake may pre-create a directory output
@@ -93,7 +100,7 @@ def test_a_failing_stage_leaves_no_store_behind_its_background_writes(tmp_path):
             for _ in range(40):  # several whole chunks, each written in the background
                 writer.append(np.ones((3, 64), np.float32))
             raise RuntimeError("late failure")
-    assert not out.exists() and not stores.temporary_path(out).exists()
+    assert not out.exists() and not stores.temporary_paths(out)
 
 
 def test_ragged_writer_casts_to_its_dtype(tmp_path):
@@ -133,7 +140,7 @@ def test_non_finite_values_are_refused_and_nothing_is_stored(tmp_path, bad):
     with pytest.raises(stores.NonFiniteError, match=r"stage 'pca': array 'components'.*rows \[2\]"):
         with stores.atomic_store(out, {"stage": "pca"}) as group:
             stores.write_array(group, "components", data)
-    assert not out.exists() and not stores.temporary_path(out).exists()
+    assert not out.exists() and not stores.temporary_paths(out)
 
 
 def test_ragged_writer_refuses_non_finite_rows_naming_the_row(tmp_path):
@@ -296,3 +303,131 @@ def _ragged_rows(group, name: str, index: int) -> np.ndarray:
     """Rows of image ``index`` of a ragged array, read directly from its offsets."""
     start, stop = (int(v) for v in group[f"{name}_offsets"][index : index + 2])
     return np.asarray(group[name][start:stop])
+
+
+# ------------------------------------------------------------------ concurrent writers
+
+
+def _dead_pid() -> int:
+    """The id of a process that has exited (and was reaped)."""
+    child = subprocess.Popen([sys.executable, "-c", "pass"])
+    child.wait()
+    return child.pid
+
+
+def _write_keyed_store(out, record, value, barrier=None):
+    """A stage's write of ``out``: ``record`` is what its key hashes. With ``barrier``,
+    the writer waits for the other one before finishing, so both rename at once."""
+    with atomic_store(out, attrs={"stage": "x", "record": record}) as group:
+        write_array(group, "data", np.full(1000, value, np.float32))
+        if barrier is not None:
+            barrier.wait(timeout=120)
+
+
+def test_two_interleaved_writers_of_one_keyed_store_both_finish_and_one_store_remains(
+    tmp_path, caplog
+):
+    out = tmp_path / "stage" / "key.zarr"
+    record = {"stage": "x", "params": {"k": 1}}
+    first = atomic_store(out, attrs={"stage": "x", "record": record})
+    second = atomic_store(out, attrs={"stage": "x", "record": record})
+    group_a = first.__enter__()
+    group_b = second.__enter__()  # before: removed the first writer's <out>.tmp
+    assert len(temporary_paths(out)) == 2
+    write_array(group_a, "data", np.arange(10))
+    write_array(group_b, "data", np.arange(10))
+    first.__exit__(None, None, None)
+    assert out.exists()
+    with caplog.at_level("INFO", logger="vprflow"):
+        second.__exit__(None, None, None)  # before: OSError: Directory not empty
+    assert "finished by another run meanwhile" in caplog.text
+    store = open_store(out)
+    assert store.attrs["record"] == record
+    np.testing.assert_array_equal(store["data"][...], np.arange(10))
+    assert not temporary_paths(out)
+    assert sorted(p.name for p in out.parent.iterdir()) == ["key.zarr"]
+
+
+def test_two_processes_racing_to_write_one_keyed_store_both_succeed(tmp_path):
+    out = tmp_path / "stage" / "key.zarr"
+    record = {"stage": "x", "params": {"k": 2}}
+    context = multiprocessing.get_context("spawn")
+    barrier = context.Barrier(2)
+    writers = [
+        context.Process(target=_write_keyed_store, args=(out, record, 7.0, barrier))
+        for _ in range(2)
+    ]
+    for writer in writers:
+        writer.start()
+    for writer in writers:
+        writer.join(timeout=120)
+    assert [w.exitcode for w in writers] == [0, 0]
+    store = open_store(out)
+    assert store.attrs["record"] == record
+    np.testing.assert_array_equal(store["data"][...], np.full(1000, 7.0, np.float32))
+    assert sorted(p.name for p in out.parent.iterdir()) == ["key.zarr"]
+
+
+def test_a_store_with_another_record_at_the_output_is_replaced(tmp_path):
+    out = tmp_path / "key.zarr"
+    _write_keyed_store(out, {"params": {"k": 1}}, 1.0)
+    _write_keyed_store(out, {"params": {"k": 2}}, 2.0)
+    store = open_store(out)
+    assert store.attrs["record"] == {"params": {"k": 2}}
+    np.testing.assert_array_equal(store["data"][...], np.full(1000, 2.0, np.float32))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["key.zarr"]
+
+
+def test_a_damaged_store_with_the_same_record_is_replaced_not_kept(tmp_path):
+    out = tmp_path / "key.zarr"
+    record = {"params": {"k": 1}}
+    _write_keyed_store(out, record, 1.0)
+    chunk = next(p for p in (out / "data").rglob("*") if p.is_file() and p.name != "zarr.json")
+    chunk.unlink()  # a lost chunk: open_store refuses the store
+    _write_keyed_store(out, record, 1.0)
+    np.testing.assert_array_equal(open_store(out)["data"][...], np.full(1000, 1.0, np.float32))
+
+
+def test_only_temporaries_without_a_live_writer_are_removed_at_job_start(tmp_path, caplog):
+    from vprflow.files import host_name
+
+    out = tmp_path / "key.zarr"
+    host = host_name()
+    live = out.with_name(f"key.{host}-{os.getppid()}-0123abcd.zarr.tmp")
+    dead = out.with_name(f"key.{host}-{_dead_pid()}-0123abcd.zarr.tmp")
+    dead_aside = out.with_name(f"key.{host}-{_dead_pid()}-4567cdef.zarr.old")
+    elsewhere_fresh = out.with_name("key.other-node-17-89abcdef.zarr.tmp")
+    elsewhere_old = out.with_name("key.other-node-18-89abcdef.zarr.tmp")
+    unrelated = out.with_name("key2.other-node-18-89abcdef.zarr.tmp")
+    for path in (live, dead, dead_aside, elsewhere_fresh, elsewhere_old, unrelated):
+        (path / "data").mkdir(parents=True)
+    two_days_ago = time.time() - 2 * 24 * 3600
+    for path in (elsewhere_old / "data", elsewhere_old):
+        os.utime(path, (two_days_ago, two_days_ago))
+    with caplog.at_level("INFO", logger="vprflow"):
+        _write_keyed_store(out, {"params": {}}, 0.0)
+    assert live.exists() and elsewhere_fresh.exists() and unrelated.exists()
+    assert not dead.exists() and not dead_aside.exists() and not elsewhere_old.exists()
+    assert f"process {os.getppid()} on {host} is writing the same store" in caplog.text
+    assert open_store(out).attrs["record"] == {"params": {}}
+
+
+def test_a_store_replaced_under_every_rename_names_concurrent_runs_and_nolock(
+    tmp_path, monkeypatch
+):
+    out = tmp_path / "key.zarr"
+    _write_keyed_store(out, {"params": {"k": 1}}, 1.0)
+    real_replace = os.replace
+
+    def contested(source, target):
+        if Path(target) == out:  # another run always renames its store in first
+            raise OSError(errno.ENOTEMPTY, "Directory not empty", str(target))
+        if Path(source) == out:  # ... and moves it away before we can
+            raise FileNotFoundError(source)
+        real_replace(source, target)
+
+    monkeypatch.setattr(stores.os, "replace", contested)
+    with pytest.raises(stores.ConcurrentWriteError, match="do not use --nolock for concurrent"):
+        _write_keyed_store(out, {"params": {"k": 2}}, 2.0)
+    monkeypatch.undo()
+    assert not temporary_paths(out)

@@ -1,12 +1,75 @@
 """Files written whole: to a temporary name beside the target, then renamed into place,
-so an interrupted or concurrent job never leaves a complete-looking half file."""
+so an interrupted or concurrent job never leaves a complete-looking half file.
+
+Temporary names carry a **writer tag** (:func:`writer_tag`: host, process id and a
+random token), so two runs writing the same target at once (``snakemake --nolock``)
+never share a temporary, and a leftover can be told apart from a live writer's
+(:func:`is_abandoned`): on this host, its process is gone; written from another host,
+nothing in it changed for :data:`ABANDONED_AFTER_S`.
+"""
 
 from __future__ import annotations
 
 import os
+import re
+import secrets
+import socket
+import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+# A temporary written on another host (a shared file system under a cluster) counts as
+# abandoned once nothing in it changed for this long: its process cannot be asked.
+ABANDONED_AFTER_S = 24 * 3600
+TAG = r"(?P<host>[A-Za-z0-9_-]+)-(?P<pid>[0-9]+)-(?P<token>[0-9a-f]{8})"
+
+
+def host_name() -> str:
+    """This host's name, reduced to the characters a writer tag allows."""
+    return re.sub(r"[^A-Za-z0-9_-]", "_", socket.gethostname()) or "host"
+
+
+def writer_tag() -> str:
+    """``<host>-<pid>-<random>``: unique to one writer, parsed back by :data:`TAG`."""
+    return f"{host_name()}-{os.getpid()}-{secrets.token_hex(4)}"
+
+
+def process_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this host (one owned by another user counts)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def newest_change(path: Path) -> float:
+    """The newest modification time of ``path`` and the folders under it (a file
+    created or renamed in a folder changes the folder's time)."""
+    newest = path.lstat().st_mtime
+    if path.is_dir() and not path.is_symlink():
+        for root, folders, _ in os.walk(path):
+            for name in folders:
+                try:
+                    newest = max(newest, os.lstat(os.path.join(root, name)).st_mtime)
+                except FileNotFoundError:
+                    pass
+    return newest
+
+
+def is_abandoned(path: Path, host: str, pid: int, max_age_s: float = ABANDONED_AFTER_S) -> bool:
+    """Whether the temporary ``path`` written by process ``pid`` on ``host`` has no live
+    writer: on this host, the process is gone; on another, nothing in it changed for
+    ``max_age_s`` seconds."""
+    if host == host_name():
+        return pid != os.getpid() and not process_alive(pid)
+    try:
+        return time.time() - newest_change(path) > max_age_s
+    except FileNotFoundError:
+        return False
 
 
 @contextmanager
@@ -16,8 +79,8 @@ def atomic_path(path: str | Path, suffix: str = "") -> Iterator[Path]:
     that insist on one, e.g. ``np.savez`` and ``.npz``). Parent folders are created."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # The process id keeps two jobs writing the same file from sharing a temporary.
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp{suffix}")
+    # The writer tag keeps two jobs writing the same file from sharing a temporary.
+    tmp = path.with_name(f".{path.name}.{writer_tag()}.tmp{suffix}")
     try:
         yield tmp
         os.replace(tmp, path)

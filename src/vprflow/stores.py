@@ -1,9 +1,14 @@
 """Zarr stores written atomically, with ragged (per-image variable length) arrays.
 
-Every stage writes one Zarr group. It is built at ``<out>.tmp`` and renamed onto
+Every stage writes one Zarr group. It is built at a temporary beside ``<out>``
+(``<stem>.<host>-<pid>-<random><suffix>.tmp``, one per writer) and renamed onto
 ``<out>`` only when complete, so an interrupted job never leaves a store that looks
-finished. Ragged data (a variable number of segments per image) is one concatenated
-array plus an ``offsets`` array of length ``n + 1``: image ``i`` owns rows
+finished, and two runs writing the same store at once (``snakemake --nolock``) do not
+collide: the first to finish puts its store in place, the other finds the same keyed
+store there and discards its own (:func:`replace_store`).
+
+Ragged data (a variable number of segments per image) is one concatenated array plus
+an ``offsets`` array of length ``n + 1``: image ``i`` owns rows
 ``offsets[i]:offsets[i + 1]``.
 
 Every chunk carries a CRC-32C checksum (zarr's standard ``crc32c`` codec, after the
@@ -15,7 +20,10 @@ silently different values in a believable table. The stores stay plain Zarr v3.
 
 from __future__ import annotations
 
+import errno
+import logging
 import os
+import re
 import shutil
 import warnings
 from collections.abc import Iterator
@@ -26,6 +34,10 @@ from pathlib import Path
 import numpy as np
 import zarr
 import zarr.codecs
+
+from vprflow.files import TAG, is_abandoned, writer_tag
+
+log = logging.getLogger("vprflow")
 
 # Level 1: on descriptor arrays it compresses within 3% of level 3 at a third of the
 # time (2.08 vs 2.13 on sparse VLAD rows, 91 vs 262 ms per 26 MB), which bounded the
@@ -46,22 +58,78 @@ CHUNK_FILES = "chunk_files"
 _PENDING_WRITES: set[Future] = set()
 
 
-def temporary_path(path: str | Path) -> Path:
+def temporary_path(path: str | Path, tag: str | None = None) -> Path:
+    """Where one writer builds ``path``: ``<stem>.<tag><suffix>.tmp`` beside it (``tag``:
+    :func:`vprflow.files.writer_tag`, a new one by default), e.g. ``k.zarr`` is built at
+    ``k.node1-4242-0f3a9c1e.zarr.tmp``."""
     path = Path(path)
-    return path.with_name(path.name + ".tmp")
+    return path.with_name(f"{path.stem}.{tag or writer_tag()}{path.suffix}.tmp")
+
+
+def _aside_path(path: Path) -> Path:
+    """Where a store being replaced is moved before it is deleted."""
+    return path.with_name(f"{path.stem}.{writer_tag()}{path.suffix}.old")
+
+
+def temporary_paths(path: str | Path) -> list[tuple[Path, re.Match | None]]:
+    """The temporaries of ``path`` that exist, each with its writer tag parsed (None for
+    ``<out>.tmp``, the name vprflow used before writer tags), sorted by name."""
+    path = Path(path)
+    pattern = re.compile(re.escape(path.stem + ".") + TAG + re.escape(path.suffix) + r"\.(tmp|old)")
+    found = []
+    if path.parent.is_dir():
+        for entry in sorted(path.parent.iterdir()):
+            if entry.name == path.name + ".tmp":
+                found.append((entry, None))
+            elif match := pattern.fullmatch(entry.name):
+                found.append((entry, match))
+    return found
+
+
+def remove_abandoned_temporaries(path: str | Path) -> list[Path]:
+    """Delete the temporaries of ``path`` no live writer owns (an interrupted run's);
+    return them. A live writer's (another run writing the same store at once) is left
+    alone, with a warning."""
+    removed = []
+    for tmp, match in temporary_paths(path):
+        if match is None or is_abandoned(tmp, match["host"], int(match["pid"])):
+            log.info("removing %s, left by an interrupted run", tmp)
+            _remove(tmp)
+            removed.append(tmp)
+        else:
+            log.warning(
+                "%s: process %s on %s is writing the same store at this moment (two runs "
+                "of one target with --nolock?); whichever finishes first is kept",
+                tmp,
+                match["pid"],
+                match["host"],
+            )
+    return removed
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)
+
+
+class ConcurrentWriteError(RuntimeError):
+    """Another run kept replacing a store while this one tried to put its own in place."""
 
 
 @contextmanager
 def atomic_store(path: str | Path, attrs: dict | None = None) -> Iterator[zarr.Group]:
     """Yield a writable Zarr group that appears at ``path`` only if the block succeeds.
 
-    A leftover ``<path>.tmp`` from an interrupted run is removed first. On an
-    exception the temporary store is deleted and the exception propagates.
+    The group is built at this writer's own temporary (:func:`temporary_path`); the
+    temporaries of interrupted runs are removed first, a live writer's are left alone
+    (:func:`remove_abandoned_temporaries`). On an exception the temporary store is
+    deleted and the exception propagates.
     """
     path = Path(path)
+    remove_abandoned_temporaries(path)
     tmp = temporary_path(path)
-    if tmp.exists():
-        shutil.rmtree(tmp)
     tmp.parent.mkdir(parents=True, exist_ok=True)
     group = zarr.open_group(str(tmp), mode="w")
     if attrs:
@@ -73,9 +141,12 @@ def atomic_store(path: str | Path, attrs: dict | None = None) -> Iterator[zarr.G
         _PENDING_WRITES.difference_update(done)
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    _seal(group, tmp)
-    # Snakemake may pre-create (or leave) the directory output; it holds no data.
-    replace_store(tmp, path)
+    try:
+        _seal(group, tmp)
+        # Snakemake may pre-create (or leave) the directory output; it holds no data.
+        replace_store(tmp, path)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _seal(group: zarr.Group, path: Path) -> None:
@@ -100,14 +171,58 @@ def _has_checksum(array: zarr.Array) -> bool:
     return bool(compressors) and isinstance(compressors[-1], zarr.codecs.Crc32cCodec)
 
 
-def replace_store(source: str | Path, path: str | Path) -> None:
+def replace_store(source: str | Path, path: str | Path, attempts: int = 5) -> None:
     """Move a finished store from ``source`` to ``path`` in one rename (same file system),
-    replacing whatever is at ``path``."""
-    path = Path(path)
-    if path.exists():
-        shutil.rmtree(path)
+    replacing whatever is at ``path``, unless that is already the same finished store.
+
+    Two runs writing one keyed store at once (``--nolock``) both get here: the first
+    rename wins; the second finds a finished store with the same ``record`` (the key
+    hashes it, so the two are equivalent), keeps it and deletes ``source``. Anything
+    else at ``path`` (Snakemake's empty directory output or its timestamp, a damaged or
+    other store) is moved aside in one rename, then deleted. A path that keeps being
+    replaced under us is a :class:`ConcurrentWriteError`.
+    """
+    source, path = Path(source), Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    os.replace(source, path)
+    for _ in range(attempts):
+        try:
+            os.replace(source, path)  # also replaces an empty directory
+            return
+        except OSError as error:
+            if error.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR, errno.EISDIR):
+                raise
+        if _same_finished_store(source, path):
+            log.info(
+                "%s was finished by another run meanwhile (the same record): keeping it, "
+                "discarding this run's copy",
+                path,
+            )
+            shutil.rmtree(source, ignore_errors=True)
+            return
+        aside = _aside_path(path)
+        try:
+            os.replace(path, aside)
+        except FileNotFoundError:
+            continue  # another run moved it away first
+        _remove(aside)
+    raise ConcurrentWriteError(
+        f"store {path}: another run kept replacing it while this one tried to put its own "
+        f"in place ({attempts} tries), and this run's copy was discarded. Two runs are "
+        "writing the same store at once: do not use --nolock for concurrent runs of one "
+        "target (run it once, or let the second run wait for Snakemake's lock)"
+    )
+
+
+def _same_finished_store(source: Path, path: Path) -> bool:
+    """Whether ``path`` holds a finished, undamaged store with ``source``'s record."""
+    try:
+        ours = zarr.open_group(str(source), mode="r").attrs.get("record")
+        if ours is None:
+            return False
+        theirs = open_store(path)
+        return theirs.attrs.get("record") == ours
+    except (StoreCorruptError, FileNotFoundError, ValueError, OSError):
+        return False
 
 
 class StoreCorruptError(ValueError):
