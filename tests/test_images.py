@@ -408,10 +408,49 @@ def test_the_order_is_a_total_order_of_names_whatever_the_file_system_lists_firs
         write_pngs(folder, listing)  # creation order differs between the two copies
         orders.append([p.name for p in scan_images(folder).paths])
     assert orders[0] == orders[1]
-    assert orders[0][:2] == ["01.png", "1.png"]
-    assert orders[0].index("A.png") + 1 == orders[0].index("a.png")
+    # natsort's: numbers first, equal numbers by name, then text by code point, case kept.
+    assert orders[0] == ["01.png", "1.png", "A.png", "B.png", "a.png", "b.png", "x²1.png", "x٣.png"]
     # Decomposed (macOS) and composed spellings of a name sort alike.
     assert natural_key("e\u0301.png")[0] == natural_key("\u00e9.png")[0]
+
+
+# Names on which a home-made natural order and natsort's part ways.
+ADVERSARIAL_NAMES = [
+    # case: natsort compares code points ("A" < "B" < "a"), never case-folded
+    *("A.jpg", "a.jpg", "B.jpg", "b.jpg", "Img3.jpg", "img1.jpg", "x.JPG", "x.jpg", "_a.jpg"),
+    # a leading number sorts before text; leading zeros and digit runs
+    *("1.png", "a.png", "01.png", "001.png", "10.png", "9.png", "0.png", "00.png"),
+    *("img2.jpg", "img02.jpg", "img10.jpg", "a1b2.jpg", "a1b02.jpg", "a01b2.jpg", "a10b.jpg"),
+    *("2024-01-05_7.jpg", "2024-1-5_10.jpg", "v1.10.jpg", "v1.9.jpg", "-1.jpg", "+1.jpg"),
+    *("a 1.jpg", "a_1.jpg", "a-1.jpg", "a1.jpg", "a.jpg.jpg", "12345678901234567890.jpg"),
+    # Unicode digits: Arabic-Indic and full-width runs are numbers, "²" and "①" lone digits
+    *("x٣.png", "x٣٤.png", "x34.png", "x1٣.png", "x²1.png", "x².png", "x①.png", "x３.png"),
+    *("²", "2", "٢", "½.png", "Ⅻ.png"),
+    # Unicode text: composed and decomposed spellings, ligatures, other scripts
+    *("é.png", "e\u0301.png", "f.png", "Ä.png", "ä.png", "ß.png", "ss.png", "ﬁ.png", "fi.png"),
+    *("日本2.png", "日本10.png", "Ω.png", "ω.png", "🙂1.png", "🙂01.png"),
+]
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_names_are_ordered_as_natsort_natsorted_orders_them(seed):
+    natsort = pytest.importorskip("natsort")
+    names = list(ADVERSARIAL_NAMES)
+    np.random.default_rng(seed).shuffle(names)
+    # natsort keeps the listing's order among names it calls equal (01 and 1): a sorted
+    # listing is the total order that natural_key breaks those ties by.
+    assert sorted(names, key=natural_key) == natsort.natsorted(sorted(names))
+    # Paths relative to the role folder too (recursive discovery).
+    paths = [f"{a}/{b}" for a, b in zip(names, reversed(names), strict=True)]
+    assert sorted(paths, key=natural_key) == natsort.natsorted(sorted(paths))
+
+
+def test_a_mixed_case_folder_is_listed_in_the_published_readers_order(tmp_path):
+    # A Nardo-Air variant: position-given ground truth only holds in natsort's order.
+    names = ["img_b.png", "IMG_A.png", "img_a.png", "IMG_B.png", "3.png", "a.png"]
+    write_pngs(tmp_path, names)
+    listed = [p.name for p in scan_images(tmp_path).paths]
+    assert listed == ["3.png", "IMG_A.png", "IMG_B.png", "a.png", "img_a.png", "img_b.png"]
 
 
 def test_recursive_discovery_orders_relative_paths_naturally_and_counts_skips(tmp_path):

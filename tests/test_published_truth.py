@@ -22,11 +22,28 @@ from vprflow.published_truth import (
 
 
 def test_published_order_is_natsorts_default_digits_as_numbers_case_kept():
-    names = ["img10.jpg", "img2.jpg", "img1.jpg", "Img3.jpg", "a.jpg", "img02.jpg"]
+    names = ["img10.jpg", "img2.jpg", "img1.jpg", "Img3.jpg", "a.jpg", "img02.jpg", "1.jpg"]
     ordered = [names[i] for i in published_order(names)]
-    # natsort.natsorted(names) as the authors' code calls it ('I' < 'a' < 'i' by code
-    # point; 2 and 02 are equal numbers, then by name).
-    assert ordered == ["Img3.jpg", "a.jpg", "img1.jpg", "img02.jpg", "img2.jpg", "img10.jpg"]
+    # natsort.natsorted(names) as the authors' code calls it (a leading number first;
+    # 'I' < 'a' < 'i' by code point; 2 and 02 are equal numbers, then by name).
+    assert ordered == [
+        "1.jpg",
+        "Img3.jpg",
+        "a.jpg",
+        "img1.jpg",
+        "img02.jpg",
+        "img2.jpg",
+        "img10.jpg",
+    ]
+
+
+def test_published_order_is_natsorts_on_adversarial_names():
+    natsort = pytest.importorskip("natsort")
+    from test_images import ADVERSARIAL_NAMES
+
+    names = list(reversed(ADVERSARIAL_NAMES))
+    ordered = [names[i] for i in published_order(names)]
+    assert ordered == natsort.natsorted(sorted(names))
 
 
 def write_camera(path: Path, centre) -> None:

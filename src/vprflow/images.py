@@ -25,9 +25,11 @@ rotated and say so in that tag (``EXIF_ORIENTATIONS``).
 
 from __future__ import annotations
 
+import functools
 import io
 import os
 import re
+import sys
 import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
@@ -367,22 +369,51 @@ def scan_images(
     )
 
 
-_DIGITS = re.compile(r"([0-9]+)")
+_ASCII_NUMBER = re.compile(r"([0-9]+)")
+
+
+@functools.cache
+def _unicode_number() -> re.Pattern:
+    """natsort's number pattern: a run of decimal digits of any script (``\\d``, such as
+    ``٣٤``), or one digit that is no decimal (``²``, ``①``), from this Python's
+    Unicode tables; built once, on the first name that is not ASCII."""
+    lone = "".join(
+        c
+        for c in map(chr, range(sys.maxunicode + 1))
+        if unicodedata.digit(c, None) is not None and unicodedata.decimal(c, None) is None
+    )
+    return re.compile(r"(\d+|[" + re.escape(lone) + "])")
 
 
 def natural_key(name: str) -> tuple:
-    """Sort key that orders embedded (ASCII) integers numerically: a total order of the
+    """Sort key of ``natsort.natsorted``'s default order (``ns.INT``), the order in which
+    the published readers (Revisit-Anything, AnyLoc) list images: a total order of the
     names alone, the same on every machine and file system.
 
-    Names are compared in Unicode NFC (macOS file systems return decomposed names),
-    text case-insensitively; ties (``a.jpg`` and ``A.jpg``, ``01`` and ``1``) are broken
-    by the exact name, never by the order the file system lists them in.
+    As natsort: the name is decomposed (Unicode NFD, so a macOS decomposed name sorts
+    as its composed spelling); runs of decimal digits of any script compare as integers
+    (``2.jpg`` before ``10.jpg``; ``٣`` is 3), a lone non-decimal digit (``²``) as its
+    value; text by code point, case kept (``A.jpg``, ``B.jpg``, ``a.jpg``); a name that
+    starts with a number sorts before one that starts with text (``1.png`` before
+    ``a.png``). Names natsort calls equal (``01`` and ``1``, composed and decomposed
+    spellings) are ordered by the exact name, where natsort keeps the listing's order:
+    ``sorted(names, key=natural_key) == natsort.natsorted(sorted(names))``.
     """
-    name = unicodedata.normalize("NFC", name)
-    parts = _DIGITS.split(name)
-    key = tuple(
-        (0, int(part), "") if i % 2 else (1, 0, part.casefold())
-        for i, part in enumerate(parts)
-        if part
-    )
-    return (key, name)
+    if name.isascii():
+        parts = _ASCII_NUMBER.split(name)
+    else:
+        parts = _unicode_number().split(unicodedata.normalize("NFD", name))
+    key: list = []
+    for i, part in enumerate(parts):
+        if not i % 2:
+            if part:
+                key.append(part)
+            continue
+        try:
+            number = int(part)
+        except ValueError:  # a lone digit that int() does not read: "²"
+            number = unicodedata.digit(part)
+        if not key or not isinstance(key[-1], str):
+            key.append("")  # text and numbers alternate, as in natsort's key
+        key.append(number)
+    return (tuple(key), name)

@@ -18,19 +18,14 @@ from pathlib import Path
 import numpy as np
 
 from vprflow.datasets import DatasetError
+from vprflow.images import natural_key
 
 
 def published_order(names: list[str]) -> list[int]:
-    """Indices that put ``names`` in ``natsort.natsorted`` order (its default ``ns.INT``:
-    runs of ASCII digits compare as integers, other runs by code point, case kept), the
-    order in which the authors' code lists images and writes per-image arrays."""
-
-    def key(name: str):
-        parts = re.split(r"(\d+)", name)
-        # (0, text) / (1, number) pairs keep a text run and a number run comparable.
-        return [(1, int(p)) if p.isdigit() else (0, p) for p in parts if p != ""]
-
-    return sorted(range(len(names)), key=lambda i: (key(names[i]), names[i]))
+    """Indices that put ``names`` in ``natsort.natsorted`` order (its default ``ns.INT``),
+    the order in which the authors' code lists images and writes per-image arrays: the
+    order vprflow lists images in (:func:`vprflow.images.natural_key`)."""
+    return sorted(range(len(names)), key=lambda i: natural_key(names[i]))
 
 
 class _PlainUnpickler(pickle.Unpickler):
