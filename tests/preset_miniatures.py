@@ -44,15 +44,16 @@ def _index_window(root: Path, rng, radius: int, n: int = 8) -> dict[str, set[str
 
 
 def seventeen_places(root: Path, rng) -> dict[str, set[str]]:
+    """Revisit-Anything's rule: +-15 frames (gt.py), no file read."""
+    return _index_window(root, rng, 15, 8)
+
+
+def seventeen_places_anyloc(root: Path, rng) -> dict[str, set[str]]:
     """VPR-Bench file of +-2 frames, listing references past the end (dropped)."""
     n = 8
     expected = _index_window(root, rng, 2, n)
     write_vprbench_ground_truth(root / "ground_truth_new.npy", n, n + 2, radius=2)
     return expected
-
-
-def seventeen_places_pm15(root: Path, rng) -> dict[str, set[str]]:
-    return _index_window(root, rng, 15, 8)
 
 
 def utm_names(root: Path, rng, database: str, queries: str, n_ref=8, n_query=4):
@@ -104,21 +105,35 @@ def nordland(root: Path, rng) -> dict[str, set[str]]:
 
 def vp_air(root: Path, rng) -> dict[str, set[str]]:
     """vpair_gt.npy as released: an object array of [query index, [reference indices]]
-    rows; a distractors/ folder beside, which the protocol does not read."""
+    rows; a distractors/ folder beside, which Revisit-Anything's protocol does not read.
+    Written once (vp_air_anyloc shares the folder)."""
     refs = [f"{i:05d}.png" for i in range(1, 9)]
     queries = [f"{i:05d}.png" for i in range(1, 6)]
-    for name in refs:
-        write_image(root / "reference_views" / name, rng)
-    for name in queries:
-        write_image(root / "queries" / name, rng)
-    write_image(root / "distractors" / "00001.png", rng)
-    rows = np.empty((len(queries), 2), dtype=object)
-    expected = {}
-    for q, name in enumerate(queries):
-        positives = sorted(rng.choice(len(refs), size=2, replace=False).tolist())
-        rows[q, 0], rows[q, 1] = q + 1, positives  # read by position: the field is ignored
-        expected[name] = {refs[i] for i in positives}
-    np.save(root / "vpair_gt.npy", rows, allow_pickle=True)
+    gt = root / "vpair_gt.npy"
+    if not gt.exists():
+        for name in refs:
+            write_image(root / "reference_views" / name, rng)
+        for name in queries:
+            write_image(root / "queries" / name, rng)
+        for i in range(1, 4):
+            write_image(root / "distractors" / f"{i:05d}.png", rng)
+        rows = np.empty((len(queries), 2), dtype=object)
+        for q in range(len(queries)):
+            positives = sorted(rng.choice(len(refs), size=2, replace=False).tolist())
+            rows[q, 0], rows[q, 1] = q + 1, positives  # read by position: the field is ignored
+        np.save(gt, rows, allow_pickle=True)
+    rows = np.load(gt, allow_pickle=True)
+    return {name: {refs[i] for i in rows[q, 1]} for q, name in enumerate(queries)}
+
+
+def vp_air_anyloc(root: Path, rng) -> dict[str, set[str]]:
+    """The same folder with the database list the preset's layout says to write
+    (reference views, then distractors: AnyLoc's order); the positives index the
+    reference views, so no distractor is one."""
+    expected = vp_air(root, rng)
+    listed = [f"reference_views/{p.name}" for p in sorted((root / "reference_views").iterdir())]
+    listed += [f"distractors/{p.name}" for p in sorted((root / "distractors").iterdir())]
+    (root / "database_with_distractors.txt").write_text("\n".join(listed) + "\n")
     return expected
 
 
@@ -288,7 +303,7 @@ def amstertime(root: Path, rng) -> dict[str, set[str]]:
 
 MINIATURES: dict[str, Callable[[Path, np.random.Generator], dict[str, set[str]]]] = {
     "17places": seventeen_places,
-    "17places_pm15": seventeen_places_pm15,
+    "17places_anyloc": seventeen_places_anyloc,
     "pitts30k": pitts30k,
     "baidu_mall": baidu_mall,
     "insideout": insideout,
@@ -303,6 +318,7 @@ MINIATURES: dict[str, Callable[[Path, np.random.Generator], dict[str, set[str]]]
     "sf_xl_test": _utm_preset("database", "queries_v1"),
     "msls_val": _msls("all"),
     "vp_air": vp_air,
+    "vp_air_anyloc": vp_air_anyloc,
     **{name: _snsm(name) for name in ("m3fd", "boson", "flir", "ino", "llvip", "vot", "vtuav")},
     "hawkins": _pose_list(127, (127, 245)),
     "laurel_caverns": _pose_list(141, (229, 341)),

@@ -12,7 +12,7 @@ import pytest
 from preset_miniatures import MINIATURES
 from workflow_helpers import repo_config, snakemake, write_config
 
-from vprflow.config import validate_config
+from vprflow.config import ConfigError, validate_config
 from vprflow.datasets import list_dataset
 from vprflow.ground_truth import ground_truth
 from vprflow.presets import datasets_doc, merge_entry, presets, unknown_dataset
@@ -41,7 +41,8 @@ def test_every_preset_validates_and_runs_methods_the_shipped_config_defines(tmp_
     for name in presets():
         assert datasets[name]["protocol"] == f"preset {name}"
         assert set(datasets[name]["methods"]) <= set(config["methods"]), name
-        assert datasets[name]["path"] == name or name == "17places_pm15"
+        # A second protocol of one dataset reads the first one's folder.
+        assert datasets[name]["path"] == name or datasets[name]["path"] in presets(), name
 
 
 def test_a_preset_joins_when_its_folder_exists_or_the_config_names_it(tmp_path):
@@ -93,6 +94,60 @@ def test_an_absent_preset_says_where_it_belongs_where_to_get_it_and_its_layout(t
     assert presets()["baidu_mall"].dataset["source"] in message
     assert "training_gt/" in message and "query_images_undistort/" in message
     assert "presets:" in unknown_dataset("no_such_set", config)
+
+
+def test_17places_is_the_segvlad_papers_protocol_and_17places_anyloc_is_anylocs():
+    """The README's `results/recall_17places.csv` compares with the SegVLAD paper: +-15
+    frames over queries with a positive; AnyLoc's +-2 frames file over all queries has
+    its own name, and each published number sits under the protocol it was computed
+    with."""
+    seventeen, anyloc = presets()["17places"], presets()["17places_anyloc"]
+    assert seventeen.dataset["ground_truth"] == {"kind": "frame_window", "radius": 15}
+    assert seventeen.dataset["denominator"] == "with_positives"
+    assert anyloc.dataset["ground_truth"]["file"] == "ground_truth_new.npy"
+    assert anyloc.dataset["denominator"] == "all"
+    assert anyloc.dataset["path"] == seventeen.dataset["path"] == "17places"
+    assert {(p["recall@1"], p["recall@5"]) for p in seventeen.published} == {
+        (95.3, 98.0),
+        (95.3, 97.3),
+    }
+    assert [(p["recall@1"], p["recall@5"]) for p in anyloc.published] == [(65.0, 80.5)]
+    row = next(line for line in datasets_doc().splitlines() if line.startswith("| `17places` |"))
+    assert "frame_window:+-15" in row and "95.3 / 98.0" in row
+
+
+def test_the_former_name_17places_pm15_says_where_its_protocol_went(tmp_path):
+    config = config_with(tmp_path)
+    config["datasets"]["17places_pm15"] = {"recall_at": [1]}
+    with pytest.raises(ConfigError, match="renamed to '17places'.*'17places_anyloc'"):
+        validate_config(config, SCHEMA)
+    with pytest.raises(ConfigError, match="config key 'targets'.*renamed"):
+        validate_config(config_with(tmp_path, targets=["17places_pm15"]), SCHEMA)
+    message = unknown_dataset("17places_pm15", validate_config(config_with(tmp_path), SCHEMA))
+    assert "renamed to '17places'" in message and "17places_anyloc" in message
+
+
+def test_vp_air_anyloc_searches_the_distractors_and_counts_every_query(tmp_path):
+    """AnyLoc's 66.7 were computed with the 10,000 distractors after the reference
+    views in the database and every query counted; Revisit-Anything's 69.8 without
+    them: two presets on one folder, each with its own published row."""
+    MINIATURES["vp_air_anyloc"](tmp_path / "vp_air", np.random.default_rng(0))
+    config = config_with(tmp_path, targets=["vp_air", "vp_air_anyloc"])
+    datasets = validate_config(config, SCHEMA)["datasets"]
+    plain = list_dataset(tmp_path, "vp_air", datasets["vp_air"])
+    anyloc = list_dataset(tmp_path, "vp_air_anyloc", datasets["vp_air_anyloc"])
+    distractors = sorted((tmp_path / "vp_air" / "distractors").iterdir())
+    assert anyloc.reference == plain.reference + distractors
+    assert anyloc.query == plain.query
+    for name in ("vp_air", "vp_air_anyloc"):
+        files = anyloc if name == "vp_air_anyloc" else plain
+        truth = ground_truth(files, datasets[name]["ground_truth"], tmp_path / "vp_air")
+        assert all(max(t) < len(plain.reference) for t in truth)
+    assert datasets["vp_air_anyloc"]["denominator"] == "all"
+    assert datasets["vp_air"]["denominator"] == "with_positives"
+    assert [p["recall@1"] for p in presets()["vp_air_anyloc"].published] == [66.7]
+    assert [p["recall@1"] for p in presets()["vp_air"].published] == [69.8]
+    assert "printf" in presets()["vp_air_anyloc"].layout
 
 
 @pytest.mark.parametrize("name", list(MINIATURES))

@@ -25,6 +25,15 @@ PRESETS_FILE = Path(__file__).with_name("presets.yaml")
 # Dataset keys that do not change what is evaluated or how it is counted: a config that
 # changes only these still runs the preset's protocol.
 NOT_PROTOCOL = ("methods", "defaults", "recall_at", "source", "download", "path", "rerank")
+# Former preset names: a config or target that names one is an error that says where its
+# protocol went (a silent alias would hide that `17places` changed meaning).
+RENAMED = {
+    "17places_pm15": (
+        "preset '17places_pm15' was renamed to '17places' (Revisit-Anything's +-15 frames, "
+        "queries with a positive: the SegVLAD paper's 95.3 Recall@1); AnyLoc's protocol "
+        "(VPR-Bench's +-2 frames file, all queries: its 65.0) is now '17places_anyloc'"
+    ),
+}
 
 
 @dataclass(frozen=True)
@@ -82,6 +91,11 @@ def with_presets(config: dict) -> dict:
     ``data_root``. Other presets stay out, so a missing one costs nothing."""
     datasets = dict(config.get("datasets") or {})
     targets = set(config.get("targets") or ())
+    for name in sorted(RENAMED.keys() & (datasets.keys() | targets)):
+        from vprflow.config import ConfigError
+
+        where = f"datasets.{name}" if name in datasets else "targets"
+        raise ConfigError(f"config key '{where}': {RENAMED[name]}")
     for name, preset in presets().items():
         if name in datasets:
             datasets[name] = merge_entry(preset.dataset, datasets[name] or {})
@@ -139,6 +153,8 @@ def unknown_dataset(name: str, config: dict) -> str:
     missing (where to put it, where to get it, the layout it must have), or a name that
     is neither configured nor a preset."""
     preset = presets().get(name)
+    if name in RENAMED:
+        return f"unknown dataset {name!r}: {RENAMED[name]}"
     if preset is None:
         return (
             f"unknown dataset {name!r}; configured: {sorted(config['datasets'])}; "
@@ -175,6 +191,14 @@ def datasets_doc() -> str:
         "`protocol` column then lists the protocol keys you changed. A preset joins the",
         "plan when its folder exists, when `targets` names it or when `datasets` has an",
         "entry of its name.",
+        "",
+        "Where the papers counted a dataset differently, each protocol is a preset of its",
+        "own on one folder, and each published number sits under the protocol it was",
+        "computed with: `17places` is Revisit-Anything's (+-15 frames, queries with a",
+        "positive: SegVLAD's 95.3 Recall@1, the README's `results/recall_17places.csv`),",
+        "`17places_anyloc` AnyLoc's (VPR-Bench's +-2 frames file, all queries: its 65.0);",
+        "`vp_air` searches the 2,706 reference views (SegVLAD's 69.8), `vp_air_anyloc`",
+        "those followed by the 10,000 distractors, every query counted (AnyLoc's 66.7).",
         "",
         "The DINOv2 presets also re-rank AnyLoc-VLAD's and SegVLAD's top 100 by local",
         "matches of the same DINOv2 features (rows `<method>+mnn_dinov2` and",
