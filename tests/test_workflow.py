@@ -601,19 +601,28 @@ def test_queries_stored_rotated_with_an_exif_tag_give_the_upright_table(tmp_path
 
 
 def test_a_config_that_cannot_be_planned_withdraws_the_previous_tables(tmp_path):
+    """... when the run would run jobs: a dry run changes no file, and a good run after
+    the failure removes the withdrawn copy."""
     make_dataset(tmp_path / "data" / "toy", n_places=4)
     config = toy_config(tmp_path / "data")
     config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
+    good = copy.deepcopy(config)
     snakemake(tmp_path, write_config(tmp_path, config), TARGET)
     # A local model directory that does not exist fails while common.smk plans.
     config["backbones"]["mine"] = {"backbone": "dinov2", "model": str(tmp_path / "no-model")}
     config["methods"]["mine"] = {"aggregator": "anyloc_vlad", "features": "mine"}
     config["datasets"]["toy"]["methods"] = ["anyloc_vlad", "mine"]
-    result = snakemake(tmp_path, write_config(tmp_path, config), TARGET, check=False)
+    broken = write_config(tmp_path, config)
+    dry = snakemake(tmp_path, broken, "-n", TARGET, check=False)
+    assert dry.returncode != 0 and "backbones.mine.model" in dry.stdout + dry.stderr
+    assert (tmp_path / TARGET).exists() and not (tmp_path / (TARGET + ".stale")).exists()
+    result = snakemake(tmp_path, broken, TARGET, check=False)
     assert result.returncode != 0
     assert "backbones.mine.model" in result.stdout + result.stderr
     assert not (tmp_path / TARGET).exists()
     assert (tmp_path / (TARGET + ".stale")).exists()
+    snakemake(tmp_path, write_config(tmp_path, good), TARGET)
+    assert (tmp_path / TARGET).exists() and not (tmp_path / (TARGET + ".stale")).exists()
 
 
 def test_a_dataset_that_cannot_be_listed_withdraws_its_tables(tmp_path):

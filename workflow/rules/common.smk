@@ -1,4 +1,5 @@
 # Config validation, the content-addressed plan, and the input functions every rule uses.
+import sys
 from functools import cache
 from pathlib import Path
 
@@ -23,8 +24,10 @@ from vprflow.plan import build_plan, method_stores
 from vprflow.presets import unknown_dataset
 from vprflow.reports import (
     FIGURES,
+    clear_superseded,
     dataset_outputs,
     figure_inputs,
+    runs_jobs,
     withdraw_reports,
     withdraw_stale_reports,
 )
@@ -42,6 +45,9 @@ SCHEMA = Path(workflow.current_basedir).parent / "schemas" / "config.schema.yaml
 # under it; the few paths this file opens itself (not via rules) follow.
 _modifier = getattr(workflow.modifier, "path_modifier", None)
 PREFIX = getattr(_modifier, "prefix", None) or ""
+# Only the process that may run jobs withdraws or clears tables: never a dry run, a summary,
+# a lint, a report or a cluster job.
+RUNS_JOBS = workflow.is_main_process and runs_jobs(sys.argv)
 try:
     CONFIG = validate_config(config, SCHEMA)
     # Content hashes of images, local model weights and imported files, memoised
@@ -52,7 +58,7 @@ try:
 except Exception:
     # `onerror` does not run for a failure here: withdraw the tables now, since none
     # of them describes a config that cannot be planned.
-    if workflow.is_main_process:
+    if RUNS_JOBS:
         for _table in withdraw_reports(PREFIX):
             print(f"vprflow: {_table} withdrawn: the config could not be planned")
     raise
@@ -119,7 +125,7 @@ def dataset_files(name):
         return list_dataset(CONFIG["data_root"], name, dataset_entry(name))
     except Exception:
         # Raised while Snakemake builds the DAG, where `onerror` does not run.
-        if workflow.is_main_process:
+        if RUNS_JOBS:
             for table in withdraw_reports(PREFIX, name):
                 print(f"vprflow: {table} withdrawn: dataset {name!r} cannot be listed")
         raise

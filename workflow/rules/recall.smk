@@ -67,5 +67,13 @@ localrules:
 # A failed run must not leave a results table that looks current (e.g. one method of
 # several failed): tables older than their recall stores are renamed to *.stale.
 onerror:
-    for table in withdraw_stale_reports(PLAN, PREFIX):
-        print(f"vprflow: {table} is out of date after the failure (renamed)")
+    if RUNS_JOBS:
+        for table in withdraw_stale_reports(PLAN, PREFIX):
+            print(f"vprflow: {table} is out of date after the failure (renamed)")
+
+
+# A good run supersedes the tables an earlier failure withdrew.
+onsuccess:
+    if RUNS_JOBS:
+        for stale in clear_superseded(PREFIX):
+            print(f"vprflow: removed {stale}: the table beside it is current")
