@@ -3,6 +3,8 @@ that are also queries, and paired layouts matched by name; errors name what is a
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 from dataset_helpers import SPEC, touch_images
@@ -100,6 +102,42 @@ def test_image_list_files_keep_their_order_and_name_bad_lines(tmp_path):
             list_dataset(tmp_path, "mine", spec)
 
 
+@pytest.mark.parametrize("again", ["./db/1.png", "db/../db/1.png", "db//1.png", "link.png"])
+def test_an_image_list_naming_one_file_twice_in_two_spellings_is_refused(tmp_path, again):
+    root = tmp_path / "mine"
+    write_pngs(root, ["db/1.png", "db/2.png", "q/1.png"])
+    (root / "link.png").symlink_to(root / "db/1.png")
+    (root / "ref.txt").write_text(f"db/1.png\ndb/2.png\n{again}\n")
+    (root / "query.txt").write_text("q/1.png\n")
+    spec = dataset_spec(path="mine", reference="ref.txt", query="query.txt")
+    message = rf"line 3: '{re.escape(again)}' is listed again \(first on line 1, as 'db/1.png'"
+    with pytest.raises(DatasetError, match=message):
+        list_dataset(tmp_path, "mine", spec)
+
+
+def test_an_image_list_saved_with_a_byte_order_mark_reads_its_first_line(tmp_path):
+    # Notepad's "UTF-8": the mark used to become part of the first path, an invisible
+    # character in "image \ufeffdb/1.png does not exist".
+    root = tmp_path / "mine"
+    write_pngs(root, ["db/1.png", "db/2.png", "q/1.png"])
+    (root / "ref.txt").write_bytes("db/1.png\r\ndb/2.png\r\n".encode("utf-8-sig"))
+    (root / "query.txt").write_bytes("q/1.png\n".encode("utf-8-sig"))
+    spec = dataset_spec(path="mine", reference="ref.txt", query="query.txt")
+    files = list_dataset(tmp_path, "mine", spec)
+    assert [p.relative_to(root).as_posix() for p in files.reference] == ["db/1.png", "db/2.png"]
+    assert [p.relative_to(root).as_posix() for p in files.query] == ["q/1.png"]
+
+
+def test_an_image_list_that_is_not_utf8_names_the_file_and_line(tmp_path):
+    root = tmp_path / "mine"
+    write_pngs(root, ["db/1.png", "q/1.png"])
+    (root / "ref.txt").write_bytes(b"db/1.png\ndb/caf\xe9.png\n")  # Latin-1
+    (root / "query.txt").write_text("q/1.png\n")
+    spec = dataset_spec(path="mine", reference="ref.txt", query="query.txt")
+    with pytest.raises(DatasetError, match=r"ref\.txt line 2 is not UTF-8 \(byte b'\\xe9'\)"):
+        list_dataset(tmp_path, "mine", spec)
+
+
 # ------------------------------------------------------------------ roles and pairs
 
 
@@ -109,9 +147,11 @@ def test_references_and_queries_that_are_the_same_files_are_refused(tmp_path):
     with pytest.raises(DatasetError, match=r"2 query image\(s\) are also reference images"):
         list_dataset(tmp_path, "toy", same_folder)
     (tmp_path / "ds/query").mkdir()
+    # A link to a file is read by default (datasets assembled from links), so the
+    # overlap check is what refuses a query that links to a reference.
     (tmp_path / "ds/query/9.png").symlink_to(tmp_path / "ds/ref/2.png")
     with pytest.raises(DatasetError, match=r"query/9\.png = .*ref/2\.png"):
-        list_dataset(tmp_path, "toy", {**SPEC, "follow_links": True})
+        list_dataset(tmp_path, "toy", SPEC)
 
 
 def test_pairs_are_matched_by_relative_path_not_by_sort_order(tmp_path):

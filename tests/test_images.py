@@ -327,14 +327,31 @@ def write_pngs(folder: Path, names: list[str]) -> None:
         Image.fromarray(np.zeros((4, 4, 3), np.uint8)).save(folder / name)
 
 
-def test_a_link_out_of_the_folder_is_refused_unless_links_are_followed(tmp_path):
+def test_a_link_to_a_folder_out_of_the_folder_is_refused_unless_links_are_followed(tmp_path):
     write_pngs(tmp_path / "ds", ["ref/1.png", "query/1.png", "query/2.png"])
     (tmp_path / "ds/ref/loop").symlink_to("..")  # would read every query as a reference
-    with pytest.raises(ImageReadError, match=r"ref/loop is a link to .*outside .*follow_links"):
+    with pytest.raises(
+        ImageReadError, match=r"ref/loop is a link to the folder .*outside .*follow_links"
+    ):
         scan_images(tmp_path / "ds/ref", recursive=True)
     # Followed, the dataset folder is read once: its ref/ is the folder itself again.
     with pytest.raises(ImageReadError, match=r"ref/loop/ref is the folder .*ref again"):
         scan_images(tmp_path / "ds/ref", recursive=True, follow_links=True)
+
+
+def test_links_to_image_files_elsewhere_are_read_by_default_each_real_file_once(tmp_path):
+    # A subset assembled from links into shared storage: read without follow_links.
+    write_pngs(tmp_path / "shared", ["1.png", "2.png", "3.png"])
+    (tmp_path / "subset").mkdir()
+    for name in ("2.png", "3.png"):
+        (tmp_path / "subset" / name).symlink_to(tmp_path / "shared" / name)
+    scan = scan_images(tmp_path / "subset")
+    assert [p.name for p in scan.paths] == ["2.png", "3.png"]
+    assert scan.real_paths == [str(tmp_path / "shared" / n) for n in ("2.png", "3.png")]
+    # The same real file through a second link would be two images: refused.
+    (tmp_path / "subset/4.png").symlink_to(tmp_path / "shared/3.png")
+    with pytest.raises(ImageReadError, match=r"subset/4\.png is the file .*subset/3\.png again"):
+        scan_images(tmp_path / "subset")
 
 
 def test_a_link_to_an_image_folder_elsewhere_is_read_when_asked(tmp_path):
@@ -380,6 +397,21 @@ def test_an_image_linked_twice_in_one_folder_is_refused(tmp_path):
     (tmp_path / "ref/2.png").symlink_to("1.png")
     with pytest.raises(ImageReadError, match=r"ref/2\.png is the file .*ref/1\.png again"):
         scan_images(tmp_path / "ref")
+
+
+def test_an_image_whose_name_is_not_utf8_is_named_with_its_folder(tmp_path):
+    write_pngs(tmp_path / "q", ["1.png"])
+    raw = os.path.join(os.fsencode(tmp_path / "q"), b"caf\xe9.png")  # a Latin-1 name
+    with open(raw, "wb") as f:
+        f.write((tmp_path / "q/1.png").read_bytes())
+    with open(os.path.join(os.fsencode(tmp_path / "q"), b"notes\xe9.txt"), "wb") as f:
+        f.write(b"not an image: skipped")
+    with pytest.raises(ImageReadError) as error:
+        scan_images(tmp_path / "q")
+    message = str(error.value)
+    assert f"in {tmp_path / 'q'}, the name 'caf\\udce9.png' is not UTF-8" in message
+    assert "b'caf\\xe9.png'" in message and "notes" not in message
+    message.encode("utf-8")  # the message itself can be printed and logged
 
 
 @pytest.mark.parametrize(

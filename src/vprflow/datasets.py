@@ -123,12 +123,25 @@ def check_disjoint(
 
 def read_image_list(list_file: Path, root: Path, what: str) -> ImageScan:
     """Images named in ``list_file``, one path per line relative to ``root`` (blank
-    lines and ``#`` comments ignored), in the file's order. Errors name the line."""
+    lines and ``#`` comments ignored), in the file's order. Errors name the line.
+
+    The file is UTF-8, with or without a byte-order mark (Windows editors write one).
+    A file named twice is refused whatever the spelling (``ref/x.jpg``,
+    ``./ref/x.jpg``, a link to it): names are compared as resolved paths."""
     if not list_file.is_file():
         raise DatasetError(f"{what}: image list {list_file} does not exist")
+    try:
+        text = list_file.read_text(encoding="utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = list_file.read_bytes()[: error.start].count(b"\n") + 1
+        raise DatasetError(
+            f"{what}: {list_file} line {line} is not UTF-8 (byte "
+            f"{error.object[error.start : error.start + 1]!r}): save the list as UTF-8"
+        ) from error
     paths: list[Path] = []
-    seen: dict[str, int] = {}
-    for number, line in enumerate(list_file.read_text().splitlines(), start=1):
+    real_paths: list[str] = []
+    seen: dict[str, tuple[int, str]] = {}
+    for number, line in enumerate(text.splitlines(), start=1):
         name = line.strip()
         if not name or name.startswith("#"):
             continue
@@ -136,15 +149,19 @@ def read_image_list(list_file: Path, root: Path, what: str) -> ImageScan:
         path = root / name
         if path.suffix.lower() not in IMAGE_SUFFIXES:
             raise DatasetError(f"{where}: {name!r} is not an image file name")
-        if name in seen:
-            raise DatasetError(f"{where}: {name!r} is listed again (first on line {seen[name]})")
         if not path.is_file():
             raise DatasetError(f"{where}: image {path} does not exist")
-        seen[name] = number
+        real = os.path.realpath(path)
+        if real in seen:
+            first, first_name = seen[real]
+            same = "" if first_name == name else f", as {first_name!r}, the same file"
+            raise DatasetError(f"{where}: {name!r} is listed again (first on line {first}{same})")
+        seen[real] = (number, name)
         paths.append(path)
+        real_paths.append(real)
     if not paths:
         raise DatasetError(f"{what}: image list {list_file} names no images")
-    return ImageScan(paths)
+    return ImageScan(paths, real_paths=real_paths)
 
 
 def paired_queries(

@@ -263,6 +263,16 @@ def _sniff(path: Path) -> str | None:
         return None
 
 
+def _utf8(name: str) -> bool:
+    """Whether a file name decoded from UTF-8 (Python keeps undecodable bytes as
+    lone surrogates, which no UTF-8 text can hold)."""
+    try:
+        name.encode("utf-8")
+    except UnicodeEncodeError:
+        return False
+    return True
+
+
 def _inside(path: str, folder: str) -> bool:
     return path == folder or path.startswith(folder.rstrip(os.sep) + os.sep)
 
@@ -282,9 +292,16 @@ def scan_images(
       folder named ``x.jpg``);
     - a file whose content is an image in a format not read here (a ``.gif``), or an
       image under another suffix;
-    - a symbolic link out of ``folder`` (unless ``follow_links``), and a folder or file
-      reached twice (a link to a parent, or to a sibling): each real folder is visited
-      once, so discovery stays linear in the number of entries.
+    - a symbolic link to a folder out of ``folder`` (unless ``follow_links``), and a
+      folder or file reached twice (a link to a parent, or to a sibling, two links to
+      one file): each real folder is visited and each real file read once, so
+      discovery stays linear in the number of entries. A link to an image file is
+      read wherever the file lies (datasets assembled from links: a subset, a split);
+      a file that is both a reference and a query is refused by
+      :func:`vprflow.datasets.check_disjoint`;
+    - an image (or, when ``recursive``, a folder) whose name is not UTF-8 (bytes
+      that do not decode, which Python keeps as surrogates): no store, table or log
+      could hold its name. Named as ``repr``, with its folder.
     """
     folder = Path(folder)
     top = os.path.realpath(folder)
@@ -310,13 +327,21 @@ def scan_images(
             is_image = os.path.splitext(name)[1].lower() in IMAGE_SUFFIXES
             is_link = entry.is_symlink()
             followed = is_image or (recursive and entry.is_dir())
+            if not _utf8(name) and (followed or _sniff(path)):
+                refused.append(
+                    f"in {current}, the name {name!r} is not UTF-8 (bytes "
+                    f"{os.fsencode(name)!r}), so it cannot be stored or shown: rename it "
+                    "(convmv -f <its encoding> -t utf8)"
+                )
+                continue
             real = os.path.realpath(path) if is_link else os.path.join(current_real, name)
-            if followed and is_link and not follow_links:
-                # A broken link is reported below, as unreadable.
-                if os.path.exists(real) and not _inside(real, top):
+            if followed and is_link and not follow_links and entry.is_dir():
+                # A link to a file is read where the file lies; a broken link is
+                # reported below, as unreadable.
+                if not _inside(real, top):
                     refused.append(
-                        f"{path} is a link to {real}, outside {folder} (set the "
-                        "dataset's follow_links: true to read images through it)"
+                        f"{path} is a link to the folder {real}, outside {folder} (set "
+                        "the dataset's follow_links: true to read the images in it)"
                     )
                     continue
             if is_image:
