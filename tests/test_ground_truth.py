@@ -24,6 +24,7 @@ from vprflow.ground_truth import (
     KINDS,
     frame_window_ground_truth,
     ground_truth,
+    ground_truth_files,
     ground_truth_rule,
     load_object_npy,
     pairs_ground_truth,
@@ -70,13 +71,38 @@ def test_vprbench_row_count_must_match_queries(tmp_path):
         vprbench_ground_truth(path, 4, 4)
 
 
-def test_vprbench_out_of_range_references(tmp_path):
+def test_vprbench_out_of_range_references(tmp_path, caplog):
     # The published 17places file lists references 406 and 407 of a 406-image set.
-    path = write_vprbench(tmp_path / "gt.npy", [(0, [0, 1]), (1, [2, 4, 5]), (2, [-1, 3])])
-    with pytest.raises(DatasetError, match=r"query 1 lists reference indices \[4, 5\]"):
+    path = write_vprbench(tmp_path / "gt.npy", [(0, [0, 1]), (1, [2, 4, 5]), (2, [3])])
+    with pytest.raises(DatasetError, match=r"row 1: query 1 lists reference indices \[4, 5\]"):
         vprbench_ground_truth(path, 3, 4)
-    truth = vprbench_ground_truth(path, 3, 4, drop_out_of_range=True)
+    with caplog.at_level("WARNING", logger="vprflow"):
+        truth = vprbench_ground_truth(path, 3, 4, drop_out_of_range=True)
     assert_truth_equal(truth, [{0, 1}, {2}, {3}])
+    assert "dropped 2 reference index(es) past the last of the 4 references" in caplog.text
+    assert "row 1: 4, row 1: 5" in caplog.text
+
+
+@pytest.mark.parametrize("drop", [False, True])
+def test_a_negative_reference_index_is_refused_naming_file_row_and_value_even_when_dropping(
+    tmp_path, drop
+):
+    # drop_out_of_range used to drop -1 silently: the query lost a positive unnoticed.
+    path = write_vprbench(tmp_path / "gt.npy", [(0, [0, 1]), (1, [2]), (2, [-1, 3])])
+    message = r"gt.npy row 2: query 2 lists negative reference indices \[-1\]"
+    with pytest.raises(DatasetError, match=message):
+        vprbench_ground_truth(path, 3, 4, drop_out_of_range=drop)
+
+
+@pytest.mark.parametrize("index", [10**6, 1e30])
+def test_drop_out_of_range_refuses_an_index_far_past_the_last_reference(tmp_path, index):
+    # Not a sequence that ran on past the end (17places: 406 and 407 of 406) but a file
+    # for another reference set, or a damaged one: dropping it hid the damage.
+    path = write_vprbench(tmp_path / "gt.npy", [(0, [0, 1]), (1, [2, index]), (2, [3])])
+    with pytest.raises(DatasetError, match=r"gt.npy row 1: query 1 lists reference indices \[1"):
+        vprbench_ground_truth(path, 3, 4, drop_out_of_range=True)
+    with pytest.raises(DatasetError, match="longest list of positives"):
+        vprbench_ground_truth(path, 3, 4, drop_out_of_range=True)
 
 
 def test_vprbench_bad_query_index_and_missing_file(tmp_path):
@@ -154,7 +180,7 @@ def test_vprbench_duplicate_query_rows_are_rejected_with_rows_and_gaps(tmp_path)
 
 
 def test_ground_truth_without_any_positive_names_the_file(tmp_path):
-    write_vprbench(tmp_path / "gt.npy", [(0, []), (1, [7])])
+    write_vprbench(tmp_path / "gt.npy", [(0, []), (1, [2])])  # 2 is past the end: dropped
     files = DatasetFiles(reference=[Path("a.jpg"), Path("b.jpg")], query=[Path("c"), Path("d")])
     spec = truth_spec(kind="vprbench", file="gt.npy", drop_out_of_range=True)
     with pytest.raises(DatasetError, match=r"gt\.npy: no query has a positive"):
@@ -254,6 +280,66 @@ def test_a_ground_truth_setting_left_unfilled_fails_with_key_error_not_a_restate
     write_vprbench(tmp_path / "gt.npy", [(0, [0])])
     with pytest.raises(KeyError, match=missing):
         ground_truth(files, spec, tmp_path)
+
+
+@pytest.mark.parametrize("radius", [0.9, 2.5, True])
+def test_a_fractional_frame_window_is_refused_naming_key_and_value(tmp_path, radius):
+    # int(0.9) ran as +-0 while the table said +-0.9.
+    files = DatasetFiles([tmp_path / f"r{i}" for i in range(4)], [tmp_path / "q"])
+    spec = truth_spec(kind="frame_window", radius=radius)
+    message = rf"ground_truth.radius: {radius!r} is not a whole number of frames"
+    for compute in (
+        lambda: ground_truth(files, spec, tmp_path),
+        lambda: ground_truth_rule(spec),
+        lambda: ground_truth_files(tmp_path, {"path": ".", "ground_truth": spec}),
+    ):
+        with pytest.raises(DatasetError, match=message):
+            compute()
+
+
+def test_the_rule_states_the_frame_window_as_applied():
+    # 2.0 frames is applied as 2 and so named; the truth equals the integer rule's.
+    files = DatasetFiles([Path(f"r{i}") for i in range(6)], [Path(f"q{i}") for i in range(6)])
+    spec = truth_spec(kind="frame_window", radius=2.0)
+    assert ground_truth_rule(spec) == "frame_window:+-2"
+    expected = [set(t.tolist()) for t in frame_window_ground_truth(6, 6, 2)]
+    assert_truth_equal(ground_truth(files, spec, Path(".")), expected)
+
+
+def test_rows_given_as_integral_floats_are_read_and_fractional_ones_refused(tmp_path):
+    # YAML reads 1.0 as a float, which the schema's integer admits; slicing with it failed
+    # with numpy's "slice indices must be integers", naming nothing.
+    write_vprbench(tmp_path / "gt.npy", [(q, [q]) for q in range(4)])
+    files = DatasetFiles([tmp_path / f"r{i}" for i in range(4)], [tmp_path / "q0", tmp_path / "q1"])
+    spec = truth_spec(kind="vprbench", file="gt.npy", rows=[1.0, 3.0], query_index="position")
+    assert_truth_equal(ground_truth(files, spec, tmp_path), [{1}, {2}])
+    spec["rows"] = [1, 2.5]
+    with pytest.raises(DatasetError, match=r"ground_truth.rows: 2.5 is not a whole number"):
+        ground_truth(files, spec, tmp_path)
+
+
+def test_a_heading_limit_on_exif_positions_is_refused_naming_the_key(tmp_path):
+    # EXIF gives no heading: the limit was named in the table and then failed unnamed.
+    spec = {"kind": "coordinates", "source": "exif", "radius_m": 15, "max_heading_diff": 30}
+    with pytest.raises(DatasetError, match=r"ground_truth.max_heading_diff: 30 is set but source"):
+        ground_truth_rule(spec)
+
+
+def test_every_kinds_rule_names_the_values_its_truth_applies():
+    # The numbers in a rule are the ones the truth computes with, as numbers.
+    rules = {
+        "frame_window:+-3": truth_spec(kind="frame_window", radius=3.0),
+        "utm:25m": truth_spec(kind="utm"),
+        "utm:7.5m": truth_spec(kind="utm", radius=7.5),
+        "coordinates:c.csv:25m,heading<=40deg": truth_spec(
+            kind="coordinates", file="c.csv", radius_m=25.0, max_heading_diff=40
+        ),
+        "positions:ref_gt:10": truth_spec(
+            kind="positions", reference_positions="ref_gt", query_positions="q_gt", radius=10.0
+        ),
+    }
+    for rule, spec in rules.items():
+        assert ground_truth_rule(spec) == rule
 
 
 def test_the_utm_radius_default_comes_from_the_schema():

@@ -27,6 +27,7 @@ papers' own files (``positions``, ``msls``, the safe unpickler) :mod:`vprflow.pu
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +37,7 @@ import numpy as np
 from vprflow.datasets import DatasetError, DatasetFiles, dataset_folder, role_folders
 from vprflow.positions import (
     Positions,
+    check_one_system,
     coordinates_ground_truth,
     exif_lat_lon,
     read_positions,
@@ -51,6 +53,81 @@ from vprflow.published_truth import (
     radius_ground_truth,
     read_position_array,
 )
+
+log = logging.getLogger("vprflow")
+
+# ---------------------------------------------------------------- settings as applied
+
+
+def whole_number(entry: dict, key: str, unit: str = "") -> int | list[int]:
+    """``entry[key]`` (``ground_truth.<key>``) as the whole number (or list of whole
+    numbers) it is applied as: an integral float such as ``2.0`` is read as 2, a
+    fractional one (``0.9`` frames, rows ``[0, 100.5]``) or a boolean is refused,
+    naming the key and the value; ``int()`` would have truncated it silently."""
+    value = entry[key]
+    items = value if isinstance(value, (list, tuple)) else [value]
+    whole = []
+    for item in items:
+        number = None
+        if isinstance(item, (int, np.integer)) and not isinstance(item, (bool, np.bool_)):
+            number = int(item)
+        elif isinstance(item, (float, np.floating)) and float(item).is_integer():
+            number = int(item)
+        if number is None:
+            raise DatasetError(
+                f"ground_truth.{key}: {item!r} is not a whole number{unit}; "
+                f"kind {entry['kind']} applies it as an integer and will not round it"
+            )
+        whole.append(number)
+    return whole if isinstance(value, (list, tuple)) else whole[0]
+
+
+def _optional_whole(entry: dict, key: str) -> int | list[int] | None:
+    return None if entry.get(key) is None else whole_number(entry, key)
+
+
+# The settings each kind applies as whole numbers (what the number counts, for errors).
+WHOLE_NUMBERS: dict[str, dict[str, str]] = {
+    "frame_window": {"radius": " of frames"},
+    "vprbench": {"rows": " (a row of the file)"},
+    "positions": {
+        "reference_rows": " (a row of the file)",
+        "query_rows": " (a row of the file)",
+        "dims": " of columns",
+    },
+}
+
+
+def check_settings(entry: dict) -> None:
+    """Refuse a setting of ``entry`` (a dataset's ``ground_truth``) that its kind cannot
+    apply as given: a fractional count (:data:`WHOLE_NUMBERS`), or a heading limit on
+    EXIF positions, which carry no heading. Run before the truth is computed and before
+    its rule is named, so a table never states a setting that was not applied."""
+    for key, unit in WHOLE_NUMBERS.get(entry["kind"], {}).items():
+        if entry.get(key) is not None:
+            whole_number(entry, key, unit)
+    if (
+        entry["kind"] == "coordinates"
+        and entry.get("source") == "exif"
+        and entry.get("max_heading_diff") is not None
+    ):
+        raise DatasetError(
+            f"ground_truth.max_heading_diff: {entry['max_heading_diff']!r} is set but "
+            "source: exif reads no heading; give the headings in a coordinates file "
+            "(source: file, a 'heading' column) or drop the key"
+        )
+
+
+def _frame_radius(entry: dict) -> int:
+    """The frame window's radius as applied: a whole number of frames."""
+    return whole_number(entry, "radius", " of frames")
+
+
+def _number_text(value) -> str:
+    """A number as a rule states it: ``25``, ``7.5``."""
+    value = float(value)
+    return str(int(value)) if value.is_integer() else repr(value)
+
 
 # ---------------------------------------------------------------- VPR-Bench files
 
@@ -163,18 +240,52 @@ def vprbench_ground_truth(
             f"{path}: {len(repeated)} query index(es) appear in more than one row ({listing}); "
             f"queries with no row: {missing[:10]}. Each query must have exactly one row."
         )
+    positives = [
+        _reference_indices(refs, f"{path} row {row}:") for row, refs in enumerate(table[:, 1])
+    ]
+    # A file made for a sequence that ran on past the reference set (17places lists 406
+    # and 407 of 406) overshoots the end by less than one list of positives: only such
+    # indices are droppable. Checked as Python ints: 1e30 would overflow int64.
+    reach = n_ref + max((len(p) for p in positives), default=0)
     truth: list[np.ndarray] = [np.zeros(0, dtype=np.int64)] * n_query
-    for row, (q, refs) in enumerate(zip(query_indices, table[:, 1], strict=True)):
-        indices = _reference_indices(refs, f"{path} row {row}:")
-        # Checked as Python ints: an index such as 1e30 would overflow int64.
-        bad = [r for r in indices if not 0 <= r < n_ref]
-        if bad and not drop_out_of_range:
+    dropped = []
+    for row, (q, indices) in enumerate(zip(query_indices, positives, strict=True)):
+        negative = [r for r in indices if r < 0]
+        if negative:
             raise DatasetError(
-                f"{path}: query {q} lists reference indices {bad} but the dataset has "
-                f"{n_ref} reference images{reference_folders} (set "
+                f"{path} row {row}: query {q} lists negative reference indices "
+                f"{_short_repr(negative)}; indices count from 0 (drop_out_of_range drops "
+                "only indices past the last reference)"
+            )
+        past = [r for r in indices if r >= n_ref]
+        if past and not drop_out_of_range:
+            raise DatasetError(
+                f"{path} row {row}: query {q} lists reference indices {_short_repr(past)} but "
+                f"the dataset has {n_ref} reference images{reference_folders} (set "
                 "ground_truth.drop_out_of_range: true to drop them)"
             )
-        truth[q] = np.unique(np.array([r for r in indices if 0 <= r < n_ref], dtype=np.int64))
+        far = [r for r in past if r >= reach]
+        if far:
+            raise DatasetError(
+                f"{path} row {row}: query {q} lists reference indices {_short_repr(far)}, "
+                f"beyond the {n_ref} reference images{reference_folders} by more than the "
+                f"file's longest list of positives ({reach - n_ref}); drop_out_of_range "
+                "drops only indices just past the last reference (a sequence that ran on), "
+                "not these: the file does not belong to this reference set"
+            )
+        dropped += [(row, r) for r in past]
+        truth[q] = np.unique(np.array([r for r in indices if r < n_ref], dtype=np.int64))
+    if dropped:
+        listing = ", ".join(f"row {row}: {r}" for row, r in dropped[:10])
+        log.warning(
+            "%s: drop_out_of_range dropped %d reference index(es) past the last of the %d "
+            "references (%s%s)",
+            path,
+            len(dropped),
+            n_ref,
+            listing,
+            ", ..." if len(dropped) > 10 else "",
+        )
     return truth
 
 
@@ -217,7 +328,7 @@ def _vprbench_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.n
         len(files.query),
         len(files.reference),
         entry["drop_out_of_range"],
-        rows=entry.get("rows"),
+        rows=_optional_whole(entry, "rows"),
         query_index=entry["query_index"],
         query_folders=role_folders(files.query, folder),
         reference_folders=role_folders(files.reference, folder),
@@ -225,7 +336,7 @@ def _vprbench_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.n
 
 
 def _frame_window_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
-    return frame_window_ground_truth(len(files.query), len(files.reference), int(entry["radius"]))
+    return frame_window_ground_truth(len(files.query), len(files.reference), _frame_radius(entry))
 
 
 def _utm_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndarray]:
@@ -244,11 +355,15 @@ def _pairs_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndar
 def _positions(files: DatasetFiles, entry: dict, folder: Path) -> tuple[Positions, Positions]:
     """Reference and query positions of a ``coordinates`` ground truth."""
     if entry["source"] == "exif":
-        parts = []
-        for paths in (files.reference, files.query):
-            table = np.array([exif_lat_lon(p) for p in paths], dtype=np.float64)
-            parts.append(Positions(table[:, 0], table[:, 1], None, True))
-        return parts[0], parts[1]
+        paths = files.reference + files.query
+        table = np.array([exif_lat_lon(p) for p in paths], dtype=np.float64).reshape(-1, 2)
+        labels = [p.relative_to(folder).as_posix() for p in paths]
+        check_one_system(table[:, 0], table[:, 1], True, labels, f"{folder}: EXIF GPS")
+        n = len(files.reference)
+        return (
+            Positions(table[:n, 0], table[:n, 1], None, True),
+            Positions(table[n:, 0], table[n:, 1], None, True),
+        )
     names = [p.relative_to(folder).as_posix() for p in files.reference + files.query]
     both = read_positions(folder / entry["file"], names)
     if entry.get("max_heading_diff") is not None and both.heading is None:
@@ -274,9 +389,9 @@ def _coordinates_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[n
 
 def _coordinates_rule(entry: dict) -> str:
     source = "exif" if entry["source"] == "exif" else entry["file"]
-    rule = f"coordinates:{source}:{entry['radius_m']}m"
+    rule = f"coordinates:{source}:{_number_text(entry['radius_m'])}m"
     if entry.get("max_heading_diff") is not None:
-        rule += f",heading<={entry['max_heading_diff']}deg"
+        rule += f",heading<={_number_text(entry['max_heading_diff'])}deg"
     return rule
 
 
@@ -292,8 +407,8 @@ def _role_positions(files: DatasetFiles, entry: dict, folder: Path, role: str) -
         path,
         len(images),
         f"ground_truth.{key}",
-        rows=entry.get(f"{role}_rows"),
-        dims=entry.get("dims"),
+        rows=_optional_whole(entry, f"{role}_rows"),
+        dims=_optional_whole(entry, "dims"),
     )
     return in_published_order(table, images)
 
@@ -344,8 +459,10 @@ KINDS: dict[str, Kind] = {
     "vprbench": Kind(
         _vprbench_truth, lambda entry: f"vprbench:{entry['file']}", lambda entry: [entry["file"]]
     ),
-    "frame_window": Kind(_frame_window_truth, lambda entry: f"frame_window:+-{entry['radius']}"),
-    "utm": Kind(_utm_truth, lambda entry: f"utm:{entry['radius']}m"),
+    "frame_window": Kind(
+        _frame_window_truth, lambda entry: f"frame_window:+-{_frame_radius(entry)}"
+    ),
+    "utm": Kind(_utm_truth, lambda entry: f"utm:{_number_text(entry['radius'])}m"),
     "pairs": Kind(_pairs_truth, lambda entry: "pairs"),
     "coordinates": Kind(
         _coordinates_truth,
@@ -354,7 +471,7 @@ KINDS: dict[str, Kind] = {
     ),
     "positions": Kind(
         _positions_truth,
-        lambda entry: f"positions:{entry['reference_positions']}:{entry['radius']}",
+        lambda entry: f"positions:{entry['reference_positions']}:{_number_text(entry['radius'])}",
         lambda entry: [entry["reference_positions"], entry["query_positions"]],
     ),
     "matches_csv": Kind(
@@ -381,6 +498,7 @@ def ground_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndar
     ``ground_truth``; see :data:`KINDS`). A truth in which no query has a positive is an
     error (recall would be undefined), except for ``none``."""
     kind = _kind(entry)
+    check_settings(entry)
     truth = kind.truth(files, entry, folder)
     if kind.judged and not any(len(t) for t in truth):
         source = folder / entry["file"] if entry.get("file") else f"{folder} ({entry['kind']})"
@@ -393,12 +511,16 @@ def ground_truth(files: DatasetFiles, entry: dict, folder: Path) -> list[np.ndar
 
 
 def ground_truth_rule(entry: dict) -> str:
-    """A short human-readable name of the rule, for results tables."""
-    return _kind(entry).rule(entry)
+    """A short human-readable name of the rule, for results tables: the settings as
+    applied (:func:`check_settings` refuses one that cannot be)."""
+    kind = _kind(entry)
+    check_settings(entry)
+    return kind.rule(entry)
 
 
 def ground_truth_files(data_root: str | Path, entry: dict) -> list[Path]:
     """Files the ground truth of dataset ``entry`` is read from (inputs of the dataset
     stage)."""
     truth = entry["ground_truth"]
+    check_settings(truth)  # at planning: a setting that cannot apply stops the run here
     return [dataset_folder(data_root, entry) / name for name in _kind(truth).files(truth)]
