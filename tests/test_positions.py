@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from dataset_helpers import assert_truth_equal, utm_name
 from PIL import Image
+from PIL.TiffImagePlugin import IFDRational
 from workflow_helpers import dataset_spec
 
 from vprflow.datasets import DatasetError, list_dataset
@@ -24,6 +25,7 @@ from vprflow.positions import (
     haversine_m,
     heading_difference,
     read_positions,
+    swapped_rows,
     utm_from_name,
     utm_ground_truth,
 )
@@ -294,3 +296,112 @@ def test_utm_name_with_nan_or_infinity_is_refused_naming_the_file_and_value(
     bad = easting if easting == "nan" else northing
     with pytest.raises(DatasetError, match=rf"{name}: UTM \w+ '{bad}' in the file name is not"):
         utm_ground_truth(reference, query, 25.0)
+
+
+# ------------------------------------------------------------------ one coordinate system
+
+
+def street(n: int, seed: int, centre=(40.4406, -79.9959), spread_deg=0.004) -> np.ndarray:
+    """``n`` lat/lon positions scattered over a few hundred metres around ``centre``."""
+    rng = np.random.default_rng(seed)
+    return np.asarray(centre) + rng.uniform(-spread_deg, spread_deg, (n, 2))
+
+
+def test_a_coordinate_file_with_lat_and_lon_swapped_on_a_few_rows_is_refused_naming_them(
+    tmp_path,
+):
+    # Swapped, (-79.99, 40.44) is still a valid lat/lon (in Antarctica): the range check
+    # passed it and the query got no positive, leaving n_queries without a word.
+    positions = street(30, 0)
+    names = [f"ref/{i:02d}.jpg" for i in range(20)] + [f"query/{i:02d}.jpg" for i in range(10)]
+    rows = [[name, lat, lon] for name, (lat, lon) in zip(names, positions, strict=True)]
+    for i in (4, 23):
+        rows[i][1], rows[i][2] = rows[i][2], rows[i][1]
+    path = write_coordinates(tmp_path / "c.csv", rows)
+    with pytest.raises(DatasetError) as error:
+        read_positions(path, names)
+    message = str(error.value)
+    assert message.startswith(f"{path}: lat and lon look swapped on 2 of 30 rows")
+    assert "line 6: 'ref/04.jpg' (lat -79.99" in message
+    assert "line 25: 'query/03.jpg' (lat -79.99" in message
+    assert "One file holds one coordinate system" in message
+
+
+@pytest.mark.parametrize(
+    "centre", [(40.4406, -79.9959), (45.0, 45.0), (-33.86, 151.21), (0.0, 0.0)]
+)
+def test_consistent_positions_are_never_taken_for_swapped_ones_wherever_they_lie(centre):
+    # (45, 45) and (0, 0) straddle the lat = lon line, where a swap cannot be told from
+    # a position: nothing is flagged there either.
+    for seed in range(20):
+        positions = street(50, seed, centre, spread_deg=0.01 * (1 + seed))
+        assert swapped_rows(positions[:, 0], positions[:, 1], True).tolist() == []
+
+
+def test_swapped_rows_are_found_by_the_files_own_spread_not_a_distance_in_metres():
+    # The same file, a town or a city wide: the rule reads only the spread of its rows.
+    for spread in (0.0005, 0.05, 0.5):
+        positions = street(40, 1, spread_deg=spread)
+        positions[[3, 17]] = positions[[3, 17], ::-1]
+        assert swapped_rows(positions[:, 0], positions[:, 1], True).tolist() == [3, 17]
+
+
+def test_an_easting_northing_file_with_swapped_rows_is_refused(tmp_path):
+    rng = np.random.default_rng(2)
+    xy = rng.uniform(0, 300, (12, 2)) + [585300.0, 4477300.0]
+    names = [f"ref/{i}.jpg" for i in range(12)]
+    rows = [[name, e, n] for name, (e, n) in zip(names, xy, strict=True)]
+    rows[7][1], rows[7][2] = rows[7][2], rows[7][1]
+    path = write_coordinates(tmp_path / "c.csv", rows, ("image", "easting", "northing"))
+    with pytest.raises(DatasetError, match=r"easting and northing look swapped on 1 of 12 rows"):
+        read_positions(path, names)
+
+
+def test_utm_file_names_with_easting_and_northing_swapped_are_refused_naming_the_image(
+    tmp_path,
+):
+    rng = np.random.default_rng(3)
+    xy = rng.uniform(0, 100, (10, 2)) + [585300.0, 4477300.0]
+    reference = [tmp_path / utm_name(e, n, f"r{i}") for i, (e, n) in enumerate(xy[:6])]
+    query = [tmp_path / utm_name(e, n, f"q{i}") for i, (e, n) in enumerate(xy[6:])]
+    query[1] = tmp_path / utm_name(xy[7, 1], xy[7, 0], "q1")
+    with pytest.raises(DatasetError, match=rf"UTM file names .* 1 of 10 rows \({query[1].name}"):
+        utm_ground_truth(reference, query, 25.0)
+
+
+@pytest.mark.parametrize(
+    ("lat", "lat_ref", "lon", "lon_ref", "message"),
+    [
+        ((IFDRational(0, 0), 0.0, 0.0), "N", (4.0, 0.0, 0.0), "E", r"latitude \(nan, 0.0, 0.0\)"),
+        ((50.0, 0.0, 0.0), "N", (4.0, IFDRational(0, 0), 0.0), "E", r"longitude \(4.0, nan"),
+        ((95.0, 0.0, 0.0), "N", (4.0, 0.0, 0.0), "E", r"latitude 95 degrees N .* beyond 90"),
+        ((50.0, 0.0, 0.0), "S", (181.0, 0.0, 0.0), "W", r"longitude 181 degrees W .* beyond 180"),
+        ((50.0, 0.0, 0.0), "E", (4.0, 0.0, 0.0), "N", r"latitude reference 'E' is not one of"),
+    ],
+)
+def test_exif_gps_holding_nan_or_95_degrees_is_refused_naming_the_image_and_value(
+    tmp_path, lat, lat_ref, lon, lon_ref, message
+):
+    # NaN compared false and 95 degrees was taken as given: the query got no positive.
+    path = gps_jpeg(tmp_path / "g.jpg", lat, lat_ref, lon, lon_ref)
+    with pytest.raises(DatasetError, match=rf"g.jpg: EXIF GPS {message}"):
+        exif_lat_lon(path)
+
+
+def test_exif_positions_of_one_image_swapped_are_refused_naming_the_image(tmp_path):
+    root = tmp_path / "walk"
+    for role in ("ref", "query"):
+        (root / role).mkdir(parents=True)
+    for i in range(5):
+        gps_jpeg(root / "ref" / f"{i}.jpg", (50.0, 0.0, 2.0 * i), "N", (4.0, 0, 0), "E")
+    gps_jpeg(root / "query" / "0.jpg", (4.0, 0.0, 0.0), "N", (50.0, 0.0, 1.0), "E")
+    gps_jpeg(root / "query" / "1.jpg", (50.0, 0.0, 3.0), "N", (4.0, 0, 0), "E")
+    files = list_dataset(
+        tmp_path, "walk", dataset_spec(path="walk", reference="ref", query="query")
+    )
+    spec = {"kind": "coordinates", "source": "exif", "radius_m": 15}
+    with pytest.raises(
+        DatasetError,
+        match=r"EXIF GPS: lat and lon look swapped on 1 of 7 rows \(query/0.jpg \(lat 4, lon 50",
+    ):
+        ground_truth(files, spec, root)

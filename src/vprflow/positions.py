@@ -42,6 +42,15 @@ def utm_ground_truth(reference: list[Path], query: list[Path], radius: float) ->
 
     ref_xy = np.array([utm_from_name(p) for p in reference], dtype=np.float64)
     query_xy = np.array([utm_from_name(p) for p in query], dtype=np.float64)
+    both = np.concatenate([ref_xy, query_xy]).reshape(-1, 2)
+    check_one_system(
+        both[:, 0],
+        both[:, 1],
+        False,
+        [p.name for p in (*reference, *query)],
+        "UTM file names ('@easting@northing@')",
+        ("easting", "northing"),
+    )
     tree = cKDTree(ref_xy)
     return [
         np.array(sorted(hits), dtype=np.int64) for hits in tree.query_ball_point(query_xy, radius)
@@ -62,6 +71,73 @@ def haversine_m(lat1, lon1, lat2, lon2) -> np.ndarray:
 def heading_difference(a, b) -> np.ndarray:
     """Smallest angle in degrees between headings ``a`` and ``b`` (broadcast), 0..180."""
     return np.abs((np.asarray(b) - np.asarray(a) + 180.0) % 360.0 - 180.0)
+
+
+def swapped_rows(x: np.ndarray, y: np.ndarray, geographic: bool) -> np.ndarray:
+    """Indices of the rows of one file whose two coordinates look swapped (lat/lon, or
+    easting/northing): as given, a row lies farther from the median position of the
+    file than twice the farthest of the rows that are not suspect (whose swap would
+    take them farther away), and swapped back it lies nearer than that. ``x, y [n]``
+    float64: lat/lon in degrees when ``geographic`` (great-circle distances; a swap that
+    gives a latitude beyond +-90 is impossible), else metres (Euclidean).
+
+    The rule reads only the file's own spread, so it needs no threshold in metres or
+    degrees; it relies on fewer than half of the rows being swapped (the coordinate-wise
+    median stays among the true positions) and on the places lying clear of their own
+    mirror image (``lat = lon``): where they straddle it a swap is indistinguishable
+    from a position and nothing is flagged."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    if len(x) < 3:
+        return np.zeros(0, dtype=np.int64)
+    cx, cy = float(np.median(x)), float(np.median(y))
+
+    def distance(a, b):
+        return haversine_m(a, b, cx, cy) if geographic else np.hypot(a - cx, b - cy)
+
+    as_given = distance(x, y)
+    swapped = np.full(len(x), np.inf)
+    possible = np.abs(y) <= 90 if geographic else np.ones(len(x), dtype=bool)
+    swapped[possible] = distance(y[possible], x[possible])
+    suspect = swapped < as_given
+    if suspect.all():
+        return np.zeros(0, dtype=np.int64)
+    # Twice the spread: a margin on both sides, so a true position at the edge of the
+    # others is found swapped, and a position just past their edge is no swap.
+    bound = 2 * float(as_given[~suspect].max())
+    return np.flatnonzero(suspect & (swapped <= bound) & (as_given > bound))
+
+
+def check_one_system(
+    x: np.ndarray,
+    y: np.ndarray,
+    geographic: bool,
+    labels: list[str],
+    where: str,
+    axes: tuple[str, str] = ("lat", "lon"),
+) -> None:
+    """Refuse positions of one file (``labels[i]`` names row ``i``: a line and image, or
+    an image) of which some have their two coordinates swapped (:func:`swapped_rows`):
+    such a query gets no positive, or the wrong ones, and would leave the count without
+    a word."""
+    rows = swapped_rows(x, y, geographic)
+    if not len(rows):
+        return
+    cx, cy = float(np.median(x)), float(np.median(y))
+
+    def far(a, b) -> float:
+        return float(haversine_m(a, b, cx, cy) if geographic else np.hypot(a - cx, b - cy))
+
+    listing = "; ".join(
+        f"{labels[i]} ({axes[0]} {x[i]:.6g}, {axes[1]} {y[i]:.6g}: {far(x[i], y[i]):.4g} "
+        f"m from the median, {far(y[i], x[i]):.4g} m swapped)"
+        for i in rows[:5]
+    )
+    raise DatasetError(
+        f"{where}: {axes[0]} and {axes[1]} look swapped on {len(rows)} of {len(x)} rows "
+        f"({listing}{'; ...' if len(rows) > 5 else ''}); the median of the file's positions "
+        f"is {axes[0]} {cx:.6g}, {axes[1]} {cy:.6g}. One file holds one coordinate "
+        f"system: give these rows' {axes[0]} and {axes[1]} in that order"
+    )
 
 
 @dataclass(frozen=True)
@@ -165,6 +241,8 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
             f"e.g. {', '.join(missing[:5])}{folder_counts(missing, names)}"
         )
     table = np.array([rows[name][1] for name in names], dtype=np.float64)
+    labels = [f"line {rows[name][0]}: {name!r}" for name in names]
+    check_one_system(table[:, 0], table[:, 1], geographic, labels, str(csv_path), keys)
     heading = table[:, 2] if with_heading else None
     return Positions(table[:, 0], table[:, 1], heading, geographic)
 
@@ -179,14 +257,41 @@ def exif_lat_lon(path: Path) -> tuple[float, float]:
     except OSError as error:
         raise DatasetError(f"{path}: cannot read EXIF: {error}") from error
 
-    def degrees(value, ref, negative: str) -> float:
-        d, m, s = (float(v) for v in value)
-        return (-1 if str(ref).upper() == negative else 1) * (d + m / 60 + s / 3600)
+    def dms(value, ref) -> tuple[tuple[float, ...], str]:
+        # Degrees, minutes, seconds, each non-negative: the sign is the reference letter.
+        parts = tuple(float(v) for v in value)
+        if len(parts) != 3:
+            raise ValueError
+        return parts, str(ref).strip().upper()
 
     try:
-        return degrees(gps[2], gps[1], "S"), degrees(gps[4], gps[3], "W")
+        lat, lat_ref = dms(gps[2], gps[1])
+        lon, lon_ref = dms(gps[4], gps[3])
     except (KeyError, TypeError, ValueError, ZeroDivisionError):
         raise DatasetError(f"{path}: no EXIF GPS latitude/longitude") from None
+    signed = []
+    for axis, parts, ref, refs, limit in (
+        ("latitude", lat, lat_ref, "NS", 90),
+        ("longitude", lon, lon_ref, "EW", 180),
+    ):
+        # A rational 0/0 reads as NaN; NaN compares false, so it must be named here.
+        if not all(np.isfinite(parts)) or any(v < 0 for v in parts):
+            raise DatasetError(
+                f"{path}: EXIF GPS {axis} {parts} (degrees, minutes, seconds) is not a "
+                "finite non-negative number"
+            )
+        if ref not in tuple(refs):
+            raise DatasetError(
+                f"{path}: EXIF GPS {axis} reference {ref!r} is not one of {' or '.join(refs)}"
+            )
+        value = parts[0] + parts[1] / 60 + parts[2] / 3600
+        if value > limit:
+            raise DatasetError(
+                f"{path}: EXIF GPS {axis} {value:.6g} degrees {ref} {parts} is beyond "
+                f"{limit} degrees"
+            )
+        signed.append(-value if ref == refs[1] else value)
+    return signed[0], signed[1]
 
 
 def coordinates_ground_truth(
