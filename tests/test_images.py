@@ -284,6 +284,50 @@ def test_read_16bit_grayscale(tmp_path):
     assert image[0, 1, 0] == 1.0 and image[0, 0, 0] == 0.0
 
 
+@pytest.mark.parametrize(
+    "dtype, values, what",
+    [
+        # A thermal image in raw counts: 80% of it above 65535, which used to read white.
+        (np.int32, (0, 70000, 300000), "32-bit signed integer"),
+        (np.uint32, (0, 70000, 3_000_000_000), "32-bit unsigned integer"),
+        (np.uint32, (0, 100, 65535), "32-bit unsigned integer"),  # the type decides
+        (np.int16, (-40, 0, 120), "16-bit signed integer"),  # negatives used to read 0
+        (np.int16, (0, 1, 2), "16-bit signed integer"),
+        (np.int8, (-3, 0, 100), "8-bit signed integer"),  # -3 used to read as 253
+    ],
+)
+def test_integer_images_without_a_declared_range_are_refused_naming_type_and_values(
+    tmp_path, dtype, values, what
+):
+    tifffile = pytest.importorskip("tifffile")
+    pixels = np.array([values, values[::-1]], dtype=dtype)
+    tifffile.imwrite(tmp_path / "thermal.tif", pixels)
+    low, high = min(values), max(values)
+    message = rf"thermal\.tif: {what} image with values in \[{low}, {high}\]; only unsigned"
+    with pytest.raises(ImageReadError, match=message):
+        read_image(tmp_path / "thermal.tif")
+
+
+@pytest.mark.parametrize("dtype", [np.uint8, np.uint16])
+def test_unsigned_8_and_16bit_tiffs_are_read_over_their_declared_range(tmp_path, dtype):
+    tifffile = pytest.importorskip("tifffile")
+    top = np.iinfo(dtype).max
+    pixels = np.array([[0, 1, top // 2, top]], dtype=dtype)
+    tifffile.imwrite(tmp_path / "image.tif", pixels)
+    image = read_image(tmp_path / "image.tif")
+    np.testing.assert_allclose(image[:, :, 0], pixels / top, rtol=0, atol=1e-7)
+
+
+def test_a_16bit_pgm_is_read_over_its_maxval(tmp_path):
+    # Netpbm declares its range in the header (here 10-bit); PIL scales it to 65535.
+    (tmp_path / "ten.pgm").write_bytes(
+        b"P5\n3 1\n1023\n" + np.array([0, 512, 1023], ">u2").tobytes()
+    )
+    np.testing.assert_allclose(
+        read_image(tmp_path / "ten.pgm")[0, :, 0], [0, 512 / 1023, 1], rtol=0, atol=1e-4
+    )
+
+
 def test_read_rgba_drops_alpha(tmp_path):
     pixels = np.random.default_rng(3).integers(0, 256, (3, 4, 4), dtype=np.uint8)
     pixels[..., 3] = 0  # fully transparent: colours must still come through unchanged

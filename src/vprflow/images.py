@@ -47,12 +47,42 @@ class ImageReadError(ValueError):
     """An image file that cannot be decoded; the message names the file."""
 
 
+def _undeclared_integers(image: Image.Image) -> tuple[str, np.ndarray] | None:
+    """``(what, values)`` of a decoded integer image whose type has no declared range
+    that maps to ``[0, 1]``, else None. Read are unsigned 8- and 16-bit files (their
+    range is ``[0, 2^bits - 1]``); PIL holds 16-bit PNG and PGM (scaled from their
+    maxval to 65535) as 32-bit "I" too. Not read: 32-bit integer TIFFs (PIL holds
+    unsigned ones as signed, 2^31 and above wrapped to negatives) and signed TIFFs of
+    any width (PIL holds signed 8-bit ones as unsigned: -3 becomes 253)."""
+    if image.format == "TIFF":
+        bits = (image.tag_v2.get(258) or (1,))[0]
+        signed = (image.tag_v2.get(339) or (1,))[0] == 2
+        values = np.asarray(image)
+        if signed and values.dtype.kind in "ui":
+            if bits == 8:
+                values = values.view(np.int8)  # PIL decodes them as unsigned
+            return f"{bits}-bit signed integer", values
+        if bits == 32 and values.dtype.kind in "ui":
+            return "32-bit unsigned integer", values.view(np.uint32)
+        return None
+    if image.mode in ("I", "I;32", "I;32S") and image.format not in ("PNG", "PPM"):
+        return "32-bit integer", np.asarray(image)
+    return None
+
+
 def _to_float(array: np.ndarray, path: Path) -> np.ndarray:
     if array.dtype == np.uint8:
         return array.astype(np.float32) / 255.0
     if array.dtype in (np.uint16, np.int32) or array.dtype == np.dtype(">u2"):
-        # PIL decodes 16-bit PNG/TIFF as int32 ("I") or uint16 ("I;16"): both hold 0..65535.
-        return np.clip(array.astype(np.float32) / 65535.0, 0.0, 1.0)
+        # PIL decodes 16-bit files as uint16 ("I;16") or int32 ("I": PNG, PGM), both
+        # in 0..65535 (decode_image refuses other integer files before this).
+        low, high = int(array.min(initial=0)), int(array.max(initial=0))
+        if low < 0 or high > 65535:
+            raise ImageReadError(
+                f"{path}: 16-bit image decoded with values in [{low}, {high}], outside "
+                "[0, 65535]. Convert it to 8- or 16-bit unsigned integers"
+            )
+        return array.astype(np.float32) / 65535.0
     if array.dtype == bool:
         return array.astype(np.float32)
     if np.issubdtype(array.dtype, np.floating):
@@ -91,11 +121,24 @@ def decode_image(data: bytes, path: str | Path, exif_orientation: str = "apply")
     try:
         with Image.open(io.BytesIO(data)) as image:
             image.load()
+            undeclared = _undeclared_integers(image)
+            if undeclared is not None:
+                what, values = undeclared
+                raise ImageReadError(
+                    f"{path}: {what} image with values in [{values.min()}, {values.max()}]; "
+                    "only unsigned 8- and 16-bit integer images (and floating-point "
+                    "images in [0, 1]) have a range that maps to [0, 1], and guessing one "
+                    "per image (clipping at 65535, or at 0) would scale two images of one "
+                    "dataset differently. Convert the dataset to 16-bit unsigned integers "
+                    "with one scale for every image"
+                )
             if exif_orientation == "apply":
                 image = ImageOps.exif_transpose(image)
             if image.mode in ("P", "PA", "CMYK", "YCbCr", "LAB", "HSV", "1"):
                 image = image.convert("RGBA" if "A" in image.mode else "RGB")
             array = np.asarray(image)
+    except ImageReadError:
+        raise
     except Image.DecompressionBombError as error:
         raise ImageReadError(
             f"{path}: {error} Pillow refuses it as a possible decompression bomb; if the "
