@@ -136,3 +136,79 @@ def test_the_denominator_counts_queries_without_positives_as_misses_when_all():
     assert recall_at(ranking, truth, [1, 2], "all") == {1: 0.25, 2: 0.75}
     with pytest.raises(ValueError, match="unknown denominator"):
         recall_at(ranking, truth, [1], "some")
+
+
+# ------------------------------------------------------------------ queries without a positive
+
+
+def toy_stores(tmp_path, truth: list[list[int]], n_ref: int = 3):
+    """A dataset store (``truth`` per query, rule ``frame_window:+-0``) and a global
+    descriptors store in which query ``q`` is nearest reference ``q % n_ref``."""
+    from vprflow import stores
+
+    n_query = len(truth)
+    names = [f"ref/r{i}.jpg" for i in range(n_ref)] + [f"query/q{i}.jpg" for i in range(n_query)]
+    dataset, descriptors = tmp_path / "dataset.zarr", tmp_path / "descriptors.zarr"
+    with stores.atomic_store(dataset, {"stage": "dataset"}) as group:
+        group.attrs.update(
+            n_reference=n_ref,
+            n_query=n_query,
+            ground_truth_rule="frame_window:+-0",
+            exif_orientation=True,
+        )
+        stores.write_array(group, "paths", np.array([f"toy/{n}" for n in names]))
+        stores.write_array(group, "names", np.array(names))
+        flat = [r for refs in truth for r in refs]
+        stores.write_array(group, "truth", np.array(flat, dtype=np.int64))
+        offsets = np.r_[0, np.cumsum([len(refs) for refs in truth])].astype(np.int64)
+        stores.write_array(group, "truth_offsets", offsets)
+    vectors = np.eye(n_ref, dtype=np.float32)
+    vectors = np.concatenate([vectors, vectors[np.arange(n_query) % n_ref] * 0.9])
+    with stores.atomic_store(descriptors, {"stage": "descriptors"}) as group:
+        group.attrs.update(kind="global", dim=n_ref)
+        stores.write_array(group, "descriptors", vectors)
+    return str(dataset), str(descriptors)
+
+
+def test_queries_without_positive_are_listed_in_order():
+    from vprflow.recall import queries_without_positive
+
+    truth = [np.array([0]), np.zeros(0, np.int64), np.array([1, 2]), np.zeros(0, np.int64)]
+    assert queries_without_positive(truth).tolist() == [1, 3]
+
+
+@pytest.mark.parametrize(
+    ("denominator", "counted", "fate"),
+    [
+        ("with_positives", 3, "left out of Recall@N and mAP@N"),
+        ("all", 5, "counted as misses"),
+    ],
+)
+def test_the_recall_store_and_table_count_queries_without_positive_and_the_log_names_them(
+    tmp_path, caplog, denominator, counted, fate
+):
+    # A query whose positions were damaged had no positive and vanished from n_queries
+    # without a word (with_positives), or sank recall unexplained (all).
+    import csv
+
+    from vprflow import stores
+    from vprflow.stages.recall import evaluate
+    from vprflow.stages.report import write_report
+
+    dataset, descriptors = toy_stores(tmp_path, [[0], [], [2], [], [1]])
+    record = {"params": {"denominator": denominator, "top_k": 3, "recall_at": [1, 2]}}
+    out = tmp_path / "recall.zarr"
+    with caplog.at_level("WARNING", logger="vprflow"):
+        evaluate(dataset, descriptors, record, str(out))
+    attrs = stores.open_store(out).attrs
+    assert attrs["n_queries"] == counted
+    assert attrs["n_queries_without_positive"] == 2
+    assert (
+        f"2 of 5 queries have no positive under frame_window:+-0 ({fate}): "
+        "1 query/q1.jpg, 3 query/q3.jpg" in caplog.text
+    )
+    table = tmp_path / "recall.csv"
+    write_report("toy", [{"method": "m", "params": {}}], [str(out)], str(table))
+    with open(table) as f:
+        (row,) = list(csv.DictReader(f))
+    assert row["n_queries"] == str(counted) and row["n_queries_without_positive"] == "2"

@@ -67,12 +67,13 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     assert [r["method"] for r in rows] == ROWS
     header = list(rows[0])
     assert header[:2] == ["dataset", "method"]
-    assert header[-19:] == [
+    assert header[-20:] == [
         "descriptor_dim",
         "ground_truth",
         "denominator",
         "n_queries",
         "n_short_rankings",
+        "n_queries_without_positive",
         "recall@1",
         "recall@5",
         "recall@10",

@@ -85,7 +85,7 @@ def sample_queries(candidates: np.ndarray, count: int, seed: int) -> np.ndarray:
 
 
 # The HTML table's counting columns, after its scores and costs.
-TABLE_COUNTS = ("descriptor_dim", "n_queries", "n_short_rankings")
+TABLE_COUNTS = ("descriptor_dim", "n_queries", "n_short_rankings", "n_queries_without_positive")
 
 
 def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[str] = ()) -> str:

@@ -49,8 +49,8 @@ FORMAT_VERSIONS = {
     "descriptors": 4,
     "search": 1,
     # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
-    # summary and cost per query, re-ranked lists
-    "recall": 5,
+    # summary and cost per query, re-ranked lists; 6: n_queries_without_positive
+    "recall": 6,
     "rerank": 1,
 }
 

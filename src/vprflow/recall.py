@@ -26,6 +26,14 @@ def correct_at(ranking: np.ndarray, truth: list[np.ndarray]) -> np.ndarray:
     return first
 
 
+def queries_without_positive(truth: list[np.ndarray]) -> np.ndarray:
+    """int64 ``[n]``: the queries with no positive, in order. Under either denominator
+    the table says how many (``with_positives`` leaves them out, ``all`` counts them as
+    misses): a query that lost its positives to a damaged position or index must not
+    leave the count without a word."""
+    return np.flatnonzero([len(t) == 0 for t in truth]).astype(np.int64)
+
+
 def counted_queries(truth: list[np.ndarray], denominator: str = "with_positives") -> np.ndarray:
     """bool ``[Nq]``: the queries a metric averages over."""
     if denominator not in DENOMINATORS:

@@ -76,7 +76,8 @@ def write_recall_table(dataset_name: str, csv_path: str, out: str) -> None:
         f"Positives by the ground-truth rule {', '.join(rules)}.",
         "Recall@N: the fraction of the counted queries whose first N retrieved references "
         "include a positive; mAP@N as Revisit-Anything computes it (docs/methods.md §8). "
-        f"Counted: {'; '.join(counted[d] for d in denominators)}; n_queries says how many. "
+        f"Counted: {'; '.join(counted[d] for d in denominators)}; n_queries says how many, "
+        "n_queries_without_positive how many had no positive (the recall log names them). "
         "n_short_rankings: queries that ranked fewer references than the largest N "
         "(SegVLAD ranks only voted images); a missing rank is a miss.",
         "auc_pr, recall_at_100_precision, extended_precision: VPR-Bench's precision-recall "

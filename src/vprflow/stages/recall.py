@@ -102,6 +102,27 @@ def top1_matches(
     return confidence, correct, has_positive
 
 
+def log_without_positive(dataset: Dataset, queries: np.ndarray, denominator: str) -> None:
+    """Name the queries without a positive (the first ten) in the recall log, and what
+    the denominator made of them."""
+    if not len(queries):
+        return
+    fate = {
+        "with_positives": "left out of Recall@N and mAP@N",
+        "all": "counted as misses",
+    }[denominator]
+    names = [dataset.names[dataset.n_reference + int(q)] for q in queries[:10]]
+    log.warning(
+        "%d of %d queries have no positive under %s (%s): %s%s",
+        len(queries),
+        dataset.n_query,
+        dataset.group.attrs["ground_truth_rule"],
+        fate,
+        ", ".join(f"{int(q)} {name}" for q, name in zip(queries, names, strict=False)),
+        ", ..." if len(queries) > len(names) else "",
+    )
+
+
 def evaluate(
     dataset_path: str,
     descriptors_path: str,
@@ -120,7 +141,13 @@ def evaluate(
     can say what the approximation cost.
     """
     from vprflow.precision_recall import summary
-    from vprflow.recall import correct_at, counted_queries, map_at, recall_at
+    from vprflow.recall import (
+        correct_at,
+        counted_queries,
+        map_at,
+        queries_without_positive,
+        recall_at,
+    )
 
     params = record["params"]
     dataset = Dataset(dataset_path)
@@ -150,7 +177,10 @@ def evaluate(
     # N beyond the number of references is kept: it equals Recall@n_ref.
     recalls, maps, precision = {}, {}, {}
     evaluated = np.zeros(n_query, dtype=bool)
+    without_positive = None  # no ground truth: no query is judged at all
     if has_truth:
+        without_positive = queries_without_positive(truth)
+        log_without_positive(dataset, without_positive, denominator)
         recalls = recall_at(ranking, truth, params["recall_at"], denominator)
         maps = map_at(ranking, truth, params["recall_at"], denominator)
         evaluated = counted_queries(truth, denominator)
@@ -172,6 +202,8 @@ def evaluate(
             if recall_exact is None
             else {str(n): v for n, v in recall_exact.items()},
             n_queries=int(evaluated.sum()),
+            # Under either denominator: left out (with_positives) or misses (all).
+            n_queries_without_positive=None if without_positive is None else len(without_positive),
             descriptor_dim=int(descriptors.attrs["dim"]),
             # What a query costs: not part of the results (the ms vary run to run).
             cost=dict(zip(COST_COLUMNS, (bytes_per_image, search_ms, rerank_ms), strict=True)),

@@ -34,7 +34,7 @@ def write_report(
     recall_columns = sorted({int(n) for r in results for n in r.attrs["recall"]})
     param_columns = sorted({name for run in runs for name in run["params"]})
     header = ["dataset", "method", *param_columns, "descriptor_dim", "ground_truth"]
-    header += ["denominator", "n_queries", "n_short_rankings"]
+    header += ["denominator", "n_queries", "n_short_rankings", "n_queries_without_positive"]
     header += [f"recall@{n}" for n in recall_columns]
     header += [f"map@{n}" for n in recall_columns]
     header += [*PRECISION_COLUMNS, *COST_COLUMNS]
@@ -49,7 +49,7 @@ def write_report(
             [dataset_name, run["method"]]
             + [_cell(run["params"].get(name, "")) for name in param_columns]
             + [attrs["descriptor_dim"], attrs["ground_truth_rule"], attrs["denominator"]]
-            + [attrs["n_queries"], attrs["n_short_rankings"]]
+            + [attrs["n_queries"], attrs["n_short_rankings"], attrs["n_queries_without_positive"]]
             + _metric_cells(attrs["recall"], recall_columns)
             + _metric_cells(attrs["map"], recall_columns)
             + [_number(attrs["precision_recall"].get(c), ".6f") for c in PRECISION_COLUMNS]
