@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from vprflow.reports import clear_superseded, runs_jobs
+from vprflow.reports import clear_superseded, closing_lines, runs_jobs
 
 
 @pytest.mark.parametrize(
@@ -51,3 +51,16 @@ def test_a_good_run_clears_the_withdrawn_copy_of_a_table_it_wrote_again(tmp_path
     assert cleared == [results / "recall_a.csv.stale"]
     assert (results / "recall_a.csv").read_text() == "fresh"
     assert (results / "recall_b.csv.stale").exists()
+
+
+def test_a_good_run_ends_by_naming_its_tables_and_the_report_command(tmp_path):
+    from types import SimpleNamespace
+
+    results = tmp_path / "results"
+    results.mkdir()
+    (results / "recall_a.csv").write_text("table")
+    (results / "predictions_a.csv").write_text("table")
+    plan = SimpleNamespace(runs={"a": [], "b": []})  # b has no table on disk
+    lines = closing_lines(plan, str(tmp_path) + "/")
+    assert lines[0] == "vprflow: a: results/recall_a.csv, results/predictions_a.csv"
+    assert "snakemake --report report.html" in lines[1] and len(lines) == 2

@@ -100,6 +100,23 @@ def withdraw_reports(root: str = "", dataset: str = "*") -> list[Path]:
     return _withdraw([t for p in _SHOWN for t in Path(root or ".").glob(p.format(dataset=dataset))])
 
 
+def closing_lines(plan: Plan, root: str = "") -> list[str]:
+    """What a good run prints last: where each planned dataset's tables are, and the
+    command that writes the report."""
+    lines = []
+    for dataset in plan.runs:
+        tables = [t.format(dataset=dataset) for t in (RECALL_CSV, RECALL_TABLE, PREDICTIONS_CSV)]
+        present = [t for t in tables if (Path(root) / t).exists()]
+        if present:
+            lines.append(f"vprflow: {dataset}: {', '.join(present)}")
+    if lines:
+        lines.append(
+            "vprflow: the report with every table and figure: snakemake --report report.html"
+            " (with this run's --config and --configfile options)"
+        )
+    return lines
+
+
 def clear_superseded(root: str = "") -> list[Path]:
     """Delete every ``<table>.stale`` beside which a fresh ``<table>`` now stands (a good
     run after a failure wrote it again); returns the deleted paths. A withdrawn table

@@ -13,8 +13,10 @@ from vprflow.paths import (
     PREDICTIONS_CSV,
     RECALL_CSV,
     RECALL_PLOT,
+    NAME_PATTERN,
     RECALL_TABLE,
     benchmark_pattern,
+    check_inside_outputs,
     log_pattern,
     shard_pattern,
     store_path,
@@ -25,6 +27,7 @@ from vprflow.presets import unknown_dataset
 from vprflow.reports import (
     FIGURES,
     clear_superseded,
+    closing_lines,
     dataset_outputs,
     figure_inputs,
     runs_jobs,
@@ -49,7 +52,7 @@ PREFIX = getattr(_modifier, "prefix", None) or ""
 # a lint, a report or a cluster job.
 RUNS_JOBS = workflow.is_main_process and runs_jobs(sys.argv)
 try:
-    CONFIG = validate_config(config, SCHEMA)
+    CONFIG = validate_config(config, SCHEMA, workflow.configfiles)
     # Content hashes of images, local model weights and imported files, memoised
     # between runs.
     _memo = load_fingerprints(PREFIX + FINGERPRINTS)
@@ -74,6 +77,8 @@ SHARDED_STAGES = "|".join(SHARDED)
 
 wildcard_constraints:
     key="[0-9a-f]{16}",
+    dataset=NAME_PATTERN,
+    method=NAME_PATTERN,
     start=r"\d+",
     stop=r"\d+",
 
@@ -200,7 +205,10 @@ def report_runs(wildcards):
 
 def default_targets():
     """What `snakemake` without a target builds: every output of the `targets` datasets."""
-    return [path for name in CONFIG["targets"] for path in dataset_outputs(PLAN, name)]
+    paths = [path for name in CONFIG["targets"] for path in dataset_outputs(PLAN, name)]
+    for path in paths:
+        check_inside_outputs(path)  # names are plain (the schema): belt and braces
+    return paths
 
 
 def figure_pattern(figure):

@@ -77,3 +77,4 @@ onsuccess:
     if RUNS_JOBS:
         for stale in clear_superseded(PREFIX):
             print(f"vprflow: removed {stale}: the table beside it is current")
+        print("\n".join(closing_lines(PLAN, PREFIX)))
