@@ -4,6 +4,7 @@ directly: Baidu Mall camera files, InsideOut position pickles, MSLS validation l
 from __future__ import annotations
 
 import pickle
+import re
 from collections import OrderedDict
 from pathlib import Path
 
@@ -15,7 +16,9 @@ from vprflow.ground_truth import ground_truth, ground_truth_rule
 from vprflow.published_truth import (
     MSLS_FILES,
     camera_centres,
+    load_object_npy,
     msls_ground_truth,
+    msls_listed_images,
     published_order,
     read_position_array,
 )
@@ -259,3 +262,195 @@ def test_a_vprbench_file_read_by_position_ignores_the_first_field_and_keeps_rows
     assert [t.tolist() for t in truth] == [[2], [0, 2]]
     with pytest.raises(DatasetError, match="query index 11, outside 0..1"):
         vprbench_ground_truth(tmp_path / "gt.npy", 2, 3, rows=[2, 4], query_index="column")
+
+
+# ------------------------------------------------ MSLS lists: values of the wrong kind
+
+
+def _resave(folder: Path, key: str, values) -> Path:
+    """Overwrite one published list with ``values`` (an object array, as pickled lists
+    are), returning its path."""
+    path = folder / MSLS_FILES[key]
+    array = np.empty(len(values), dtype=object)
+    array[:] = values
+    np.save(path, array, allow_pickle=True)
+    return path
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        (-1, "query index -1 is outside 0..7"),  # numpy would read the last query
+        (1.7, "query index 1.7 is not an integer"),  # int64 would truncate it to 1
+        (True, "query index True is a boolean"),
+        ("3", "query index '3' is not an integer"),
+        (8, "query index 8 is outside 0..7"),  # used to be a bare IndexError
+    ],
+)
+def test_an_msls_query_index_of_the_wrong_kind_is_refused_naming_file_row_and_value(
+    tmp_path, value, message
+):
+    lists = write_msls_lists(tmp_path, np.random.default_rng(5))
+    path = _resave(tmp_path, "qIdx", [*lists["kept"][:2], value, *lists["kept"][3:]])
+    refs = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/sf/" in p]
+    with pytest.raises(DatasetError, match=f"{re.escape(str(path))} row 2: {re.escape(message)}"):
+        msls_ground_truth(tmp_path, "sf", refs, [tmp_path / "query" / "sq0.jpg"])
+
+
+@pytest.mark.parametrize(
+    ("value", "message"),
+    [
+        (-1, "reference index -1 is outside 0..13"),  # numpy would read the last image
+        (2.5, "reference index 2.5 is not an integer"),
+        (False, "reference index False is a boolean"),
+        ("0", "reference index '0' is not an integer"),
+        (14, "reference index 14 is outside 0..13"),
+    ],
+)
+def test_an_msls_positive_of_the_wrong_kind_is_refused_naming_file_row_and_value(
+    tmp_path, value, message
+):
+    lists = write_msls_lists(tmp_path, np.random.default_rng(6))
+    rows = [list(p) for p in lists["positives"]]
+    rows[1] = [*rows[1], value]
+    path = _resave(tmp_path, "pIdx", rows)
+    refs = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/cph/" in p]
+    with pytest.raises(DatasetError, match=f"{re.escape(str(path))} row 1: {re.escape(message)}"):
+        msls_ground_truth(tmp_path, "cph", refs, [tmp_path / "query" / "cq0.jpg"])
+
+
+def test_an_msls_query_kept_twice_is_refused_naming_both_rows(tmp_path):
+    lists = write_msls_lists(tmp_path, np.random.default_rng(7))
+    kept = lists["kept"].copy()
+    kept[4] = kept[3]  # sq0 twice: the later row's positives used to win silently
+    np.save(tmp_path / MSLS_FILES["qIdx"], kept)
+    refs = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/sf/" in p]
+    with pytest.raises(DatasetError, match=r"qIdx\.npy rows 3 and 4: query index 4 .*twice"):
+        msls_ground_truth(tmp_path, "sf", refs, [tmp_path / "query" / "sq0.jpg"])
+
+
+def test_integral_float_msls_indices_are_read_as_the_integers_they_are(tmp_path):
+    lists = write_msls_lists(tmp_path, np.random.default_rng(8))
+    refs = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/cph/" in p]
+    queries = [tmp_path / "query" / "cq0.jpg", tmp_path / "query" / "cq3.jpg"]
+    expected = msls_ground_truth(tmp_path, "cph", refs, queries)
+    np.save(tmp_path / MSLS_FILES["qIdx"], lists["kept"].astype(np.float64))
+    _resave(tmp_path, "pIdx", [np.asarray(p, dtype=np.float64) for p in lists["positives"]])
+    truth = msls_ground_truth(tmp_path, "cph", refs, queries)
+    assert [t.tolist() for t in truth] == [t.tolist() for t in expected]
+
+
+# ------------------------------------------------ MSLS: the images the lists name
+
+
+def test_msls_images_the_lists_leave_out_are_left_out_and_counted(tmp_path, caplog):
+    lists = write_msls_lists(tmp_path, np.random.default_rng(9))
+    # The raw Copenhagen folders: every listed image, one database image the lists leave
+    # out (12,601 raw, 12,556 listed) and the query that qIdx drops.
+    listed = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/cph/" in p]
+    reference = sorted([*listed, tmp_path / "database" / "unlisted.jpg"])
+    query = [tmp_path / "query" / f"cq{i}.jpg" for i in range(4)]
+    with caplog.at_level("WARNING", logger="vprflow"):
+        kept_refs, kept_queries = msls_listed_images(tmp_path, "cph", reference, query)
+    assert kept_refs == [p for p in reference if p.name != "unlisted.jpg"]
+    assert [q.name for q in kept_queries] == ["cq0.jpg", "cq1.jpg", "cq3.jpg"]
+    assert "1 of the 9 reference images are not in msls_val_dbImages.npy" in caplog.text
+    assert "1 of the 4 query images are not in msls_val_qIdx.npy" in caplog.text
+    assert "unlisted.jpg" in caplog.text and "cq2.jpg" in caplog.text
+    # Read unlisted, the extra image is a distractor that no published number ranks.
+    with pytest.raises(DatasetError, match=r"1 reference image\(s\) are not .*unlisted\.jpg"):
+        msls_ground_truth(tmp_path, "cph", reference, kept_queries)
+
+
+def test_a_listed_msls_image_missing_from_the_folder_is_refused_naming_it(tmp_path):
+    lists = write_msls_lists(tmp_path, np.random.default_rng(10))
+    reference = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/sf/" in p]
+    query = [tmp_path / "query" / f"sq{i}.jpg" for i in (0, 1, 3)]
+    with pytest.raises(DatasetError, match=r"1 reference image\(s\) listed in .*s002\.jpg"):
+        msls_listed_images(tmp_path, "sf", [p for p in reference if p.name != "s002.jpg"], query)
+    with pytest.raises(DatasetError, match=r"1 query image\(s\) listed in .*sq3\.jpg"):
+        msls_listed_images(tmp_path, "sf", reference, query[:2])
+
+
+def test_an_msls_preset_lists_only_the_images_of_the_published_lists(tmp_path):
+    from vprflow.datasets import list_dataset
+
+    lists = write_msls_lists(tmp_path, np.random.default_rng(11))
+    for path in lists["db"][:8] + ["unlisted.jpg"]:
+        (tmp_path / "database").mkdir(exist_ok=True)
+        (tmp_path / "database" / Path(path).name).write_bytes(b"")
+    for name in ("cq0.jpg", "cq1.jpg", "cq2.jpg", "cq3.jpg"):
+        (tmp_path / "query").mkdir(exist_ok=True)
+        (tmp_path / "query" / name).write_bytes(b"")
+    entry = {
+        "path": tmp_path.name,
+        "reference": "database",
+        "query": "query",
+        "paired": False,
+        "recursive": True,
+        "follow_links": False,
+        "ground_truth": {"kind": "msls", "city": "cph"},
+    }
+    files = list_dataset(tmp_path.parent, "msls_cph", entry)
+    assert [p.name for p in files.reference] == [f"c{i:03d}.jpg" for i in range(8)]
+    assert [p.name for p in files.query] == ["cq0.jpg", "cq1.jpg", "cq3.jpg"]
+
+
+# ------------------------------------------------ the restricted unpickler's sizes
+
+
+class _Huge:
+    """A pickle that asks numpy for 2**40 elements in one of the ways its own arrays
+    are pickled: ``_reconstruct``'s shape, or the shape of ``__setstate__``'s state."""
+
+    def __init__(self, how: str):
+        self.how = how
+
+    def __reduce__(self):
+        from numpy._core.multiarray import _reconstruct
+
+        if self.how == "reconstruct":
+            return (_reconstruct, (np.ndarray, (2**40,), b"b"))
+        state = (1, (2**40,), np.dtype(object), False, [1, 2])
+        return (_reconstruct, (np.ndarray, (0,), b"b"), state)
+
+
+@pytest.mark.parametrize("how", ["reconstruct", "setstate"])
+def test_a_pickle_asking_for_a_2_to_the_40_element_array_is_refused_naming_the_file(tmp_path, how):
+    path = tmp_path / "gt.npy"
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(
+            f, {"descr": "|O", "fortran_order": False, "shape": (2,)}
+        )
+        pickle.dump(_Huge(how), f, protocol=3)
+    # It used to end in a MemoryError naming no file.
+    with pytest.raises(DatasetError, match=rf"{re.escape(str(path))}: .*\(1099511627776,\)"):
+        load_object_npy(path)
+    pkl = tmp_path / "gps.pkl"
+    with open(pkl, "wb") as f:
+        pickle.dump(_Huge(how), f, protocol=3)
+    with pytest.raises(DatasetError, match=rf"{re.escape(str(pkl))} .*more than the whole file"):
+        read_position_array(pkl, 2, "ground_truth.reference_positions")
+
+
+def test_a_npy_header_declaring_more_data_than_the_file_holds_is_refused_naming_it(tmp_path):
+    path = tmp_path / "gt.npy"
+    with open(path, "wb") as f:
+        np.lib.format.write_array_header_1_0(
+            f, {"descr": "<f8", "fortran_order": False, "shape": (2**40,)}
+        )
+        f.write(b"\0" * 64)
+    with pytest.raises(DatasetError, match=rf"{re.escape(str(path))}: its header declares"):
+        load_object_npy(path)
+
+
+def test_a_pickle_calling_the_array_class_itself_is_refused(tmp_path):
+    class CallsNdarray:
+        def __reduce__(self):
+            return (np.ndarray, ((2**40,), "u1"))
+
+    path = tmp_path / "gps.pkl"
+    with open(path, "wb") as f:
+        pickle.dump(CallsNdarray(), f, protocol=3)
+    with pytest.raises(DatasetError, match=f"{re.escape(str(path))}.*refusing to call numpy"):
+        read_position_array(path, 2, "ground_truth.reference_positions")

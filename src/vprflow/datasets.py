@@ -70,6 +70,11 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
         if not scans[role].paths:
             raise DatasetError(f"dataset '{name}': {role} folder {entry} contains no images")
     reference, query = scans["reference"].paths, scans["query"].paths
+    truth = dataset.get("ground_truth") or {}
+    if truth.get("kind") == "msls":  # the published lists name the images
+        from vprflow.published_truth import msls_listed_images
+
+        reference, query = msls_listed_images(root, truth["city"], reference, query)
     real = {}
     for scan in scans.values():
         if scan.real_paths is not None:  # known from discovery: spares a realpath each

@@ -11,14 +11,18 @@ running arbitrary pickles, each matched to the images by name rather than by pos
 
 from __future__ import annotations
 
+import logging
 import pickle
 import re
-from pathlib import Path
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
 
 import numpy as np
 
 from vprflow.datasets import DatasetError
 from vprflow.images import natural_key
+
+log = logging.getLogger("vprflow")
 
 
 def published_order(names: list[str]) -> list[int]:
@@ -28,27 +32,137 @@ def published_order(names: list[str]) -> list[int]:
     return sorted(range(len(names)), key=lambda i: natural_key(names[i]))
 
 
-class _PlainUnpickler(pickle.Unpickler):
-    """Lists, tuples, numbers and numpy arrays of them: any other class is refused."""
+class _PlainUnpickler(pickle._Unpickler):
+    """Lists, tuples, numbers and numpy arrays of them: any other class is refused, and
+    so is an array larger than the file could hold (``limit``: the file's size in bytes).
 
-    ALLOWED = {
-        ("numpy.core.multiarray", "_reconstruct"),
-        ("numpy._core.multiarray", "_reconstruct"),
-        ("numpy.core.multiarray", "scalar"),
-        ("numpy._core.multiarray", "scalar"),
-        ("numpy", "ndarray"),
-        ("numpy", "dtype"),
-    }
+    The pure-Python unpickler, because numpy's ``ndarray.__setstate__`` allocates the
+    shape its state names before it looks at the data: the state is checked first
+    (:meth:`load_build`). Ground-truth pickles are small, so its speed does not matter.
+    """
+
+    dispatch = dict(pickle._Unpickler.dispatch)
+
+    def __init__(self, file, limit: int):
+        super().__init__(file)
+        self.limit = limit
 
     def find_class(self, module, name):
-        if (module, name) in self.ALLOWED:
-            return super().find_class(module, name)
+        if module in ("numpy.core.multiarray", "numpy._core.multiarray"):
+            if name == "_reconstruct":
+                return _Reconstruct(self.limit)
+            if name == "scalar":
+                return _Scalar(self.limit, super().find_class(module, name))
+        if (module, name) == ("numpy", "ndarray"):
+            return _NdarrayName
+        if (module, name) == ("numpy", "dtype"):
+            return np.dtype
         raise pickle.UnpicklingError(f"refusing to load {module}.{name} from a ground-truth file")
+
+    def load_build(self):
+        inst, state = self.stack[-2], self.stack[-1]
+        if isinstance(inst, np.ndarray):
+            # ndarray state: ([version,] shape, dtype, is_fortran, data)
+            fields = state[1:] if isinstance(state, tuple) and len(state) == 5 else state
+            if not isinstance(fields, tuple) or len(fields) != 4:
+                raise pickle.UnpicklingError(f"array state {type(state).__name__} is malformed")
+            _check_array_fits(fields[0], fields[1], self.limit)
+        super().load_build()
+
+    dispatch[pickle.BUILD[0]] = load_build
+
+
+def _array_bytes(shape, dtype) -> tuple[int, int]:
+    """Elements and bytes of an array of ``shape`` and ``dtype`` (Python ints: a shape
+    such as ``(2**40, 2**40)`` must not overflow)."""
+    count = 1
+    for side in shape:
+        count *= int(side)
+    return count, count * int(dtype.itemsize)
+
+
+def _check_array_fits(shape, dtype, limit: int, room: str = "the whole file") -> None:
+    """Refuse, before any memory is asked for, an array that a file of ``limit`` bytes
+    cannot hold: its raw bytes (or, for Python objects, one byte of pickle per element at
+    the least) would have to be in the file. A crafted shape otherwise ends in a
+    ``MemoryError`` that names no file."""
+    if not isinstance(shape, tuple) or not all(
+        isinstance(side, (int, np.integer)) and not isinstance(side, (bool, np.bool_))
+        for side in shape
+    ):
+        raise pickle.UnpicklingError(f"array shape {shape!r} is not a tuple of integers")
+    if not isinstance(dtype, np.dtype):
+        raise pickle.UnpicklingError(f"array dtype {dtype!r} is not a numpy dtype")
+    if any(int(side) < 0 for side in shape):
+        raise pickle.UnpicklingError(f"array shape {shape} has a negative side")
+    count, size = _array_bytes(shape, dtype)
+    need = count if dtype.hasobject else size
+    if need > limit:
+        what = f"{count:,} objects" if dtype.hasobject else f"{size:,} bytes"
+        raise pickle.UnpicklingError(
+            f"an array of shape {shape} and dtype {dtype} ({what}), more than {room} "
+            f"({limit:,} bytes) could hold; refusing to allocate it"
+        )
+
+
+class _NdarrayName:
+    """What ``numpy.ndarray`` unpickles to: a name that only :class:`_Reconstruct`
+    accepts. The class itself would let a pickle call ``ndarray(shape)``, which
+    allocates whatever the shape asks."""
+
+    def __new__(cls, *args, **kwargs):
+        raise pickle.UnpicklingError(
+            "refusing to call numpy.ndarray from a ground-truth file (numpy's own pickles never do)"
+        )
+
+
+class _Reconstruct:
+    """numpy's ``_reconstruct(ndarray, shape, dtype)``, after :func:`_check_array_fits`."""
+
+    def __init__(self, limit: int):
+        self.limit = limit
+
+    def __call__(self, subtype, shape, dtype):
+        if subtype is not _NdarrayName:
+            raise pickle.UnpicklingError(f"refusing to reconstruct an array of {subtype!r}")
+        try:
+            dtype = np.dtype(dtype)
+        except TypeError as error:
+            raise pickle.UnpicklingError(f"array dtype {dtype!r}: {error}") from error
+        _check_array_fits(shape, dtype, self.limit)
+        return np.ndarray.__new__(np.ndarray, shape, dtype)
+
+
+class _Scalar:
+    """numpy's ``scalar(dtype, data)``, after checking that one item fits the file."""
+
+    def __init__(self, limit: int, function):
+        self.limit, self.function = limit, function
+
+    def __call__(self, dtype, *args):
+        _check_array_fits((), dtype, self.limit)
+        return self.function(dtype, *args)
+
+
+def _load_plain_pickle(f, limit: int):
+    """The object pickled in ``f`` (see :class:`_PlainUnpickler`); a malformed pickle
+    raises :class:`pickle.UnpicklingError` whatever the pure-Python unpickler raised."""
+    try:
+        return _PlainUnpickler(f, limit).load()
+    except (pickle.UnpicklingError, EOFError):
+        raise
+    except (AttributeError, ValueError, TypeError, IndexError, KeyError, RecursionError) as error:
+        raise pickle.UnpicklingError(
+            f"malformed pickle ({type(error).__name__}: {error})"
+        ) from error
 
 
 def load_object_npy(path: str | Path) -> np.ndarray:
-    """Load a ``.npy`` file, including object arrays, without running arbitrary pickles."""
+    """Load a ``.npy`` file, including object arrays, without running arbitrary pickles
+    and without allocating more than the file could hold: an array whose header or
+    pickle declares a shape too large for the file's size is refused, naming the file."""
     path = Path(path)
+    limit = path.stat().st_size
     with open(path, "rb") as f:
         try:
             version = np.lib.format.read_magic(f)
@@ -58,13 +172,17 @@ def load_object_npy(path: str | Path) -> np.ndarray:
             }.get(version)
             if read_header is None:
                 raise ValueError(f"unsupported .npy version {version}")
-            _shape, _fortran, dtype = read_header(f)
+            shape, _fortran, dtype = read_header(f)
         except ValueError as error:
             raise DatasetError(f"{path} is not a .npy file: {error}") from error
+        try:
+            _check_array_fits(shape, dtype, limit - f.tell(), "the data after it")
+        except pickle.UnpicklingError as error:
+            raise DatasetError(f"{path}: its header declares {error}") from error
         if dtype.hasobject:
             try:
-                array = _PlainUnpickler(f).load()
-            except (pickle.UnpicklingError, EOFError, AttributeError) as error:
+                array = _load_plain_pickle(f, limit)
+            except pickle.UnpicklingError as error:
                 raise DatasetError(f"{path}: unreadable object array: {error}") from error
             return np.asarray(array)
         f.seek(0)
@@ -85,7 +203,7 @@ def read_position_array(
             raw = load_object_npy(path)
         else:
             with open(path, "rb") as f:
-                raw = _PlainUnpickler(f).load()
+                raw = _load_plain_pickle(f, path.stat().st_size)
         table = np.asarray(raw)
     except (pickle.UnpicklingError, ValueError, EOFError, OSError) as error:
         raise DatasetError(
@@ -184,51 +302,200 @@ def msls_city(path: str) -> str | None:
     return None
 
 
+@dataclass(frozen=True)
+class MslsLists:
+    """The four published MSLS validation lists, their values checked: ``db`` the
+    database paths (``dbImages``), ``kept`` the kept query paths (``qImages[qIdx]``, in
+    ``qIdx`` order) and ``positives`` per kept query its ``pIdx`` row (indices into
+    ``db``)."""
+
+    db: list[str]
+    kept: list[str]
+    positives: list[list[int]]
+
+    def database(self, city: str) -> list[int]:
+        """Rows of ``db`` in ``city`` (``"all"``: every row), as Revisit-Anything's
+        ``segregate_data_by_city`` splits them."""
+        return [i for i, p in enumerate(self.db) if city == "all" or msls_city(p) == city]
+
+    def queries(self, city: str) -> list[int]:
+        """Rows of ``kept`` (and ``positives``) in ``city`` (``"all"``: every row)."""
+        return [i for i, p in enumerate(self.kept) if city == "all" or msls_city(p) == city]
+
+
+def _msls_paths(array: np.ndarray, path: Path) -> list[str]:
+    """A list of image paths (``dbImages``, ``qImages``): a 1-D array of strings."""
+    if array.ndim != 1 or not all(isinstance(v, str) for v in array.tolist()):
+        raise DatasetError(
+            f"{path} holds {array.dtype} {array.shape}; expected a flat list of image paths"
+        )
+    return [str(v) for v in array.tolist()]
+
+
+def _msls_index(value, where: str, n: int, listing: str) -> int:
+    """``value`` as an index into a list of ``n`` (VPR-Bench files' value rules: no
+    fraction, boolean or string; no negative index, which numpy would wrap to the end)."""
+    # Imported here: vprflow.ground_truth imports this module.
+    from vprflow.ground_truth import _as_index
+
+    index = _as_index(value, where)
+    if not 0 <= index < n:
+        raise DatasetError(f"{where} {index} is outside 0..{n - 1} ({listing} has {n})")
+    return index
+
+
+def read_msls_lists(folder: Path) -> MslsLists:
+    """The published lists in ``folder``, read as serizba/salad's
+    ``dataloaders/val/MapillaryDataset.py`` reads them (``qImages[qIdx]``, ``pIdx``),
+    with the values VPR-Bench files must hold: every index an integer (no fraction,
+    boolean or string) within its list (no ``-1``, which numpy wraps to the last image),
+    each kept query once. Errors name the file, the row and the value."""
+    from vprflow.ground_truth import _reference_indices
+
+    arrays, paths = {}, {}
+    for key, name in MSLS_FILES.items():
+        paths[key] = folder / name
+        if not paths[key].is_file():
+            raise DatasetError(
+                f"ground_truth (msls): {paths[key]} does not exist; copy the four "
+                "msls_val_*.npy files (serizba/salad datasets/msls_val/) into the dataset folder"
+            )
+        arrays[key] = load_object_npy(paths[key])
+    db = _msls_paths(arrays["dbImages"], paths["dbImages"])
+    queries = _msls_paths(arrays["qImages"], paths["qImages"])
+    if arrays["qIdx"].ndim != 1:
+        raise DatasetError(
+            f"{paths['qIdx']} holds {arrays['qIdx'].dtype} {arrays['qIdx'].shape}; expected "
+            "a flat list of query indices"
+        )
+    rows_of: dict[int, int] = {}
+    for row, value in enumerate(arrays["qIdx"].tolist()):
+        where = f"{paths['qIdx']} row {row}: query index"
+        index = _msls_index(value, where, len(queries), MSLS_FILES["qImages"])
+        if index in rows_of:
+            raise DatasetError(
+                f"{paths['qIdx']} rows {rows_of[index]} and {row}: query index {index} "
+                f"({queries[index]}) is kept twice; each kept query has one row of positives "
+                f"in {MSLS_FILES['pIdx']}"
+            )
+        rows_of[index] = row
+    kept = [queries[i] for i in rows_of]
+    if arrays["pIdx"].ndim == 0 or len(arrays["pIdx"]) != len(kept):
+        raise DatasetError(
+            f"{paths['pIdx']}: {len(arrays['pIdx'])} rows for {len(kept)} kept queries of "
+            f"{MSLS_FILES['qIdx']}"
+        )
+    positives = []
+    for row, refs in enumerate(arrays["pIdx"]):
+        where = f"{paths['pIdx']} row {row}:"
+        positives.append(
+            [
+                _msls_index(p, f"{where} reference index", len(db), MSLS_FILES["dbImages"])
+                for p in _reference_indices(refs, where)
+            ]
+        )
+    return MslsLists(db, kept, positives)
+
+
+def _by_name(paths: list[str], list_file: str, rows: list[int]) -> dict[str, int]:
+    """Row of each listed file name (``rows`` of ``paths``): images are matched to the
+    lists by name, so two listed paths of one name are an error naming both rows."""
+    first: dict[str, int] = {}
+    for row in rows:
+        name = PurePosixPath(paths[row]).name
+        if name in first and paths[first[name]] != paths[row]:
+            raise DatasetError(
+                f"{list_file} rows {first[name]} and {row} ({paths[first[name]]}, "
+                f"{paths[row]}) have one file name, {name}; images are matched by name"
+            )
+        first.setdefault(name, row)
+    return first
+
+
+def msls_listed_images(
+    folder: Path, city: str, reference: list[Path], query: list[Path]
+) -> tuple[list[Path], list[Path]]:
+    """The images of an MSLS dataset as the published reader reads them: the references
+    are the database images the lists name (``dbImages`` of ``city``), the queries the
+    kept ones (``qImages[qIdx]`` of ``city``), matched to ``reference`` and ``query``
+    (the images found, in their order) by file name. Images found but not listed are
+    left out and counted in a warning (the raw Copenhagen database holds 12,601 images,
+    the lists 12,556: the other 45 would be distractors no published number ranks); a
+    listed image that was not found is an error naming it."""
+    lists = read_msls_lists(folder)
+    out = []
+    for role, found, paths, rows, list_file in (
+        ("reference", reference, lists.db, lists.database(city), MSLS_FILES["dbImages"]),
+        ("query", query, lists.kept, lists.queries(city), MSLS_FILES["qIdx"]),
+    ):
+        listed = _by_name(paths, list_file, rows)
+        found_by_name: dict[str, Path] = {}
+        for path in found:
+            if path.name in listed and path.name in found_by_name:
+                raise DatasetError(
+                    f"ground_truth (msls): {found_by_name[path.name]} and {path} are both "
+                    f"{path.name}, listed once in {list_file}; keep one"
+                )
+            found_by_name[path.name] = path
+        missing = [name for name in listed if name not in found_by_name]
+        if missing:
+            raise DatasetError(
+                f"ground_truth (msls, city {city}): {len(missing)} {role} image(s) listed in "
+                f"{folder / list_file} were not found among the {len(found)} {role} images "
+                f"(e.g. {', '.join(missing[:5])}); the published protocol reads every one"
+            )
+        kept = [path for path in found if path.name in listed]
+        left_out = [path for path in found if path.name not in listed]
+        if left_out:
+            log.warning(
+                "ground_truth (msls, city %s): %d of the %d %s images are not in %s and are "
+                "left out, as the published reader never reads them (e.g. %s)",
+                city,
+                len(left_out),
+                len(found),
+                role,
+                list_file,
+                ", ".join(p.name for p in left_out[:5]),
+            )
+        out.append(kept)
+    return out[0], out[1]
+
+
 def msls_ground_truth(
     folder: Path, city: str, reference: list[Path], query: list[Path]
 ) -> list[np.ndarray]:
-    """Positives of one MSLS validation city from the published lists: the kept queries
-    ``qImages[qIdx]``, their positives ``pIdx`` (indices into ``dbImages``), both
-    restricted to ``city`` (Revisit-Anything's mslsSF / mslsCPH) or, with ``"all"``, as
-    they stand (the 740-query MSLS-val of MixVPR and SALAD); images are matched by file
-    name. A listed positive or a
-    query that is missing from the folders is an error (it would change the recall)."""
-    arrays = {}
-    for key, name in MSLS_FILES.items():
-        path = folder / name
-        if not path.is_file():
-            raise DatasetError(
-                f"ground_truth (msls): {path} does not exist; copy the four msls_val_*.npy "
-                "files (serizba/salad datasets/msls_val/) into the dataset folder"
-            )
-        arrays[key] = load_object_npy(path)
-    kept = [str(arrays["qImages"][i]) for i in np.asarray(arrays["qIdx"], dtype=np.int64)]
-    if len(kept) != len(arrays["pIdx"]):
-        raise DatasetError(
-            f"{folder / MSLS_FILES['pIdx']}: {len(arrays['pIdx'])} rows for {len(kept)} kept "
-            f"queries of {MSLS_FILES['qIdx']}"
-        )
-    db_names = [Path(str(p)).name for p in arrays["dbImages"]]
-    db_city = [msls_city(str(p)) for p in arrays["dbImages"]]
-    ref_index = {p.name: i for i, p in enumerate(reference)}
-    positives_of = {}
-    for path, positives in zip(kept, arrays["pIdx"], strict=True):
-        if city == "all" or msls_city(path) == city:
-            positives_of[Path(path).name] = [
-                int(p)
-                for p in np.asarray(positives, dtype=np.int64)
-                if city == "all" or db_city[p] == city
-            ]
-    unknown = [q.name for q in query if q.name not in positives_of]
+    """Positives of one MSLS validation city from the published lists
+    (:func:`read_msls_lists`): the kept queries ``qImages[qIdx]``, their positives
+    ``pIdx`` (indices into ``dbImages``), both restricted to ``city`` (Revisit-Anything's
+    mslsSF / mslsCPH) or, with ``"all"``, as they stand (the 740-query MSLS-val of MixVPR
+    and SALAD); images are matched by file name. The images must be the listed ones
+    (:func:`msls_listed_images`): a query outside the kept list, a reference outside the
+    database list (a distractor no published number ranks) or a listed positive missing
+    from the references is an error."""
+    lists = read_msls_lists(folder)
+    db_names = [PurePosixPath(p).name for p in lists.db]
+    db_rows = lists.database(city)
+    listed_db = _by_name(lists.db, MSLS_FILES["dbImages"], db_rows)
+    kept_rows = _by_name(lists.kept, MSLS_FILES["qIdx"], lists.queries(city))
+    in_city = set(db_rows)
+    unknown = [q.name for q in query if q.name not in kept_rows]
     if unknown:
         raise DatasetError(
             f"ground_truth (msls, city {city}): {len(unknown)} query image(s) are not among "
-            f"the {len(positives_of)} kept {city} queries of {MSLS_FILES['qIdx']} (e.g. "
+            f"the {len(kept_rows)} kept {city} queries of {MSLS_FILES['qIdx']} (e.g. "
             f"{', '.join(unknown[:5])}); the published protocol evaluates only those"
         )
+    unlisted = [r.name for r in reference if r.name not in listed_db]
+    if unlisted:
+        raise DatasetError(
+            f"ground_truth (msls, city {city}): {len(unlisted)} reference image(s) are not "
+            f"among the {len(listed_db)} {city} database images of {MSLS_FILES['dbImages']} "
+            f"(e.g. {', '.join(unlisted[:5])}); the published protocol never ranks them"
+        )
+    ref_index = {p.name: i for i, p in enumerate(reference)}
     truth = []
     for q in query:
-        names = [db_names[p] for p in positives_of[q.name]]
+        names = [db_names[p] for p in lists.positives[kept_rows[q.name]] if p in in_city]
         absent = [n for n in names if n not in ref_index]
         if absent:
             raise DatasetError(
