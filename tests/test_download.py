@@ -3,12 +3,17 @@ server on 127.0.0.1: no test needs a network."""
 
 from __future__ import annotations
 
+import collections
 import csv
+import errno
 import functools
 import hashlib
 import http.server
 import io
 import json
+import os
+import subprocess
+import sys
 import tarfile
 import threading
 import zipfile
@@ -18,6 +23,7 @@ import pytest
 from synthetic import make_dataset
 from workflow_helpers import dataset_spec, snakemake, toy_config, write_config
 
+from vprflow import download
 from vprflow.datasets import DatasetError, list_dataset
 from vprflow.download import (
     DownloadError,
@@ -293,6 +299,209 @@ def test_shipped_manifests_are_readable_and_match_their_layouts():
         manifest = read_manifest(REPO / "workflow" / dataset["download"]["manifest"])
         folders = {Path(p).parts[0] for p in manifest if len(Path(p).parts) > 1}
         assert folders == {dataset["reference"], dataset["query"]}, name
+
+
+# ------------------------------------------------------------------ faults named
+
+
+def make_tar_gz(path: Path, members: dict[str, bytes]) -> bytes:
+    """A tar.gz of ``members`` at their literal names, in order; returns its bytes."""
+    with tarfile.open(path, "w:gz") as archive:
+        for name, data in members.items():
+            info = tarfile.TarInfo(name)
+            info.size = len(data)
+            archive.addfile(info, io.BytesIO(data))
+    return path.read_bytes()
+
+
+def test_a_truncated_tar_gz_names_the_dataset_url_and_archive(tmp_path, server, toy_files):
+    folder, base = server
+    whole = make_archive(tmp_path / "whole.tar.gz", toy_files)
+    (folder / "cut.tar.gz").write_bytes(whole[: len(whole) // 2])  # a cut-off transfer
+    url = f"{base}/cut.tar.gz"
+    with pytest.raises(DownloadError) as error:
+        download_dataset("toy", spec_for(url), tmp_path / "data" / "toy")
+    message = str(error.value)  # before: EOFError: Compressed file ended before ...
+    assert "dataset 'toy'" in message and f"archive {url} is truncated or damaged" in message
+    assert "EOFError" in message and "/archive)" in message
+    assert "run the download again" in message
+    assert list((tmp_path / "data").iterdir()) == []
+
+
+@pytest.mark.parametrize(
+    "damage",
+    ["truncated tar.gz", "tar.gz cut in its header", "zip with a bad CRC", "truncated zip"],
+)
+def test_a_damaged_archive_names_the_url_and_the_archive_file(tmp_path, toy_files, damage):
+    suffix = ".zip" if "zip" in damage.split() else ".tar.gz"
+    whole = make_archive(tmp_path / f"whole{suffix}", toy_files)
+    if damage == "zip with a bad CRC":
+        data = bytearray(whole)
+        data[60:70] = bytes(b ^ 0xFF for b in data[60:70])  # inside the first member's data
+    elif damage == "tar.gz cut in its header":
+        data = whole[:30]
+    else:
+        data = whole[: len(whole) // 2]
+    archive = tmp_path / f"damaged{suffix}"
+    archive.write_bytes(bytes(data))
+    with pytest.raises(DownloadError) as error:
+        extract_layout(archive, "file:///damaged", LAYOUT, tmp_path / "out", strip=1)
+    message = str(error.value)
+    assert "archive file:///damaged is truncated or damaged" in message
+    assert str(archive) in message and "run the download again" in message
+
+
+def test_an_archive_unpacking_past_the_free_space_is_refused_before_writing(
+    tmp_path, server, monkeypatch
+):
+    folder, base = server
+    zeros = bytes(5_000_000)  # compresses to a few kB
+    with zipfile.ZipFile(folder / "bomb.zip", "w", zipfile.ZIP_DEFLATED) as archive:
+        archive.writestr(f"{PREFIX}/images/db/0000.png", zeros)
+        archive.writestr(f"{PREFIX}/images/q/0000.png", zeros)
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(download.shutil, "disk_usage", lambda _: usage(2_000_000, 0, 1_000_000))
+    url = f"{base}/bomb.zip"
+    spec = {"url": url, "strip": 1, "layout": {"images/db": "ref", "images/q": "query"}}
+    with pytest.raises(DownloadError) as error:
+        download_dataset("toy", spec, tmp_path / "data" / "toy")
+    message = str(error.value)  # before: unpacked until the disk was full (ENOSPC)
+    assert "dataset 'toy'" in message and url in message
+    assert "unpack to 10.0 MB (10000000 bytes)" in message
+    assert (
+        "1.0 MB (1000000 bytes) free" in message and "100.0 kB (100000 bytes) kept free" in message
+    )
+    assert list((tmp_path / "data").iterdir()) == []
+
+
+def test_a_download_larger_than_the_free_space_is_refused_before_fetching(
+    tmp_path, server, toy_files, monkeypatch
+):
+    folder, base = server
+    data = make_archive(folder / "toy.zip", toy_files)
+    usage = collections.namedtuple("usage", "total used free")
+    monkeypatch.setattr(download.shutil, "disk_usage", lambda _: usage(10_000, 0, 1_000))
+    with pytest.raises(DownloadError) as error:
+        download_dataset("toy", spec_for(f"{base}/toy.zip"), tmp_path / "data" / "toy")
+    message = str(error.value)
+    assert f"download of {base}/toy.zip is" in message and f"({len(data)} bytes)" in message
+    assert "more than the file system can take" in message and "(1000 bytes) free" in message
+
+
+def test_a_member_longer_than_its_header_declares_is_refused(tmp_path):
+    lying = download._Member("p/a.png", True, False, 4, lambda: io.BytesIO(b"12345678"))
+    with pytest.raises(DownloadError, match=r"'p/a.png' unpacks to more than the 4 bytes"):
+        download._write_member(lying, tmp_path / "a.png", "file:///lying")
+
+
+def test_a_disk_that_fills_while_unpacking_names_the_dataset_and_member(
+    tmp_path, server, toy_files, monkeypatch
+):
+    folder, base = server
+    make_archive(folder / "toy.zip", toy_files)
+
+    class Full(io.RawIOBase):
+        def writable(self):
+            return True
+
+        def write(self, data):
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    def full_open(path, mode="r", *args, **kwargs):
+        if "w" in mode and Path(path).parent.name != Path(path).parent.parent.name:
+            if Path(path).name != "archive":
+                return Full()
+        return open(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(download, "open", full_open, raising=False)
+    with pytest.raises(DownloadError) as error:
+        download_dataset("toy", spec_for(f"{base}/toy.zip"), tmp_path / "data" / "toy")
+    message = str(error.value)  # before: OSError: [Errno 28] No space left on device
+    assert "dataset 'toy'" in message and "the disk filled up while unpacking member" in message
+    assert f"{base}/toy.zip" in message and "No space left on device" in message
+    assert list((tmp_path / "data").iterdir()) == []
+
+
+@pytest.mark.parametrize("file_first", [True, False])
+def test_a_member_that_is_both_a_file_and_a_folder_is_named(tmp_path, toy_files, file_first):
+    archive = tmp_path / "both.tar.gz"
+    members = [(f"{PREFIX}/images/db/a", b"a file"), (f"{PREFIX}/images/db/a/b.png", b"png")]
+    make_tar_gz(archive, dict(members if file_first else members[::-1]))
+    with pytest.raises(DownloadError) as error:
+        extract_layout(archive, "file:///both", {"images/db": "ref"}, tmp_path / "out", strip=1)
+    message = str(error.value)  # before: FileExistsError / IsADirectoryError on out/ref/a
+    assert "archive file:///both" in message
+    assert f"'{PREFIX}/images/db/a' is a file at ref/a" in message
+    assert f"'{PREFIX}/images/db/a/b.png' needs a folder" in message
+    assert not (tmp_path / "out").exists()  # refused before anything was written
+
+
+def test_a_folder_member_where_another_is_a_file_is_named(tmp_path):
+    archive = tmp_path / "both.zip"
+    with zipfile.ZipFile(archive, "w") as zipped:
+        zipped.writestr(f"{PREFIX}/images/db/a/", b"")
+        zipped.writestr(f"{PREFIX}/images/db/a", b"a file")
+    with pytest.raises(DownloadError, match=r"'toy-archive-0123abc/images/db/a/' is a folder"):
+        extract_layout(archive, "file:///both", {"images/db": "ref"}, tmp_path / "out", strip=1)
+
+
+def test_two_members_at_one_path_are_refused_before_anything_is_written(tmp_path):
+    archive = tmp_path / "twice.tar.gz"
+    with tarfile.open(archive, "w:gz") as tar:
+        for data in (b"first", b"second"):
+            info = tarfile.TarInfo(f"{PREFIX}/images/db/a.png")
+            info.size = len(data)
+            tar.addfile(info, io.BytesIO(data))
+    with pytest.raises(DownloadError, match=r"two members are laid out at ref/a.png"):
+        extract_layout(archive, "file:///twice", {"images/db": "ref"}, tmp_path / "out", strip=1)
+    assert not (tmp_path / "out").exists()
+
+
+def test_two_downloads_of_one_dataset_at_once_both_finish_with_one_folder(
+    tmp_path, server, toy_files, monkeypatch, caplog
+):
+    """A second run (--nolock) starts and finishes while the first is fetching: before,
+    it deleted the first's temporary folder as an interrupted download's."""
+    folder, base = server
+    data = make_archive(folder / "toy.zip", toy_files)
+    spec = spec_for(f"{base}/toy.zip", sha256(data))
+    target = tmp_path / "data" / "toy"
+    real_fetch = download.fetch
+    others = []
+
+    def fetch_while_another_run_downloads(url, dest, timeout=60.0):
+        digest = real_fetch(url, dest, timeout)
+        if not others:  # the first run's fetch: the second run starts and finishes
+            others.append(None)
+            others[0] = download_dataset("toy", spec, target)
+        return digest
+
+    monkeypatch.setattr(download, "fetch", fetch_while_another_run_downloads)
+    with caplog.at_level("INFO", logger="vprflow"):
+        record = download_dataset("toy", spec, target)
+    assert record["downloaded"] and others[0]["downloaded"]
+    assert "is downloading the same dataset at this moment" in caplog.text
+    assert "keeping it, discarding this run's copy" in caplog.text
+    laid_out = {
+        p.relative_to(target).as_posix(): p.read_bytes() for p in target.rglob("*") if p.is_file()
+    }
+    assert laid_out == toy_files
+    assert list((tmp_path / "data").iterdir()) == [target]
+
+
+def test_only_abandoned_download_folders_are_removed(tmp_path):
+    from vprflow.files import host_name
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    prefix = ".toy.download-"
+    live = tmp_path / f"{prefix}{host_name()}-{os.getppid()}-0123abcd-x1"
+    gone = tmp_path / f"{prefix}{host_name()}-{dead.pid}-0123abcd-x2"
+    untagged = tmp_path / f"{prefix}k3j4"  # from before writer tags
+    for path in (live, gone, untagged):
+        path.mkdir()
+    download.remove_abandoned_work(tmp_path, prefix)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [live.name]
 
 
 @pytest.mark.workflow

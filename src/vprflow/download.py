@@ -13,21 +13,33 @@ interrupted or failed download never leaves a complete-looking dataset folder:
 1. fetch the URL to a temporary file (tqdm progress), hashing it on the way;
 2. compare with ``sha256`` when given (a mismatch names the URL and both hashes);
    without one the computed hash is recorded and a warning says to pin it;
-3. refuse the archive if any member is an absolute path or contains ``..``;
+3. list the archive and refuse it before anything is written if any member is an
+   absolute path or contains ``..``, if two members would be laid out at one path or
+   one member is a file where another needs a folder, or if the files to lay out
+   unpack to more than the file system can take (its free space less a reserve);
 4. write each member under a ``layout`` sub-path to its dataset path (regular files
-   only; a link there is an error), hashing it; with a manifest only the listed files
-   are written, each must be in the archive and match its hash;
+   only; a link there is an error), hashing it and counting its bytes against its
+   header; with a manifest only the listed files are written, each must be in the
+   archive and match its hash;
 5. rename the folder into place; the caller writes the record (:func:`write_record`).
 
-A dataset folder that already exists is left alone: nothing is fetched.
+A truncated or damaged archive (a cut-off transfer, a broken file behind a ``file://``
+URL) is a :class:`DownloadError` naming the URL, the archive file and what to do, as is
+a disk that fills up anyway. A dataset folder that already exists is left alone:
+nothing is fetched. Two runs downloading the same dataset at once (``--nolock``) each
+work in their own temporary folder; the first to finish lays the folder out and the
+other keeps it.
 """
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import logging
+import lzma
 import os
+import re
 import shutil
 import sys
 import tarfile
@@ -35,10 +47,12 @@ import tempfile
 import urllib.error
 import urllib.request
 import zipfile
+import zlib
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
-from vprflow.files import write_text_atomic
+from vprflow.files import TAG, is_abandoned, write_text_atomic, writer_tag
 
 log = logging.getLogger("vprflow")
 
@@ -46,6 +60,22 @@ log = logging.getLogger("vprflow")
 RECORD = "results/downloads/{dataset}.json"
 LOG = "logs/download/{dataset}.log"
 CHUNK = 1 << 20
+# Unpacking stops short of filling the disk: this much of the file system (5% of it, at
+# most RESERVE_MAX) stays free after a dataset is laid out.
+RESERVE_FRACTION = 0.05
+RESERVE_MAX = 1 << 30
+# What a damaged archive raises while it is listed or read: gzip, bz2 and xz streams cut
+# short (EOFError), bad CRCs and headers (tarfile, zipfile, zlib, lzma). gzip's and bz2's
+# own errors are OSErrors without an errno, told apart from a file system's below.
+ARCHIVE_ERRORS = (EOFError, tarfile.TarError, zipfile.BadZipFile, zlib.error, lzma.LZMAError)
+# The first bytes of the archive formats read here, to tell a damaged archive from a
+# file that is none (an HTML page in place of the archive).
+MAGIC = {
+    b"PK\x03\x04": "zip",
+    b"\x1f\x8b": "gzip",
+    b"BZh": "bzip2",
+    b"\xfd7zXZ\x00": "xz",
+}
 
 
 class DownloadError(RuntimeError):
@@ -82,6 +112,39 @@ def manifest_inputs(config: dict, name: str, workflow_dir: str | Path) -> list[s
     return [str(Path(workflow_dir) / manifest)] if manifest else []
 
 
+# ------------------------------------------------------------------ disk space
+
+
+def size_text(n: int) -> str:
+    """``n`` bytes for a message: ``1.5 GB (1500000000 bytes)``."""
+    value, unit = float(n), "bytes"
+    for unit in ("bytes", "kB", "MB", "GB", "TB"):
+        if value < 1000 or unit == "TB":
+            break
+        value /= 1000
+    return f"{n} bytes" if unit == "bytes" else f"{value:.1f} {unit} ({n} bytes)"
+
+
+def space_limit(path: str | Path) -> tuple[int, str]:
+    """How many bytes may still be written under ``path`` (its nearest existing
+    folder's file system: the free space less a reserve of ``RESERVE_FRACTION`` of the
+    file system, at most ``RESERVE_MAX``), and a sentence saying so for messages."""
+    probe = Path(path).absolute()
+    while not probe.exists() and probe != probe.parent:
+        probe = probe.parent
+    usage = shutil.disk_usage(probe)
+    reserve = min(RESERVE_MAX, int(usage.total * RESERVE_FRACTION))
+    limit = max(0, usage.free - reserve)
+    return limit, (
+        f"{size_text(usage.free)} free on the file system of {probe}, less "
+        f"{size_text(reserve)} kept free"
+    )
+
+
+def _no_space(error: OSError) -> bool:
+    return error.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
 # ------------------------------------------------------------------ fetching
 
 
@@ -89,7 +152,8 @@ def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
     """Stream ``url`` into ``dest`` with a progress bar; return the SHA-256 of the bytes.
 
     HTTP errors, unreachable hosts and truncated transfers raise :class:`DownloadError`
-    naming the URL.
+    naming the URL, as do an announced size larger than the file system can take
+    (:func:`space_limit`, checked before any byte is written) and a disk that fills up.
     """
     from tqdm import tqdm
 
@@ -100,6 +164,14 @@ def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
         with urllib.request.urlopen(request, timeout=timeout) as response:
             length = response.headers.get("Content-Length")
             total = int(length) if length and length.isdigit() else None
+            if total is not None:
+                limit, why = space_limit(dest)
+                if total > limit:
+                    raise DownloadError(
+                        f"download of {url} is {size_text(total)}, more than the file "
+                        f"system can take: {why}. Free space there or point data_root at "
+                        "a larger disk"
+                    )
             with (
                 open(dest, "wb") as out,
                 tqdm(
@@ -123,6 +195,13 @@ def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
     except (TimeoutError, ConnectionError) as error:
         raise DownloadError(
             f"download of {url} broke off after {received} bytes: {error}"
+        ) from None
+    except OSError as error:
+        if not _no_space(error):
+            raise
+        raise DownloadError(
+            f"download of {url}: the disk filled up after {size_text(received)} written to "
+            f"{dest} ({error.strerror}). Free space there or point data_root at a larger disk"
         ) from None
     if total is not None and received != total:
         raise DownloadError(
@@ -158,14 +237,49 @@ def safe_relative(name: str, what: str) -> PurePosixPath:
 
 
 class _Member:
-    """One archive entry: its name, whether it is a regular file, and how to read it."""
+    """One archive entry: its name, whether it is a regular file or a folder, the size
+    its header declares, and how to read it."""
 
-    def __init__(self, name: str, is_file: bool, is_dir: bool, open_):
-        self.name, self.is_file, self.is_dir, self.open = name, is_file, is_dir, open_
+    def __init__(self, name: str, is_file: bool, is_dir: bool, size: int, open_):
+        self.name, self.is_file, self.is_dir, self.size = name, is_file, is_dir, size
+        self.open = open_
+
+
+def damaged(url: str, path: str | Path, detail: str) -> DownloadError:
+    """The error for an archive that cannot be read to its end: names the URL, the
+    archive file and what to do."""
+    return DownloadError(
+        f"archive {url} is truncated or damaged ({detail}, in {path}). If the "
+        "transfer was cut short, run the download again to fetch it anew; if this error "
+        f"recurs, the archive at {url} itself is damaged: replace it (a file:// URL: "
+        "delete that file and copy it again)"
+    )
+
+
+@contextmanager
+def reading(url: str, path: str | Path) -> Iterator[None]:
+    """Turn what a damaged archive raises inside the block into :func:`damaged`."""
+    try:
+        yield
+    except ARCHIVE_ERRORS as error:
+        raise damaged(url, path, f"{type(error).__name__}: {error}") from None
+    except OSError as error:
+        if error.errno is not None:  # the file system's, not the archive's
+            raise
+        raise damaged(url, path, f"{type(error).__name__}: {error}") from None
+
+
+def _magic(path: Path) -> str | None:
+    """The archive or compression format ``path`` starts like, if any."""
+    with open(path, "rb") as file:
+        head = file.read(8)
+    return next((kind for magic, kind in MAGIC.items() if head.startswith(magic)), None)
 
 
 def archive_members(path: str | Path, url: str) -> Iterator[_Member]:
-    """Entries of a zip or tar (any compression tarfile reads), in archive order."""
+    """Entries of a zip or tar (any compression tarfile reads), in archive order. A file
+    that starts like an archive but cannot be opened is :func:`damaged`; one that does
+    not is not an archive. Iterate inside :func:`reading`."""
     path = Path(path)
     if zipfile.is_zipfile(path):
         with zipfile.ZipFile(path) as archive:
@@ -176,12 +290,18 @@ def archive_members(path: str | Path, url: str) -> Iterator[_Member]:
                     info.filename,
                     not info.is_dir() and not is_link,
                     info.is_dir(),
+                    info.file_size,
                     lambda info=info, archive=archive: archive.open(info),
                 )
         return
     try:
         archive = tarfile.open(path, "r:*")
-    except tarfile.TarError:
+    except (tarfile.TarError, *ARCHIVE_ERRORS) as error:
+        kind = _magic(path)
+        if kind == "zip":
+            raise damaged(url, path, "a zip archive without its central directory") from None
+        if kind is not None:
+            raise damaged(url, path, f"{kind} data: {error}") from None
         raise DownloadError(f"{url} is not a zip or tar archive") from None
     with archive:
         for info in archive:
@@ -189,6 +309,7 @@ def archive_members(path: str | Path, url: str) -> Iterator[_Member]:
                 info.name,
                 info.isfile(),
                 info.isdir(),
+                info.size,
                 lambda info=info, archive=archive: archive.extractfile(info),
             )
 
@@ -230,14 +351,19 @@ def extract_layout(
     dest: str | Path,
     strip: int = 0,
     manifest: dict[str, str] | None = None,
+    max_bytes: int | None = None,
 ) -> dict[str, str]:
     """Write the archive members that ``layout`` maps into ``dest``; return
     ``{dataset path: sha256}`` of the written files.
 
-    The whole archive is refused when any member name is unsafe (absolute, ``..``),
-    before anything is written. With ``manifest``, only its files are written (others
-    under a layout path are skipped and counted in the log), each must be in the
-    archive and match its hash.
+    The archive is listed first and refused, before anything is written, when any
+    member name is unsafe (absolute, ``..``), when two members would be laid out at one
+    path or one would be a file where another needs a folder, when a layout path or a
+    manifest file is missing, or when the files to write declare more bytes than
+    ``max_bytes`` (default: what :func:`space_limit` allows under ``dest``). Writing
+    counts each member's bytes against its header. With ``manifest``, only its files
+    are written (others under a layout path are skipped and counted in the log), each
+    must match its hash. A truncated or damaged archive is :func:`damaged`.
     """
     dest = Path(dest)
     where = "config key download.layout"
@@ -246,42 +372,91 @@ def extract_layout(
     }
     if not mapping or any(not k.parts for k in mapping):
         raise DownloadError(f"{where} must map archive sub-paths (not the archive root) to folders")
-    names = [m.name for m in archive_members(archive, url)]
-    for name in names:
+    with reading(url, archive):
+        listing = [(m.name, m.is_file, m.is_dir, m.size) for m in archive_members(archive, url)]
+    for name, *_ in listing:
         safe_relative(name, f"archive {url}, member")
+    plan, total = _plan_layout(listing, url, strip, mapping, manifest)
+    if max_bytes is None:
+        max_bytes, why = space_limit(dest)
+    else:
+        why = f"the limit given is {size_text(max_bytes)}"
+    if total > max_bytes:
+        raise DownloadError(
+            f"archive {url}: the {len(plan)} file(s) to lay out unpack to "
+            f"{size_text(total)}, more than the file system can take ({why}); nothing was "
+            "unpacked. Free space there or point data_root at a larger disk"
+        )
     written: dict[str, str] = {}
+    with reading(url, archive):
+        for index, member in enumerate(archive_members(archive, url)):
+            if index in plan:
+                key = plan[index].as_posix()
+                written[key] = _write_member(member, dest / plan[index], url)
+                if manifest is not None:
+                    what = f"{key} (member {member.name!r} of {url})"
+                    verify_sha256(what, manifest[key], written[key])
+    if len(written) != len(plan):  # the second reading disagrees with the first
+        raise damaged(url, archive, "its members changed between two readings")
+    return dict(sorted(written.items()))
+
+
+def _plan_layout(
+    listing: list[tuple[str, bool, bool, int]],
+    url: str,
+    strip: int,
+    mapping: dict[PurePosixPath, PurePosixPath],
+    manifest: dict[str, str] | None,
+) -> tuple[dict[int, PurePosixPath], int]:
+    """``({member index: dataset path}, declared bytes)`` of the files to write, after
+    checking the listing: no links under the layout, no two members at one path, no
+    member both a file and a folder, every layout path and manifest file present."""
+    files: dict[PurePosixPath, tuple[int, str]] = {}
+    folders: dict[PurePosixPath, str] = {}
     used: set[PurePosixPath] = set()
     skipped: list[str] = []
-    for member in archive_members(archive, url):
-        found = _target(safe_relative(member.name, url), strip, mapping)
+    total = 0
+    for index, (name, is_file, is_dir, size) in enumerate(listing):
+        found = _target(safe_relative(name, url), strip, mapping)
         if found is None:
             continue
         target, source = found
         used.add(source)
-        if member.is_dir:
+        if is_dir:
+            folders.setdefault(target, name)
             continue
         key = target.as_posix()
-        if not member.is_file:
+        if not is_file:
             raise DownloadError(
-                f"archive {url}: member {member.name!r} is a link or special file; refusing it"
+                f"archive {url}: member {name!r} is a link or special file; refusing it"
             )
         if manifest is not None and key not in manifest:
             skipped.append(key)
             continue
-        if key in written:
-            raise DownloadError(f"archive {url}: two members are laid out at {key}")
-        path = dest / target
-        path.parent.mkdir(parents=True, exist_ok=True)
-        digest = hashlib.sha256()
-        with member.open() as src, open(path, "wb") as out:
-            while chunk := src.read(CHUNK):
-                out.write(chunk)
-                digest.update(chunk)
-        written[key] = digest.hexdigest()
-        if manifest is not None:
-            verify_sha256(f"{key} (member {member.name!r} of {url})", manifest[key], written[key])
+        if target in files:
+            raise DownloadError(
+                f"archive {url}: two members are laid out at {key}: "
+                f"{files[target][1]!r} and {name!r}; refusing the archive"
+            )
+        files[target] = (index, name)
+        total += size
+    for target, (_, name) in files.items():
+        for parent in target.parents:
+            if parent in files:
+                raise DownloadError(
+                    f"archive {url}: member {files[parent][1]!r} is a file at "
+                    f"{parent.as_posix()}, where member {name!r} needs a folder; the "
+                    "archive holds both, so it cannot be laid out; refusing it"
+                )
+        if target in folders:
+            raise DownloadError(
+                f"archive {url}: member {folders[target]!r} is a folder at "
+                f"{target.as_posix()}, where member {name!r} is a file; the archive holds "
+                "both, so it cannot be laid out; refusing it"
+            )
     unused = [k.as_posix() for k in mapping if k not in used]
     if unused:
+        names = [n for n, *_ in listing]
         tops = sorted(
             {PurePosixPath(*PurePosixPath(n).parts[: strip + 1]).as_posix() for n in names}
         )
@@ -290,16 +465,51 @@ def extract_layout(
             f"folder(s)); its top-level entries: {tops[:10]}"
         )
     if manifest is not None:
-        missing = sorted(set(manifest) - set(written))
+        missing = sorted(set(manifest) - {t.as_posix() for t in files})
         if missing:
             raise DownloadError(
                 f"archive {url} lacks {len(missing)} file(s) of the manifest, e.g. {missing[:5]}"
             )
     if skipped:
         log.info("skipped %d file(s) not in the manifest, e.g. %s", len(skipped), skipped[:5])
-    if not written:
+    if not files:
         raise DownloadError(f"archive {url}: the layout selects no files")
-    return dict(sorted(written.items()))
+    return {index: target for target, (index, _) in files.items()}, total
+
+
+def _write_member(member: _Member, path: Path, url: str) -> str:
+    """Write one member to ``path``, no more bytes than its header declares; return its
+    SHA-256."""
+    digest = hashlib.sha256()
+    count = 0
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with member.open() as src, open(path, "wb") as out:
+            while chunk := src.read(CHUNK):
+                count += len(chunk)
+                if count > member.size:
+                    raise DownloadError(
+                        f"archive {url}: member {member.name!r} unpacks to more than the "
+                        f"{member.size} bytes its header declares; refusing the archive"
+                    )
+                out.write(chunk)
+                digest.update(chunk)
+    except (FileExistsError, IsADirectoryError, NotADirectoryError) as error:
+        raise DownloadError(
+            f"archive {url}: member {member.name!r} cannot be written at {path}: "
+            f"{error.strerror} ({error.filename}); another member is a file where this one "
+            "needs a folder, or the other way round (on a case-insensitive file system, "
+            "two names that differ only in case)"
+        ) from None
+    except OSError as error:
+        if not _no_space(error):
+            raise
+        raise DownloadError(
+            f"archive {url}: the disk filled up while unpacking member {member.name!r} "
+            f"to {path} ({error.strerror}). Free space there or point data_root at a "
+            "larger disk"
+        ) from None
+    return digest.hexdigest()
 
 
 # ------------------------------------------------------------------ the dataset
@@ -327,10 +537,9 @@ def download_dataset(
     manifest = read_manifest(manifest_path) if manifest_path else None
     folder.parent.mkdir(parents=True, exist_ok=True)
     prefix = f".{folder.name}.download-"
-    for leftover in folder.parent.glob(prefix + "*"):
-        log.info("removing %s, left by an interrupted download", leftover)
-        shutil.rmtree(leftover, ignore_errors=True)
-    work = Path(tempfile.mkdtemp(prefix=prefix, dir=folder.parent))
+    remove_abandoned_work(folder.parent, prefix)
+    # The writer tag tells this run's folder from a concurrent run's (--nolock).
+    work = Path(tempfile.mkdtemp(prefix=f"{prefix}{writer_tag()}-", dir=folder.parent))
     try:
         archive = work / "archive"
         log.info("dataset %s: downloading %s", name, url)
@@ -354,13 +563,14 @@ def download_dataset(
         staged.mkdir()
         files = extract_layout(archive, url, entry["layout"], staged, int(entry["strip"]), manifest)
         archive.unlink()
-        os.replace(staged, folder)
+        _move_into_place(staged, folder)
     except DownloadError as error:
         # The console shows this line: name the dataset and what to do, not only the URL.
         raise DownloadError(
-            f"dataset {name!r}: {error}. Nothing was laid out at {folder}. Run this target "
-            f"again once the URL is reachable, or put the dataset at {folder} yourself "
-            "(or run with --config data_root=<folder holding it>)"
+            f"dataset {name!r}: {error}. Nothing was laid out at {folder}, and the fetched "
+            f"archive was deleted. Run this target again once the cause is fixed, or put "
+            f"the dataset at {folder} yourself (or run with --config data_root=<folder "
+            "holding it>)"
         ) from None
     finally:
         shutil.rmtree(work, ignore_errors=True)
@@ -374,6 +584,41 @@ def download_dataset(
         "n_files": len(files),
         "files": files,
     }
+
+
+def remove_abandoned_work(parent: Path, prefix: str) -> None:
+    """Delete the temporary folders ``<prefix><writer tag>-*`` in ``parent`` that no live
+    download owns (an interrupted one's, or one from before writer tags); a concurrent
+    run's is left alone, with a warning."""
+    pattern = re.compile(re.escape(prefix) + TAG + "-.+")
+    for leftover in sorted(parent.glob(prefix + "*")):
+        match = pattern.fullmatch(leftover.name)
+        if match is None or is_abandoned(leftover, match["host"], int(match["pid"])):
+            log.info("removing %s, left by an interrupted download", leftover)
+            shutil.rmtree(leftover, ignore_errors=True)
+        else:
+            log.warning(
+                "%s: process %s on %s is downloading the same dataset at this moment (two "
+                "runs with --nolock?); whichever finishes first lays it out",
+                leftover,
+                match["pid"],
+                match["host"],
+            )
+
+
+def _move_into_place(staged: Path, folder: Path) -> None:
+    """Rename the finished dataset folder into place; if another run laid the folder
+    out meanwhile (--nolock), keep that one."""
+    try:
+        os.replace(staged, folder)
+    except OSError as error:
+        if error.errno not in (errno.ENOTEMPTY, errno.EEXIST, errno.ENOTDIR):
+            raise
+        log.warning(
+            "%s appeared while this run downloaded it (another run with --nolock?): "
+            "keeping it, discarding this run's copy",
+            folder,
+        )
 
 
 def write_record(record: dict, path: str | Path) -> None:
