@@ -454,3 +454,22 @@ def test_a_pickle_calling_the_array_class_itself_is_refused(tmp_path):
         pickle.dump(CallsNdarray(), f, protocol=3)
     with pytest.raises(DatasetError, match=f"{re.escape(str(path))}.*refusing to call numpy"):
         read_position_array(path, 2, "ground_truth.reference_positions")
+
+
+@pytest.mark.parametrize("name", ["msls_sf", "msls_cph", "msls_val"])
+def test_the_msls_presets_divide_recall_by_every_kept_query_as_salad(tmp_path, name):
+    from vprflow.presets import presets
+    from vprflow.recall import recall_at
+
+    # SALAD's get_validation_recalls divides the hits by len(predictions): every kept
+    # query, whether or not its pIdx row lists a positive.
+    lists = write_msls_lists(tmp_path, np.random.default_rng(12))
+    rows = [list(p) for p in lists["positives"]]
+    rows[0] = []  # cq0 keeps no positive
+    _resave(tmp_path, "pIdx", rows)
+    refs = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/cph/" in p]
+    queries = [tmp_path / "query" / f"cq{i}.jpg" for i in (0, 1, 3)]
+    truth = msls_ground_truth(tmp_path, "cph", refs, queries)
+    ranking = np.array([[t[0] if len(t) else 0] for t in truth])  # the others hit at 1
+    denominator = presets()[name].dataset["denominator"]
+    assert recall_at(ranking, truth, [1], denominator) == {1: 2 / 3}
