@@ -12,9 +12,10 @@ import pytest
 from preset_miniatures import MINIATURES
 from workflow_helpers import repo_config, snakemake, write_config
 
-from vprflow.config import ConfigError, validate_config
+from vprflow.config import ConfigError, PlanError, validate_config
 from vprflow.datasets import list_dataset
 from vprflow.ground_truth import ground_truth
+from vprflow.plan import build_plan
 from vprflow.presets import datasets_doc, merge_entry, presets, unknown_dataset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -77,6 +78,104 @@ def test_a_config_entry_changes_only_the_keys_it_gives_and_the_table_says_which(
     assert entry["reference"] == presets()["pitts30k"].dataset["reference"]
     assert entry["recall_at"] == [1]  # not a protocol key
     assert entry["protocol"] == "preset pitts30k, changed: ground_truth.radius"
+
+
+def plan_of(config: dict, dataset: str) -> dict[str, list[dict]]:
+    """Stage -> the params of the dataset's stages in the plan of ``config``."""
+    plan = build_plan(validate_config(config, SCHEMA))
+    return {
+        stage: [s.record["params"] for s in stages.values() if s.dataset == dataset]
+        for stage, stages in plan.stages.items()
+    }
+
+
+def test_features_a_user_swaps_in_take_the_presets_vocabulary_and_rerankers_along(tmp_path, capsys):
+    """A user without weights runs a preset on DAISY: nothing of DINOv2-G is fetched or
+    needed any more (the published vocabulary is 1,536-d DINOv2-G centres; the
+    re-rankers match DINOv2-G features); the log says what followed."""
+    config = config_with(tmp_path)
+    config["datasets"]["pitts30k"] = {"defaults": {"features": "daisy", "segmenter": "slic"}}
+    entry = validate_config(config, SCHEMA)["datasets"]["pitts30k"]
+    assert "vocabulary" not in entry["defaults"]
+    assert entry["rerank"] == {"anyloc_vlad": ["mnn", "ransac"], "segvlad": ["mnn", "ransac"]}
+    stages = plan_of(config, "pitts30k")
+    assert {s["source"] for s in stages["vocabulary"]} == {"map"}
+    assert {s["backbone"] for s in stages["features"]} == {"daisy"}
+    log = capsys.readouterr().err
+    assert "published vocabulary 'urban'" in log and "datasets.pitts30k.defaults.vocabulary" in log
+    assert "'mnn_dinov2' matches dinov2_vitg14's features, replaced by re-ranker 'mnn'" in log
+
+
+def test_a_swapped_in_feature_without_a_matching_reranker_drops_the_presets_reranking(
+    tmp_path, capsys
+):
+    config = config_with(tmp_path)
+    config["datasets"]["pitts30k"] = {"defaults": {"features": "dino_vitb8"}}
+    entry = validate_config(config, SCHEMA)["datasets"]["pitts30k"]
+    assert entry["rerank"] == {"anyloc_vlad": [], "segvlad": []}
+    assert "replaced by nothing (dropped)" in capsys.readouterr().err
+    # What the user gives is theirs: a vocabulary source and a rerank list stay.
+    config["datasets"]["pitts30k"] = {
+        "defaults": {"features": "daisy", "vocabulary": {"source": "map", "n_clusters": 8}},
+        "rerank": {"anyloc_vlad": ["mnn"]},
+    }
+    entry = validate_config(config, SCHEMA)["datasets"]["pitts30k"]
+    assert entry["defaults"]["vocabulary"]["n_clusters"] == 8
+    assert entry["rerank"] == {"anyloc_vlad": ["mnn"], "segvlad": ["mnn", "ransac"]}
+
+
+def test_a_method_on_other_features_with_the_presets_vocabulary_stops_planning_naming_keys(
+    tmp_path,
+):
+    """The published vocabulary would be fetched, the DINOv3 features computed, and only
+    then would the vocabulary stage find 1,536 centres against 1,024-d features."""
+    config = config_with(tmp_path)
+    config["datasets"]["pitts30k"] = {"methods": ["anyloc_vlad_dinov3"]}
+    with pytest.raises(PlanError) as error:
+        validate_config(config, SCHEMA)
+    message = str(error.value)
+    assert "preset 'pitts30k'" in message and "'dinov3_vitl16'" in message
+    assert "methods.anyloc_vlad_dinov3.vocabulary.source" in message
+    assert "datasets.pitts30k.defaults.vocabulary" in message
+    config["methods"]["anyloc_vlad_dinov3"]["vocabulary"] = {"source": "map"}
+    assert validate_config(config, SCHEMA)["datasets"]["pitts30k"]["methods"]
+
+
+FULL_ENTRY = {
+    "path": "my_pitts",
+    "reference": "db",
+    "query": "q",
+    "resolution": [320, 240],
+    "ground_truth": {"kind": "utm", "radius": 25},
+    "methods": ["anyloc_vlad"],
+}
+
+
+def test_a_full_entry_bearing_a_presets_name_is_merged_and_the_log_and_table_say_so(
+    tmp_path, capsys
+):
+    config = config_with(tmp_path)
+    config["datasets"]["pitts30k"] = dict(FULL_ENTRY)
+    entry = validate_config(config, SCHEMA)["datasets"]["pitts30k"]
+    assert entry["rerank"] == presets()["pitts30k"].dataset["rerank"]  # from the preset
+    assert entry["protocol"].startswith("merged with preset pitts30k, changed: ")
+    assert "preset" not in entry  # not a setting: no stage key holds it
+    log = capsys.readouterr().err
+    assert "datasets.pitts30k is a full entry" in log and "`preset: false`" in log
+
+
+def test_preset_false_keeps_an_entry_of_a_presets_name_apart_from_the_preset(tmp_path):
+    config = config_with(tmp_path)
+    config["datasets"]["pitts30k"] = {**FULL_ENTRY, "preset": False}
+    entry = validate_config(config, SCHEMA)["datasets"]["pitts30k"]
+    assert entry["rerank"] == {} and "defaults" not in entry or not entry.get("defaults")
+    assert entry["denominator"] == "with_positives" and entry["resolution"] == [320, 240]
+    assert entry["protocol"] == "own entry (preset pitts30k not applied: preset: false)"
+    assert "preset" not in entry
+    # A partial entry with `preset: false` is no dataset: the schema names what is missing.
+    config["datasets"]["pitts30k"] = {"recall_at": [1], "preset": False}
+    with pytest.raises(ConfigError, match="pitts30k"):
+        validate_config(config, SCHEMA)
 
 
 def test_a_ground_truth_of_another_kind_replaces_the_presets_rule():

@@ -15,6 +15,7 @@ file system alone.
 from __future__ import annotations
 
 import copy
+import sys
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -69,15 +70,15 @@ def presets() -> dict[str, Preset]:
 
 def merge_entry(base: dict, override: dict) -> dict:
     """``base`` with ``override``'s keys put over it, mappings merged key by key; a
-    mapping that names another ``kind`` (a ground-truth rule) replaces the base's, whose
-    other keys belong to that kind."""
+    mapping that names another ``kind`` (a ground-truth rule) or ``source`` (a
+    vocabulary) replaces the base's, whose other keys belong to that kind or source."""
     merged = copy.deepcopy(base)
     for key, value in override.items():
         old = merged.get(key)
         if (
             isinstance(old, dict)
             and isinstance(value, dict)
-            and value.get("kind", old.get("kind")) == old.get("kind")
+            and all(value.get(s, old.get(s)) == old.get(s) for s in ("kind", "source"))
         ):
             merged[key] = merge_entry(old, value)
         else:
@@ -88,23 +89,154 @@ def merge_entry(base: dict, override: dict) -> dict:
 def with_presets(config: dict) -> dict:
     """``config["datasets"]`` completed with the presets it uses: those it names (its
     entry of the same name merged over the preset) and those whose folder exists under
-    ``data_root``. Other presets stay out, so a missing one costs nothing."""
+    ``data_root``. Other presets stay out, so a missing one costs nothing.
+
+    An entry with ``preset: false`` is used as it is. A full entry (every required key)
+    that bears a preset's name is merged with it all the same, and the log and the
+    ``protocol`` column say so. When the entry (or a method it runs) chooses other
+    features than the preset's, the settings tied to the published features follow
+    (:func:`follow_features`) or planning stops naming the keys to set."""
     datasets = dict(config.get("datasets") or {})
     targets = set(config.get("targets") or ())
     for name in sorted(RENAMED.keys() & (datasets.keys() | targets)):
+        if (datasets.get(name) or {}).get("preset") is False:
+            continue  # a dataset of the user's own that happens to bear the old name
         from vprflow.config import ConfigError
 
         where = f"datasets.{name}" if name in datasets else "targets"
         raise ConfigError(f"config key '{where}': {RENAMED[name]}")
+    for name, entry in datasets.items():
+        if name not in presets() and isinstance(entry, dict) and "preset" in entry:
+            datasets[name] = {k: v for k, v in entry.items() if k != "preset"}  # no preset
     for name, preset in presets().items():
         if name in datasets:
-            datasets[name] = merge_entry(preset.dataset, datasets[name] or {})
+            entry = datasets[name] or {}
+            if entry.get("preset") is False:
+                continue  # the user's own dataset; protocol() says so
+            base, notes = follow_features(name, preset.dataset, entry, config)
+            datasets[name] = merge_entry(base, entry)
+            if entry.get("preset") is None and all(key in entry for key in REQUIRED):
+                datasets[name]["preset"] = True  # read (and removed) by protocol()
+                taken = sorted(k for k in preset.dataset if k not in entry)
+                notes.insert(
+                    0,
+                    f"datasets.{name} is a full entry and bears the name of the preset "
+                    f"{name!r}: merged with it (from the preset: {', '.join(taken) or 'nothing'}"
+                    "); set `preset: false` in the entry to use it alone, `preset: true` to "
+                    "merge without this note",
+                )
+            _say(notes)
+            _check_method_features(name, datasets[name], preset.dataset, config)
         elif name in targets or (
             (Path(config["data_root"]) / preset.dataset["path"]).is_dir()
             and not undefined_components(preset.dataset, config)
         ):
             datasets[name] = copy.deepcopy(preset.dataset)
+            _check_method_features(name, datasets[name], preset.dataset, config)
     return datasets
+
+
+# A dataset entry's required keys (the schema's): an entry with all of them is a full
+# entry, a dataset of its own, not a change to a preset.
+REQUIRED = ("path", "reference", "query", "resolution", "ground_truth", "methods")
+_SAID: set[str] = set()
+
+
+def _say(notes: list[str]) -> None:
+    """Print each note once per process (the log of the run that plans)."""
+    for note in notes:
+        if note not in _SAID:
+            _SAID.add(note)
+            print(f"vprflow: {note}", file=sys.stderr)
+
+
+def follow_features(name: str, preset: dict, entry: dict, config: dict) -> tuple[dict, list]:
+    """The preset's entry made to follow the features ``entry`` chooses
+    (``defaults.features``), and notes saying what followed. Tied to the preset's
+    features (DINOv2 ViT-G/14 layer 31 value): its published vocabulary (centres of
+    those 1,536-d features; the config's own vocabulary section, fitted on the map by
+    default, takes its place unless the entry sets a ``vocabulary.source``) and its
+    re-rankers on those features (each replaced by the config's re-ranker of the same
+    kind and options on the chosen features, or dropped where there is none, unless the
+    entry gives that method's ``rerank``). Unchanged when the entry keeps the features."""
+    own = (preset.get("defaults") or {}).get("features")
+    chosen = ((entry.get("defaults") or {}) if isinstance(entry, dict) else {}).get("features")
+    if own is None or chosen is None or chosen == own:
+        return preset, []
+    base, notes = copy.deepcopy(preset), []
+    vocabulary = base["defaults"].get("vocabulary") or {}
+    if vocabulary.get("source") == "published" and "source" not in (
+        entry["defaults"].get("vocabulary") or {}
+    ):
+        del base["defaults"]["vocabulary"]
+        source = (config.get("vocabulary") or {}).get("source", "map")
+        notes.append(
+            f"datasets.{name}: features {chosen!r} replace the preset's {own!r}, so the "
+            f"published vocabulary {vocabulary['name']!r} (centres of {own}'s features) "
+            f"gives way to the config's `vocabulary` (source {source}); set "
+            f"datasets.{name}.defaults.vocabulary to choose another"
+        )
+    rerankers = config.get("rerankers") or {}
+    for method, names in (base.get("rerank") or {}).items():
+        if method in (entry.get("rerank") or {}):
+            continue
+        kept = []
+        for reranker in names:
+            spec = rerankers.get(reranker) or {}
+            if spec.get("features") != own:
+                kept.append(reranker)
+                continue
+            twins = [
+                other
+                for other, o in rerankers.items()
+                if o.get("features") == chosen
+                and {k: v for k, v in o.items() if k != "features"}
+                == {k: v for k, v in spec.items() if k != "features"}
+            ]
+            if len(twins) == 1:
+                kept.append(twins[0])
+            what = f"re-ranker {twins[0]!r}" if len(twins) == 1 else "nothing (dropped)"
+            notes.append(
+                f"datasets.{name}: rerank.{method}: {reranker!r} matches {own}'s features, "
+                f"replaced by {what} on {chosen!r}; set datasets.{name}.rerank.{method} "
+                "to choose"
+            )
+        base["rerank"][method] = kept
+    return base, notes
+
+
+def _check_method_features(name: str, dataset: dict, preset: dict, config: dict) -> None:
+    """Planning stops when a method the dataset runs has features of its own while the
+    dataset's vocabulary is still the preset's published one, fitted on other features:
+    the keys to set are named (the vocabulary stage would fail after the fetch and the
+    features otherwise)."""
+    from vprflow.registry import AGGREGATORS
+
+    defaults = dataset.get("defaults") or {}
+    vocabulary = defaults.get("vocabulary") or {}
+    own = (preset.get("defaults") or {}).get("features")
+    if vocabulary.get("source") != "published" or defaults.get("features") != own:
+        return
+    for method in dataset.get("methods") or ():
+        settings = (config.get("methods") or {}).get(method) or {}
+        features = settings.get("features")
+        aggregator = AGGREGATORS.get(settings.get("aggregator"))
+        if (
+            features in (None, own)
+            or aggregator is None
+            or "vocabulary" not in aggregator.needs
+            or "source" in (settings.get("vocabulary") or {})
+        ):
+            continue
+        from vprflow.config import PlanError
+
+        raise PlanError(
+            f"datasets.{name} (preset {name!r}) runs method {method!r} on features "
+            f"{features!r}, but its vocabulary is the published {vocabulary['name']!r}, "
+            f"centres of the preset's {own!r} features: set methods.{method}.vocabulary."
+            f"source (map fits it on {features!r}; published with a vocabulary of those "
+            f"features), or datasets.{name}.defaults.vocabulary"
+        )
 
 
 def undefined_components(dataset: dict, config: dict) -> list[str]:
@@ -125,7 +257,12 @@ _NAMED = (("features", "backbones"), ("segmenter", "segmenters"))
 def protocol(name: str, preset: dict, dataset: dict) -> str:
     """What a results table says of the protocol of ``dataset``, a config entry made from
     the preset ``name`` (both with their defaults filled): the preset's name, and the
-    protocol keys the config changed, if any."""
+    protocol keys the config changed, if any; "merged with preset" for a full entry
+    merged with it, "own entry" for one with ``preset: false``. Removes the entry's
+    ``preset`` key (:func:`with_presets`' mark, not a setting of any stage)."""
+    merged = dataset.pop("preset", None)  # with_presets' mark: read here, not a setting
+    if merged is False:
+        return f"own entry (preset {name} not applied: preset: false)"
     changed = sorted(
         key
         for key in _flat(preset).keys() | _flat(dataset).keys()
@@ -135,7 +272,8 @@ def protocol(name: str, preset: dict, dataset: dict) -> str:
     # A section whose kind changed is named once: its other keys changed with it.
     replaced = {key.rpartition(".")[0] for key in changed if key.endswith(".kind")}
     changed = sorted({next((r for r in replaced if k.startswith(r + ".")), k) for k in changed})
-    return f"preset {name}" + (f", changed: {', '.join(changed)}" if changed else "")
+    said = f"merged with preset {name}" if merged else f"preset {name}"
+    return said + (f", changed: {', '.join(changed)}" if changed else "")
 
 
 def _flat(entry: dict, prefix: str = "") -> dict:
@@ -191,6 +329,21 @@ def datasets_doc() -> str:
         "`protocol` column then lists the protocol keys you changed. A preset joins the",
         "plan when its folder exists, when `targets` names it or when `datasets` has an",
         "entry of its name.",
+        "",
+        "Settings tied to a preset's DINOv2 ViT-G/14 features follow the features you choose.",
+        "With `datasets: {pitts30k: {defaults: {features: daisy, segmenter: slic}}}` the",
+        "published vocabulary (1,536-d DINOv2-G centres) gives way to your config's",
+        "`vocabulary` section (fitted on the map by default; set the entry's",
+        "`defaults.vocabulary` for another), and each re-ranker on DINOv2-G features is",
+        "replaced by your config's re-ranker of the same kind and options on the chosen",
+        "features (`mnn_dinov2` by `mnn` on `daisy`), or dropped where there is none (set",
+        "the entry's `rerank` to choose); the log says what followed. A method with features",
+        "of its own (`anyloc_vlad_dinov3`) on a preset that keeps its published vocabulary",
+        "stops planning, naming the keys to set (`methods.<method>.vocabulary.source`), rather",
+        "than fail in the vocabulary stage after the fetch and the features. A full entry",
+        "(every required key) that bears a preset's name is still merged with the preset:",
+        "the log says so and the tables' `protocol` column reads `merged with preset",
+        "<name>`; `preset: false` in the entry uses it alone (`own entry`).",
         "",
         "Where the papers counted a dataset differently, each protocol is a preset of its",
         "own on one folder, and each published number sits under the protocol it was",
