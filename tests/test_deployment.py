@@ -121,8 +121,10 @@ def readme_yaml_blocks() -> list[dict]:
 
 
 def test_the_readmes_own_image_recipes_validate_and_plan(tmp_path):
-    """Both recipes of "Your own images" are whole dataset entries the shipped config can
-    run: they validate, and the plan is built for a folder of images laid out as said."""
+    """Both recipes of "Your own images" are files of one's own that Snakemake merges over
+    the shipped config: they validate, and the plan is built for a folder of images laid
+    out as said."""
+    from snakemake.utils import update_config
     from synthetic import make_dataset
     from workflow_helpers import expected_rows, repo_config
 
@@ -138,11 +140,13 @@ def test_the_readmes_own_image_recipes_validate_and_plan(tmp_path):
     for recipe in recipes:
         config = repo_config()
         config["data_root"] = str(tmp_path)
-        config["datasets"].update(recipe["datasets"])
-        mine = config["datasets"]["mine"]
-        mine["ground_truth"] = {"kind": "none"}  # the recipes' gps.csv is the user's
+        recipe["datasets"]["mine"]["ground_truth"] = {"kind": "none"}  # gps.csv is the user's
+        update_config(config, recipe)  # as `--configfile config/mine.yaml` merges it
+        assert {"corridor", "mine"} <= set(config["datasets"]) and config["targets"] == ["mine"]
         plan = build_plan(validate_config(config, WORKFLOW / "schemas" / "config.schema.yaml"))
-        assert [run.method for run in plan.runs["mine"]] == expected_rows(mine)
+        assert [run.method for run in plan.runs["mine"]] == expected_rows(
+            config["datasets"]["mine"]
+        )
 
 
 def test_the_readme_names_only_methods_the_shipped_config_defines():

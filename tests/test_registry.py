@@ -170,8 +170,14 @@ def test_every_config_key_is_described_and_config_readme_is_current():
     undescribed = [name for name, prop in _properties(SCHEMA) if "description" not in prop]
     assert undescribed == []
     readme = (REPO / "config" / "README.md").read_text()
-    shipped = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    assert readme == config_readme(SCHEMA, shipped), "run: python scripts/write_config_readme.py"
+    # The file as it is, or as committed: a user's own (uncommitted) datasets in it do not
+    # fail the suite, while CI, on a clean clone, compares the shipped file itself.
+    from workflow_helpers import committed_config, repo_config
+
+    candidates = [repo_config(), committed_config()]
+    matches = [c for c in candidates if c is not None and readme == config_readme(SCHEMA, c)]
+    assert matches, "run: python scripts/write_config_readme.py"
+    shipped = matches[0]
     # Every shipped backbone, segmenter and method is listed by name.
     for section in ("backbones", "segmenters", "methods", "rerankers"):
         for name in shipped[section]:

@@ -37,6 +37,16 @@ def repo_config() -> dict:
     return yaml.safe_load((REPO / "config" / "config.yaml").read_text())
 
 
+def committed_config() -> dict | None:
+    """config/config.yaml as committed (None outside a git checkout)."""
+    committed = subprocess.run(
+        ["git", "-C", str(REPO), "show", "HEAD:config/config.yaml"],
+        capture_output=True,
+        text=True,
+    )
+    return yaml.safe_load(committed.stdout) if committed.returncode == 0 else None
+
+
 def toy_config(data_root: Path, **dataset_overrides) -> dict:
     """The shipped config with one small dataset ``toy`` and small model sizes."""
     config = copy.deepcopy(repo_config())
