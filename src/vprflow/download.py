@@ -125,20 +125,20 @@ def size_text(n: int) -> str:
     return f"{n} bytes" if unit == "bytes" else f"{value:.1f} {unit} ({n} bytes)"
 
 
-def space_limit(path: str | Path) -> tuple[int, str]:
+def space_limit(path: str | Path, keep_free: bool = True) -> tuple[int, str]:
     """How many bytes may still be written under ``path`` (its nearest existing
-    folder's file system: the free space less a reserve of ``RESERVE_FRACTION`` of the
-    file system, at most ``RESERVE_MAX``), and a sentence saying so for messages."""
+    folder's file system: the free space, less a reserve of ``RESERVE_FRACTION`` of the
+    file system, at most ``RESERVE_MAX``, with ``keep_free``), and a sentence saying so
+    for messages."""
     probe = Path(path).absolute()
     while not probe.exists() and probe != probe.parent:
         probe = probe.parent
     usage = shutil.disk_usage(probe)
+    free = f"{size_text(usage.free)} free on the file system of {probe}"
+    if not keep_free:
+        return usage.free, free
     reserve = min(RESERVE_MAX, int(usage.total * RESERVE_FRACTION))
-    limit = max(0, usage.free - reserve)
-    return limit, (
-        f"{size_text(usage.free)} free on the file system of {probe}, less "
-        f"{size_text(reserve)} kept free"
-    )
+    return max(0, usage.free - reserve), f"{free}, less {size_text(reserve)} kept free"
 
 
 def _no_space(error: OSError) -> bool:
@@ -165,7 +165,8 @@ def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
             length = response.headers.get("Content-Length")
             total = int(length) if length and length.isdigit() else None
             if total is not None:
-                limit, why = space_limit(dest)
+                # The reserve is kept when unpacking; here the file must merely fit.
+                limit, why = space_limit(dest, keep_free=False)
                 if total > limit:
                     raise DownloadError(
                         f"download of {url} is {size_text(total)}, more than the file "
@@ -296,7 +297,7 @@ def archive_members(path: str | Path, url: str) -> Iterator[_Member]:
         return
     try:
         archive = tarfile.open(path, "r:*")
-    except (tarfile.TarError, *ARCHIVE_ERRORS) as error:
+    except ARCHIVE_ERRORS as error:
         kind = _magic(path)
         if kind == "zip":
             raise damaged(url, path, "a zip archive without its central directory") from None
