@@ -20,6 +20,7 @@ from vprflow.published_truth import (
     msls_ground_truth,
     msls_listed_images,
     published_order,
+    read_msls_lists,
     read_position_array,
 )
 
@@ -473,3 +474,25 @@ def test_the_msls_presets_divide_recall_by_every_kept_query_as_salad(tmp_path, n
     ranking = np.array([[t[0] if len(t) else 0] for t in truth])  # the others hit at 1
     denominator = presets()[name].dataset["denominator"]
     assert recall_at(ranking, truth, [1], denominator) == {1: 2 / 3}
+
+
+def test_two_listed_msls_paths_of_one_file_name_are_refused_naming_both_rows(tmp_path):
+    lists = write_msls_lists(tmp_path, np.random.default_rng(13))
+    db = list(lists["db"])
+    db[9] = "train_val/sf/database/images/c001.jpg"  # the name of Copenhagen's row 1
+    np.save(tmp_path / MSLS_FILES["dbImages"], np.array(db))
+    reference = list(dict.fromkeys(tmp_path / "database" / Path(p).name for p in db))
+    query = [tmp_path / "query" / f"{c}q{i}.jpg" for c in "cs" for i in (0, 1, 3)]
+    # Matched by name, either file could stand for both rows: refused, not guessed.
+    with pytest.raises(DatasetError, match=r"dbImages\.npy rows 1 and 9 .* one file name"):
+        msls_listed_images(tmp_path, "all", reference, query)
+    # One city's images are matched among that city's rows only.
+    kept_refs, _ = msls_listed_images(tmp_path, "cph", reference, query)
+    assert len(kept_refs) == 8
+
+
+def test_a_positives_list_that_is_not_one_row_per_kept_query_is_refused_naming_it(tmp_path):
+    write_msls_lists(tmp_path, np.random.default_rng(14))
+    np.save(tmp_path / MSLS_FILES["pIdx"], np.int64(3))
+    with pytest.raises(DatasetError, match=r"pIdx\.npy: 0 rows for 6 kept queries"):
+        read_msls_lists(tmp_path)

@@ -6,7 +6,8 @@ running arbitrary pickles, each matched to the images by name rather than by pos
 - Position arrays (InsideOut's ``gps_db_correct.pkl`` / ``gps_q_new.pkl``): ``[N, 2]``
   metric coordinates in the authors' image order, ``natsorted`` file names.
 - MSLS validation lists (``msls_val_{qImages,qIdx,pIdx,dbImages}.npy``, shipped by
-  serizba/salad and Revisit-Anything): positives as database indices per kept query.
+  serizba/salad and Revisit-Anything): positives as database indices per kept query;
+  the lists also name the dataset's images (:func:`msls_listed_images`).
 """
 
 from __future__ import annotations
@@ -380,10 +381,10 @@ def read_msls_lists(folder: Path) -> MslsLists:
             )
         rows_of[index] = row
     kept = [queries[i] for i in rows_of]
-    if arrays["pIdx"].ndim == 0 or len(arrays["pIdx"]) != len(kept):
+    n_rows = len(arrays["pIdx"]) if arrays["pIdx"].ndim else 0
+    if n_rows != len(kept):
         raise DatasetError(
-            f"{paths['pIdx']}: {len(arrays['pIdx'])} rows for {len(kept)} kept queries of "
-            f"{MSLS_FILES['qIdx']}"
+            f"{paths['pIdx']}: {n_rows} rows for {len(kept)} kept queries of {MSLS_FILES['qIdx']}"
         )
     positives = []
     for row, refs in enumerate(arrays["pIdx"]):
