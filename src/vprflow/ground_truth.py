@@ -258,12 +258,6 @@ def vprbench_ground_truth(
                 "only indices past the last reference)"
             )
         past = [r for r in indices if r >= n_ref]
-        if past and not drop_out_of_range:
-            raise DatasetError(
-                f"{path} row {row}: query {q} lists reference indices {_short_repr(past)} but "
-                f"the dataset has {n_ref} reference images{reference_folders} (set "
-                "ground_truth.drop_out_of_range: true to drop them)"
-            )
         far = [r for r in past if r >= reach]
         if far:
             raise DatasetError(
@@ -272,6 +266,12 @@ def vprbench_ground_truth(
                 f"file's longest list of positives ({reach - n_ref}); drop_out_of_range "
                 "drops only indices just past the last reference (a sequence that ran on), "
                 "not these: the file does not belong to this reference set"
+            )
+        if past and not drop_out_of_range:
+            raise DatasetError(
+                f"{path} row {row}: query {q} lists reference indices {_short_repr(past)} but "
+                f"the dataset has {n_ref} reference images{reference_folders} (set "
+                "ground_truth.drop_out_of_range: true to drop them)"
             )
         dropped += [(row, r) for r in past]
         truth[q] = np.unique(np.array([r for r in indices if r < n_ref], dtype=np.int64))
