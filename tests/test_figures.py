@@ -138,8 +138,8 @@ def test_recall_table_page_shows_each_method_its_recall_and_marks_the_best():
     assert "<td>a&lt;b</td>" in page  # names are escaped
     assert "<b>0.700</b>" in page and "<b>0.900</b>" in page
     assert "<b>0.500</b>" not in page and "<td>0.800</td>" in page
-    assert "<th>n_queries</th>" in page and "counted: 10 queries" in page
-    assert "<th>ground_truth</th>" not in page  # one rule per dataset: said in the notes
+    assert "<th title='n_queries'>queries</th>" in page and "counted: 10 queries" in page
+    assert "ground_truth'>" not in page  # one rule per dataset: said in the notes
 
 
 def test_recall_table_page_shows_map_precision_recall_and_cost_and_bolds_only_scores():
@@ -162,11 +162,15 @@ def test_recall_table_page_shows_map_precision_recall_and_cost_and_bolds_only_sc
          "descriptor_bytes_per_image": "4096", "rerank_ms_per_query": "12.5"},
     ]  # fmt: skip
     page = figures.recall_table_html(rows, "d", [])
-    header = re.findall(r"<th>([^<]*)</th>", page)
+    # Short headings, each titled with its CSV column (the method's row names its
+    # aggregator and re-ranker).
+    header = re.findall(r"<th title='([^']*)'>([^<]*)</th>", page)
     assert header == [
-        "method", "aggregator", "reranker", "recall@1", "map@5", "auc_pr",
-        "recall_at_100_precision", "extended_precision", "descriptor_bytes_per_image",
-        "search_ms_per_query", "rerank_ms_per_query",
+        ("method", "method"), ("recall@1", "R@1"), ("map@5", "mAP@5"), ("auc_pr", "AUC-PR"),
+        ("recall_at_100_precision", "R at P=1"), ("extended_precision", "EP"),
+        ("descriptor_bytes_per_image", "bytes / image"),
+        ("search_ms_per_query", "search ms / query"),
+        ("rerank_ms_per_query", "rerank ms / query"),
     ]  # fmt: skip
     assert "<b>0.800</b>" in page and "<td>0.600</td>" in page
     # Costs are shown as stored, never bolded (lower is better there).

@@ -66,14 +66,11 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
     rows = read_rows(workdir / TARGET)
     assert [r["method"] for r in rows] == ROWS
     header = list(rows[0])
-    assert header[:2] == ["dataset", "method"]
-    assert header[-20:] == [
-        "descriptor_dim",
-        "ground_truth",
-        "denominator",
-        "n_queries",
-        "n_short_rankings",
-        "n_queries_without_positive",
+    # The results lead, then what was counted, then the parameters (the HTML table's
+    # order too).
+    assert header[:22] == [
+        "dataset",
+        "method",
         "recall@1",
         "recall@5",
         "recall@10",
@@ -85,10 +82,17 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
         "auc_pr",
         "recall_at_100_precision",
         "extended_precision",
+        "n_queries",
+        "n_short_rankings",
+        "n_queries_without_positive",
+        "ground_truth",
+        "denominator",
+        "descriptor_dim",
         "descriptor_bytes_per_image",
         "search_ms_per_query",
         "rerank_ms_per_query",
     ]
+    assert "aggregator" in header[22:]
     for row in rows:
         assert row["dataset"] == "toy"
         assert row["ground_truth"] == "vprbench:ground_truth_new.npy"

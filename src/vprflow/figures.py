@@ -88,11 +88,33 @@ def sample_queries(candidates: np.ndarray, count: int, seed: int) -> np.ndarray:
 TABLE_COUNTS = ("descriptor_dim", "n_queries", "n_short_rankings", "n_queries_without_positive")
 
 
+# The HTML table's headings where the CSV's column names are long (the CSV keeps them).
+_HEADINGS = {
+    "auc_pr": "AUC-PR",
+    "recall_at_100_precision": "R at P=1",
+    "extended_precision": "EP",
+    "descriptor_bytes_per_image": "bytes / image",
+    "search_ms_per_query": "search ms / query",
+    "rerank_ms_per_query": "rerank ms / query",
+    "descriptor_dim": "dim",
+    "n_queries": "queries",
+    "n_short_rankings": "short rankings",
+    "n_queries_without_positive": "without positive",
+}
+
+
+def _heading(column: str) -> str:
+    for prefix, short in (("exact_recall@", "exact R@"), ("recall@", "R@"), ("map@", "mAP@")):
+        if column.startswith(prefix):
+            return short + column.removeprefix(prefix)
+    return _HEADINGS.get(column, column)
+
+
 def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[str] = ()) -> str:
     """An HTML page of a results table (``rows`` as read from the CSV): the method, its
     Recall@N and mAP@N columns and the precision-recall summary (the best of each column
-    in bold), then the cost and counting columns; every other column of the CSV stays in
-    the CSV. ``notes`` are paragraphs under the title."""
+    in bold), then the cost and counting columns, under short headings; every other
+    column of the CSV stays in the CSV. ``notes`` are paragraphs under the title."""
     from html import escape
 
     # The results table's own column names (vprflow.stages.report).
@@ -102,10 +124,11 @@ def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[st
     scored = [c for c in columns if c.startswith(("recall@", "map@", "exact_recall@"))]
     scored += [c for c in PRECISION_COLUMNS if c in columns]
     costs = [c for c in (*COST_COLUMNS, *TABLE_COUNTS) if c in columns]
-    named = [c for c in ("method", "aggregator", "reranker") if c in columns]
-    shown = [*named, *scored, *costs]
+    shown = ["method", *scored, *costs]
     best = {c: max((float(r[c]) for r in rows if r[c] != ""), default=None) for c in scored}
-    head = "".join(f"<th>{escape(c)}</th>" for c in shown)
+    # Short headings keep the table within a laptop's width; each one's title (shown on
+    # hover) is the CSV's column name.
+    head = "".join(f"<th title='{escape(c)}'>{escape(_heading(c))}</th>" for c in shown)
     body = []
     for row in rows:
         cells = []
@@ -121,8 +144,9 @@ def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[st
     paragraphs = "".join(f"<p>{escape(note)}</p>" for note in notes)
     style = (
         "body{font-family:sans-serif;font-size:14px}table{border-collapse:collapse}"
-        "td,th{border:1px solid #ccc;padding:3px 8px;text-align:right}"
-        "td:first-child,th:first-child{text-align:left}"
+        "td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}"
+        "th{font-size:12px;max-width:6em;vertical-align:bottom}"
+        "td:first-child,th:first-child{text-align:left;white-space:nowrap}"
     )
     return (
         f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{escape(title)}</title>"

@@ -33,32 +33,35 @@ def write_report(
         )
     recall_columns = sorted({int(n) for r in results for n in r.attrs["recall"]})
     param_columns = sorted({name for run in runs for name in run["params"]})
-    header = ["dataset", "method", *param_columns, "descriptor_dim", "ground_truth"]
-    header += ["denominator", "n_queries", "n_short_rankings", "n_queries_without_positive"]
+    # The results lead (what a reader compares), then what was counted and how, then
+    # every parameter that shaped the row.
+    header = ["dataset", "method"]
     header += [f"recall@{n}" for n in recall_columns]
     header += [f"map@{n}" for n in recall_columns]
-    header += [*PRECISION_COLUMNS, *COST_COLUMNS]
+    header += [*PRECISION_COLUMNS]
     # Rows of an approximate segment search also show an exact search's recall.
     exact = [r.attrs.get("recall_exact") or {} for r in results]
     if any(exact):
         header += [f"exact_recall@{n}" for n in recall_columns]
+    header += ["n_queries", "n_short_rankings", "n_queries_without_positive"]
+    header += ["ground_truth", "denominator", "descriptor_dim", *COST_COLUMNS, *param_columns]
     rows = []
     for run, result, exact_recall in zip(runs, results, exact, strict=True):
         attrs = result.attrs
         rows.append(
             [dataset_name, run["method"]]
-            + [_cell(run["params"].get(name, "")) for name in param_columns]
-            + [attrs["descriptor_dim"], attrs["ground_truth_rule"], attrs["denominator"]]
-            + [attrs["n_queries"], attrs["n_short_rankings"], attrs["n_queries_without_positive"]]
             + _metric_cells(attrs["recall"], recall_columns)
             + _metric_cells(attrs["map"], recall_columns)
             + [_number(attrs["precision_recall"].get(c), ".6f") for c in PRECISION_COLUMNS]
+            + (_metric_cells(exact_recall, recall_columns) if any(exact) else [])
+            + [attrs["n_queries"], attrs["n_short_rankings"], attrs["n_queries_without_positive"]]
+            + [attrs["ground_truth_rule"], attrs["denominator"], attrs["descriptor_dim"]]
             # Bytes whole (a per-segment method's are a mean over images), ms to 3 digits.
             + [
                 _number(attrs["cost"].get(c), ".0f" if "bytes" in c else ".3g")
                 for c in COST_COLUMNS
             ]
-            + (_metric_cells(exact_recall, recall_columns) if any(exact) else [])
+            + [_cell(run["params"].get(name, "")) for name in param_columns]
         )
     _write_csv(csv_out, header, rows)
 
