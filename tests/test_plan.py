@@ -193,10 +193,39 @@ def test_resize_method_follows_each_methods_published_reader(config):
     }
     fixed = copy.deepcopy(config)
     fixed["backbones"]["daisy"]["resize"] = "linear"
+    fixed["datasets"]["roadscene"]["exif_orientation"] = "apply"  # one reader for both
     assert (
         keys_of(fixed, "roadscene", "snsm")["features"]
         == keys_of(fixed, "roadscene", "segvlad")["features"]
     )
+
+
+def test_exif_orientation_follows_each_methods_published_reader_unless_the_dataset_says(config):
+    # cv2.imread (SegVLAD, AnyLoc) turns images as their EXIF tag says; SNSM's
+    # PIL.Image.open(...).convert("RGB") and its baselines read the stored pixels.
+    def orientations(config):
+        plan = build_plan(config)
+        found = {}
+        for method in ("snsm", "gem", "segvlad", "anyloc_vlad"):
+            keys = keys_of(config, "roadscene", method)
+            for stage in ("features", "segments"):
+                if stage in keys:
+                    record = plan.stages[stage][keys[stage]].record
+                    found[method, stage] = record["params"]["exif_orientation"]
+        return found
+
+    assert config["datasets"]["roadscene"]["exif_orientation"] == "method"
+    assert orientations(config) == {
+        ("snsm", "features"): "ignore",
+        ("gem", "features"): "ignore",
+        ("segvlad", "features"): "apply",
+        ("segvlad", "segments"): "apply",  # masks on the pixels its features saw
+        ("anyloc_vlad", "features"): "apply",
+    }
+    for setting in ("apply", "ignore"):
+        explicit = copy.deepcopy(config)
+        explicit["datasets"]["roadscene"]["exif_orientation"] = setting
+        assert set(orientations(explicit).values()) == {setting}
 
 
 def test_vocabulary_file_is_keyed_by_its_content(config, tmp_path):

@@ -572,6 +572,9 @@ def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_p
     build_dataset("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
     dataset = Dataset(str(tmp_path / "d.zarr"), str(tmp_path / "data"))
     np.testing.assert_array_equal(dataset.read_image(1), upright.astype(np.float32) / 255.0)
+    # A method whose published reader ignores the tag (SNSM) reads the stored pixels.
+    stored = np.rot90(upright, k=1).astype(np.float32) / 255.0
+    np.testing.assert_array_equal(dataset.read_image(1, "ignore"), stored)
     sizes = np.asarray(dataset.group["image_sizes"][...])
     assert sizes[1].tolist() == [24, 32]  # height, width after the orientation
 

@@ -43,6 +43,14 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pg
 EXIF_ORIENTATIONS = ("apply", "ignore")
 
 
+def dataset_orientation(setting: str) -> str:
+    """The EXIF orientation of a dataset's own reads (its image sizes, a native
+    resolution, the figures) for its ``exif_orientation`` setting: the setting, or for
+    ``method`` (each method's stages read as its published reader: the registry's
+    ``Aggregator.exif_orientation``) ``apply``, the image upright as people view it."""
+    return "apply" if setting == "method" else setting
+
+
 class ImageReadError(ValueError):
     """An image file that cannot be decoded; the message names the file."""
 

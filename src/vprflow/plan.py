@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
 from vprflow.fingerprints import dataset_contents, file_digest, memoised, source_fingerprint
-from vprflow.images import ImageReadError, image_size
+from vprflow.images import ImageReadError, dataset_orientation, image_size
 from vprflow.paths import PUBLISHED_VOCABULARY, store_path
 from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 
@@ -259,7 +259,8 @@ def _plan_dataset(plan: Plan, config: dict, name: str, dataset: dict, memo: dict
         # Later stages are keyed by the size itself; the dataset stage checks that
         # every image has it (the first image stands for all at planning time).
         try:
-            size = list(image_size((files.reference + files.query)[0], dataset["exif_orientation"]))
+            first = (files.reference + files.query)[0]
+            size = list(image_size(first, dataset_orientation(dataset["exif_orientation"])))
         except ImageReadError:
             size = None  # the dataset stage decodes every image and names this one
         if size is not None:
@@ -384,6 +385,7 @@ def _plan_features(m: _Method, name: str | None = None) -> tuple[_StoreRef, dict
         **_hashed(backbone),
         **source_fingerprint("features", backbone, m.memo, f"backbones.{name}"),
         "resolution": _resolution(m.dataset, backbone),
+        "exif_orientation": _exif_orientation(m),
     }
     patch = backbone.get("patch_size")
     if patch and params["resolution"] != "native" and min(params["resolution"]) < patch:
@@ -401,6 +403,14 @@ def _plan_features(m: _Method, name: str | None = None) -> tuple[_StoreRef, dict
     return store, {"features": name, **_prefixed("features", backbone)}
 
 
+def _exif_orientation(m: _Method) -> str:
+    """How the method's stages read images: the dataset's ``exif_orientation``, or for
+    ``method`` (the default) as the published pipeline's reader does (the registry's
+    ``Aggregator.exif_orientation``), as ``resize: method`` resizes."""
+    orientation = m.dataset["exif_orientation"]
+    return m.aggregator.exif_orientation if orientation == "method" else orientation
+
+
 def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
     name = m.settings["segmenter"]
     segmenter = m.entry("segmenters", name)
@@ -408,6 +418,7 @@ def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef,
         **_hashed(segmenter),
         **source_fingerprint("segments", segmenter, m.memo, f"segmenters.{name}"),
         "resolution": _segment_resolution(m.dataset, segmenter),
+        "exif_orientation": _exif_orientation(m),  # as its features: masks on the same pixels
     }
     run_params = m.model_run_params("segments", segmenter)
     store = m.add("segments", params, {"dataset": m.dataset_store}, run_params)

@@ -214,7 +214,11 @@ class Aggregator:
     ``resize``: how the published pipeline resizes images before the backbone (a
     :data:`vprflow.images.RESIZE_METHODS` name), the default of a backbone's
     ``resize: method``: SegVLAD's and AnyLoc's readers use OpenCV, SNSM's (and its
-    pooling baselines') torchvision on PIL images.
+    pooling baselines') torchvision on PIL images. ``exif_orientation``: whether that
+    reader turns images as their EXIF Orientation tag says (a
+    :data:`vprflow.images.EXIF_ORIENTATIONS` name), the default of a dataset's
+    ``exif_orientation: method``: ``cv2.imread`` (SegVLAD, AnyLoc) applies it, SNSM's
+    ``PIL.Image.open(...).convert('RGB')`` ignores it.
     """
 
     name: str
@@ -225,6 +229,7 @@ class Aggregator:
     image_descriptor: str
     explanation: str | None = None
     resize: str = "linear"
+    exif_orientation: str = "apply"
     pca_fit: Callable[[dict, dict], dict] | None = None
 
     def pca_descriptor_options(self, method: dict, options: dict) -> dict:
@@ -279,6 +284,7 @@ def _pooling(name: str) -> Aggregator:
         lambda m: prefixed("pooling", {k: m["pooling"][k] for k in keys}),
         f"{_DESCRIPTORS}:pooled_descriptor",
         resize="antialias",
+        exif_orientation="ignore",
     )
 
 
@@ -321,6 +327,7 @@ AGGREGATORS: dict[str, Aggregator] = {
             f"{_DESCRIPTORS}:snsm_descriptor",
             explanation="support_maps",
             resize="antialias",
+            exif_orientation="ignore",
         ),
         *(_pooling(name) for name in ("gem", "average", "max")),
     )

@@ -13,7 +13,7 @@ from vprflow import datasets, stores
 from vprflow.datasets import DatasetError
 from vprflow.fingerprints import file_digest
 from vprflow.ground_truth import ground_truth, ground_truth_rule
-from vprflow.images import ImageReadError, decode_image
+from vprflow.images import ImageReadError, dataset_orientation, decode_image
 from vprflow.stages.base import shard_range
 
 log = logging.getLogger("vprflow")
@@ -37,11 +37,12 @@ def build_dataset(
     folder = datasets.dataset_folder(data_root, params)
     paths = files.reference + files.query
     sizes = np.zeros((len(paths), 2), dtype=np.int64)
+    orientation = dataset_orientation(params["exif_orientation"])  # method: upright
     digests = []
     for i, path in enumerate(tqdm(paths, desc=f"checking {name} images")):
         data = _read_bytes(path)
         digests.append(hashlib.sha256(data).hexdigest())
-        sizes[i] = decode_image(data, path, params["exif_orientation"]).shape[:2]
+        sizes[i] = decode_image(data, path, orientation).shape[:2]
     by_path = dict(zip(paths, digests, strict=True))
     contents = datasets.contents_digest(
         files, data_root, params, lambda p, _: by_path.get(p) or file_digest(p)
@@ -64,7 +65,7 @@ def build_dataset(
             n_query=len(files.query),
             ground_truth_rule=ground_truth_rule(params["ground_truth"]),
             n_queries_with_positives=int((counts > 0).sum()),
-            exif_orientation=params["exif_orientation"],
+            exif_orientation=orientation,
         )
         stores.write_array(
             group, "paths", np.array([p.relative_to(data_root).as_posix() for p in paths])
@@ -153,11 +154,12 @@ class Dataset:
         self.names = stores.read_strings(self.group, "names")
         self.exif_orientation = self.group.attrs["exif_orientation"]
 
-    def read_image(self, index: int) -> np.ndarray:
-        """Image ``index`` as :func:`vprflow.images.read_image` decodes it, with the
-        dataset's EXIF orientation, after checking that the file still holds what the
-        dataset stage hashed: an image changed during a run must fail, naming it, not
-        be computed under the key of its old content."""
+    def read_image(self, index: int, exif_orientation: str | None = None) -> np.ndarray:
+        """Image ``index`` as :func:`vprflow.images.read_image` decodes it, with
+        ``exif_orientation`` (a method's stage passes its own) or the dataset's, after
+        checking that the file still holds what the dataset stage hashed: an image
+        changed during a run must fail, naming it, not be computed under the key of its
+        old content."""
         path = self.paths[index]
         data = _read_bytes(Path(path))
         if self._sha256 is None:
@@ -168,7 +170,7 @@ class Dataset:
                 "results computed now would be stored under its old content's key. Run "
                 "snakemake again: it re-plans and rebuilds what depends on the image"
             )
-        return decode_image(data, path, self.exif_orientation)
+        return decode_image(data, path, exif_orientation or self.exif_orientation)
 
     @property
     def has_ground_truth(self) -> bool:

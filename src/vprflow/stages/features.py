@@ -83,9 +83,14 @@ def _feature_extractor(params: dict, device: str, width: int, height: int, datas
         return read, params["patch_size"]
     backbone = kind.load(params, device)
 
+    turn = params["exif_orientation"]  # the method's reader's (plan._exif_orientation)
+
     def run(indices):
         pixels = np.stack(
-            [resize_image(dataset.read_image(i), width, height, params["resize"]) for i in indices]
+            [
+                resize_image(dataset.read_image(i, turn), width, height, params["resize"])
+                for i in indices
+            ]
         )
         return backbone.features(pixels)
 

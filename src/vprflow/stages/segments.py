@@ -85,9 +85,12 @@ def _mask_source(params: dict, device: str, dataset):
     segmenter = kind.load(params, device)
     width, height = params["resolution"]
 
+    turn = params["exif_orientation"]  # as the method's features (plan._exif_orientation)
+
     def images(indices):
         return [
-            resize_image(dataset.read_image(i), width, height, params["resize"]) for i in indices
+            resize_image(dataset.read_image(i, turn), width, height, params["resize"])
+            for i in indices
         ]
 
     if hasattr(segmenter, "masks_batch"):
