@@ -15,6 +15,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
+from vprflow.files import atomic_path
+
 COMMIT = "89cade5529a590c4ed2999b396dcd3cab86e275b"
 # An offline mirror of the repository's raw files may stand in (tests, clusters).
 URL_ENV = "VPRFLOW_VOCABULARY_URL"
@@ -83,12 +85,7 @@ def fetch_vocabulary(url: str, sha256: str, out: str | Path) -> None:
     hashes and leave nothing at ``out`` (the file is renamed into place when checked)."""
     from vprflow.download import fetch, verify_sha256
 
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    partial = out.with_name(out.name + ".tmp")
-    try:
-        actual = fetch(url, partial)
-        verify_sha256(url, sha256, actual)
-        partial.replace(out)
-    finally:
-        partial.unlink(missing_ok=True)
+    # A temporary of this writer's own: two runs fetching one vocabulary (--nolock) used
+    # to share `<out>.tmp`, and the second's rename found it gone.
+    with atomic_path(out) as partial:
+        verify_sha256(url, sha256, fetch(url, partial))
