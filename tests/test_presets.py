@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from preset_miniatures import MINIATURES
+from preset_miniatures import MINIATURES, write_image
 from workflow_helpers import repo_config, snakemake, write_config
 
 from vprflow.config import ConfigError, PlanError, validate_config
-from vprflow.datasets import list_dataset
+from vprflow.datasets import DatasetError, list_dataset
 from vprflow.ground_truth import ground_truth
 from vprflow.plan import build_plan
 from vprflow.presets import datasets_doc, merge_entry, presets, unknown_dataset
@@ -247,6 +247,59 @@ def test_vp_air_anyloc_searches_the_distractors_and_counts_every_query(tmp_path)
     assert [p["recall@1"] for p in presets()["vp_air_anyloc"].published] == [66.7]
     assert [p["recall@1"] for p in presets()["vp_air"].published] == [69.8]
     assert "printf" in presets()["vp_air_anyloc"].layout
+
+
+def layout_error(data_root: Path, name: str) -> str:
+    """The error of listing the preset ``name`` under ``data_root``."""
+    dataset = validate_config(config_with(data_root, targets=[name]), SCHEMA)["datasets"][name]
+    with pytest.raises(DatasetError) as error:
+        list_dataset(data_root, name, dataset)
+    return str(error.value)
+
+
+def test_a_presets_layout_one_level_down_is_found_and_the_move_named(tmp_path):
+    MINIATURES["pitts30k"](tmp_path / "pitts30k" / "pitts30k", np.random.default_rng(0))
+    message = layout_error(tmp_path, "pitts30k")
+    assert "images/test/database/   10,000 images" in message  # the expected tree
+    assert f"one level down, in {tmp_path / 'pitts30k' / 'pitts30k'}" in message
+    assert "mv pitts30k/* . && rmdir pitts30k" in message
+    assert "datasets.pitts30k.path: pitts30k/pitts30k" in message
+
+
+def test_the_downloaders_layout_where_the_authors_is_expected_says_how_to_convert(tmp_path):
+    root = tmp_path / "amstertime"
+    for role in ("database", "queries"):
+        write_image(root / "images" / "test" / role / "0001.jpg", np.random.default_rng(0))
+    message = layout_error(tmp_path, "amstertime")
+    assert "new/                    1,231 present-day images" in message
+    assert f"{root} holds VPR-datasets-downloader's layout" in message
+    assert "`mv images/test/database new && mv images/test/queries old && rm -r images`" in message
+
+
+def test_raw_msls_train_val_says_how_to_copy_the_kept_queries(tmp_path):
+    root = tmp_path / "msls_sf"
+    for role in ("database", "query"):
+        write_image(root / "train_val" / "sf" / role / "images" / "a.jpg", np.random.default_rng(0))
+    message = layout_error(tmp_path, "msls_sf")
+    assert "holds MSLS as Mapillary ships it" in message
+    assert "cp train_val/sf/database/images/* database/" in message
+    assert "msls_val_qIdx.npy" in message and "'/sf/' in p" in message
+
+
+def test_vp_air_anyloc_without_its_database_list_says_how_to_write_it(tmp_path):
+    MINIATURES["vp_air"](tmp_path / "vp_air", np.random.default_rng(0))
+    message = layout_error(tmp_path, "vp_air_anyloc")
+    assert "reference list" in message and "database_with_distractors.txt" in message
+    assert "`printf '%s\\n' reference_views/* distractors/* > database_with_distractors.txt`" in (
+        message
+    )
+
+
+def test_a_preset_folder_in_no_known_layout_names_what_it_holds(tmp_path):
+    (tmp_path / "sf_xl_val" / "photos").mkdir(parents=True)
+    message = layout_error(tmp_path, "sf_xl_val")
+    assert "holds photos/: neither that layout, nor it one level down" in message
+    assert "CosPlace's SF-XL folders" in message  # the layouts it looked for
 
 
 @pytest.mark.parametrize("name", list(MINIATURES))

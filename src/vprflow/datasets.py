@@ -61,11 +61,17 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
     scans: dict[str, ImageScan] = {}
     for role in ("reference", "query"):
         entry = root / dataset[role]
-        if entry.suffix.lower() == ".txt":
+        listed = entry.suffix.lower() == ".txt"
+        if not (entry.is_file() if listed else entry.is_dir()):
+            from vprflow.presets import layout_hint  # a preset's layout, as found
+
+            raise DatasetError(
+                f"dataset '{name}': {role} {'list' if listed else 'folder'} {entry} does not "
+                f"exist.{hint}{layout_hint(name, root, dataset)}"
+            )
+        if listed:
             scans[role] = read_image_list(entry, root, f"dataset '{name}': {role} list")
             continue
-        if not entry.is_dir():
-            raise DatasetError(f"dataset '{name}': {role} folder {entry} does not exist.{hint}")
         scans[role] = scan_images(entry, dataset["recursive"], dataset["follow_links"])
         if not scans[role].paths:
             raise DatasetError(f"dataset '{name}': {role} folder {entry} contains no images")

@@ -48,6 +48,8 @@ class Preset:
     protocol: str  # positives, queries counted, image size, vocabulary: in words
     code: str  # the published code the entry follows (repository, commit, files)
     published: tuple[dict, ...]  # recall the papers report: method, paper, R@1, R@5
+    # The same data in another published layout: name, reference, query, convert.
+    other_layouts: tuple[dict, ...] = ()
 
 
 @cache
@@ -63,6 +65,10 @@ def presets() -> dict[str, Preset]:
             protocol=" ".join(entry["protocol"].split()),
             code=" ".join(entry["code"].split()),
             published=tuple(entry.get("published", ())),
+            other_layouts=tuple(
+                {**o, "convert": " ".join(o["convert"].split())}
+                for o in entry.get("other_layouts", ())
+            ),
         )
         for name, entry in raw.items()
     }
@@ -313,6 +319,52 @@ def unknown_dataset(name: str, config: dict) -> str:
     )
 
 
+def layout_hint(name: str, root: Path, dataset: dict) -> str:
+    """What to say when the folder ``root`` of the preset ``name`` exists but lacks the
+    reference or query the entry ``dataset`` reads: the layout the preset reads, the
+    same layout found one level down, or another published layout of the dataset found
+    instead, each with how to convert it. Empty for a dataset that is not the preset's
+    layout (another name, or an entry that reads other folders)."""
+    preset = presets().get(name)
+    wanted = ("reference", "query")
+    if preset is None or any(dataset.get(k) != preset.dataset[k] for k in wanted):
+        return ""
+    lines = [f"The preset {name!r} reads this layout (docs/datasets.md):", preset.layout]
+
+    def has(base: Path, relative: str) -> bool:
+        path = base / relative
+        return path.is_file() if path.suffix.lower() == ".txt" else path.is_dir()
+
+    found = False
+    children = sorted(c for c in root.iterdir() if c.is_dir() and not c.name.startswith("."))
+    for child in children:
+        if all(has(child, dataset[k]) for k in wanted):
+            found = True
+            lines.append(
+                f"Found it one level down, in {child}: move it up (cd {root} && "
+                f"mv {child.name}/* . && rmdir {child.name}), or set "
+                f"datasets.{name}.path: {dataset['path']}/{child.name}"
+            )
+    for other in preset.other_layouts:
+        for base in (root, *children):
+            if has(base, other["reference"]) and has(base, other["query"]):
+                found = True
+                lines.append(
+                    f"{base} holds {other['name']}, not the layout above. "
+                    f"Convert it (in {base}): {other['convert']}"
+                )
+    if not found:
+        names = [p.name + ("/" if p.is_dir() else "") for p in sorted(root.iterdir())]
+        others = "; ".join(o["name"] for o in preset.other_layouts)
+        lines.append(
+            f"{root} holds {', '.join(names[:12]) or 'nothing'}"
+            + (", ..." if len(names) > 12 else "")
+            + ": neither that layout, nor it one level down"
+            + (f", nor {others}" if others else "")
+        )
+    return "\n" + "\n".join(lines)
+
+
 def datasets_doc() -> str:
     """docs/datasets.md: every preset's layout, protocol, source and published recall."""
     lines = [
@@ -402,6 +454,8 @@ def datasets_doc() -> str:
             preset.layout,
             "```",
         ]
+        for other in preset.other_layouts:
+            lines += ["", f"In {other['name']}: {other['convert']}"]
         if preset.published:
             lines += ["", "| method | paper | R@1 | R@5 |", "|---|---|---|---|"]
             lines += [
