@@ -239,7 +239,9 @@ def draw_support_maps(
     options = stores.open_store(inputs["descriptors"]).attrs["record"]["params"]
     keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
     snsm = {k: options[k] for k in keys}
-    read_features = FeatureReader(stores.open_store(inputs["features"]), block_bytes=0)
+    features = stores.open_store(inputs["features"])
+    read_features = FeatureReader(features, block_bytes=0)
+    turn = features.attrs["record"]["params"]["exif_orientation"]  # the pixels SNSM saw
     truth = dataset.truth()
 
     def support(index: int) -> np.ndarray:
@@ -254,10 +256,10 @@ def draw_support_maps(
         rows.append(
             (
                 dataset.names[image],
-                dataset.read_image(image),
+                dataset.read_image(image, turn),
                 support(image),
                 dataset.names[reference],
-                dataset.read_image(reference),
+                dataset.read_image(reference, turn),
                 support(reference),
             )
         )
