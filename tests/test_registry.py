@@ -200,3 +200,41 @@ def test_every_method_section_is_a_default_a_dataset_default_and_a_method_overri
     # `figures` is the one top-level section that methods do not override.
     top = [name for name, prop in SCHEMA["properties"].items() if "$ref" in prop]
     assert sorted(top) == sorted([*METHOD_DEFAULT_SECTIONS, "figures"])
+
+
+def test_every_registry_default_is_a_key_its_kind_reads_and_x_kinds_name_real_kinds():
+    # One place (the schema's x-kinds) says which kind reads a key; the registry's kind
+    # defaults and re-ranker options must agree with it, or validation would refuse
+    # what a kind fills in (or fill what it refuses).
+    from vprflow.config import kind_keys
+
+    definitions = SCHEMA["definitions"]
+    for kinds, definition, kind_key in (
+        (registry.BACKBONES, definitions["backbone"], "backbone"),
+        (registry.SEGMENTERS, definitions["segmenter"], "segmenter"),
+    ):
+        keys = kind_keys(definition, kind_key)
+        for kind in kinds.values():
+            assert set(kind.defaults) <= set(keys[kind.name]), kind.name
+    keys = kind_keys(definitions["reranker"], "kind")
+    common = {"kind", "features", "top_k"}
+    for reranker in registry.RERANKERS.values():
+        assert set(keys[reranker.name]) == common | set(reranker.options), reranker.name
+    truth = definitions["dataset"]["properties"]["ground_truth"]
+    for definition, kind_key in (
+        (definitions["backbone"], "backbone"),
+        (definitions["segmenter"], "segmenter"),
+        (definitions["reranker"], "kind"),
+        (definitions["vocabulary"], "source"),
+        (truth, "kind"),
+    ):
+        kinds = set(definition["properties"][kind_key]["enum"])
+        for name, prop in definition["properties"].items():
+            assert set(prop.get("x-kinds", kinds)) <= kinds, (kind_key, name)
+    # A kind's `then` requires and defaults only keys the kind reads.
+    truth_keys = kind_keys(truth, "kind")
+    for part in truth["allOf"]:
+        kind = part["if"]["properties"]["kind"]["const"]
+        then = part["then"]
+        named = set(then.get("required", [])) | set(then.get("properties", {}))
+        assert named <= set(truth_keys[kind]), kind

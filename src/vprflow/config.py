@@ -50,15 +50,26 @@ class PlanError(ValueError):
     method, backbone, file, ...), or a target that is not in its plan."""
 
 
-def validate_config(config: dict, schema_path: str | Path) -> dict:
+# A config as written holds a few thousand values; one that expands past this many (a
+# YAML alias bomb: nested aliases PyYAML builds once and shares, exponential when
+# walked) is refused before validation walks it or an error message prints it.
+MAX_CONFIG_VALUES = 200_000
+# What an error message shows of a value at most.
+MAX_SHOWN = 200
+
+
+def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     """Check ``config`` against the schema and return a copy with defaults filled in.
 
-    Raises :class:`ConfigError` naming the offending key (e.g. an unknown key).
+    Raises :class:`ConfigError` naming the offending key (e.g. an unknown key, or a key
+    the entry's kind does not read: :func:`unread_keys`). ``files``: the config files
+    ``config`` was read from, named when it is too large (:func:`check_config_size`).
     """
     import jsonschema
 
     from vprflow.presets import presets, protocol, with_presets
 
+    check_config_size(config, files)
     schema = load_schema(schema_path)
     if isinstance(config.get("data_root"), str):
         config = {**config, "datasets": with_presets(config)}
@@ -70,8 +81,14 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
         lines = []
         for error in errors[:10]:
             where = ".".join(str(p) for p in error.absolute_path) or "(top level)"
-            lines.append(f"  config key '{where}': {error.message}")
+            message = error.message
+            if error.validator == "pattern" and "x-error" in error.schema:  # a name's
+                message = f"{shorten(error.instance)} {error.schema['x-error']}"
+            lines.append(f"  config key '{where}': {shorten(message, quote=False)}")
         raise ConfigError("invalid configuration:\n" + "\n".join(lines))
+    unread = unread_keys(config, schema)
+    if unread:
+        raise ConfigError("invalid configuration:\n" + "\n".join(f"  {u}" for u in unread[:10]))
     config = copy.deepcopy(config)
     fill_defaults(config, schema)
     for name, dataset in config["datasets"].items():
@@ -91,6 +108,125 @@ def validate_config(config: dict, schema_path: str | Path) -> dict:
             # Kind-specific defaults (a DINOv2 layer, SAM thresholds) from the registry.
             entry.update(with_defaults(stage, entry))
     return config
+
+
+def shorten(value, quote: bool = True) -> str:
+    """``value`` (its repr, or the text itself with ``quote=False``) cut to
+    :data:`MAX_SHOWN` characters, for an error message."""
+    text = repr(value) if quote else str(value)
+    return (
+        text if len(text) <= MAX_SHOWN else f"{text[: MAX_SHOWN - 30]}... ({len(text)} characters)"
+    )
+
+
+def count_values(value, limit: int) -> int:
+    """How many values ``value`` holds, counting every container and scalar at every
+    depth (a shared one once per reference, as it expands), stopping at ``limit``."""
+    count, stack = 0, [value]
+    while stack and count < limit:
+        item = stack.pop()
+        count += 1
+        if isinstance(item, dict):
+            stack.extend(item.keys())
+            stack.extend(item.values())
+        elif isinstance(item, (list, tuple)):
+            stack.extend(item)
+    return count
+
+
+def check_config_size(config: dict, files=()) -> None:
+    """Refuse a config that expands to :data:`MAX_CONFIG_VALUES` values or more (a YAML
+    alias bomb), naming which of ``files`` (the config files it was read from) does,
+    in well under a second: walking it, validating it or printing it would take
+    minutes and end in a MemoryError."""
+    if count_values(config, MAX_CONFIG_VALUES) < MAX_CONFIG_VALUES:
+        return
+    culprits = []
+    for path in files:
+        try:
+            loaded = yaml.load(Path(path).read_text(), Loader=yaml.SafeLoader)
+        except (OSError, yaml.YAMLError):
+            continue
+        if count_values(loaded, MAX_CONFIG_VALUES) >= MAX_CONFIG_VALUES:
+            culprits.append(str(path))
+    where = f"config file {', '.join(culprits)}" if culprits else "the configuration"
+    if not culprits and files:
+        where += f" (read from {', '.join(map(str, files))} and the command line)"
+    raise ConfigError(
+        f"{where} expands to more than {MAX_CONFIG_VALUES:,} values (YAML aliases nested "
+        "into an exponential structure?); refused before validation, which would take "
+        "minutes and run out of memory"
+    )
+
+
+def kind_keys(definition: dict, kind_key: str) -> dict[str, list[str]]:
+    """Kind -> the keys an entry of that kind reads, for a schema definition (or
+    property) whose ``kind_key`` names its kind: every key but those whose ``x-kinds``
+    (the kinds that read them) leaves the kind out. The kinds are ``kind_key``'s enum."""
+    properties = definition["properties"]
+    kinds = properties[kind_key]["enum"]
+    return {
+        kind: [name for name, prop in properties.items() if kind in prop.get("x-kinds", kinds)]
+        for kind in kinds
+    }
+
+
+def unread_keys(config: dict, schema: dict) -> list[str]:
+    """One line per key of ``config`` (as written, before defaults: a valid one) that the
+    kind of its section does not read, naming the key, the kind and the kind's keys:
+    a ground truth's ``kind``, a backbone's ``backbone``, a segmenter's ``segmenter``, a
+    re-ranker's ``kind`` and a vocabulary's ``source`` (a method's or a dataset's
+    ``vocabulary`` overrides: the source it ends up with). Such a key would be ignored
+    while the table, which lists it, says it applied."""
+    definitions = schema["definitions"]
+    dataset = definitions["dataset"]["properties"]
+    found: list[str] = []
+
+    def check(entry: dict, definition: dict, kind_key: str, where: str, kind=None) -> None:
+        kind = entry.get(kind_key, kind)
+        keys = kind_keys(definition, kind_key).get(kind)
+        if keys is None:
+            return
+        found.extend(
+            f"config key '{where}.{name}': {kind_key} {kind!r} does not read {name!r}; "
+            f"its keys: {', '.join(keys)}"
+            for name in entry
+            if name not in keys
+        )
+
+    for name, entry in config["datasets"].items():
+        check(
+            entry["ground_truth"], dataset["ground_truth"], "kind", f"datasets.{name}.ground_truth"
+        )
+    for section, definition, kind_key in (
+        ("backbones", "backbone", "backbone"),
+        ("segmenters", "segmenter", "segmenter"),
+        ("rerankers", "reranker", "kind"),
+    ):
+        for name, entry in config.get(section, {}).items():
+            check(entry, definitions[definition], kind_key, f"{section}.{name}")
+    vocabulary = definitions["vocabulary"]
+    default = vocabulary["properties"]["source"]["default"]
+    top = config.get("vocabulary", {})
+    check(top, vocabulary, "source", "vocabulary", default)
+    for name, entry in config["datasets"].items():
+        own = entry.get("defaults", {}).get("vocabulary", {})
+        if "source" in own:  # without one, its keys serve methods of any source
+            check(own, vocabulary, "source", f"datasets.{name}.defaults.vocabulary")
+    for name, method in config["methods"].items():
+        own = method.get("vocabulary", {})
+        # The source it gets from the merge, on each dataset that runs it (a method no
+        # dataset runs takes effect nowhere).
+        sources = {
+            own.get("source")
+            or entry.get("defaults", {}).get("vocabulary", {}).get("source")
+            or top.get("source", default)
+            for entry in config["datasets"].values()
+            if name in entry["methods"]
+        }
+        for source in sorted(sources):
+            check(own, vocabulary, "source", f"methods.{name}.vocabulary", source)
+    return list(dict.fromkeys(found))
 
 
 def load_schema(path: str | Path) -> dict:
@@ -202,8 +338,13 @@ _README_HEAD = """# Configuration
 
 `config/config.yaml` is the configuration the workflow reads (pass another with
 `--configfile`). It is validated against `workflow/schemas/config.schema.yaml`: an
-unknown key is an error that names it, and every `default` below is filled in before
-anything is hashed, so a store's key and attributes record what ran.
+unknown key is an error that names it, and so is a key that the entry's kind does not
+read (a ground truth's `kind`, a backbone's `backbone`, a segmenter's `segmenter`, a
+re-ranker's `kind`, a vocabulary's `source`): the error lists the kind's keys. Every
+`default` below is filled in before anything is hashed, so a store's key and attributes
+record what ran. Names of datasets, methods, backbones, segmenters and re-rankers are
+plain names (letters, digits, `_`, `.`, `-`, starting with a letter or digit): they
+become file and folder names under `results/` and `logs/`.
 
 A method's settings are, later winning: the top-level sections
 ({sections}),
@@ -227,7 +368,7 @@ def _allowed(prop: dict) -> str:
         return " or ".join(_allowed(p) for p in prop["oneOf"])
     if "$ref" in prop:
         name = prop["$ref"].rsplit("/", 1)[-1]
-        return "[width, height]" if name == "size" else f"see `{name}`"
+        return _REF_TEXT.get(name, f"see `{name}`")
     kind = prop.get("type", "")
     if kind == "array":
         return f"list of {_allowed(prop.get('items', {}))}"
@@ -238,6 +379,7 @@ def _allowed(prop: dict) -> str:
     return ", ".join([kind, *bounds]) if kind else ""
 
 
+_REF_TEXT = {"size": "[width, height]", "name": "plain name"}
 _BOUNDS = (("minimum", ">="), ("exclusiveMinimum", ">"), ("maximum", "<="))
 
 

@@ -7,6 +7,9 @@ module ``prefix`` goes in front).
 
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 CACHE = "results/cache"
 # Per-dataset tables written by the report rule.
 RECALL_CSV = "results/recall_{dataset}.csv"
@@ -23,6 +26,30 @@ INDEX = f"{CACHE}/index.tsv"
 FINGERPRINTS = f"{CACHE}/fingerprints.json"
 # A published vocabulary (vprflow.vocabularies), fetched once; one may be put there by hand.
 PUBLISHED_VOCABULARY = "results/downloads/vocabularies/{name}/c_centers.pt"
+
+
+# What a name in a path may be: a dataset, method, re-ranker or backbone entry (the
+# config's `name` in the schema), or a row `<method>+<reranker>`. The rules constrain
+# the `dataset` and `method` wildcards to it.
+NAME_PATTERN = r"[A-Za-z0-9][A-Za-z0-9_.+-]*"
+# Every output lives under one of these (relative to the working directory).
+OUTPUT_ROOTS = ("results", "logs")
+
+
+def check_inside_outputs(path: str, names: dict | None = None) -> None:
+    """Raise ValueError unless ``path`` (relative) resolves under ``results/`` or
+    ``logs/`` of the working directory; the message names ``names`` (what was filled in)."""
+    here = Path(os.getcwd()).resolve()
+    resolved = (here / path).resolve()
+    if not Path(path).is_absolute() and any(
+        resolved.is_relative_to(here / root) and resolved != here / root for root in OUTPUT_ROOTS
+    ):
+        return
+    what = ", ".join(f"{k} {v!r}" for k, v in (names or {}).items()) or "a name"
+    raise ValueError(
+        f"{what} would put output at {path}, outside {' and '.join(OUTPUT_ROOTS)}/: a name "
+        "in a path must be a plain name (letters, digits, _ . + -, no / or ..)"
+    )
 
 
 def store_pattern(stage: str) -> str:

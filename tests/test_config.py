@@ -1,0 +1,187 @@
+"""Config validation: a key is read by its section's kind or refused, names that become
+paths are plain, and a config that expands without bound is refused fast."""
+
+from __future__ import annotations
+
+import copy
+import time
+
+import pytest
+import yaml
+from workflow_helpers import REPO
+
+from vprflow.config import (
+    MAX_SHOWN,
+    ConfigError,
+    kind_keys,
+    load_schema,
+    validate_config,
+)
+from vprflow.paths import check_inside_outputs
+
+SCHEMA_PATH = REPO / "workflow" / "schemas" / "config.schema.yaml"
+
+
+@pytest.fixture
+def raw() -> dict:
+    """The shipped config as written (before validation)."""
+    return yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+
+
+def refused(config: dict) -> str:
+    with pytest.raises(ConfigError) as error:
+        validate_config(config, SCHEMA_PATH)
+    return str(error.value)
+
+
+# ------------------------------------------------------------ every key read by its kind
+
+
+def test_a_ground_truth_key_of_another_kind_is_an_error_naming_it_the_kind_and_its_keys(raw):
+    # {kind: utm, radius_m: 5} used to run at utm's default 25 m.
+    raw["datasets"]["corridor"]["ground_truth"] = {"kind": "utm", "radius_m": 5}
+    message = refused(raw)
+    assert "datasets.corridor.ground_truth.radius_m" in message
+    assert "kind 'utm' does not read 'radius_m'" in message
+    assert "its keys: kind, radius" in message
+
+
+@pytest.mark.parametrize(
+    ("section", "name", "key", "value", "kind"),
+    [
+        ("backbones", "daisy", "layer", 3, "backbone 'daisy'"),
+        ("backbones", "dinov3_vitl16", "pos_embed_interpolation", "original", "'dinov3'"),
+        ("backbones", "dinov2_vitg14", "rings", 3, "'dinov2'"),
+        ("segmenters", "slic", "points_per_side", 16, "segmenter 'slic'"),
+        ("segmenters", "felzenszwalb", "n_segments", 10, "'felzenszwalb'"),
+        ("rerankers", "ransac", "weighting", "similarity", "kind 'ransac'"),
+        ("rerankers", "mnn", "threshold", 3.0, "kind 'mnn'"),
+    ],
+)
+def test_an_entry_key_its_kind_does_not_read_is_an_error_naming_it(
+    raw, section, name, key, value, kind
+):
+    raw[section][name][key] = value
+    message = refused(raw)
+    assert f"config key '{section}.{name}.{key}'" in message
+    assert kind in message and "its keys:" in message
+
+
+def test_a_vocabulary_key_its_source_does_not_read_is_an_error_at_every_level(raw):
+    published = {"source": "published", "name": "urban"}
+    top = copy.deepcopy(raw)
+    top["vocabulary"] = {**published, "n_clusters": 64}
+    assert "config key 'vocabulary.n_clusters': source 'published'" in refused(top)
+    # A method's override merged over a published top-level source: ignored, so refused.
+    method = copy.deepcopy(raw)
+    method["vocabulary"] = published
+    method["methods"]["anyloc_vlad"]["vocabulary"] = {"n_clusters": 8}
+    assert "methods.anyloc_vlad.vocabulary.n_clusters" in refused(method)
+    # A dataset's defaults with their own source.
+    dataset = copy.deepcopy(raw)
+    dataset["datasets"]["corridor"]["defaults"]["vocabulary"] = {"source": "file", "seed": 1}
+    assert "datasets.corridor.defaults.vocabulary.seed" in refused(dataset)
+
+
+def test_top_level_vocabulary_keys_may_serve_methods_of_other_sources(raw):
+    # Top-level keys are every method's defaults: one method's published source does
+    # not make them wrong for the others.
+    raw["vocabulary"] = {"n_clusters": 16}
+    raw["methods"]["anyloc_vlad"]["vocabulary"] = {"source": "published", "name": "urban"}
+    validate_config(raw, SCHEMA_PATH)
+
+
+def test_the_shipped_configs_and_every_preset_read_every_key_they_set(raw):
+    from vprflow.presets import presets
+
+    for name in presets():
+        raw["datasets"][name] = {}
+    validate_config(raw, SCHEMA_PATH)
+    validate_config(yaml.safe_load((REPO / ".test/config/config.yaml").read_text()), SCHEMA_PATH)
+
+
+def test_each_kinds_keys_come_from_the_schemas_x_kinds():
+    schema = load_schema(SCHEMA_PATH)
+    truth = schema["definitions"]["dataset"]["properties"]["ground_truth"]
+    keys = kind_keys(truth, "kind")
+    assert keys["utm"] == ["kind", "radius"]
+    assert keys["pairs"] == keys["none"] == ["kind"]
+    assert "radius_m" in keys["coordinates"] and "radius" not in keys["coordinates"]
+
+
+# ------------------------------------------------------------ names that become paths
+
+
+@pytest.mark.parametrize(
+    ("where", "edit"),
+    [
+        ("datasets", lambda c: c["datasets"].update({"../../x": c["datasets"]["corridor"]})),
+        ("targets.0", lambda c: c.update(targets=["../../x"])),
+        ("methods", lambda c: c["methods"].update({"a/b": {"aggregator": "gem"}})),
+        ("rerankers", lambda c: c["rerankers"].update({"x+y": c["rerankers"]["mnn"]})),
+        ("backbones", lambda c: c["backbones"].update({"..": {"backbone": "daisy"}})),
+        ("segmenters", lambda c: c["segmenters"].update({".hidden": {"segmenter": "slic"}})),
+        (
+            "datasets.corridor.methods.5",
+            lambda c: c["datasets"]["corridor"]["methods"].append("../x"),
+        ),
+        (
+            "datasets.corridor.rerank",
+            lambda c: c["datasets"]["corridor"]["rerank"].update({"/x": []}),
+        ),
+    ],
+)
+def test_a_name_that_becomes_a_path_must_be_plain(raw, where, edit):
+    edit(raw)
+    message = refused(raw)
+    assert f"config key '{where}'" in message
+
+
+def test_a_dataset_named_to_climb_out_of_results_is_refused_by_name(raw):
+    raw["datasets"]["../../x"] = raw["datasets"]["corridor"]
+    raw["targets"] = ["../../x"]
+    message = refused(raw)
+    assert "'../../x' is not a plain name" in message and "results/ and logs/" in message
+
+
+def test_shipped_names_are_plain_and_a_row_name_joins_two_with_a_plus():
+    check_inside_outputs("results/recall_corridor.csv", {"dataset": "corridor"})
+    check_inside_outputs("logs/export/corridor/anyloc_vlad+mnn.log")
+
+
+@pytest.mark.parametrize(
+    "path",
+    ["logs/report/../../x.log", "results/figures/../../../x/a.png", "logs/..", "/tmp/x", "results"],
+)
+def test_an_output_path_that_leaves_results_and_logs_is_an_error_naming_the_name(path):
+    with pytest.raises(ValueError, match="'../../x'.*outside results and logs/"):
+        check_inside_outputs(path, {"dataset": "../../x"})
+
+
+# ------------------------------------------------------------ a config too large to read
+
+
+def alias_bomb(path, levels: int = 9) -> None:
+    """A config whose `targets` expands to 9**levels strings by nested aliases."""
+    lines = ["a0: &a0 [" + ", ".join(["lol"] * 9) + "]"]
+    for i in range(1, levels):
+        lines.append(f"a{i}: &a{i} [" + ", ".join([f"*a{i - 1}"] * 9) + "]")
+    lines += ["data_root: data", f"targets: *a{levels - 1}"]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_a_yaml_alias_bomb_is_refused_in_seconds_naming_its_file(tmp_path):
+    bomb = tmp_path / "bomb.yaml"
+    alias_bomb(bomb)
+    config = yaml.safe_load(bomb.read_text())  # as Snakemake reads it: shared, small
+    started = time.perf_counter()
+    with pytest.raises(ConfigError, match="config file .*bomb.yaml expands to more than"):
+        validate_config(config, SCHEMA_PATH, [REPO / "config" / "config.yaml", bomb])
+    assert time.perf_counter() - started < 5
+
+
+def test_an_error_message_shows_at_most_a_bounded_part_of_a_value(raw):
+    raw["targets"] = "x" * 100_000  # not a list: the message would print it whole
+    message = refused(raw)
+    assert len(message) < 3 * MAX_SHOWN
+    assert "characters)" in message and "config key 'targets'" in message
