@@ -572,3 +572,36 @@ def test_a_preset_reranks_only_the_methods_a_config_keeps_and_a_typo_is_named():
     config["datasets"]["corridor"]["rerank"] = {"segvlad": ["mmn"]}
     with pytest.raises(PlanError, match=r"names re-ranker 'mmn'.*rerankers"):
         build_plan(config)
+
+
+def test_a_preset_override_of_a_key_its_ground_truth_kind_does_not_read_is_an_error():
+    # pitts30k's truth is utm (radius 25): `radius_m` used to be ignored while the
+    # protocol column said `changed: ground_truth.radius_m`.
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    raw["datasets"]["pitts30k"] = {"ground_truth": {"kind": "utm", "radius_m": 5}}
+    with pytest.raises(ConfigError) as error:
+        validate_config(raw, SCHEMA)
+    message = str(error.value)
+    assert "datasets.pitts30k.ground_truth.radius_m" in message
+    assert "kind 'utm' does not read 'radius_m'; its keys: kind, radius" in message
+    raw["datasets"]["pitts30k"] = {"ground_truth": {"radius": 5}}
+    entry = validate_config(raw, SCHEMA)["datasets"]["pitts30k"]
+    assert entry["ground_truth"]["radius"] == 5
+    assert entry["protocol"] == "preset pitts30k, changed: ground_truth.radius"
+
+
+def test_a_rerankers_features_naming_no_backbone_blames_the_reranker_entry(config):
+    config["rerankers"]["mnn"]["features"] = "daisyy"
+    with pytest.raises(PlanError) as error:
+        build_plan(config)
+    message = str(error.value)
+    assert message.startswith("config key rerankers.mnn.features = 'daisyy' names no entry")
+    assert "re-ranker 'mnn'" in message
+
+
+def test_the_rerank_stage_retrieves_as_deep_as_the_recall_reads(config):
+    plan = build_plan(config)
+    run = next(r for r in plan.runs["corridor"] if r.method == "anyloc_vlad+mnn")
+    recall = plan.get("recall", run.recall_key)
+    rerank = plan.get("rerank", recall.inputs["rerank"][1])
+    assert rerank.record["params"]["depth"] == recall.record["params"]["top_k"] == 20

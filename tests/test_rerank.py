@@ -9,10 +9,17 @@ correspondences from a known homography plus uniform outliers.
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 import torch
+from synthetic import make_dataset
+from workflow_helpers import REPO, toy_config
 
+from vprflow import stores
+from vprflow.config import validate_config
+from vprflow.plan import build_plan
 from vprflow.rerank import (
     mnn_score,
     mutual_nearest_neighbours,
@@ -21,6 +28,9 @@ from vprflow.rerank import (
     rerank,
     rerank_scores,
 )
+from vprflow.stages.jobs import Job, run_job
+
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 
 def unit_rows(rng: np.random.Generator, n: int, dim: int) -> np.ndarray:
@@ -277,6 +287,19 @@ def test_rerank_keeps_missing_candidates_last_whatever_their_score():
     np.testing.assert_array_equal(new_scores, [3.0, 1.0, -np.inf, 99.0, -np.inf])
 
 
+def test_rerank_of_the_top_k_appends_the_rest_of_the_retrieval_in_its_order():
+    # K = 3 of D = 6: the head is re-ordered, the tail keeps the retrieval's order and
+    # scores as the lowest re-ranked candidate, so scores never rise down the ranking.
+    ranking = np.array([10, 11, 12, 13, 14, 15], dtype=np.int64)
+    new_ranking, new_scores = rerank(ranking, np.array([1.0, 5.0, 2.0]))
+    np.testing.assert_array_equal(new_ranking, [11, 12, 10, 13, 14, 15])
+    np.testing.assert_array_equal(new_scores, [5.0, 2.0, 1.0, 1.0, 1.0, 1.0])
+    # The retrieval's trailing padding stays last.
+    padded = np.array([10, 11, 12, -1, -1], dtype=np.int64)
+    new_ranking, _ = rerank(padded, np.array([0.0, 3.0]))
+    np.testing.assert_array_equal(new_ranking, [11, 10, 12, -1, -1])
+
+
 @pytest.mark.parametrize(
     ("call", "named"),
     [
@@ -323,7 +346,7 @@ def test_rerank_keeps_missing_candidates_last_whatever_their_score():
             ),
             "threshold",
         ),
-        (lambda: rerank(np.array([1, 2]), np.array([1.0])), "scores"),
+        (lambda: rerank(np.array([1, 2]), np.array([1.0, 2.0, 3.0])), "scores"),
         (lambda: rerank(np.array([[1, 2]]), np.array([[1.0, 2.0]])), "ranking_row"),
         (lambda: rerank(np.array([1, -2]), np.array([1.0, 2.0])), "ranking_row"),
         (lambda: rerank(np.array([1, 2]), np.array([1.0, np.nan])), "NaN"),
@@ -339,3 +362,64 @@ def test_rerank_scores_rejects_options_of_the_other_method_by_name():
         rerank_scores(
             np.zeros((6, 4)), np.zeros((1, 6, 4)), (2, 3), 14, "ransac", weighting="count"
         )
+
+
+# ------------------------------------------------------------ a re-ranker shallower than the table
+
+
+def run_stage(plan, stage: str, key: str, data_root: Path, out: Path, done: dict) -> str:
+    """Run ``(stage, key)`` of ``plan`` and its inputs, unsharded, through the rules'
+    own runners; the store's path."""
+    if (stage, key) not in done:
+        planned = plan.get(stage, key)
+        inputs = {
+            n: run_stage(plan, *ref, data_root, out, done) for n, ref in planned.inputs.items()
+        }
+        path = str(out / stage / f"{key}.zarr")
+        job = Job(planned.record, inputs, path, data_root=str(data_root), run={"device": "cpu"})
+        run_job(job)
+        done[stage, key] = path
+    return done[stage, key]
+
+
+def test_a_reranked_rows_recall_beyond_its_top_k_is_its_retrievals(tmp_path):
+    """anyloc_vlad re-ranked by mnn over its top 2 of 6 references, the table reading
+    Recall@1, 2, 4 and 6: the re-ranked ranking is as deep as the retrieval's, its top 2
+    the retrieval's top 2 re-ordered and the rest the retrieval's in order, so Recall@N
+    for N >= 2 is the retrieval's. The truth (query q's positive is reference q + 3)
+    makes the retrieval's Recall@4 exceed its Recall@2, which a ranking truncated at the
+    re-ranker's 2 would have reported for Recall@4 too."""
+    root = make_dataset(tmp_path / "data" / "toy", n_places=6, width=64, height=48)
+    rows = np.empty((6, 2), dtype=object)
+    for q in range(6):
+        rows[q] = q, [(q + 3) % 6]
+    np.save(root / "ground_truth_new.npy", rows, allow_pickle=True)
+    config = toy_config(
+        tmp_path / "data",
+        resolution=[64, 48],
+        recall_at=[1, 2, 4, 6],
+        methods=["anyloc_vlad"],
+        rerank={"anyloc_vlad": ["mnn"]},
+    )
+    config["rerankers"] = {"mnn": {"kind": "mnn", "features": "daisy", "top_k": 2}}
+    plan = build_plan(validate_config(config, SCHEMA))
+    done: dict = {}
+    runs = {run.method: run for run in plan.runs["toy"]}
+    retrieval, reranked = (
+        stores.open_store(
+            run_stage(
+                plan, "recall", runs[m].recall_key, tmp_path / "data", tmp_path / "cache", done
+            )
+        )
+        for m in ("anyloc_vlad", "anyloc_vlad+mnn")
+    )
+    before = np.asarray(retrieval["ranking"][...])
+    after = np.asarray(reranked["ranking"][...])
+    assert after.shape == before.shape == (6, 6)
+    np.testing.assert_array_equal(np.sort(after[:, :2], axis=1), np.sort(before[:, :2], axis=1))
+    np.testing.assert_array_equal(after[:, 2:], before[:, 2:])
+    recall, recall_reranked = retrieval.attrs["recall"], reranked.attrs["recall"]
+    assert recall["4"] > recall["2"]  # the case is one a truncated ranking would get wrong
+    for n in ("2", "4", "6"):
+        assert recall_reranked[n] == recall[n]
+    assert recall_reranked["6"] == 1.0

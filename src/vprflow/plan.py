@@ -51,7 +51,7 @@ FORMAT_VERSIONS = {
     # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
     # summary and cost per query, re-ranked lists; 6: n_queries_without_positive
     "recall": 6,
-    "rerank": 1,
+    "rerank": 2,  # 2: the top K re-ordered, then the rest of the retrieval (to `depth`)
 }
 
 # Dataset settings that do not shape the dataset store (later stages read them, or
@@ -513,10 +513,19 @@ def _plan_rerank(
             f"is not defined under rerankers: {sorted(m.config['rerankers'])}"
         )
     entry = m.config["rerankers"][name]
+    if entry["features"] not in m.config["backbones"]:
+        raise PlanError(
+            f"config key rerankers.{name}.features = {entry['features']!r} names no entry "
+            f"under backbones: {sorted(m.config['backbones'])} (re-ranker {name!r}, which "
+            f"datasets.{m.dataset_name}.rerank applies to method {m.name!r})"
+        )
     features, _ = _plan_features(m, entry["features"])
     params = {
         "kind": entry["kind"],
         "top_k": entry["top_k"],
+        # As deep as the recall's ranking: the rest of the retrieval follows the
+        # re-ranked top K, so Recall@N beyond top_k is the retrieval's, not truncated.
+        "depth": recall_params["top_k"],
         "options": {k: entry[k] for k in RERANKERS[entry["kind"]].options},
     }
     if "vote_ranking" in recall_params:

@@ -398,28 +398,41 @@ def rerank_scores(
 
 
 def rerank(ranking_row: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Re-order one query's candidates by decreasing score.
+    """Re-order one query's first ``K`` candidates by decreasing score; the rest of the
+    retrieval follows them in its own order.
 
-    ``ranking_row`` ``[K]`` int64: reference indices in retrieval order, ``-1`` = no
-    candidate; ``scores`` ``[K]`` float64, aligned with it. The sort is stable, so equal
-    scores keep their retrieval order, and every ``-1`` entry goes last (in its original
-    order, with its score), whatever its score. Returns ``(new_ranking [K] int64,
-    new_scores [K] float64)``.
+    ``ranking_row`` ``[D]`` int64: reference indices in retrieval order, ``-1`` = no
+    candidate; ``scores`` ``[K]`` float64, ``K <= D``, aligned with its first ``K``
+    entries (the re-ranked top K). The sort is stable, so equal scores keep their
+    retrieval order; entries ``K..D-1`` (not re-ranked) come next in retrieval order,
+    scored as the lowest re-ranked score (0 when none), so scores never rise down the
+    ranking; every ``-1`` entry goes last (in its original order, a re-ranked one with
+    its score), whatever its score. A re-ranker that looked at fewer candidates than
+    the table's deepest Recall@N thus leaves Recall@N for ``N >= K`` as the retrieval's,
+    instead of truncating the ranking. Returns ``(new_ranking [D] int64, new_scores [D]
+    float64)``.
     """
     ranking = np.asarray(ranking_row)
     values = np.asarray(scores, dtype=np.float64)
     if ranking.ndim != 1:
-        raise ValueError(f"ranking_row must be [K], got shape {ranking.shape}")
-    if values.shape != ranking.shape:
-        raise ValueError(f"scores must be [K] = {ranking.shape}, got shape {values.shape}")
+        raise ValueError(f"ranking_row must be [D], got shape {ranking.shape}")
+    if values.ndim != 1 or len(values) > len(ranking):
+        raise ValueError(
+            f"scores must be [K] with K <= {len(ranking)} (ranking_row's length), "
+            f"got shape {values.shape}"
+        )
     if not np.issubdtype(ranking.dtype, np.integer):
         raise ValueError(f"ranking_row must hold integer reference indices, got {ranking.dtype}")
     if np.any(ranking < -1):
         raise ValueError("ranking_row holds indices below -1 (-1 alone marks no candidate)")
-    present = np.flatnonzero(ranking >= 0)
+    k = len(values)
+    present = np.flatnonzero(ranking[:k] >= 0)
     if np.isnan(values[present]).any():
         raise ValueError("scores are NaN for some candidates; cannot order them")
     # Negating keeps the stable sort's tie order (retrieval order) for a decreasing sort.
-    order = present[np.argsort(-values[present], kind="stable")]
-    order = np.concatenate([order, np.flatnonzero(ranking < 0)])
-    return ranking[order].astype(np.int64), values[order]
+    head = present[np.argsort(-values[present], kind="stable")]
+    tail = k + np.flatnonzero(ranking[k:] >= 0)
+    order = np.concatenate([head, tail, np.flatnonzero(ranking < 0)]).astype(np.int64)
+    floor = float(values[present].min()) if len(present) else 0.0
+    full = np.concatenate([values, np.full(len(ranking) - k, floor)])
+    return ranking[order].astype(np.int64), full[order]

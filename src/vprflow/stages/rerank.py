@@ -2,8 +2,11 @@
 matches between dense patch features (:mod:`vprflow.rerank`).
 
 The retrieval is the method's own (:func:`vprflow.stages.recall.retrieve`, the ranking
-its recall row is computed from, only deeper: ``top_k``); the patch features are the
-re-ranker's (any backbone entry, so they may differ from the method's).
+its recall row is computed from, as deep as ``depth``, the recall's, or ``top_k`` if
+deeper); the patch features are the re-ranker's (any backbone entry, so they may differ
+from the method's). The re-ranked ranking is the re-ordered top K followed by the rest
+of the retrieval in its order, so a re-ranker shallower than the table's deepest
+Recall@N leaves the deeper recall as the retrieval's instead of truncating it.
 """
 
 from __future__ import annotations
@@ -26,9 +29,11 @@ _IN_MEMORY_BYTES = 2 << 30
 
 
 def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "auto") -> None:
-    """Store ``ranking [Nq, K]`` (reference indices, -1 = none) and ``scores [Nq, K]``
-    (the re-ranker's, higher is better) and the retrieval they re-order
-    (``retrieval_ranking [Nq, K]``); ``ms_per_query`` times the re-ranking alone,
+    """Store ``ranking [Nq, D]`` (reference indices, -1 = none; the top ``K = top_k``
+    re-ordered, then the rest of the retrieval), ``scores [Nq, D]`` (the re-ranker's,
+    higher is better; see :func:`vprflow.rerank.rerank` for the entries not re-ranked)
+    and the retrieval they re-order (``retrieval_ranking [Nq, D]``), ``D = max(depth,
+    top_k)`` capped at the references; ``ms_per_query`` times the re-ranking alone,
     ``search_ms_per_query`` the retrieval."""
     from vprflow.devices import resolve_device
     from vprflow.rerank import rerank, rerank_scores
@@ -39,7 +44,7 @@ def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "
     (retrieved, _, _), search_ms = timed_retrieve(
         dataset,
         inputs["descriptors"],
-        params["top_k"],
+        max(params["top_k"], params["depth"]),
         inputs.get("search"),
         params.get("vote_ranking"),
     )
@@ -55,9 +60,12 @@ def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "
     ranking = np.full_like(retrieved, -1)
     scores = np.zeros(retrieved.shape)  # padding (rank -1) scores 0, as in voting
     started = time.perf_counter()
+    top_k = min(params["top_k"], retrieved.shape[1])
     for q in tqdm(range(dataset.n_query), desc=f"rerank ({params['kind']})", unit="query"):
-        candidates = retrieved[q][retrieved[q] >= 0]
+        # A retrieval's -1 padding trails its row: the candidates are the head's present.
+        candidates = retrieved[q, :top_k][retrieved[q, :top_k] >= 0]
         if not len(candidates):
+            ranking[q] = retrieved[q]
             continue
         query = np.asarray(array[n_ref + q], dtype=np.float32)
         if references is not None:
@@ -73,9 +81,7 @@ def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "
             device=torch_device,
             **options,
         )
-        order, ordered = rerank(retrieved[q][: len(candidates)], found)
-        ranking[q, : len(candidates)] = order
-        scores[q, : len(candidates)] = ordered
+        ranking[q], scores[q] = rerank(retrieved[q], found)
     seconds = time.perf_counter() - started
     with stores.atomic_store(out, {"stage": "rerank", "record": record}) as group:
         group.attrs.update(
@@ -83,13 +89,15 @@ def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "
             ms_per_query=1000 * seconds / max(dataset.n_query, 1),
             # The retrieval's own cost, for the re-ranked row's search_ms_per_query.
             search_ms_per_query=search_ms,
-            top_k=int(retrieved.shape[1]),
+            top_k=int(top_k),
+            depth=int(retrieved.shape[1]),
         )
         stores.write_array(group, "ranking", ranking.astype(np.int64))
         stores.write_array(group, "scores", scores.astype(np.float64))
         stores.write_array(group, "retrieval_ranking", retrieved.astype(np.int64))
     log.info(
-        "re-ranked the top %d of %d queries in %.1f ms a query",
+        "re-ranked the top %d (of %d retrieved) of %d queries in %.1f ms a query",
+        top_k,
         retrieved.shape[1],
         dataset.n_query,
         1000 * seconds / max(dataset.n_query, 1),
