@@ -185,3 +185,35 @@ def test_an_error_message_shows_at_most_a_bounded_part_of_a_value(raw):
     message = refused(raw)
     assert len(message) < 3 * MAX_SHOWN
     assert "characters)" in message and "config key 'targets'" in message
+
+
+# ------------------------------------------------------------ through Snakemake
+
+
+@pytest.mark.workflow
+def test_a_dataset_named_to_climb_out_of_results_stops_the_run_and_writes_nothing(tmp_path):
+    from workflow_helpers import snakemake, toy_config, write_config
+
+    workdir = tmp_path / "a" / "b"
+    workdir.mkdir(parents=True)
+    config = toy_config(tmp_path / "data")
+    config["datasets"]["../../x"] = config["datasets"].pop("toy")
+    config["targets"] = ["../../x"]
+    result = snakemake(workdir, write_config(tmp_path, config), check=False)
+    assert result.returncode != 0
+    assert "'../../x' is not a plain name" in result.stdout + result.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a", "config.yaml"]
+    assert not (workdir / "results").exists() and not (workdir / "logs").exists()
+
+
+@pytest.mark.workflow
+def test_a_yaml_alias_bomb_given_to_snakemake_fails_in_seconds_naming_the_file(tmp_path):
+    from workflow_helpers import snakemake
+
+    bomb = tmp_path / "bomb.yaml"
+    alias_bomb(bomb)
+    started = time.perf_counter()
+    result = snakemake(tmp_path, bomb, "-n", check=False)
+    assert result.returncode != 0
+    assert f"config file {bomb} expands to more than" in result.stdout + result.stderr
+    assert time.perf_counter() - started < 60  # Snakemake's own start-up included
