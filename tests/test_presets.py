@@ -124,6 +124,24 @@ def test_a_swapped_in_feature_without_a_matching_reranker_drops_the_presets_rera
     assert entry["rerank"] == {"anyloc_vlad": ["mnn"], "segvlad": ["mnn", "ransac"]}
 
 
+def test_a_redefined_backbone_entry_takes_the_presets_published_vocabulary_along(tmp_path, capsys):
+    """The preset's features keep their entry name but are no longer DINOv2-G layer 31
+    value features: the 1,536-d published centres cannot describe them."""
+    (tmp_path / "pitts30k").mkdir()
+    config = config_with(tmp_path)
+    assert validate_config(config, SCHEMA)["datasets"]["pitts30k"]["defaults"]["vocabulary"] == {
+        "source": "published",
+        "name": "urban",
+    }
+    config["backbones"]["dinov2_vitg14"]["model"] = "facebook/dinov2-small"
+    config["backbones"]["dinov2_vitg14"]["layer"] = 9
+    entry = validate_config(config, SCHEMA)["datasets"]["pitts30k"]
+    assert "vocabulary" not in entry["defaults"]
+    assert entry["rerank"] == presets()["pitts30k"].dataset["rerank"]  # same entry name
+    log = capsys.readouterr().err
+    assert "backbones.dinov2_vitg14 (layer 9, model facebook/dinov2-small)" in log
+
+
 def test_a_method_on_other_features_with_the_presets_vocabulary_stops_planning_naming_keys(
     tmp_path,
 ):

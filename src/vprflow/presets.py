@@ -137,7 +137,8 @@ def with_presets(config: dict) -> dict:
             (Path(config["data_root"]) / preset.dataset["path"]).is_dir()
             and not undefined_components(preset.dataset, config)
         ):
-            datasets[name] = copy.deepcopy(preset.dataset)
+            datasets[name], notes = follow_features(name, preset.dataset, {}, config)
+            _say(notes)
             _check_method_features(name, datasets[name], preset.dataset, config)
     return datasets
 
@@ -166,22 +167,33 @@ def follow_features(name: str, preset: dict, entry: dict, config: dict) -> tuple
     kind and options on the chosen features, or dropped where there is none, unless the
     entry gives that method's ``rerank``). Unchanged when the entry keeps the features."""
     own = (preset.get("defaults") or {}).get("features")
-    chosen = ((entry.get("defaults") or {}) if isinstance(entry, dict) else {}).get("features")
-    if own is None or chosen is None or chosen == own:
+    defaults = (entry.get("defaults") or {}) if isinstance(entry, dict) else {}
+    chosen = defaults.get("features")
+    if own is None:
         return preset, []
+    if chosen is None or chosen == own:
+        # The same entry name, but is it still the features the vocabulary is of?
+        why = _not_published_features(own, config)
+        chosen, change = own, f"backbones.{own} ({why})"
+        if why is None:
+            return preset, []
+    else:
+        change = f"features {chosen!r} (not the preset's {own!r})"
     base, notes = copy.deepcopy(preset), []
     vocabulary = base["defaults"].get("vocabulary") or {}
     if vocabulary.get("source") == "published" and "source" not in (
-        entry["defaults"].get("vocabulary") or {}
+        defaults.get("vocabulary") or {}
     ):
         del base["defaults"]["vocabulary"]
         source = (config.get("vocabulary") or {}).get("source", "map")
         notes.append(
-            f"datasets.{name}: features {chosen!r} replace the preset's {own!r}, so the "
-            f"published vocabulary {vocabulary['name']!r} (centres of {own}'s features) "
+            f"datasets.{name}: with {change}, the published vocabulary "
+            f"{vocabulary['name']!r} (centres of DINOv2 ViT-G/14 layer 31 value features) "
             f"gives way to the config's `vocabulary` (source {source}); set "
             f"datasets.{name}.defaults.vocabulary to choose another"
         )
+    if chosen == own:
+        return base, notes  # re-rankers on the entry follow it by name
     rerankers = config.get("rerankers") or {}
     for method, names in (base.get("rerank") or {}).items():
         if method in (entry.get("rerank") or {}):
@@ -209,6 +221,33 @@ def follow_features(name: str, preset: dict, entry: dict, config: dict) -> tuple
             )
         base["rerank"][method] = kept
     return base, notes
+
+
+def _not_published_features(entry_name: str, config: dict) -> str | None:
+    """How the config's backbone entry ``entry_name`` differs from DINOv2 ViT-G/14 layer
+    31 value, the features of the published 1,536-d vocabularies, or None where it does
+    not (as far as the entry tells: a local model directory is taken for ViT-G/14)."""
+    from vprflow.registry import with_defaults
+
+    spec = (config.get("backbones") or {}).get(entry_name)
+    if not isinstance(spec, dict):
+        return None
+    try:
+        filled = with_defaults("features", spec)
+    except Exception:  # an invalid entry: the schema says why
+        return None
+    if filled.get("backbone") != "dinov2":
+        return f"backbone {filled.get('backbone')}"
+    model = str(filled.get("model"))
+    hub = model.startswith("facebook/dinov2-") and not Path(model).exists()
+    differences = [
+        f"{key} {filled.get(key)}"
+        for key, value in (("layer", 31), ("facet", "value"))
+        if filled.get(key) != value
+    ]
+    differences += [f"model {model}"] if hub and model != "facebook/dinov2-giant" else []
+    differences += ["checkpoint (fine-tuned weights)"] if filled.get("checkpoint") else []
+    return ", ".join(differences) or None
 
 
 def _check_method_features(name: str, dataset: dict, preset: dict, config: dict) -> None:
@@ -389,7 +428,9 @@ def datasets_doc() -> str:
         "`defaults.vocabulary` for another), and each re-ranker on DINOv2-G features is",
         "replaced by your config's re-ranker of the same kind and options on the chosen",
         "features (`mnn_dinov2` by `mnn` on `daisy`), or dropped where there is none (set",
-        "the entry's `rerank` to choose); the log says what followed. A method with features",
+        "the entry's `rerank` to choose); the log says what followed. A `dinov2_vitg14`",
+        "entry redefined to another model, layer or facet drops the published vocabulary",
+        "the same way (its re-rankers follow it by name). A method with features",
         "of its own (`anyloc_vlad_dinov3`) on a preset that keeps its published vocabulary",
         "stops planning, naming the keys to set (`methods.<method>.vocabulary.source`), rather",
         "than fail in the vocabulary stage after the fetch and the features. A full entry",
