@@ -192,13 +192,38 @@ def test_the_recall_figure_draws_precision_recall_curves_in_a_second_panel():
     pr = {"a": (np.array([1.0, 0.5, 0.6]), np.array([0.5, 0.5, 1.0]))}
     figure = figures.recall_curve_figure(curves, "t", [1, 5], precision_recall=pr)
     left, right = figure.axes
-    assert [line.get_label() for line in left.get_lines()][::2] == ["a", "a+mnn"]
+    assert [line.get_label() for line in left.get_lines()] == ["a", "a+mnn"]
     (line,) = right.get_lines()  # a+mnn had no correct top-1: no curve
     # VPR-Bench's curve starts at (recall 0, precision 1).
     np.testing.assert_array_equal(line.get_xdata(), [0.0, 0.5, 0.5, 1.0])
     np.testing.assert_array_equal(line.get_ydata(), [1.0, 1.0, 0.5, 0.6])
     assert line.get_color() == left.get_lines()[0].get_color()
     assert len(figures.recall_curve_figure(curves, "t").axes) == 1
+    figures._pyplot().close("all")
+
+
+def test_every_curve_of_a_crowded_figure_has_its_own_style_and_rows_stay_with_their_method():
+    """Roadscene's 17 rows on tab10 used to repeat colours (snsm and anyloc_vlad+ransac
+    were both blue)."""
+    methods = ["anyloc_vlad", "snsm", "segvlad", "segvlad_nopca", "segvlad_o0"]
+    methods += ["segvlad_o0_nopca", "snsm_all8", "snsm_neg_l2", "snsm_token", "snsm_u6"]
+    methods += ["gem", "average", "max", "anyloc_vlad+mnn", "anyloc_vlad+ransac"]
+    methods += ["segvlad+mnn", "segvlad+ransac"]
+    styles = figures.curve_styles(methods)
+    looks = [(s["color"], s["marker"], str(s["linestyle"])) for s in styles.values()]
+    assert len(set(looks)) == len(methods) == 17
+    for row in ("anyloc_vlad+mnn", "anyloc_vlad+ransac"):
+        assert styles[row]["color"] == styles["anyloc_vlad"]["color"]
+        assert styles[row]["linestyle"] != styles["anyloc_vlad"]["linestyle"]
+    # The legend lists each method followed by its re-ranked rows.
+    order = list(styles)
+    assert order[:3] == ["anyloc_vlad", "anyloc_vlad+mnn", "anyloc_vlad+ransac"]
+    assert order.index("segvlad+ransac") == order.index("segvlad") + 2
+    figure = figures.recall_curve_figure({m: np.linspace(0.1, 1, 20) for m in methods}, "t")
+    (axes,) = figure.axes
+    assert axes.get_legend() is None and len(figure.legends) == 1  # beside, not on, the data
+    legend_box = figure.legends[0].get_window_extent()
+    assert legend_box.x0 >= axes.get_window_extent().x1
     figures._pyplot().close("all")
 
 
@@ -234,3 +259,15 @@ def test_recall_table_page_states_which_queries_were_counted(tmp_path, denominat
     page = (tmp_path / "page.html").read_text()
     assert said in page and not_said not in page
     assert "ground-truth rule pairs" in page and "recall_d.csv" in page
+
+
+def test_support_maps_share_one_colour_scale_shown_by_a_colour_bar():
+    rng = np.random.default_rng(0)
+    image = rng.uniform(0, 1, (32, 32, 3))
+    rows = [("q.png", image, np.full((4, 4), 0.2), "r.png", image, np.full((4, 4), 0.9))]
+    figure = figures.support_map_figure(rows, "t")
+    *panels, bar = figure.axes
+    assert len(panels) == 4 and bar.get_ylim() == pytest.approx((0.2, 0.9))
+    query_map, reference_map = panels[1].get_images()[0], panels[3].get_images()[0]
+    assert query_map.get_clim() == reference_map.get_clim() == pytest.approx((0.2, 0.9))
+    figures._pyplot().close("all")

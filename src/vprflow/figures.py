@@ -184,6 +184,38 @@ def recall_axis_floor(curves: dict[str, np.ndarray]) -> float:
     return max(0.0, np.floor((lowest - 0.1) * 10) / 10)
 
 
+# A method's colour and marker, and a re-ranked row's line style: a row ``m+r`` keeps the
+# colour and marker of ``m`` and takes the dashes of its re-ranker, so each method reads
+# as one family and no two curves look alike (tab10 has ten colours; markers tell apart
+# the methods beyond ten).
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X")
+_DASHES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1)), (0, (1, 3)))
+
+
+def curve_styles(methods: Sequence[str]) -> dict[str, dict]:
+    """``{method: {"color", "marker", "linestyle"}}`` for the rows of a recall figure, in
+    legend order: each method (the part of a row's name before ``+``) in order of first
+    appearance, followed by its re-ranked rows. Distinct for up to 70 methods and six
+    line styles (a method and five re-rankers)."""
+    from matplotlib import colormaps
+
+    palette = colormaps["tab10"].colors
+    families: dict[str, list[str]] = {}
+    for method in methods:
+        families.setdefault(method.split("+", 1)[0], []).append(method)
+    styles = {}
+    for index, (base, rows) in enumerate(families.items()):
+        # The base row first, then the re-ranked ones in their order.
+        rows = sorted(rows, key=lambda row: row != base)
+        for depth, row in enumerate(rows):
+            styles[row] = {
+                "color": palette[index % len(palette)],
+                "marker": _MARKERS[index // len(palette) % len(_MARKERS)],
+                "linestyle": _DASHES[depth % len(_DASHES)],
+            }
+    return styles
+
+
 def recall_curve_figure(
     curves: dict[str, np.ndarray],
     title: str,
@@ -194,18 +226,23 @@ def recall_curve_figure(
     the table's N values, drawn as points. With ``precision_recall[method] = (precision
     [T], recall [T])`` (a method may lack one: no correct top-1 match), a second panel
     beside it draws those curves from the point (recall 0, precision 1), as VPR-Bench
-    plots them."""
+    plots them. Styles from :func:`curve_styles`; the legend sits right of the panels,
+    off the data."""
     plt = _pyplot()
     panels = 2 if precision_recall is not None else 1
-    figure, all_axes = plt.subplots(1, panels, figsize=(7 * panels, 4.5), squeeze=False)
+    styles = curve_styles(list(curves))
+    legend_width = 0.6 + 0.075 * max((len(m) for m in curves), default=0)
+    figure, all_axes = plt.subplots(
+        1, panels, figsize=(6 * panels + legend_width, 4.5), squeeze=False
+    )
     axes = all_axes[0, 0]
-    colours = {}
+    handles = {}
     for method, curve in curves.items():
         n = np.arange(1, len(curve) + 1)
-        (line,) = axes.plot(n, curve, label=method, linewidth=1.6)
-        colours[method] = line.get_color()
-        at = [m for m in marks if 1 <= m <= len(curve)]
-        axes.plot(at, curve[np.array(at, dtype=int) - 1], "o", color=line.get_color(), ms=4)
+        at = [m - 1 for m in marks if 1 <= m <= len(curve)]
+        (handles[method],) = axes.plot(
+            n, curve, label=method, linewidth=1.5, markevery=at, ms=4, **styles[method]
+        )
     from matplotlib.ticker import MaxNLocator
 
     axes.xaxis.set_major_locator(MaxNLocator(integer=True))
@@ -215,7 +252,6 @@ def recall_curve_figure(
     # Half a step of room each side, so the points at N = 1 and the last N are whole.
     axes.set_xlim(0.5, max((len(c) for c in curves.values()), default=1) + 0.5)
     axes.grid(alpha=0.3)
-    axes.legend(loc="lower right", fontsize=8)
     if precision_recall is not None:
         axes = all_axes[0, 1]
         for method, (precision, recall) in precision_recall.items():
@@ -223,8 +259,10 @@ def recall_curve_figure(
                 np.concatenate([[0.0], recall]),
                 np.concatenate([[1.0], precision]),
                 label=method,
-                linewidth=1.6,
-                color=colours.get(method),
+                linewidth=1.5,
+                markevery=0.2,  # a few markers, evenly spaced along the curve
+                ms=3,
+                **styles[method],
             )
         axes.set_xlabel("recall (of the correct top-1 matches)")
         axes.set_ylabel("precision (of the accepted top-1 matches)")
@@ -233,6 +271,17 @@ def recall_curve_figure(
         axes.grid(alpha=0.3)
         axes.set_title("top-1 precision-recall over a score threshold", fontsize=10)
     figure.suptitle(title, fontsize=11)
+    width = figure.get_figwidth()
+    figure.tight_layout(rect=(0, 0, 1 - legend_width / width, 1))
+    ordered = [handles[m] for m in styles]
+    figure.legend(
+        ordered,
+        list(styles),
+        loc="upper left",
+        bbox_to_anchor=(1 - legend_width / width, 0.93),
+        fontsize=8,
+        frameon=False,
+    )
     return figure
 
 
@@ -255,10 +304,11 @@ def retrieval_figure(rows: list[RetrievalRow], title: str, height: int = 120):
     plt = _pyplot()
     n_cols = 1 + max((len(r.references) for r in rows), default=0)
     border = max(2, round(FRAME_FRACTION * height))
-    height_in = 1.7 * len(rows) + 0.6
+    height_in = 1.7 * len(rows) + 0.9
     figure, axes = plt.subplots(len(rows), n_cols, figsize=(1.9 * n_cols, height_in), squeeze=False)
-    # The title's 0.6 inches, not matplotlib's 12 % of the height (inches on a tall figure).
-    figure.subplots_adjust(top=1 - 0.6 / height_in)
+    # The title's 0.5 inches above the first row's two-line labels (0.4 inches), not
+    # matplotlib's 12 % of the height (inches on a tall figure).
+    figure.subplots_adjust(top=1 - 0.9 / height_in)
     for axis in axes.ravel():
         axis.axis("off")
     for r, row in enumerate(rows):
@@ -417,7 +467,11 @@ def support_map_figure(
     """SNSM support maps: per row ``(query name, query image, its support map, reference
     name, reference image, its support map)``, the images beside their maps."""
     plt = _pyplot()
-    figure, axes = plt.subplots(len(rows), 4, figsize=(10, 2.6 * len(rows) + 0.5), squeeze=False)
+    figure, axes = plt.subplots(len(rows), 4, figsize=(10.6, 2.6 * len(rows) + 0.5), squeeze=False)
+    # One colour scale for every map, so a colour means one similarity throughout.
+    maps = [m for row in rows for m in (row[2], row[5])]
+    low = min((float(np.min(m)) for m in maps), default=0.0)
+    high = max((float(np.max(m)) for m in maps), default=1.0)
     for r, (q_name, q_image, q_map, r_name, r_image, r_map) in enumerate(rows):
         panels = [
             (q_image, f"query {q_name}", None, q_image),
@@ -429,8 +483,12 @@ def support_map_figure(
             # A map covers the image it was computed from (resized to the features'
             # input size): drawn over that image's extent, so both have its shape.
             extent = (0, image.shape[1], image.shape[0], 0)
-            axes[r, c].imshow(picture, cmap=cmap, extent=extent)
+            scale = {"vmin": low, "vmax": high} if cmap else {}
+            shown = axes[r, c].imshow(picture, cmap=cmap, extent=extent, **scale)
             axes[r, c].set_title(label, fontsize=8)
             axes[r, c].axis("off")
+    if rows:
+        bar = figure.colorbar(shown, ax=axes.ravel().tolist(), fraction=0.025, pad=0.02)
+        bar.set_label("support (similarity to the token's neighbours)", fontsize=8)
     figure.suptitle(title, fontsize=10)
     return figure
