@@ -83,6 +83,15 @@ def test_a_vocabulary_key_its_source_does_not_read_is_an_error_at_every_level(ra
     assert "datasets.corridor.defaults.vocabulary.seed" in refused(dataset)
 
 
+def test_a_coordinates_truth_from_exif_refuses_a_file_it_would_not_read(raw):
+    truth = {"kind": "coordinates", "source": "exif", "radius_m": 10, "file": "gps.csv"}
+    raw["datasets"]["corridor"]["ground_truth"] = truth
+    message = refused(raw)
+    assert "datasets.corridor.ground_truth.file': source 'exif' does not read 'file'" in message
+    truth["source"] = "file"
+    validate_config(raw, SCHEMA_PATH)
+
+
 def test_top_level_vocabulary_keys_may_serve_methods_of_other_sources(raw):
     # Top-level keys are every method's defaults: one method's published source does
     # not make them wrong for the others.

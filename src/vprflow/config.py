@@ -162,7 +162,9 @@ def check_config_size(config: dict, files=()) -> None:
 def kind_keys(definition: dict, kind_key: str) -> dict[str, list[str]]:
     """Kind -> the keys an entry of that kind reads, for a schema definition (or
     property) whose ``kind_key`` names its kind: every key but those whose ``x-kinds``
-    (the kinds that read them) leaves the kind out. The kinds are ``kind_key``'s enum."""
+    (the kinds that read them) leaves the kind out. The kinds are ``kind_key``'s enum.
+    A key's ``x-sources`` further limits it to entries whose ``source`` (when written)
+    is one of them (:func:`unread_keys`)."""
     properties = definition["properties"]
     kinds = properties[kind_key]["enum"]
     return {
@@ -193,6 +195,15 @@ def unread_keys(config: dict, schema: dict) -> list[str]:
             for name in entry
             if name not in keys
         )
+        # A key read only under some `source` of its kind (a coordinates truth's `file`).
+        source = entry.get("source")
+        for name in entry:
+            sources = definition["properties"][name].get("x-sources")
+            if name in keys and sources is not None and source not in (None, *sources):
+                found.append(
+                    f"config key '{where}.{name}': source {source!r} does not read {name!r}; "
+                    f"it is read with source {' or '.join(map(repr, sources))}"
+                )
 
     for name, entry in config["datasets"].items():
         check(
