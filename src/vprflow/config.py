@@ -100,8 +100,8 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     unknown = [name for name in config["targets"] if name not in config["datasets"]]
     if unknown:
         raise ConfigError(
-            f"config key 'targets' names datasets {unknown} that are not configured; "
-            f"configured: {sorted(config['datasets'])}"
+            f"config key 'targets' names datasets {shorten(unknown)} that are not "
+            f"configured; configured: {shorten(sorted(config['datasets']))}"
         )
     for entries, stage in (("backbones", "features"), ("segmenters", "segments")):
         for entry in config[entries].values():
