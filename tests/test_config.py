@@ -153,6 +153,15 @@ def test_a_dataset_named_to_climb_out_of_results_is_refused_by_name(raw):
     assert "'../../x' is not a plain name" in message and "results/ and logs/" in message
 
 
+def test_the_wildcards_admit_exactly_the_config_names_and_rows_joined_by_a_plus():
+    # The schema's name (config entries) and paths.NAME_PATTERN (the `dataset` and
+    # `method` wildcards, whose methods include rows `<method>+<reranker>`) agree.
+    from vprflow.paths import NAME_PATTERN
+
+    pattern = load_schema(SCHEMA_PATH)["definitions"]["name"]["pattern"]
+    assert pattern == "^" + NAME_PATTERN.replace("+", "") + "$"
+
+
 def test_shipped_names_are_plain_and_a_row_name_joins_two_with_a_plus():
     check_inside_outputs("results/recall_corridor.csv", {"dataset": "corridor"})
     check_inside_outputs("logs/export/corridor/anyloc_vlad+mnn.log")
