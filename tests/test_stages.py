@@ -19,6 +19,7 @@ from vprflow.images import read_image, resize_image
 from vprflow.plan import build_plan
 from vprflow.stages.dataset import Dataset, build_dataset
 from vprflow.stages.descriptors import compute_descriptors
+from vprflow.stages.export import write_pairs
 from vprflow.stages.features import compute_features, read_features
 from vprflow.stages.gather import gather
 from vprflow.stages.jobs import SHARDED, Job, combine_shards, run_job, shard_ranges
@@ -288,6 +289,32 @@ def test_reranked_recall_reads_the_reranked_ranking_and_states_its_cost(pipeline
     assert "retrieval_ranking" not in retrieval
     dim = retrieval.attrs["descriptor_dim"]
     assert retrieval.attrs["cost"]["descriptor_bytes_per_image"] == 4 * dim
+
+
+def test_pairs_files_list_each_querys_ranking_as_hloc_and_kapture_read_them(pipeline, tmp_path):
+    plan, _, recalls, _ = pipeline
+    dataset = Dataset(stage_path(pipeline, "dataset"))
+    for run, path in zip(plan.runs["toy"], recalls, strict=True):
+        pairs, kapture = tmp_path / f"{run.method}.txt", tmp_path / f"{run.method}.kapture"
+        write_pairs(stage_path(pipeline, "dataset"), path, str(pairs), str(kapture))
+        result = stores.open_store(path)
+        ranking, scores = np.asarray(result["ranking"]), np.asarray(result["scores"])
+        expected = [
+            (dataset.names[dataset.n_reference + q], dataset.names[r], scores[q, k])
+            for q in range(dataset.n_query)
+            for k, r in enumerate(ranking[q])
+            if r >= 0 and (ranking[q, :k] >= 0).all()
+        ]
+        assert [tuple(line.split(" ")) for line in pairs.read_text().splitlines()] == [
+            (query, reference) for query, reference, _ in expected
+        ]
+        lines = kapture.read_text().splitlines()
+        assert lines[0] == "# kapture format: 1.0" and lines[2].startswith("# score: ")
+        rows = [line.split(", ") for line in lines if not line.startswith("#")]
+        assert [(q, r) for q, r, _ in rows] == [(q, r) for q, r, _ in expected]
+        np.testing.assert_allclose(
+            [float(v) for *_, v in rows], [v for *_, v in expected], rtol=1e-5
+        )
 
 
 def test_report_writes_one_row_per_method_and_every_prediction(pipeline, tmp_path):

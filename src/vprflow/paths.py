@@ -19,6 +19,10 @@ RECALL_PLOT = "results/plots/recall_{dataset}.png"
 RECALL_TABLE = "results/tables/recall_{dataset}.html"
 # A method's descriptors of a dataset in one NumPy file (the `export` rule).
 EXPORT = "results/export/{dataset}/{method}.npz"
+# A method's (or re-ranked row's) retrievals for localisation (the `pairs` rule): hloc's
+# pairs file and kapture's (SNSM's predictions.txt).
+PAIRS = "results/pairs/{dataset}/{method}/pairs.txt"
+KAPTURE_PAIRS = "results/pairs/{dataset}/{method}/predictions.txt"
 FIGURE = "results/figures/{dataset}/{figure}/{method}.png"
 # Every store of the current config with its stage, datasets, methods and log folder.
 INDEX = f"{CACHE}/index.tsv"

@@ -10,6 +10,8 @@ from vprflow.paths import (
     EXPORT,
     FIGURE,
     FINGERPRINTS,
+    KAPTURE_PAIRS,
+    PAIRS,
     PREDICTIONS_CSV,
     RECALL_CSV,
     RECALL_PLOT,
@@ -220,6 +222,13 @@ def figure_stores(figure):
     return lambda wildcards: figure_inputs(
         PLAN, wildcards.dataset, wildcards.method, figure
     )
+
+
+def pairs_stores(wildcards):
+    """Input function: the dataset and recall stores of a method's (or re-ranked row's)
+    pairs files."""
+    stores = method_stores(PLAN, wildcards.dataset, wildcards.method)
+    return {name: stores[name] for name in ("dataset", "recall")}
 
 
 def export_stores(wildcards):

@@ -1,5 +1,7 @@
-# A method's descriptors of a dataset as one .npz file, on request:
+# A method's descriptors of a dataset as one .npz file, and a method's (or re-ranked
+# row's) retrievals as hloc's and kapture's pairs files, on request:
 #   snakemake --cores 1 results/export/<dataset>/<method>.npz
+#   snakemake --cores 1 results/pairs/<dataset>/<method>/pairs.txt
 
 
 rule export:
@@ -15,5 +17,20 @@ rule export:
         "../scripts/export.py"
 
 
+rule pairs:
+    input:
+        unpack(pairs_stores),
+    output:
+        pairs=PAIRS,
+        kapture=KAPTURE_PAIRS,
+    log:
+        "logs/pairs/{dataset}/{method}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    script:
+        "../scripts/pairs.py"
+
+
 localrules:
     export,
+    pairs,
