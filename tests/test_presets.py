@@ -204,6 +204,16 @@ def test_a_ground_truth_of_another_kind_replaces_the_presets_rule():
     assert merged == {"ground_truth": {"kind": "frame_window", "radius": 2}, "query": "q"}
 
 
+def test_a_vocabulary_of_another_source_replaces_the_presets_published_one():
+    """A published vocabulary's `name` means nothing to a fitted one: kept, it would be
+    a key the fitted vocabulary does not read."""
+    merged = merge_entry(
+        {"defaults": {"vocabulary": {"source": "published", "name": "urban"}}},
+        {"defaults": {"vocabulary": {"source": "map", "n_clusters": 8}}},
+    )
+    assert merged == {"defaults": {"vocabulary": {"source": "map", "n_clusters": 8}}}
+
+
 def test_an_absent_preset_says_where_it_belongs_where_to_get_it_and_its_layout(tmp_path):
     config = validate_config(config_with(tmp_path), SCHEMA)
     message = unknown_dataset("baidu_mall", config)
@@ -337,24 +347,23 @@ def test_each_presets_ground_truth_is_the_published_rule_on_its_miniature(tmp_pa
 def test_every_presets_table_comes_from_its_data_alone(tmp_path):
     """One Snakemake run over every miniature: a preset needs only its folder. The
     models are swapped for the weight-free DAISY backbone at a small fixed size (not a
-    protocol key), and only AnyLoc-VLAD runs, which keeps the run short."""
+    protocol key), as a user without weights does, and only AnyLoc-VLAD runs, which
+    keeps the run short: the published vocabulary and the DINOv2 re-rankers follow the
+    swap (the config's vocabulary is fitted, `mnn` and `ransac` re-rank), so nothing is
+    fetched and no DINOv2 is needed."""
     data = tmp_path / "data"
     for name, build in MINIATURES.items():
         build(data / presets()[name].dataset["path"], np.random.default_rng(1))
     config = config_with(data)
     config["backbones"]["daisy"]["resolution"] = [64, 48]
     config["vocabulary"] = {"n_clusters": 4, "n_iter": 5}
-    # The presets' re-rankers match the (swapped) DINOv2 entry's features; one preset
-    # keeps them, to show its re-ranked rows, the others turn them off (an empty list) to
-    # keep the run short.
-    for reranker in ("mnn_dinov2", "ransac_dinov2"):
-        config["rerankers"][reranker]["features"] = "daisy"
+    # One preset keeps its (followed) re-rankers, to show its re-ranked rows; the others
+    # turn them off (an empty list) to keep the run short.
     reranked = "pitts30k"
     for name in MINIATURES:
         config["datasets"][name] = {
             "methods": ["anyloc_vlad"],
-            # The published vocabularies are DINOv2-G's (and fetched): fitted here.
-            "defaults": {"features": "daisy", "segmenter": "slic", "vocabulary": {"source": "map"}},
+            "defaults": {"features": "daisy", "segmenter": "slic"},
             **({} if name == reranked else {"rerank": {"anyloc_vlad": [], "segvlad": []}}),
         }
     path = write_config(tmp_path, config)
@@ -364,7 +373,7 @@ def test_every_presets_table_comes_from_its_data_alone(tmp_path):
         rows = list(csv.DictReader(open(tmp_path / f"results/recall_{name}.csv")))
         expected = ["anyloc_vlad"]
         if name == reranked:
-            expected += ["anyloc_vlad+mnn_dinov2", "anyloc_vlad+ransac_dinov2"]
+            expected += ["anyloc_vlad+mnn", "anyloc_vlad+ransac"]
         assert [r["method"] for r in rows] == expected, name
         assert rows[0]["protocol"] == f"preset {name}"
         assert 0 <= float(rows[0]["recall@1"]) <= 1
