@@ -4,7 +4,6 @@ paths are plain, and a config that expands without bound is refused fast."""
 from __future__ import annotations
 
 import copy
-import time
 
 import pytest
 import yaml
@@ -13,6 +12,7 @@ from workflow_helpers import REPO
 from vprflow.config import (
     MAX_SHOWN,
     ConfigError,
+    check_config_files,
     kind_keys,
     load_schema,
     validate_config,
@@ -192,10 +192,37 @@ def test_a_yaml_alias_bomb_is_refused_in_seconds_naming_its_file(tmp_path):
     bomb = tmp_path / "bomb.yaml"
     alias_bomb(bomb)
     config = yaml.safe_load(bomb.read_text())  # as Snakemake reads it: shared, small
-    started = time.perf_counter()
+    # Refused by counting before validation (which used to run 75 s into a MemoryError);
+    # no timing threshold here: the speed is in the benchmarks' remit, the refusal here.
     with pytest.raises(ConfigError, match="config file .*bomb.yaml expands to more than"):
         validate_config(config, SCHEMA_PATH, [REPO / "config" / "config.yaml", bomb])
-    assert time.perf_counter() - started < 5
+
+
+def test_a_key_given_twice_in_one_mapping_is_refused_naming_the_file_and_both_lines(tmp_path):
+    path = tmp_path / "mine.yaml"
+    path.write_text("datasets:\n  a: {path: a}\ntargets: [a]\ndatasets:\n  b: {path: b}\n")
+    with pytest.raises(ConfigError) as error:
+        check_config_files([path])
+    assert str(error.value) == (
+        f"config file {path}: key 'datasets' is given twice in one mapping, on line 1 and "
+        "line 4; YAML would keep only the second (merge the two into one)"
+    )
+    nested = tmp_path / "nested.yaml"
+    nested.write_text("pca:\n  dim: 64\n  whiten: true\n  dim: 128\n")
+    with pytest.raises(
+        ConfigError, match="key 'dim' is given twice in one mapping, on line 2 and line 4"
+    ):
+        check_config_files([nested])
+
+
+def test_the_same_key_in_two_mappings_and_yaml_merge_keys_are_accepted(tmp_path):
+    path = tmp_path / "ok.yaml"
+    path.write_text(
+        "base: &base {dim: 64}\npca: {<<: *base, whiten: false}\n"
+        "methods:\n  a: {pca: {dim: 8}}\n  b: {pca: {dim: 8}}\n"
+    )
+    check_config_files([path])  # no error
+    check_config_files([REPO / "config" / "config.yaml"])
 
 
 def test_an_error_message_shows_at_most_a_bounded_part_of_a_value(raw):
@@ -225,13 +252,32 @@ def test_a_dataset_named_to_climb_out_of_results_stops_the_run_and_writes_nothin
 
 
 @pytest.mark.workflow
-def test_a_yaml_alias_bomb_given_to_snakemake_fails_in_seconds_naming_the_file(tmp_path):
+def test_a_yaml_alias_bomb_given_to_snakemake_fails_naming_the_file(tmp_path):
     from workflow_helpers import snakemake
 
     bomb = tmp_path / "bomb.yaml"
     alias_bomb(bomb)
-    started = time.perf_counter()
     result = snakemake(tmp_path, bomb, "-n", check=False)
     assert result.returncode != 0
     assert f"config file {bomb} expands to more than" in result.stdout + result.stderr
-    assert time.perf_counter() - started < 60  # Snakemake's own start-up included
+
+
+@pytest.mark.workflow
+def test_a_key_given_twice_in_a_config_file_stops_snakemake_naming_it_and_both_lines(tmp_path):
+    """Pasting the README's `datasets:` block at the end of a config used to replace its
+    datasets silently (and the error blamed `targets`)."""
+    from workflow_helpers import snakemake, toy_config, write_config
+
+    path = write_config(tmp_path, toy_config(tmp_path / "data"))
+    first = next(
+        i for i, line in enumerate(path.read_text().splitlines(), 1) if line == "datasets:"
+    )
+    pasted = "datasets:\n  mine: {path: mine, reference: db, query: q}\n"
+    path.write_text(path.read_text() + pasted)
+    last = len(path.read_text().splitlines()) - 1
+    result = snakemake(tmp_path, path, "-n", check=False)
+    assert result.returncode != 0
+    assert (
+        f"config file {path}: key 'datasets' is given twice in one mapping, on line {first} "
+        f"and line {last}" in result.stdout + result.stderr
+    )

@@ -63,12 +63,14 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
 
     Raises :class:`ConfigError` naming the offending key (e.g. an unknown key, or a key
     the entry's kind does not read: :func:`unread_keys`). ``files``: the config files
-    ``config`` was read from, named when it is too large (:func:`check_config_size`).
+    ``config`` was read from: each is read again to refuse a key given twice
+    (:func:`check_config_files`) and named when it is too large (:func:`check_config_size`).
     """
     import jsonschema
 
     from vprflow.presets import presets, protocol, with_presets
 
+    check_config_files(files)
     check_config_size(config, files)
     schema = load_schema(schema_path)
     if isinstance(config.get("data_root"), str):
@@ -132,6 +134,43 @@ def count_values(value, limit: int) -> int:
         elif isinstance(item, (list, tuple)):
             stack.extend(item)
     return count
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML, and so
+    Snakemake, keeps the last one silently)."""
+
+    def construct_mapping(self, node, deep=False):
+        if isinstance(node, yaml.MappingNode):
+            first: dict = {}
+            for key_node, _ in node.value:
+                if key_node.tag == "tag:yaml.org,2002:merge":  # `<<:` merges, not a key
+                    continue
+                key = self.construct_object(key_node, deep=deep)
+                line = key_node.start_mark.line + 1
+                try:
+                    if key in first:
+                        raise ConfigError(
+                            f"config file {self.name}: key {shorten(key)} is given twice in "
+                            f"one mapping, on line {first[key]} and line {line}; YAML would "
+                            "keep only the second (merge the two into one)"
+                        )
+                    first[key] = line
+                except TypeError:  # an unhashable key: the constructor names it
+                    pass
+        return super().construct_mapping(node, deep=deep)
+
+
+def check_config_files(files=()) -> None:
+    """Read each config file again, refusing a key given twice in one mapping, naming the
+    file, the key and both lines: pasting a second ``datasets:`` block used to replace
+    the first without a word."""
+    for path in files:
+        try:
+            with open(path, encoding="utf-8") as stream:
+                yaml.load(stream, Loader=_UniqueKeyLoader)
+        except (OSError, UnicodeDecodeError, yaml.YAMLError):
+            continue  # Snakemake read it; its own errors are reported elsewhere
 
 
 def check_config_size(config: dict, files=()) -> None:
