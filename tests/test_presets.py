@@ -104,6 +104,7 @@ def test_features_a_user_swaps_in_take_the_presets_vocabulary_and_rerankers_alon
     log = capsys.readouterr().err
     assert "published vocabulary 'urban'" in log and "datasets.pitts30k.defaults.vocabulary" in log
     assert "'mnn_dinov2' matches dinov2_vitg14's features, replaced by re-ranker 'mnn'" in log
+    assert "datasets.pitts30k.defaults.pca" in log  # sized for DINOv2-G: said, not guessed
 
 
 def test_a_swapped_in_feature_without_a_matching_reranker_drops_the_presets_reranking(

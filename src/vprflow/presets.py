@@ -194,6 +194,15 @@ def follow_features(name: str, preset: dict, entry: dict, config: dict) -> tuple
         )
     if chosen == own:
         return base, notes  # re-rankers on the entry follow it by name
+    pca = config.get("pca") or {}
+    if "pca" not in defaults and pca.get("enabled", True):
+        notes.append(
+            f"datasets.{name}: the config's `pca` (dim {pca.get('dim', 1024)}, whiten "
+            f"{pca.get('whiten', True)}) applies to {chosen!r}; the published 1024 whitened "
+            "components are sized for 49,152-d DINOv2-G VLAD descriptors: set "
+            f"datasets.{name}.defaults.pca for yours (corridor runs DAISY with dim 128, "
+            "whiten false)"
+        )
     rerankers = config.get("rerankers") or {}
     for method, names in (base.get("rerank") or {}).items():
         if method in (entry.get("rerank") or {}):
@@ -432,7 +441,9 @@ def datasets_doc() -> str:
         "`defaults.vocabulary` for another), and each re-ranker on DINOv2-G features is",
         "replaced by your config's re-ranker of the same kind and options on the chosen",
         "features (`mnn_dinov2` by `mnn` on `daisy`), or dropped where there is none (set",
-        "the entry's `rerank` to choose); the log says what followed. A `dinov2_vitg14`",
+        "the entry's `rerank` to choose); the log says what followed. PCA is no preset",
+        "setting: the config's `pca` applies, and the log says that its 1024 whitened",
+        "components are sized for DINOv2-G (set the entry's `defaults.pca`). A `dinov2_vitg14`",
         "entry redefined to another model, layer or facet drops the published vocabulary",
         "the same way (its re-rankers follow it by name). A method with features",
         "of its own (`anyloc_vlad_dinov3`) on a preset that keeps its published vocabulary",
