@@ -10,6 +10,11 @@ defines the methods and models it runs (the shipped config does); so ``snakemake
 results/recall_<preset>.csv`` needs no setting beyond the data. A folder decides rather
 than the command line's targets because cluster jobs plan again from the config and the
 file system alone.
+
+A config entry of a preset's name changes only the keys it gives (``merge_entry``); the
+settings tied to the preset's published features follow the features it chooses
+(``follow_features``); ``preset: false`` keeps a full entry apart. Where the folder
+exists in another layout, ``layout_hint`` says which and how to convert it.
 """
 
 from __future__ import annotations
