@@ -154,6 +154,27 @@ def test_references_and_queries_that_are_the_same_files_are_refused(tmp_path):
         list_dataset(tmp_path, "toy", SPEC)
 
 
+def test_pairs_ground_truth_over_folders_needs_paired_listing(tmp_path):
+    """Query i matched reference i by sort order, silently: rename one query and every
+    later pair shifts."""
+    write_pngs(tmp_path / "ds/vi", ["a.png", "b.png"])
+    write_pngs(tmp_path / "ds/ir", ["a.png", "c.png"])
+    spec = {**SPEC, "reference": "vi", "query": "ir", "ground_truth": {"kind": "pairs"}}
+    with pytest.raises(
+        DatasetError, match=r"dataset 'toy': ground_truth kind 'pairs' .* set `paired: true`"
+    ):
+        list_dataset(tmp_path, "toy", {**spec, "paired": False})
+    # Paired, the renamed query is named instead of paired with b.png.
+    with pytest.raises(DatasetError, match=r"c\.png"):
+        list_dataset(tmp_path, "toy", {**spec, "paired": True})
+    # Two image lists pair line by line (SNSM's published pairing).
+    (tmp_path / "ds/vi.txt").write_text("vi/a.png\nvi/b.png\n")
+    (tmp_path / "ds/ir.txt").write_text("ir/c.png\nir/a.png\n")
+    listed = {**spec, "reference": "vi.txt", "query": "ir.txt", "paired": False}
+    files = list_dataset(tmp_path, "toy", listed)
+    assert [q.name for q in files.query] == ["c.png", "a.png"]
+
+
 def test_pairs_are_matched_by_relative_path_not_by_sort_order(tmp_path):
     # The suffixes make the visible and thermal names sort in different orders.
     write_pngs(tmp_path / "ds/vi", ["a.png", "a.m.png"])  # a.m.png sorts first

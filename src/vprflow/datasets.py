@@ -36,12 +36,30 @@ def dataset_folder(data_root: str | Path, dataset: dict) -> Path:
     return Path(data_root) / dataset["path"]
 
 
+def check_pairing(name: str, dataset: dict) -> None:
+    """``ground_truth: {kind: pairs}`` matches query i with reference i, so the order of
+    the two roles must be a pairing: two image lists (line i with line i, the published
+    SNSM pairing) or ``paired: true`` (folders paired by name). Two folders without it
+    were paired by sort order, silently: one renamed file shifted every later pair."""
+    truth = dataset.get("ground_truth") or {}
+    lists = all(str(dataset[role]).lower().endswith(".txt") for role in ("reference", "query"))
+    if truth.get("kind") == "pairs" and not dataset.get("paired") and not lists:
+        raise DatasetError(
+            f"dataset '{name}': ground_truth kind 'pairs' matches query i with reference i, "
+            f"but '{dataset['reference']}' and '{dataset['query']}' are not paired: set "
+            "`paired: true` (each query is paired with the reference of the same path, "
+            "suffix aside; a file without its partner is named), or give both roles as "
+            ".txt image lists whose lines pair one to one"
+        )
+
+
 def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFiles:
     """List reference and query images, failing with a message that says what is missing.
 
     ``dataset`` keys: ``path``, ``reference``, ``query`` (folder names), ``paired``
     (file names must match one to one), optional ``source`` (where to get the data).
     """
+    check_pairing(name, dataset)
     root = dataset_folder(data_root, dataset)
     hint = f" Get it from {dataset['source']}." if dataset.get("source") else ""
     if not root.is_dir():
