@@ -468,10 +468,13 @@ def support_map_figure(
     name, reference image, its support map)``, the images beside their maps."""
     plt = _pyplot()
     figure, axes = plt.subplots(len(rows), 4, figsize=(10.6, 2.6 * len(rows) + 0.5), squeeze=False)
-    # One colour scale for every map, so a colour means one similarity throughout.
+    # One colour scale for every map, so a colour means one similarity throughout. Its
+    # range is the maps' interiors': a border token has fewer neighbours, so its support
+    # is lower by construction and would take most of the scale (shown as the end colour).
     maps = [m for row in rows for m in (row[2], row[5])]
-    low = min((float(np.min(m)) for m in maps), default=0.0)
-    high = max((float(np.max(m)) for m in maps), default=1.0)
+    inner = [m[1:-1, 1:-1] if min(m.shape) > 2 else m for m in maps]
+    low = min((float(np.min(m)) for m in inner), default=0.0)
+    high = max((float(np.max(m)) for m in inner), default=1.0)
     for r, (q_name, q_image, q_map, r_name, r_image, r_map) in enumerate(rows):
         panels = [
             (q_image, f"query {q_name}", None, q_image),
@@ -488,7 +491,9 @@ def support_map_figure(
             axes[r, c].set_title(label, fontsize=8)
             axes[r, c].axis("off")
     if rows:
-        bar = figure.colorbar(shown, ax=axes.ravel().tolist(), fraction=0.025, pad=0.02)
+        bar = figure.colorbar(
+            shown, ax=axes.ravel().tolist(), fraction=0.025, pad=0.02, extend="min"
+        )
         bar.set_label("support (similarity to the token's neighbours)", fontsize=8)
     figure.suptitle(title, fontsize=10)
     return figure
