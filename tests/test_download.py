@@ -80,16 +80,11 @@ def make_archive(path: Path, files: dict[str, bytes], extra: dict[str, bytes] = 
     members = {archive_name(k): v for k, v in files.items()}
     members[f"{PREFIX}/README.md"] = b"not laid out\n"
     members.update(dict(extra))
-    if path.suffix == ".zip":
-        with zipfile.ZipFile(path, "w") as archive:
-            for name, data in members.items():
-                archive.writestr(name, data)
-    else:
-        with tarfile.open(path, "w:gz") as archive:
-            for name, data in members.items():
-                info = tarfile.TarInfo(name)
-                info.size = len(data)
-                archive.addfile(info, io.BytesIO(data))
+    if path.suffix != ".zip":
+        return make_tar_gz(path, members)
+    with zipfile.ZipFile(path, "w") as archive:
+        for name, data in members.items():
+            archive.writestr(name, data)
     return path.read_bytes()
 
 

@@ -479,20 +479,18 @@ def msls_ground_truth(
     listed_db = _by_name(lists.db, MSLS_FILES["dbImages"], db_rows)
     kept_rows = _by_name(lists.kept, MSLS_FILES["qIdx"], lists.queries(city))
     in_city = set(db_rows)
-    unknown = [q.name for q in query if q.name not in kept_rows]
-    if unknown:
-        raise DatasetError(
-            f"ground_truth (msls, city {city}): {len(unknown)} query image(s) are not among "
-            f"the {len(kept_rows)} kept {city} queries of {MSLS_FILES['qIdx']} (e.g. "
-            f"{', '.join(unknown[:5])}); the published protocol evaluates only those"
-        )
-    unlisted = [r.name for r in reference if r.name not in listed_db]
-    if unlisted:
-        raise DatasetError(
-            f"ground_truth (msls, city {city}): {len(unlisted)} reference image(s) are not "
-            f"among the {len(listed_db)} {city} database images of {MSLS_FILES['dbImages']} "
-            f"(e.g. {', '.join(unlisted[:5])}); the published protocol never ranks them"
-        )
+    for paths, listed, what, why in (
+        (query, kept_rows, f"kept {city} queries of {MSLS_FILES['qIdx']}", "evaluates only"),
+        (reference, listed_db, f"{city} database images of {MSLS_FILES['dbImages']}", "ranks only"),
+    ):
+        outside = [p.name for p in paths if p.name not in listed]
+        if outside:
+            raise DatasetError(
+                f"ground_truth (msls, city {city}): {len(outside)} "
+                f"{'query' if paths is query else 'reference'} image(s) are not among the "
+                f"{len(listed)} {what} (e.g. {', '.join(outside[:5])}); the published "
+                f"protocol {why} those"
+            )
     ref_index = {p.name: i for i, p in enumerate(reference)}
     truth = []
     for q in query:
