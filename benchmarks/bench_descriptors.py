@@ -111,7 +111,7 @@ def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ..
     from vprflow.stages.segments import MaskReader
 
     inputs = {name: str(workdir / path) for name, path in stage.input_paths().items()}
-    n = Dataset(inputs["dataset"]).n_images
+    n = Dataset(inputs["images"]).n_images
     out = Path(tempfile.mkdtemp(dir=workdir)) / "descriptors.zarr"
     stage_s = best_of(
         lambda: run_job(Job(stage.record, inputs, str(out), threads=threads)), repeats

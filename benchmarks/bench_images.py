@@ -66,7 +66,7 @@ def synthetic(folder: Path, width: int, height: int, count: int, seed: int = 0) 
 
 
 def dataset_store(data_root: Path, folder: str, out: Path) -> Dataset:
-    """``data_root/folder/{ref,query}`` as the dataset stage stores it, opened as the
+    """``data_root/folder/{ref,query}`` as the images stage stores it, opened as the
     later stages open it: the shipped config with this folder as its one dataset."""
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     config["data_root"] = str(data_root)
@@ -76,7 +76,7 @@ def dataset_store(data_root: Path, folder: str, out: Path) -> Dataset:
     config["datasets"] = {"bench": entry}
     config = validate_config(config, REPO / "workflow" / "schemas" / "config.schema.yaml")
     plan = build_plan(config)
-    stage = plan.stages["dataset"][plan.dataset_keys["bench"]]
+    stage = plan.stages["images"][plan.images_keys["bench"]]
     run_job(Job(stage.record, {}, str(out), data_root=str(data_root)))
     return Dataset(str(out), str(data_root))
 

@@ -42,7 +42,7 @@ def test_an_unsharded_stage_has_no_shard_ranges():
 def test_a_job_runs_the_runner_its_record_names(monkeypatch):
     seen = []
     monkeypatch.setitem(RUNNERS, "pca", seen.append)
-    job = Job({"stage": "pca", "params": {}}, {"dataset": "d.zarr"}, "out.zarr")
+    job = Job({"stage": "pca", "params": {}}, {"images": "d.zarr"}, "out.zarr")
     run_job(job)
     assert seen == [job]
     assert (job.device, job.batch_size) == ("auto", 1)

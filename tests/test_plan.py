@@ -58,6 +58,7 @@ def test_shipped_methods_share_features_segments_vocabulary_and_pca(config):
     for stage in corridor:
         count[stage.stage] = count.get(stage.stage, 0) + 1
     assert count == {
+        "images": 1,
         "dataset": 1,
         "features": 1,
         "segments": 1,
@@ -396,7 +397,7 @@ def test_the_dataset_stage_lists_images_as_the_plan_did(tmp_path):
     Image.new("RGB", (96, 72), (10, 20, 30)).save(extra / "x.png")
     config = validate_config(toy_config(tmp_path, recursive=False), SCHEMA)
     plan = build_plan(config)
-    (dataset,) = plan.stages["dataset"].values()
+    (dataset,) = plan.stages["images"].values()
     assert dataset.record["params"]["contents"] is not None
     # The stage lists from its hashed params alone; the plan listed from the config.
     spec = config["datasets"]["toy"]
@@ -498,7 +499,7 @@ def test_native_resolution_plans_the_images_own_size_and_the_stage_refuses_anoth
     from workflow_helpers import toy_config
 
     from vprflow.datasets import DatasetError
-    from vprflow.stages.dataset import build_dataset
+    from vprflow.stages.dataset import build_images
 
     make_dataset(tmp_path / "toy", n_places=3, width=80, height=60)
     native = validate_config(toy_config(tmp_path, resolution="native"), SCHEMA)
@@ -520,14 +521,14 @@ def test_native_resolution_plans_the_images_own_size_and_the_stage_refuses_anoth
         }
     )
     assert native["datasets"]["toy"]["resolution"] == "native"  # the caller's config as given
-    (stage,) = build_plan(native).stages["dataset"].values()
+    (stage,) = build_plan(native).stages["images"].values()
     assert stage.record["params"]["native_size"] == [80, 60]
-    build_dataset("toy", stage.record, str(tmp_path), str(tmp_path / "ok.zarr"))
+    build_images("toy", stage.record, str(tmp_path), str(tmp_path / "ok.zarr"))
 
     Image.new("RGB", (60, 80)).save(tmp_path / "toy" / "query" / "zz_portrait.png")
-    (stage,) = build_plan(native).stages["dataset"].values()
+    (stage,) = build_plan(native).stages["images"].values()
     with pytest.raises(DatasetError, match=r"zz_portrait\.png is 60 x 80.*resolution: \[width"):
-        build_dataset("toy", stage.record, str(tmp_path), str(tmp_path / "bad.zarr"))
+        build_images("toy", stage.record, str(tmp_path), str(tmp_path / "bad.zarr"))
     assert not (tmp_path / "bad.zarr").exists()
 
 

@@ -107,7 +107,7 @@ def test_model_kinds_that_read_weights_name_a_default_model_and_a_loader():
 
 def test_every_aggregator_needs_only_planned_stages_and_has_a_function():
     for agg in registry.AGGREGATORS.values():
-        assert set(agg.needs) <= set(FORMAT_VERSIONS) - {"dataset", "features", "recall"}
+        assert set(agg.needs) <= set(FORMAT_VERSIONS) - {"images", "dataset", "features", "recall"}
         assert agg.output in ("global", "segments")
         assert callable(registry.resolve(agg.image_descriptor)), agg.name
 
@@ -153,7 +153,7 @@ def test_the_plan_builds_exactly_the_stages_an_aggregator_needs(name, tmp_path):
     config["methods"] = {"m": {"aggregator": name, "features": "daisy"}}
     plan = build_plan(validate_config(config, SCHEMA_PATH))
     (descriptors,) = plan.stages["descriptors"].values()
-    assert set(descriptors.inputs) == {"dataset", "features", *registry.AGGREGATORS[name].needs}
+    assert set(descriptors.inputs) == {"images", "features", *registry.AGGREGATORS[name].needs}
 
 
 def _properties(schema: dict):

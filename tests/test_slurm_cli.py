@@ -64,6 +64,7 @@ LOCAL_RULES = {"report", "all"}
 # (workflow/rules/*.smk). A command-line --default-resources / --set-resources must not
 # take them away.
 OWN_RESOURCES = {
+    "images": (4000, 60),
     "dataset": (4000, 60),
     "features": (16000, 120),
     "gather": (4000, 60),
@@ -183,7 +184,7 @@ def test_documented_command_line(label, dry_workdir):
     output, _ = run_snakemake(as_test_run(command, workdir, config), cwd=workdir)
     jobs = dry_run_jobs(output)
     rules = {rule for rule, _ in jobs}
-    assert {"dataset", "features", "segments", "recall"} <= rules, output[-3000:]
+    assert {"images", "dataset", "features", "segments", "recall"} <= rules, output[-3000:]
     expected = EXPECTED[label]
     for rule, resources in jobs:
         if rule in LOCAL_RULES:
@@ -242,7 +243,7 @@ def test_command_line_overrides_reach_sbatch_and_slurm(slurm_cluster, tmp_path):
             "--directory", str(workdir),
             "--configfile", str(config),
             "--profile", str(SLURM_PROFILE),
-            TARGET, "--until", "features",  # dataset + features: two jobs
+            TARGET, "--until", "features",  # images + features: two jobs
             *cluster_limits(slurm_cluster),
             "--slurm-keep-successful-logs",
             "--slurm-init-seconds-before-status-checks", "2",
@@ -263,17 +264,17 @@ def test_command_line_overrides_reach_sbatch_and_slurm(slurm_cluster, tmp_path):
     for argv in wrapped_calls(calls, "sbatch"):
         rule = re.match(r"rule_([a-z]+)_", _option(argv, "--comment")).group(1)
         sbatch[rule] = argv
-    assert sorted(sbatch) == ["dataset", "features"], sbatch
-    features, dataset = sbatch["features"], sbatch["dataset"]
-    assert _option(features, "-p") == "gpu" and _option(dataset, "-p") == everywhere
-    assert _option(features, "-A") == "vprflow" == _option(dataset, "-A")
+    assert sorted(sbatch) == ["features", "images"], sbatch
+    features, images = sbatch["features"], sbatch["images"]
+    assert _option(features, "-p") == "gpu" and _option(images, "-p") == everywhere
+    assert _option(features, "-A") == "vprflow" == _option(images, "-A")
     assert "--gpus=a100:1" in features  # the rule's gpu=1 with the command line's model
-    assert not any(a.startswith("--gpus") for a in dataset), dataset
-    assert "--cpus-per-task=1" in features and "--cpus-per-task=1" in dataset
+    assert not any(a.startswith("--gpus") for a in images), images
+    assert "--cpus-per-task=1" in features and "--cpus-per-task=1" in images
     # the rules' own memory and time, under the node's cap (cluster_limits)
-    assert _option(features, "-t") == "120" and _option(dataset, "-t") == "60"
+    assert _option(features, "-t") == "120" and _option(images, "-t") == "60"
     assert _option(features, "--mem") == str(min(16000, share))
-    assert _option(dataset, "--mem") == str(min(4000, share))
+    assert _option(images, "--mem") == str(min(4000, share))
     # inside the features job, the job step asked for the rule's GPU and 1 CPU
     steps = [argv for argv in wrapped_calls(calls, "srun") if "--gpus=1" in argv]
     assert len(steps) == 1 and "--cpus-per-task=1" in steps[0], wrapped_calls(calls, "srun")

@@ -17,7 +17,7 @@ from vprflow.config import validate_config
 from vprflow.datasets import DatasetError
 from vprflow.images import read_image, resize_image
 from vprflow.plan import build_plan
-from vprflow.stages.dataset import Dataset, build_dataset
+from vprflow.stages.dataset import Dataset, build_images
 from vprflow.stages.descriptors import compute_descriptors
 from vprflow.stages.export import write_pairs
 from vprflow.stages.features import compute_features, read_features
@@ -67,7 +67,7 @@ class Runner:
         if stage.stage not in SHARDED:
             run_job(job)
             return out
-        dataset = Dataset(inputs["dataset"])
+        dataset = Dataset(inputs["images"])
         ranges = shard_ranges(
             stage.stage,
             dataset.n_reference,
@@ -443,7 +443,7 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     inputs = {name: runner.path(*ref) for name, ref in search.inputs.items()}
     spec = {**search.record["params"], "index": index, "params": options}
     out = str(tmp_path / "search.zarr")
-    search_shard(inputs["dataset"], inputs["descriptors"], {**search.record, "params": spec}, out)
+    search_shard(inputs["images"], inputs["descriptors"], {**search.record, "params": spec}, out)
     distances, indices = read_search(out)
     flat_distances, flat_indices = read_search(stage_path(pipeline, "search"))
     np.testing.assert_array_equal(indices, flat_indices)
@@ -454,7 +454,8 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
         if s.inputs.get("search") == ("search", search.key) and "rerank" not in s.inputs
     ]
     result = str(tmp_path / "recall.zarr")
-    evaluate(inputs["dataset"], inputs["descriptors"], recall.record, result, out, out)
+    dataset = stage_path(pipeline, "dataset")
+    evaluate(dataset, inputs["descriptors"], recall.record, result, out, out)
     attrs = stores.open_store(result).attrs
     flat = stores.open_store(stage_path(pipeline, "recall", "segvlad")).attrs
     assert attrs["recall_exact"] == attrs["recall"] == flat["recall"]
@@ -542,14 +543,14 @@ def small_plan(root: Path, memo: dict | None = None, make: bool = True):
 
 def test_an_image_changed_after_the_dataset_stage_fails_the_stage_reading_it(tmp_path):
     plan = small_plan(tmp_path)
-    dataset_stage = plan.get("dataset", plan.dataset_keys["toy"])
+    dataset_stage = plan.get("images", plan.images_keys["toy"])
     dataset_path = str(tmp_path / "dataset.zarr")
-    build_dataset("toy", dataset_stage.record, str(tmp_path / "data"), dataset_path)
+    build_images("toy", dataset_stage.record, str(tmp_path / "data"), dataset_path)
     features = next(iter(plan.stages["features"].values()))
     changed = tmp_path / "data/toy/query/0001.jpg"
     changed.write_bytes((tmp_path / "data/toy/query/0002.jpg").read_bytes())
     out = tmp_path / "features.zarr"
-    with pytest.raises(DatasetError, match=r"query/0001\.jpg changed after the dataset stage"):
+    with pytest.raises(DatasetError, match=r"query/0001\.jpg changed after the images stage"):
         compute_features(dataset_path, features.record, str(out), str(tmp_path / "data"), "cpu")
     assert not out.exists()
 
@@ -562,10 +563,10 @@ def test_an_image_changed_after_planning_fails_the_dataset_stage_naming_it(tmp_p
     save_fingerprints(memo, tmp_path / "fingerprints.json")
     changed = tmp_path / "data/toy/ref/0002.png"
     changed.write_bytes((tmp_path / "data/toy/ref/0000.png").read_bytes())
-    stage = plan.get("dataset", plan.dataset_keys["toy"])
+    stage = plan.get("images", plan.images_keys["toy"])
     out = tmp_path / "dataset.zarr"
     with pytest.raises(DatasetError, match=r"changed after this run planned it.*ref/0002\.png"):
-        build_dataset(
+        build_images(
             "toy",
             stage.record,
             str(tmp_path / "data"),
@@ -581,9 +582,9 @@ def test_a_query_that_is_a_copy_of_a_reference_is_refused(tmp_path):
     (toy / "query/0001.jpg").unlink()
     (toy / "query/0001.png").write_bytes((toy / "ref/0001.png").read_bytes())
     plan = small_plan(tmp_path, make=False)
-    stage = plan.get("dataset", plan.dataset_keys["toy"])
+    stage = plan.get("images", plan.images_keys["toy"])
     with pytest.raises(DatasetError, match=r"byte-identical.*query/0001\.png = .*ref/0001\.png"):
-        build_dataset("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
+        build_images("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
 
 
 def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_path):
@@ -598,8 +599,8 @@ def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_p
         toy / "ref/0001.png", exif=exif.tobytes()
     )
     plan = small_plan(tmp_path, make=False)
-    stage = plan.get("dataset", plan.dataset_keys["toy"])
-    build_dataset("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
+    stage = plan.get("images", plan.images_keys["toy"])
+    build_images("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
     dataset = Dataset(str(tmp_path / "d.zarr"), str(tmp_path / "data"))
     np.testing.assert_array_equal(dataset.read_image(1), upright.astype(np.float32) / 255.0)
     # A method whose published reader ignores the tag (SNSM) reads the stored pixels.
@@ -628,9 +629,9 @@ def test_the_dataset_stage_lists_images_as_planned(tmp_path):
     ):
         config = toy_config(root, resolution=[32, 24], methods=["gem"], **overrides)
         plan = build_plan(validate_config(config, SCHEMA))
-        stage = plan.get("dataset", plan.dataset_keys["toy"])
+        stage = plan.get("images", plan.images_keys["toy"])
         out = tmp_path / f"{root.name}.zarr"
-        build_dataset("toy", stage.record, str(root), str(out))
+        build_images("toy", stage.record, str(root), str(out))
         names = Dataset(str(out)).names
         expected = ["run1/0000.jpg", "run1/0001.jpg", "run1/0002.jpg"]
         if root.name == "nested":

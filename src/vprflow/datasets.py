@@ -94,8 +94,8 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
         if not scans[role].paths:
             raise DatasetError(f"dataset '{name}': {role} folder {entry} contains no images")
     reference, query = scans["reference"].paths, scans["query"].paths
-    truth = dataset.get("ground_truth") or {}
-    if truth.get("kind") == "msls":  # the published lists name the images
+    truth = listing_truth(dataset.get("ground_truth") or {})
+    if truth:  # MSLS: the published lists name the images
         from vprflow.published_truth import msls_listed_images
 
         reference, query = msls_listed_images(root, truth["city"], reference, query)
@@ -229,14 +229,11 @@ def paired_queries(
     return [queries[path.relative_to(ref_base).with_suffix("").as_posix()] for path in reference]
 
 
-def contents_digest(files: DatasetFiles, data_root: str | Path, dataset: dict, file_hash) -> str:
-    """SHA-256 over every image's and the ground-truth file's name and content hash:
-    what a dataset's key covers. ``file_hash(path, where) -> hex sha256``, ``where`` a
-    config key (``reference``, ``query``, ``ground_truth.file``) to name in errors."""
+def images_digest(files: DatasetFiles, data_root: str | Path, dataset: dict, file_hash) -> str:
+    """SHA-256 over every image's name (relative to its role's folder) and content hash,
+    in order: what the images stage's key covers. ``file_hash(path, where) -> hex
+    sha256``, ``where`` a config key (``reference``, ``query``) to name in errors."""
     import hashlib
-
-    # Imported here: vprflow.ground_truth imports this module.
-    from vprflow.ground_truth import ground_truth_files
 
     digest = hashlib.sha256()
     root = dataset_folder(data_root, dataset)
@@ -248,6 +245,19 @@ def contents_digest(files: DatasetFiles, data_root: str | Path, dataset: dict, f
         for path in paths:
             label = PurePath(str(path)[start:]).as_posix()
             digest.update(f"{role}/{label}:{file_hash(path, role)}\n".encode())
+    return digest.hexdigest()[:32]
+
+
+def truth_digest(data_root: str | Path, dataset: dict, file_hash) -> str:
+    """SHA-256 over the ground-truth files' names and content hashes: what the truth
+    (``dataset``) stage's key covers besides the images key. ``file_hash`` as in
+    :func:`images_digest` (``where`` is ``ground_truth.file``)."""
+    import hashlib
+
+    # Imported here: vprflow.ground_truth imports this module.
+    from vprflow.ground_truth import ground_truth_files
+
+    digest = hashlib.sha256()
     for path in ground_truth_files(data_root, dataset):
         # A folder (Baidu Mall's pose files) counts by each file in it.
         members = sorted(p for p in path.rglob("*") if p.is_file()) if path.is_dir() else [path]
@@ -257,6 +267,13 @@ def contents_digest(files: DatasetFiles, data_root: str | Path, dataset: dict, f
                 label = member.relative_to(path.parent).as_posix()
                 digest.update(f"truth/{label}:{sha}\n".encode())
     return digest.hexdigest()[:32]
+
+
+def listing_truth(truth: dict) -> dict:
+    """The ground-truth settings that decide which images a dataset lists: MSLS's
+    published lists name its images (``kind`` and ``city``); no other kind's do. They
+    shape the images store; every other ground-truth setting only the truth store."""
+    return {"kind": "msls", "city": truth["city"]} if truth.get("kind") == "msls" else {}
 
 
 # ---------------------------------------------------------------- images by folder, for errors

@@ -89,28 +89,28 @@ def memoised(path: str | Path, memo: dict, digest, where: str) -> str:
 
 def dataset_contents(
     data_root: str, name: str, dataset: dict, memo: dict
-) -> tuple[str | None, DatasetFiles | None]:
-    """:func:`vprflow.datasets.contents_digest` of a dataset and its listing, or
-    ``(None, None)`` while the dataset cannot be listed (its stage then fails, naming why).
+) -> tuple[str | None, str, DatasetFiles | None]:
+    """What a dataset's two stores cover of files: the images' digest
+    (:func:`vprflow.datasets.images_digest`, ``None`` while the dataset cannot be
+    listed: its stage then fails, naming why), the ground-truth files' digest
+    (:func:`vprflow.datasets.truth_digest`) and the listing (or ``None``).
 
     Each file's hash is memoised by path, size, mtime and ctime, so re-planning reads no
     image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
     ``rsync -a`` or ``tar`` (which restore an older mtime).
     """
-    from vprflow.datasets import DatasetError, contents_digest, list_dataset
+    from vprflow.datasets import DatasetError, images_digest, list_dataset, truth_digest
     from vprflow.images import ImageReadError
 
+    def file_hash(path, where):
+        return memoised(path, memo, file_digest, f"datasets.{name}.{where}")
+
+    truth = truth_digest(data_root, dataset, file_hash)
     try:
         files = list_dataset(data_root, name, dataset)
     except (DatasetError, ImageReadError):
-        return None, None
-    digest = contents_digest(
-        files,
-        data_root,
-        dataset,
-        lambda path, where: memoised(path, memo, file_digest, f"datasets.{name}.{where}"),
-    )
-    return digest, files
+        return None, truth, None
+    return images_digest(files, data_root, dataset, file_hash), truth, files
 
 
 def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> dict:

@@ -19,6 +19,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 from vprflow.config import METHOD_DEFAULT_SECTIONS, PlanError
+from vprflow.datasets import listing_truth
 from vprflow.fingerprints import dataset_contents, file_digest, memoised, source_fingerprint
 from vprflow.images import ImageReadError, dataset_orientation, image_size
 from vprflow.paths import PUBLISHED_VOCABULARY, store_path
@@ -37,7 +38,13 @@ from vprflow.registry import (
 )
 
 FORMAT_VERSIONS = {
-    "dataset": 2,  # 2: paths relative to data_root, contents in the key
+    # What the images are: their list, order, paths, sizes, SHA-256 and how they are read
+    # (1: split from the dataset stage, issue 30, so the ground truth keys no model stage)
+    "images": 1,
+    # What is true about them, over the images store (its arrays copied): 2: paths
+    # relative to data_root, contents in the key; 3: the ground truth only, keyed by the
+    # images store's key, the ground-truth settings and the ground-truth files
+    "dataset": 3,
     "features": 3,  # 2: crop offsets round like torchvision; 3: published resize, pos-embed
     # 2: published (OpenCV INTER_LINEAR) resize; 3: SAM prompts through sam_decoder
     # (float32 rounding differs; SAM-HQ masks upscaled from the transformer's output)
@@ -48,14 +55,22 @@ FORMAT_VERSIONS = {
     # numpy, one BLAS thread per image (float32 rounding differs from torch's)
     "descriptors": 4,
     "search": 1,
+    "rerank": 2,  # 2: the top K re-ordered, then the rest of the retrieval (to `depth`)
     # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
     # summary and cost per query, re-ranked lists; 6: n_queries_without_positive
     "recall": 6,
-    "rerank": 2,  # 2: the top K re-ordered, then the rest of the retrieval (to `depth`)
 }
 
-# Dataset settings that do not shape the dataset store (later stages read them, or
-# they are for people): kept out of its key, so changing them rebuilds only what uses them.
+# Which dataset settings shape which store. A dataset's settings are split between
+# what the images are (the `images` store: list, order, content, reader) and what is
+# true about them (the `dataset` store: the ground truth), so a ground-truth change
+# reruns no model stage (issue 30). A setting in neither tuple below shapes the images
+# store: one the images stage reads (recursive, follow_links, ...) is never left out.
+# The truth store's settings (of these, MSLS's `kind` and `city` also pick the images:
+# `datasets.listing_truth`).
+TRUTH_SETTINGS = ("ground_truth",)
+# Settings that shape neither store (later stages read them, or they are for people):
+# kept out of both keys, so changing them rebuilds only what uses them.
 NOT_DATASET_STAGE = (
     "methods",
     "defaults",
@@ -129,7 +144,8 @@ class MethodRun:
 class Plan:
     stages: dict[str, dict[str, Stage]] = field(default_factory=dict)
     runs: dict[str, list[MethodRun]] = field(default_factory=dict)  # dataset -> rows
-    dataset_keys: dict[str, str] = field(default_factory=dict)
+    dataset_keys: dict[str, str] = field(default_factory=dict)  # the truth stores
+    images_keys: dict[str, str] = field(default_factory=dict)
     has_ground_truth: dict[str, bool] = field(default_factory=dict)
     # The image lists the dataset keys were made from (absent: not listable), so the
     # workflow does not list 10^5 files a second time for shard ranges.
@@ -176,7 +192,8 @@ def method_run(plan: Plan, dataset: str, method: str) -> MethodRun:
 
 
 def method_stores(plan: Plan, dataset: str, method: str) -> dict[str, str]:
-    """The stores of one method on one dataset by name: ``dataset``, ``features``,
+    """The stores of one method on one dataset by name: ``images``, ``dataset`` (the
+    ground truth), ``features``,
     ``descriptors``, ``recall`` and, as the method has them, ``segments``,
     ``vocabulary``, ``pca``, ``search``."""
     recall = plan.get("recall", method_run(plan, dataset, method).recall_key)
@@ -222,14 +239,17 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
     # Native resolutions become sizes here; the caller's config stays as given.
     config = {**config, "datasets": dict(config["datasets"])}
     for dataset_name, dataset in sorted(config["datasets"].items()):
-        dataset_key = _plan_dataset(plan, config, dataset_name, dataset, memo)
+        images_key, dataset_key = _plan_dataset(plan, config, dataset_name, dataset, memo)
         dataset = config["datasets"][dataset_name]
+        plan.images_keys[dataset_name] = images_key
         plan.dataset_keys[dataset_name] = dataset_key
         plan.has_ground_truth[dataset_name] = dataset["ground_truth"]["kind"] != "none"
         plan.runs[dataset_name] = [
             run
             for method_name in dataset["methods"]
-            for run in _plan_method(plan, config, memo, dataset_name, dataset_key, method_name)
+            for run in _plan_method(
+                plan, config, memo, dataset_name, (images_key, dataset_key), method_name
+            )
         ]
         # A preset re-ranks methods a config may drop from its list: only a name that is
         # no method at all is a mistake.
@@ -242,31 +262,46 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
     return plan
 
 
-def _plan_dataset(plan: Plan, config: dict, name: str, dataset: dict, memo: dict) -> str:
-    contents, files = dataset_contents(config["data_root"], name, dataset, memo)
+def _plan_dataset(
+    plan: Plan, config: dict, name: str, dataset: dict, memo: dict
+) -> tuple[str, str]:
+    """The keys of a dataset's two stores: ``images`` (what the images are) and
+    ``dataset`` (its ground truth, over the images store)."""
+    images, truth, files = dataset_contents(config["data_root"], name, dataset, memo)
     if files is not None:
         plan.dataset_files[name] = files
     params = {
         "name": name,
-        # Every dataset setting but those read by later stages or by people only:
-        # one the stage reads (recursive, follow_links, ...) can never be left out.
-        **{k: v for k, v in dataset.items() if k not in NOT_DATASET_STAGE},
-        # What the images and ground truth hold, not where they are: replaced images
-        # rebuild everything, a moved or re-mounted data folder rebuilds nothing.
-        "contents": contents,
+        **{k: v for k, v in dataset.items() if k not in IMAGES_EXCLUDED},
+        # What the images hold, not where they are: replaced images rebuild everything,
+        # a moved or re-mounted data folder rebuilds nothing.
+        "contents": images,
     }
+    listing = listing_truth(dataset["ground_truth"])
+    if listing:  # MSLS: its published lists pick the images
+        params["ground_truth"] = listing
     if dataset["resolution"] == "native" and files is not None:
-        # Later stages are keyed by the size itself; the dataset stage checks that
+        # Later stages are keyed by the size itself; the images stage checks that
         # every image has it (the first image stands for all at planning time).
         try:
             first = (files.reference + files.query)[0]
             size = list(image_size(first, dataset_orientation(dataset["exif_orientation"])))
         except ImageReadError:
-            size = None  # the dataset stage decodes every image and names this one
+            size = None  # the images stage decodes every image and names this one
         if size is not None:
             params["native_size"] = size
             config["datasets"][name] = {**dataset, "resolution": size}
-    return plan.add("dataset", params, {}, name)
+    images_key = plan.add("images", params, {}, name)
+    truth_params = {
+        **{k: dataset[k] for k in TRUTH_SETTINGS},
+        # What the ground-truth files hold (the images are the images store's).
+        "contents": truth,
+    }
+    return images_key, plan.add("dataset", truth_params, {"images": ("images", images_key)}, name)
+
+
+# Kept out of the images store's key: the truth store's settings and those of neither.
+IMAGES_EXCLUDED = TRUTH_SETTINGS + NOT_DATASET_STAGE
 
 
 _StoreRef = tuple[str, str]  # (stage, key)
@@ -282,7 +317,8 @@ class _Method:
     memo: dict
     dataset_name: str
     dataset: dict
-    dataset_store: _StoreRef
+    images_store: _StoreRef  # what the images are: the model stages' input
+    dataset_store: _StoreRef  # the ground truth: recall's input
     name: str
     settings: dict  # resolved: see resolve_method
     aggregator: Aggregator
@@ -317,7 +353,12 @@ class _Method:
 
 
 def _plan_method(
-    plan: Plan, config: dict, memo: dict, dataset_name: str, dataset_key: str, method_name: str
+    plan: Plan,
+    config: dict,
+    memo: dict,
+    dataset_name: str,
+    keys: tuple[str, str],
+    method_name: str,
 ) -> list[MethodRun]:
     """Plan one method's stages (as its registry entry needs them) and its CSV rows:
     features, the stages its aggregator needs, descriptors, then recall (through the
@@ -332,7 +373,8 @@ def _plan_method(
         memo,
         dataset_name,
         dataset,
-        ("dataset", dataset_key),
+        ("images", keys[0]),
+        ("dataset", keys[1]),
         method_name,
         settings,
         agg,
@@ -342,7 +384,7 @@ def _plan_method(
     row = {"aggregator": agg.name, **columns}
     if "protocol" in dataset:  # a preset's (config.validate_config)
         row["protocol"] = dataset["protocol"]
-    inputs = {"dataset": m.dataset_store, "features": features}
+    inputs = {"images": m.images_store, "features": features}
     for stage in agg.needs:
         if stage not in _NEEDED_STAGES:  # a registry entry naming a stage the plan does not know
             raise PlanError(f"aggregator {agg.name!r} needs unknown stage {stage!r}")
@@ -354,13 +396,15 @@ def _plan_method(
     descriptors = m.add("descriptors", {"aggregator": agg.name, **m.options}, inputs)
     retrieval, recall_params, columns = _plan_retrieval(m, descriptors)
     row.update(columns)
-    recall_key = m.add("recall", recall_params, retrieval)[1]
+    recall_key = m.add("recall", recall_params, {**retrieval, "dataset": m.dataset_store})[1]
     runs = [MethodRun(method_name, recall_key, _flat(row), agg.name)]
     # What a re-ranker re-orders; an approximate search's exact twin is the retrieval row's.
     used = {k: v for k, v in retrieval.items() if k != "exact_search"}
     for reranker in dataset["rerank"].get(method_name, []):
         rerank, columns = _plan_rerank(m, used, recall_params, reranker)
-        recall_key = m.add("recall", recall_params, {**used, "rerank": rerank})[1]
+        recall_key = m.add(
+            "recall", recall_params, {**used, "dataset": m.dataset_store, "rerank": rerank}
+        )[1]
         runs.append(
             MethodRun(
                 f"{method_name}+{reranker}",
@@ -399,7 +443,7 @@ def _plan_features(m: _Method, name: str | None = None) -> tuple[_StoreRef, dict
             f"{patch}-pixel patch of backbone {name!r}"
         )
     run_params = m.model_run_params("features", backbone)
-    store = m.add("features", params, {"dataset": m.dataset_store}, run_params)
+    store = m.add("features", params, {"images": m.images_store}, run_params)
     return store, {"features": name, **_prefixed("features", backbone)}
 
 
@@ -421,13 +465,13 @@ def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef,
         "exif_orientation": _exif_orientation(m),  # as its features: masks on the same pixels
     }
     run_params = m.model_run_params("segments", segmenter)
-    store = m.add("segments", params, {"dataset": m.dataset_store}, run_params)
+    store = m.add("segments", params, {"images": m.images_store}, run_params)
     return store, {"segmenter": name, **_prefixed("segmenter", segmenter)}
 
 
 def _plan_vocabulary(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
     vocabulary = m.settings["vocabulary"]
-    stores = {"dataset": m.dataset_store, "features": inputs["features"]}
+    stores = {"images": m.images_store, "features": inputs["features"]}
     if vocabulary["source"] == "published":
         # The centres are the file's: nothing else of the section shapes them.
         name = vocabulary.get("name")
@@ -487,8 +531,9 @@ _NEEDED_STAGES = {
 def _plan_retrieval(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict, dict]:
     """What ranks the references for each query, for recall and re-ranking alike: the
     inputs (descriptors; and the segment search a per-segment method votes over), the
-    recall stage's params, and the CSV columns."""
-    inputs = {"dataset": m.dataset_store, "descriptors": descriptors}
+    recall stage's params, and the CSV columns. Recall adds the truth store, a re-ranker
+    the images store."""
+    inputs = {"descriptors": descriptors}
     params = {
         "recall_at": m.dataset["recall_at"],
         "denominator": m.dataset["denominator"],
@@ -534,7 +579,8 @@ def _plan_rerank(
     # a cluster for a GPU (the stage still uses one when `device` finds it).
     backbone = m.entry("backbones", entry["features"])
     run_params = {**m.execution, "uses_gpu": model_kind("features", backbone).uses_gpu}
-    store = m.add("rerank", params, {**retrieval, "features": features}, run_params)
+    inputs = {**retrieval, "images": m.images_store, "features": features}
+    store = m.add("rerank", params, inputs, run_params)
     return store, {"reranker": name, **_prefixed("rerank", entry)}
 
 
@@ -553,7 +599,7 @@ def _plan_search(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRe
         params = {"top_segments": voting["top_segments"], **settings}
         run_params = {**m.execution, "uses_gpu": SEARCH_INDEXES[settings["index"]].uses_gpu}
         return m.add(
-            "search", params, {"dataset": m.dataset_store, "descriptors": descriptors}, run_params
+            "search", params, {"images": m.images_store, "descriptors": descriptors}, run_params
         )
 
     searches = {"search": search(retrieval)}
@@ -572,7 +618,7 @@ def _resolution(dataset: dict, profile: dict) -> list[int] | str:
     if profile["resolution"] != "dataset":
         return list(profile["resolution"])
     if dataset["resolution"] == "native":
-        return "native"  # the dataset cannot be listed: its stage fails first, naming why
+        return "native"  # the dataset cannot be listed: its images stage fails first, naming why
     return list(dataset["resolution"])
 
 

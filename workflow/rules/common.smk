@@ -232,6 +232,7 @@ def pairs_stores(wildcards):
 
 
 def export_stores(wildcards):
-    """Input function: the dataset and descriptors stores of a method's export."""
+    """Input function: the images and descriptors stores of a method's export (no
+    ground truth: a ground-truth change leaves it as it is)."""
     stores = method_stores(PLAN, wildcards.dataset, wildcards.method)
-    return {name: stores[name] for name in ("dataset", "descriptors")}
+    return {name: stores[name] for name in ("images", "descriptors")}

@@ -7,7 +7,7 @@ run_stage(
     lambda: export_descriptors(
         sm.wildcards.dataset,
         sm.wildcards.method,
-        sm.input.dataset,
+        sm.input.images,
         sm.input.descriptors,
         sm.output[0],
     ),

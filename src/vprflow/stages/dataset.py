@@ -1,4 +1,6 @@
-"""The ``dataset`` rule: image lists, sizes and ground truth of one dataset."""
+"""A dataset's two stores: ``images`` (what the images are: their list, order, paths,
+sizes and SHA-256) and ``dataset`` (what is true about them: the ground truth, with the
+images store's arrays copied), and :class:`Dataset`, which reads either."""
 
 from __future__ import annotations
 
@@ -19,18 +21,18 @@ from vprflow.stages.base import shard_range
 log = logging.getLogger("vprflow")
 
 
-def build_dataset(
+def build_images(
     name: str, record: dict, data_root: str, out: str, fingerprints: str | None = None
 ) -> None:
-    """List and decode every image once (so a corrupt file fails here, by name) and
-    store paths (relative to ``data_root``, so the data folder may move), sizes (after
-    the EXIF orientation), each image's SHA-256 and the ground truth. The absolute
-    folder read is logged and kept in the attributes.
+    """The ``images`` rule: list and decode every image once (so a corrupt file fails
+    here, by name) and store paths (relative to ``data_root``, so the data folder may
+    move), names, sizes (after the EXIF orientation) and each image's SHA-256. The
+    absolute folder read is logged and kept in the attributes.
 
-    What is read must be what the key covers: the contents hash of the files as read
-    here must equal the plan's (``record["params"]["contents"]``), else a file changed
-    after planning, and it is named (with ``fingerprints``, the plan's memo of hashes
-    by file stamp). Queries byte-identical to a reference are refused.
+    What is read must be what the key covers: the images' digest as read here must equal
+    the plan's (``record["params"]["contents"]``), else a file changed after planning,
+    and it is named (with ``fingerprints``, the plan's memo of hashes by file stamp).
+    Queries byte-identical to a reference are refused.
     """
     params = record["params"]
     files = datasets.list_dataset(data_root, name, params)
@@ -44,7 +46,7 @@ def build_dataset(
         digests.append(hashlib.sha256(data).hexdigest())
         sizes[i] = decode_image(data, path, orientation).shape[:2]
     by_path = dict(zip(paths, digests, strict=True))
-    contents = datasets.contents_digest(
+    contents = datasets.images_digest(
         files, data_root, params, lambda p, _: by_path.get(p) or file_digest(p)
     )
     if contents != params["contents"]:
@@ -55,16 +57,12 @@ def build_dataset(
     datasets.check_disjoint(
         name, files.reference, files.query, by_path.get, "are byte-identical copies of references"
     )
-    truth = ground_truth(files, params["ground_truth"], folder)
-    counts = np.array([len(t) for t in truth], dtype=np.int64)
-    with stores.atomic_store(out, {"stage": "dataset", "record": record}) as group:
+    with stores.atomic_store(out, {"stage": "images", "record": record}) as group:
         group.attrs.update(
             name=name,
             data_root_at_build=str(Path(data_root).resolve()),
             n_reference=len(files.reference),
             n_query=len(files.query),
-            ground_truth_rule=ground_truth_rule(params["ground_truth"]),
-            n_queries_with_positives=int((counts > 0).sum()),
             exif_orientation=orientation,
         )
         stores.write_array(
@@ -76,10 +74,6 @@ def build_dataset(
         )
         stores.write_array(group, "sha256", np.array(digests))
         stores.write_array(group, "image_sizes", sizes)
-        stores.write_array(
-            group, "truth", np.concatenate(truth) if truth else np.zeros(0, np.int64)
-        )
-        stores.write_array(group, "truth_offsets", np.r_[0, np.cumsum(counts)].astype(np.int64))
     for role, (hidden, other) in (files.skipped or {}).items():
         if hidden or other:
             log.warning(
@@ -95,6 +89,62 @@ def build_dataset(
         len(files.reference),
         len(files.query),
         folder.resolve(),
+    )
+
+
+# What the truth store copies of the images store, so its readers read one store.
+IMAGE_ARRAYS = ("paths", "names", "sha256", "image_sizes")
+
+
+def build_truth(
+    images_path: str, record: dict, data_root: str, out: str, fingerprints: str | None = None
+) -> None:
+    """The ``dataset`` rule: the ground truth of the images in ``images_path`` (the
+    images store), stored with that store's arrays and counts, so recall, the report and
+    the figures read one store. The ground-truth files as read here must hold what the
+    key covers (``record["params"]["contents"]``)."""
+    params = record["params"]
+    images = stores.open_store(images_path)
+    listed = images.attrs["record"]["params"]  # how the images were listed
+    name = listed["name"]
+    entry = {**listed, "ground_truth": params["ground_truth"]}
+    datasets.check_pairing(name, entry)  # pairs match query i with reference i
+    if datasets.truth_digest(data_root, entry, lambda p, _: file_digest(p)) != params["contents"]:
+        raise DatasetError(
+            f"dataset '{name}': its ground-truth files changed after this run planned it, so "
+            "its key no longer describes them. Run snakemake again: it re-plans, and rebuilds "
+            "what depends on the ground truth"
+        )
+    n_reference = int(images.attrs["n_reference"])
+    paths = [Path(data_root) / p for p in stores.read_strings(images, "paths")]
+    files = datasets.DatasetFiles(reference=paths[:n_reference], query=paths[n_reference:])
+    truth = ground_truth(files, params["ground_truth"], datasets.dataset_folder(data_root, entry))
+    counts = np.array([len(t) for t in truth], dtype=np.int64)
+    with stores.atomic_store(out, {"stage": "dataset", "record": record}) as group:
+        group.attrs.update(
+            name=name,
+            data_root_at_build=str(Path(data_root).resolve()),
+            n_reference=n_reference,
+            n_query=int(images.attrs["n_query"]),
+            ground_truth_rule=ground_truth_rule(params["ground_truth"]),
+            n_queries_with_positives=int((counts > 0).sum()),
+            exif_orientation=images.attrs["exif_orientation"],
+        )
+        for array in IMAGE_ARRAYS:
+            data = np.asarray(images[array][...])
+            if data.dtype.kind not in "iuf":  # strings
+                data = np.array(stores.read_strings(images, array))
+            stores.write_array(group, array, data)
+        stores.write_array(
+            group, "truth", np.concatenate(truth) if truth else np.zeros(0, np.int64)
+        )
+        stores.write_array(group, "truth_offsets", np.r_[0, np.cumsum(counts)].astype(np.int64))
+    log.info(
+        "dataset %s: ground truth %s, %d of %d queries with a positive",
+        name,
+        ground_truth_rule(params["ground_truth"]),
+        int((counts > 0).sum()),
+        len(counts),
     )
 
 
@@ -139,8 +189,9 @@ def _changed_since_planning(
 
 
 class Dataset:
-    """Read-side view of a dataset store. ``paths`` are the image files under
-    ``data_root`` (relative to it when none is given)."""
+    """Read-side view of an images or dataset store (the ground truth: only the
+    latter). ``paths`` are the image files under ``data_root`` (relative to it when none
+    is given)."""
 
     def __init__(self, path: str, data_root: str | None = None):
         self.group = stores.open_store(path)
@@ -157,7 +208,7 @@ class Dataset:
     def read_image(self, index: int, exif_orientation: str | None = None) -> np.ndarray:
         """Image ``index`` as :func:`vprflow.images.read_image` decodes it, with
         ``exif_orientation`` (a method's stage passes its own) or the dataset's, after
-        checking that the file still holds what the dataset stage hashed: an image
+        checking that the file still holds what the images stage hashed: an image
         changed during a run must fail, naming it, not be computed under the key of its
         old content."""
         path = self.paths[index]
@@ -166,7 +217,7 @@ class Dataset:
             self._sha256 = stores.read_strings(self.group, "sha256")
         if hashlib.sha256(data).hexdigest() != self._sha256[index]:
             raise DatasetError(
-                f"{path} changed after the dataset stage read it (its SHA-256 differs), so "
+                f"{path} changed after the images stage read it (its SHA-256 differs), so "
                 "results computed now would be stored under its old content's key. Run "
                 "snakemake again: it re-plans and rebuilds what depends on the image"
             )
@@ -191,10 +242,10 @@ class Dataset:
 
 
 def open_shard(
-    dataset_path: str, data_root: str, start: int | None, stop: int | None
+    images_path: str, data_root: str, start: int | None, stop: int | None
 ) -> tuple[Dataset, range]:
-    """The dataset (image paths under ``data_root``) and the images ``start..stop`` a
-    per-image stage reads; logs the folder it reads from."""
-    dataset = Dataset(dataset_path, data_root)
+    """The images store (image paths under ``data_root``) and the images ``start..stop``
+    a per-image stage reads; logs the folder it reads from."""
+    dataset = Dataset(images_path, data_root)
     log.info("reading images under %s", Path(data_root).resolve())
     return dataset, shard_range(dataset.n_images, start, stop)

@@ -48,7 +48,7 @@ def compute_descriptors(
     """
     params = record["params"]
     agg = aggregator(params["aggregator"])
-    dataset = Dataset(inputs["dataset"])
+    dataset = Dataset(inputs["images"])
     images = shard_range(dataset.n_images, start, stop)
     describe = agg.descriptor_function(params, inputs)
     by_segment = agg.output == "segments"

@@ -27,7 +27,7 @@ from vprflow.stages.dataset import Dataset
 def export_descriptors(
     dataset_name: str, method: str, dataset_path: str, descriptors_path: str, out: str
 ) -> None:
-    """Write ``out`` (an ``.npz``) from the dataset and descriptors stores."""
+    """Write ``out`` (an ``.npz``) from the images and descriptors stores."""
     dataset = Dataset(dataset_path)
     group = stores.open_store(descriptors_path)
     arrays = {

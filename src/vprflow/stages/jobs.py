@@ -32,7 +32,7 @@ class Job:
     data_root: str = ""
     run: dict = field(default_factory=dict)  # the plan's run_params: device, batch_size
     threads: int = 1
-    fingerprints: str | None = None  # the dataset stage's memo of content hashes
+    fingerprints: str | None = None  # the images and dataset stages' memo of content hashes
 
     @property
     def stage(self) -> str:
@@ -47,18 +47,24 @@ class Job:
         return self.run.get("batch_size", 1)
 
 
-def _dataset(job: Job) -> None:
-    from vprflow.stages.dataset import build_dataset
+def _images(job: Job) -> None:
+    from vprflow.stages.dataset import build_images
 
     name = job.record["params"]["name"]
-    build_dataset(name, job.record, job.data_root, job.out, job.fingerprints)
+    build_images(name, job.record, job.data_root, job.out, job.fingerprints)
+
+
+def _dataset(job: Job) -> None:
+    from vprflow.stages.dataset import build_truth
+
+    build_truth(job.inputs["images"], job.record, job.data_root, job.out, job.fingerprints)
 
 
 def _features(job: Job) -> None:
     from vprflow.stages.features import compute_features
 
     compute_features(
-        job.inputs["dataset"],
+        job.inputs["images"],
         job.record,
         job.out,
         job.data_root,
@@ -73,7 +79,7 @@ def _segments(job: Job) -> None:
     from vprflow.stages.segments import compute_segments
 
     compute_segments(
-        job.inputs["dataset"],
+        job.inputs["images"],
         job.record,
         job.out,
         job.data_root,
@@ -88,7 +94,7 @@ def _vocabulary(job: Job) -> None:
     from vprflow.stages.vocabulary import fit_vocabulary
 
     fit_vocabulary(
-        job.inputs["dataset"],
+        job.inputs["images"],
         job.inputs["features"],
         job.record,
         job.out,
@@ -112,7 +118,7 @@ def _search(job: Job) -> None:
     from vprflow.stages.search import search_shard
 
     search_shard(
-        job.inputs["dataset"],
+        job.inputs["images"],
         job.inputs["descriptors"],
         job.record,
         job.out,
@@ -145,6 +151,7 @@ def _rerank(job: Job) -> None:
 # Every stage the plan makes (vprflow.plan.FORMAT_VERSIONS), by name. Stage modules
 # are imported by the runner that needs them: importing torch or faiss costs seconds.
 RUNNERS: dict[str, Callable[[Job], None]] = {
+    "images": _images,
     "dataset": _dataset,
     "features": _features,
     "segments": _segments,

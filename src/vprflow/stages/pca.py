@@ -18,7 +18,7 @@ def fit_pca_stage(inputs: dict[str, str], record: dict, out: str) -> None:
     from vprflow.pca import fit_pca
 
     params = record["params"]
-    dataset = Dataset(inputs["dataset"])
+    dataset = Dataset(inputs["images"])
     describe = aggregator(params["aggregator"]).descriptor_function(params["fit_on"], inputs)
     segments_path = inputs["segments"]
     offsets = np.asarray(stores.open_store(segments_path)["masks_offsets"][...])

@@ -39,7 +39,7 @@ def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "
     from vprflow.rerank import rerank, rerank_scores
 
     params = record["params"]
-    dataset = Dataset(inputs["dataset"])
+    dataset = Dataset(inputs["images"])
     n_ref = dataset.n_reference
     (retrieved, _, _), search_ms = timed_retrieve(
         dataset,
