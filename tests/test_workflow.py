@@ -146,7 +146,8 @@ def test_csv_has_one_row_per_method_with_parameters_and_recall(toy_run):
 
 def test_every_rule_wrote_a_log(toy_run):
     workdir, _ = toy_run
-    for stage in ("dataset", "features", "segments", "vocabulary", "pca", "descriptors", "recall"):
+    stages = ("images", "dataset", "features", "segments", "vocabulary", "pca", "descriptors")
+    for stage in (*stages, "recall"):
         logs = list((workdir / "logs" / stage).glob("*/*.log"))
         assert logs, f"no log for {stage}"
     assert (workdir / "logs" / "report" / "toy.log").exists()
@@ -185,6 +186,7 @@ def test_stages_are_shared_and_self_describing(toy_run):
     # fitted once per SegVLAD neighbourhood order that uses it (orders 0 and 3), as
     # published, and once for segment_gem. Each re-ranked row adds a rerank and a recall.
     assert counts == {
+        "images": 1,
         "dataset": 1,
         "features": 1,
         "segments": 1,
@@ -252,6 +254,20 @@ def test_changing_a_reranker_reruns_only_its_reranks_and_their_recall(toy_run):
     # anyloc_vlad+mnn and segvlad+mnn: one rerank and one recall each; ransac's stay.
     assert sum("results/cache/rerank/" in line for line in outputs) == 2
     assert sum("results/cache/recall/" in line for line in outputs) == 2
+
+
+def test_changing_the_ground_truth_reruns_the_truth_store_and_recall_but_no_model_stage(toy_run):
+    # Issue 30: a ground-truth change once rebuilt the images' listing, features, segments
+    # and the vocabulary. The truth store and recall are all it shapes (the figures read
+    # recall, so `all` would redraw them too).
+    workdir, config = toy_run
+    changed = copy.deepcopy(config)
+    changed["datasets"]["toy"]["ground_truth"] = {"kind": "frame_window", "radius": 1}
+    path = write_config(workdir, changed, "frame_window.yaml")
+    assert scheduled_stages(workdir, path, TARGET) == {"dataset", "recall", "report"}
+    changed["datasets"]["toy"]["denominator"] = "all"
+    path = write_config(workdir, changed, "frame_window_all.yaml")
+    assert scheduled_stages(workdir, path, TARGET) == {"dataset", "recall", "report"}
 
 
 def test_changing_a_value_and_back_schedules_at_most_the_csv(toy_run):
@@ -460,12 +476,13 @@ def test_empty_query_folder_names_it(tmp_path):
     assert "contains no images" in text and "query" in text
 
 
-def test_corrupt_image_names_the_file_and_leaves_no_dataset_store(tmp_path):
+def test_corrupt_image_names_the_file_and_leaves_no_images_or_dataset_store(tmp_path):
     make_dataset(tmp_path / "data" / "toy", n_places=4)
     bad = tmp_path / "data" / "toy" / "ref" / "0002.png"
     bad.write_bytes(b"not a png at all")
     text = failing_run(tmp_path, toy_config(tmp_path / "data"))
     assert str(bad) in text
+    assert not list((tmp_path / "results" / "cache").glob("images/*.zarr"))
     assert not list((tmp_path / "results" / "cache").glob("dataset/*.zarr"))
 
 
@@ -528,7 +545,7 @@ def test_a_failing_method_withdraws_the_previous_table(tmp_path):
 
 
 def test_moved_data_reruns_nothing_and_a_replaced_image_reruns_everything(tmp_path):
-    """The dataset key covers the images' contents, not their location."""
+    """The images key covers the images' contents, not their location."""
     make_dataset(tmp_path / "data" / "toy", n_places=4)
     config = toy_config("data")  # relative to the working directory
     config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
@@ -547,6 +564,7 @@ def test_moved_data_reruns_nothing_and_a_replaced_image_reruns_everything(tmp_pa
     shutil.copyfile(ref[1], ref[0])
     os.utime(ref[0], ns=(before.st_atime_ns, before.st_mtime_ns - 10**9))
     assert scheduled_stages(tmp_path, moved, TARGET) == {
+        "images",
         "dataset",
         "features",
         "vocabulary",
