@@ -606,3 +606,20 @@ def test_the_rerank_stage_retrieves_as_deep_as_the_recall_reads(config):
     recall = plan.get("recall", run.recall_key)
     rerank = plan.get("rerank", recall.inputs["rerank"][1])
     assert rerank.record["params"]["depth"] == recall.record["params"]["top_k"] == 20
+
+
+def test_a_config_with_its_keys_in_another_order_gives_records_of_the_same_repr(config):
+    # Snakemake reruns a job whose params' repr changed: a config rewritten with sorted
+    # keys (or edited into another order) must not rerun a stage whose key it keeps.
+    def reordered(value):
+        if isinstance(value, dict):
+            return {k: reordered(value[k]) for k in reversed(list(value))}
+        return value
+
+    plan, other = build_plan(config), build_plan(reordered(config))
+    records = {
+        s: {k: repr(v.record) for k, v in stages.items()} for s, stages in plan.stages.items()
+    }
+    assert records == {
+        s: {k: repr(v.record) for k, v in stages.items()} for s, stages in other.stages.items()
+    }

@@ -167,6 +167,9 @@ class Plan:
             "params": params,
             "inputs": {name: key for name, (_, key) in sorted(inputs.items())},
         }
+        # Keys sorted at every depth: Snakemake's params trigger compares the record's
+        # repr, so the order of a config's keys must not rerun a job its key keeps.
+        record = json.loads(json.dumps(record, sort_keys=True))
         key = content_key(record)
         self.stages.setdefault(stage, {})[key] = Stage(
             stage, key, record, inputs, run_params or {}, dataset, files or {}
