@@ -554,3 +554,41 @@ def test_a_failed_download_says_on_the_console_which_dataset_and_what_to_do(tmp_
     assert "dataset 'toy'" in console and "HTTP 404" in console
     assert "put the dataset at" in console and "data_root" in console
     assert not (workdir / "data" / "toy").exists()
+
+
+# ------------------------------------------------------------------ fetched by the run
+
+
+def test_a_run_asks_for_the_datasets_its_targets_name_or_else_the_configs_targets():
+    config = {"targets": ["corridor"], "datasets": {"corridor": {}, "roadscene": {}, "x_y": {}}}
+    assert download.requested_datasets(config, ["snakemake", "--cores", "2"]) == ["corridor"]
+    argv = ["snakemake", "-c2", "results/recall_roadscene.csv", "results/pairs/x_y/a/pairs.txt"]
+    assert download.requested_datasets(config, argv) == ["roadscene", "x_y"]
+    assert download.requested_datasets(config, ["snakemake", "results/recall_x.csv"]) == []
+
+
+def test_a_missing_sample_dataset_the_run_needs_is_fetched_before_planning_and_only_it(
+    tmp_path, server, toy_files
+):
+    folder, base = server
+    data = make_archive(folder / "toy.zip", toy_files)
+    config = {
+        "data_root": str(tmp_path / "data"),
+        "targets": ["toy", "preset_like"],
+        "datasets": {
+            "toy": {"path": "toy", "download": spec_for(f"{base}/toy.zip", sha256(data))},
+            "preset_like": {"path": "preset_like"},  # no download entry: stays manual
+            "present": {"path": "present", "download": spec_for(f"{base}/none.zip")},
+        },
+    }
+    (tmp_path / "data" / "present").mkdir(parents=True)
+    root = str(tmp_path) + "/"
+    names = ["toy", "preset_like", "present"]
+    assert download.fetch_missing(config, names, tmp_path, root) == ["toy"]
+    assert (tmp_path / "data" / "toy" / "ref").is_dir()
+    record = json.loads((tmp_path / "results" / "downloads" / "toy.json").read_text())
+    assert record["dataset"] == "toy" and record["sha256"] == sha256(data)
+    assert (tmp_path / "logs" / "download" / "toy.log").exists()
+    assert not (tmp_path / "data" / "preset_like").exists()
+    # Present now: nothing more to fetch.
+    assert download.fetch_missing(config, names, tmp_path, root) == []

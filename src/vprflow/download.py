@@ -91,6 +91,61 @@ def download_hint(name: str) -> str:
     return f"snakemake --cores 1 {record_path(name)}"
 
 
+def requested_datasets(config: dict, argv: list[str]) -> list[str]:
+    """The datasets a ``snakemake`` command line (``sys.argv``) asks for: those its
+    ``results/...`` targets name, or, without such a target, the config's ``targets``."""
+    targets = [a for a in argv[1:] if a.startswith("results/")]
+    if not targets:
+        return list(config["targets"])
+    named = []
+    for name in config["datasets"]:
+        token = re.compile(rf"(^|[/_]){re.escape(name)}([/.]|$)")
+        if any(token.search(t) for t in targets):
+            named.append(name)
+    return named
+
+
+def fetch_missing(
+    config: dict, names: list[str], workflow_dir: str | Path, root: str = ""
+) -> list[str]:
+    """Download each of ``names`` that has a ``download`` entry (the shipped sample
+    datasets; presets have none and stay manual) and whose folder is missing, as the
+    ``download`` rule does (its record and log at their paths under ``root``), before
+    the plan lists the images. Returns the names fetched. The console says what is
+    fetched and where its log is; a failure is a DownloadError naming the dataset."""
+    from vprflow.datasets import dataset_folder
+
+    fetched = []
+    for name in names:
+        entry = config["datasets"].get(name, {})
+        folder = dataset_folder(config["data_root"], entry) if entry else None
+        if "download" not in entry or folder.is_dir():
+            continue
+        log_path = Path(root + LOG.format(dataset=name))
+        log_path.parent.mkdir(parents=True, exist_ok=True)
+        print(
+            f"vprflow: dataset {name}: {folder} is missing; downloading it (progress: {log_path})",
+            file=sys.stderr,
+        )
+        manifest = manifest_inputs(config, name, workflow_dir)
+        logger = logging.getLogger("vprflow")
+        with open(log_path, "w") as log_file:
+            handler = logging.StreamHandler(log_file)
+            handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
+            logger.addHandler(handler)
+            level, logger.level = logger.level, logging.INFO
+            try:
+                record = download_dataset(
+                    name, entry["download"], folder, manifest[0] if manifest else None
+                )
+            finally:
+                logger.removeHandler(handler)
+                logger.setLevel(level)
+        write_record(record, root + record_path(name))
+        fetched.append(name)
+    return fetched
+
+
 def download_entry(config: dict, name: str) -> dict:
     """Dataset ``name``'s ``download`` entry (the rule's params); a dataset that is not
     configured, or has none, is an error saying where to get it instead."""

@@ -5,6 +5,7 @@ from pathlib import Path
 
 from vprflow.config import PlanError, validate_config
 from vprflow.datasets import list_dataset
+from vprflow.download import fetch_missing, requested_datasets
 from vprflow.fingerprints import load_fingerprints, save_fingerprints
 from vprflow.paths import (
     EXPORT,
@@ -59,6 +60,15 @@ try:
     # between runs.
     _memo = load_fingerprints(PREFIX + FINGERPRINTS)
     _memo_size = len(_memo)
+    if RUNS_JOBS:
+        # A shipped sample dataset (one with a `download` entry) the run needs and that
+        # is missing is fetched before its images are listed and hashed into the plan.
+        fetch_missing(
+            CONFIG,
+            requested_datasets(CONFIG, sys.argv),
+            Path(workflow.current_basedir).parent,
+            PREFIX,
+        )
     PLAN = build_plan(CONFIG, _memo)
 except Exception:
     # `onerror` does not run for a failure here: withdraw the tables now, since none
