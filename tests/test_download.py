@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pytest
 from synthetic import make_dataset
-from workflow_helpers import dataset_spec, snakemake, toy_config, write_config
+from workflow_helpers import dataset_spec, scheduled_stages, snakemake, toy_config, write_config
 
 from vprflow import download
 from vprflow.datasets import DatasetError, list_dataset
@@ -526,15 +526,31 @@ def test_download_rule_then_recall_through_the_snakefile(tmp_path, server, toy_f
     assert len(rows) == len(config["datasets"]["toy"]["methods"])
     assert all(row["n_queries"] == "10" for row in rows)
     # After a complete run, the cached stores never stand in for a dataset that is not
-    # there: a run pointed at an empty data_root names the dataset and the remedy, not a
-    # stage that failed to find its files (no "Missing files after 5 seconds").
+    # there: a run pointed at an empty data_root fetches the sample there first (it has a
+    # download entry), and reruns nothing, since the images are the same; a dry run
+    # fetches nothing and names the folder and the command.
     elsewhere = write_config(workdir, {**config, "data_root": str(tmp_path / "empty")}, "b.yaml")
+    dry = snakemake(workdir, elsewhere, "-n", "results/recall_toy.csv", check=False)
+    assert dry.returncode != 0 and "does not exist" in dry.stdout + dry.stderr
+    assert "snakemake --cores 1 results/downloads/toy.json" in dry.stdout + dry.stderr
+    fetched = snakemake(workdir, elsewhere, "results/recall_toy.csv")
+    assert "dataset toy: downloading into" in fetched.stdout + fetched.stderr
+    assert (tmp_path / "empty" / "toy" / "ref").is_dir()
+    assert scheduled_stages(workdir, elsewhere, "results/recall_toy.csv") == set()
+    # A dataset without a download entry names itself and the folder, not a stage that
+    # failed to find its files (no "Missing files after 5 seconds").
+    manual = {**config, "data_root": str(tmp_path / "void")}
+    manual["datasets"] = {
+        "toy": {k: v for k, v in config["datasets"]["toy"].items() if k != "download"}
+    }
+    manual_path = write_config(workdir, manual, "c.yaml")
     for target in ("results/recall_toy.csv", "all"):
-        failed = snakemake(workdir, elsewhere, *([] if target == "all" else [target]), check=False)
+        failed = snakemake(
+            workdir, manual_path, *([] if target == "all" else [target]), check=False
+        )
         console = failed.stdout + failed.stderr
         assert failed.returncode != 0, target
         assert "dataset 'toy'" in console and "does not exist" in console, target
-        assert "snakemake --cores 1 results/downloads/toy.json" in console, target
         assert "Missing files after" not in console, target
 
 

@@ -35,10 +35,10 @@ def test_sharded_workflow_on_slurm_matches_local_run(slurm_cluster, tmp_path):
     output, seconds = run_snakemake(command, cwd=cluster_dir)
 
     job_ids = submitted_job_ids(output)
-    # dataset, 2 feature shards + gather, 2 segment shards + gather, vocabulary, pca,
-    # 2 x (2 descriptor shards + gather), 3 search shards + merge, 2 recalls; the report
-    # runs locally.
-    assert len(job_ids) == 21, output[-3000:]
+    # images, dataset (the ground truth), 2 feature shards + gather, 2 segment shards +
+    # gather, vocabulary, pca, 2 x (2 descriptor shards + gather), 3 search shards +
+    # merge, 2 recalls; the report runs locally.
+    assert len(job_ids) == 22, output[-3000:]
     states = {fields.get("JobState") for fields in slurm_job_info(job_ids).values()}
     assert states == {"COMPLETED"}
     logs = list((cluster_dir / ".snakemake" / "slurm_logs").rglob("*.log"))

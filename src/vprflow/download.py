@@ -124,7 +124,8 @@ def fetch_missing(
         log_path = Path(root + LOG.format(dataset=name))
         log_path.parent.mkdir(parents=True, exist_ok=True)
         print(
-            f"vprflow: dataset {name}: {folder} is missing; downloading it (progress: {log_path})",
+            f"vprflow: dataset {name}: downloading into {folder}, which is missing "
+            f"(progress: {log_path})",
             file=sys.stderr,
         )
         manifest = manifest_inputs(config, name, workflow_dir)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 from vprflow.config import PlanError, validate_config
 from vprflow.datasets import list_dataset
-from vprflow.download import fetch_missing, requested_datasets
+from vprflow.download import DownloadError, fetch_missing, requested_datasets
 from vprflow.fingerprints import load_fingerprints, save_fingerprints
 from vprflow.paths import (
     EXPORT,
@@ -70,10 +70,11 @@ try:
             PREFIX,
         )
     PLAN = build_plan(CONFIG, _memo)
-except Exception:
+except Exception as _error:
     # `onerror` does not run for a failure here: withdraw the tables now, since none
-    # of them describes a config that cannot be planned.
-    if RUNS_JOBS:
+    # of them describes a config that cannot be planned (a sample dataset that could not
+    # be fetched leaves the others' tables as they are: they still describe their data).
+    if RUNS_JOBS and not isinstance(_error, DownloadError):
         for _table in withdraw_reports(PREFIX):
             print(f"vprflow: {_table} withdrawn: the config could not be planned")
     raise
