@@ -50,15 +50,7 @@ EXPECTED = {
     "resolution": FROM_FEATURES,
     "source": (),
     "data_root": (),
-    "backbones.daisy.radius": (
-        "features",
-        "vocabulary",
-        "pca",
-        "descriptors",
-        "search",
-        "rerank",
-        "recall",
-    ),
+    "backbones.daisy.radius": ("features", *EVERYTHING[4:]),  # not segments
     "segmenters.slic.n_segments": ("segments", "pca", "descriptors", "search", "rerank", "recall"),
     "vocabulary.n_clusters": ("vocabulary", "pca", "descriptors", "search", "rerank", "recall"),
     "defaults.pca.dim": ("pca", "descriptors", "search", "rerank", "recall"),
