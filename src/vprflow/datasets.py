@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path, PurePath
 
 from vprflow.images import IMAGE_SUFFIXES, ImageScan, natural_key, scan_images
+from vprflow.paths import dataset_folder, download_hint
 
 
 class DatasetError(ValueError):
@@ -30,10 +31,6 @@ class DatasetFiles:
     reference: list[Path]
     query: list[Path]
     skipped: dict[str, tuple[int, int]] | None = None
-
-
-def dataset_folder(data_root: str | Path, dataset: dict) -> Path:
-    return Path(data_root) / dataset["path"]
 
 
 def check_pairing(name: str, dataset: dict) -> None:
@@ -64,8 +61,6 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
     hint = f" Get it from {dataset['source']}." if dataset.get("source") else ""
     if not root.is_dir():
         if dataset.get("download"):
-            from vprflow.download import download_hint
-
             hint = f" Download it with `{download_hint(name)}` (then run again).{hint}"
         from vprflow.presets import presets
 

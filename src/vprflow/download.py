@@ -53,12 +53,10 @@ from contextlib import contextmanager
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 from vprflow.files import TAG, is_abandoned, write_text_atomic, writer_tag
+from vprflow.paths import DOWNLOAD_LOG, DOWNLOAD_RECORD, dataset_folder
 
 log = logging.getLogger("vprflow")
 
-# What `snakemake <RECORD>` builds: the record written once the dataset folder is in place.
-RECORD = "results/downloads/{dataset}.json"
-LOG = "logs/download/{dataset}.log"
 CHUNK = 1 << 20
 # Unpacking stops short of filling the disk: this much of the file system (5% of it, at
 # most RESERVE_MAX) stays free after a dataset is laid out.
@@ -80,15 +78,6 @@ MAGIC = {
 
 class DownloadError(RuntimeError):
     """A failed download; the message names the URL, member or file at fault."""
-
-
-def record_path(name: str) -> str:
-    return RECORD.format(dataset=name)
-
-
-def download_hint(name: str) -> str:
-    """The command that downloads dataset ``name`` (for 'folder does not exist' errors)."""
-    return f"snakemake --cores 1 {record_path(name)}"
 
 
 def requested_datasets(config: dict, argv: list[str]) -> list[str]:
@@ -113,15 +102,13 @@ def fetch_missing(
     ``download`` rule does (its record and log at their paths under ``root``), before
     the plan lists the images. Returns the names fetched. The console says what is
     fetched and where its log is; a failure is a DownloadError naming the dataset."""
-    from vprflow.datasets import dataset_folder
-
     fetched = []
     for name in names:
         entry = config["datasets"].get(name, {})
         folder = dataset_folder(config["data_root"], entry) if entry else None
         if "download" not in entry or folder.is_dir():
             continue
-        log_path = Path(root + LOG.format(dataset=name))
+        log_path = Path(root + DOWNLOAD_LOG.format(dataset=name))
         log_path.parent.mkdir(parents=True, exist_ok=True)
         print(
             f"vprflow: dataset {name}: downloading into {folder}, which is missing "
@@ -142,7 +129,7 @@ def fetch_missing(
             finally:
                 logger.removeHandler(handler)
                 logger.setLevel(level)
-        write_record(record, root + record_path(name))
+        write_record(record, root + DOWNLOAD_RECORD.format(dataset=name))
         fetched.append(name)
     return fetched
 

@@ -34,7 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vprflow.datasets import DatasetError, DatasetFiles, dataset_folder, role_folders
+from vprflow.datasets import DatasetError, DatasetFiles, role_folders
+from vprflow.paths import dataset_folder
 from vprflow.positions import (
     Positions,
     check_one_system,

@@ -28,8 +28,22 @@ FIGURE = "results/figures/{dataset}/{figure}/{method}.png"
 INDEX = f"{CACHE}/index.tsv"
 # The memo of content hashes (vprflow.fingerprints).
 FINGERPRINTS = f"{CACHE}/fingerprints.json"
+# What `snakemake <DOWNLOAD_RECORD>` builds (vprflow.download): the record written once a
+# dataset's folder is in place, and the download's log.
+DOWNLOAD_RECORD = "results/downloads/{dataset}.json"
+DOWNLOAD_LOG = "logs/download/{dataset}.log"
 # A published vocabulary (vprflow.vocabularies), fetched once; one may be put there by hand.
 PUBLISHED_VOCABULARY = "results/downloads/vocabularies/{name}/c_centers.pt"
+
+
+def dataset_folder(data_root: str | Path, dataset: dict) -> Path:
+    """A dataset entry's folder: its ``path`` under ``data_root``."""
+    return Path(data_root) / dataset["path"]
+
+
+def download_hint(name: str) -> str:
+    """The command that downloads dataset ``name`` (for 'folder does not exist' errors)."""
+    return f"snakemake --cores 1 {DOWNLOAD_RECORD.format(dataset=name)}"
 
 
 # What a name in a path may be: a dataset, method, re-ranker or backbone entry (the

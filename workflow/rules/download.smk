@@ -2,15 +2,14 @@
 # results/downloads/<dataset>.json` fetches the dataset's `download` archive, verifies
 # it and lays out its folder under data_root when the folder is missing, then writes
 # this record. Nothing here lists images, so the target works while the data is absent.
-from vprflow.datasets import dataset_folder
-from vprflow.paths import PUBLISHED_VOCABULARY
-from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES, vocabulary_url
-from vprflow.download import (
-    LOG as DOWNLOAD_LOG,
-    RECORD as DOWNLOAD_RECORD,
-    download_entry,
-    manifest_inputs,
+from vprflow.paths import (
+    DOWNLOAD_LOG,
+    DOWNLOAD_RECORD,
+    PUBLISHED_VOCABULARY,
+    dataset_folder,
 )
+from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES, vocabulary_url
+from vprflow.download import download_entry, manifest_inputs
 
 # Shipped manifests are named relative to workflow/ (found while this file is parsed).
 WORKFLOW_DIR = Path(workflow.current_basedir).parent

@@ -16,6 +16,7 @@ from vprflow.datasets import DatasetError
 from vprflow.fingerprints import file_digest
 from vprflow.ground_truth import ground_truth, ground_truth_rule
 from vprflow.images import ImageReadError, dataset_orientation, decode_image
+from vprflow.paths import dataset_folder
 from vprflow.stages.base import shard_range
 
 log = logging.getLogger("vprflow")
@@ -36,7 +37,7 @@ def build_images(
     """
     params = record["params"]
     files = datasets.list_dataset(data_root, name, params)
-    folder = datasets.dataset_folder(data_root, params)
+    folder = dataset_folder(data_root, params)
     paths = files.reference + files.query
     sizes = np.zeros((len(paths), 2), dtype=np.int64)
     orientation = dataset_orientation(params["exif_orientation"])  # method: upright
@@ -118,7 +119,7 @@ def build_truth(
     n_reference = int(images.attrs["n_reference"])
     paths = [Path(data_root) / p for p in stores.read_strings(images, "paths")]
     files = datasets.DatasetFiles(reference=paths[:n_reference], query=paths[n_reference:])
-    truth = ground_truth(files, params["ground_truth"], datasets.dataset_folder(data_root, entry))
+    truth = ground_truth(files, params["ground_truth"], dataset_folder(data_root, entry))
     counts = np.array([len(t) for t in truth], dtype=np.int64)
     with stores.atomic_store(out, {"stage": "dataset", "record": record}) as group:
         group.attrs.update(
