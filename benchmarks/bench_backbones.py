@@ -1,4 +1,4 @@
-"""Per-image time and peak memory of ``vprflow.vit`` backbones (random weights).
+"""Per-image time and peak memory of ``vprflow.models.vit`` backbones (random weights).
 
 Each case runs in its own child process so that its peak RSS (``ru_maxrss``) is its
 own: the child builds the architecture with random weights, saves it to a temporary
@@ -168,7 +168,7 @@ def run_case(name: str, directory: str, repeats: int, batches: list[int]) -> lis
     import torch
     import transformers  # noqa: F401  (imported before measuring the baseline RSS)
 
-    from vprflow.vit import load_vit
+    from vprflow.models.vit import load_vit
 
     _, (height, width), params = CASES[name]
     params = dict(params)

@@ -43,10 +43,10 @@ from threadpoolctl import threadpool_limits
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_workflow import REPO, cycled_config, data_folder, run_snakemake  # noqa: E402
 
-from vprflow import stores  # noqa: E402
-from vprflow.config import validate_config  # noqa: E402
-from vprflow.plan import build_plan  # noqa: E402
-from vprflow.runner import run_stage  # noqa: E402
+from vprflow.core import stores  # noqa: E402
+from vprflow.planning.config import validate_config  # noqa: E402
+from vprflow.planning.plan import build_plan  # noqa: E402
+from vprflow.stages.runner import run_stage  # noqa: E402
 
 
 def prepare(data: Path, workdir: Path, n_images: int, methods: list[str] | None = None):
@@ -103,7 +103,7 @@ runpy.run_path(script, init_globals={"snakemake": snakemake})
 
 def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ...]:
     """(stage, arithmetic, read, job) seconds per image of one descriptors stage."""
-    from vprflow.registry import aggregator
+    from vprflow.core.registry import aggregator
     from vprflow.stages.dataset import Dataset
     from vprflow.stages.features import FeatureReader
     from vprflow.stages.jobs import Job, run_job

@@ -33,9 +33,9 @@ import numpy as np
 import yaml
 from PIL import Image
 
-from vprflow.config import validate_config
-from vprflow.images import read_image, scan_images
-from vprflow.plan import build_plan
+from vprflow.data.images import read_image, scan_images
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import build_plan
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.jobs import Job, run_job
 

@@ -51,7 +51,7 @@ def make_data(path: Path, n: int, d: int, latent: int, seed: int) -> None:
 
 def fit_one(solver: str, data_path: str, dim: int, out: str) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
-    from vprflow.pca import fit_pca
+    from vprflow.aggregation.pca import fit_pca
 
     x = np.load(data_path)
     start = time.perf_counter()

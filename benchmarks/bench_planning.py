@@ -90,10 +90,10 @@ def dry_run(workdir: Path, config: Path) -> float:
 
 
 def plan_seconds(workdir: Path, config: Path) -> float:
-    from vprflow.config import validate_config
-    from vprflow.fingerprints import load_fingerprints
-    from vprflow.paths import FINGERPRINTS
-    from vprflow.plan import build_plan
+    from vprflow.core.paths import FINGERPRINTS
+    from vprflow.planning.config import validate_config
+    from vprflow.planning.fingerprints import load_fingerprints
+    from vprflow.planning.plan import build_plan
 
     validated = validate_config(yaml.safe_load(config.read_text()), SCHEMA)
     memo = load_fingerprints(str(workdir / FINGERPRINTS))
@@ -112,7 +112,7 @@ def main() -> None:
     args = parser.parse_args()
     if args.smoke:
         args.files, args.repeats = 500, 1
-    from vprflow.paths import FINGERPRINTS
+    from vprflow.core.paths import FINGERPRINTS
 
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)

@@ -1,5 +1,6 @@
 """Re-ranking cost: milliseconds per query to score a query's top K candidates with each
-re-ranker (:func:`vprflow.rerank.rerank_scores`, what the ``rerank`` stage calls per query),
+re-ranker (:func:`vprflow.evaluation.rerank.rerank_scores`, what the ``rerank`` stage calls
+per query),
 at the patch grids of the shipped and published backbones.
 
     python benchmarks/bench_rerank.py              # K = 100, the cases below, CPU
@@ -73,7 +74,7 @@ def main() -> int:
 
     import torch
 
-    from vprflow.rerank import mutual_nearest_neighbours, rerank_scores
+    from vprflow.evaluation.rerank import mutual_nearest_neighbours, rerank_scores
 
     cases = SMOKE if args.smoke else {n: CASES[n] for n in args.cases.split(",")}
     top_k, repeat = (5, 1) if args.smoke else (args.top_k, args.repeat)

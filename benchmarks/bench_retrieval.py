@@ -23,9 +23,9 @@ threads (both the fastest repeat); ``/ faiss`` is each over faiss flat's. On a m
 shared with other jobs both mislead: threads waiting at barriers burn CPU time, and the
 torch path (many short multi-threaded steps) suffers more than faiss (one long GEMM), so
 compare methods on an idle machine. ``agree@k`` is the mean fraction of each query's top-k
-set shared with faiss flat (:func:`vprflow.knn.topk.topk_agreement`; below 1 only through
+set shared with faiss flat (:func:`vprflow.search.topk.topk_agreement`; below 1 only through
 near-ties within float32 rounding). Voting is
-:func:`vprflow.voting.vote_ranking` on faiss flat's lists with 85 segments per image;
+:func:`vprflow.search.voting.vote_ranking` on faiss flat's lists with 85 segments per image;
 its note gives the fraction of query images whose top-50 ranking is identical when voted
 from the exact bf16 lists instead.
 """
@@ -69,9 +69,9 @@ def max_rss_mib() -> float:
 def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
     """Run one method in this (fresh) process and save its lists and measurements."""
     sys.path.insert(0, str(SRC))
-    from vprflow.knn.exact import exact_knn
-    from vprflow.knn.flat import flat_knn
-    from vprflow.knn.topk import merge_knn
+    from vprflow.search.exact import exact_knn
+    from vprflow.search.flat import flat_knn
+    from vprflow.search.topk import merge_knn
 
     database = np.load(folder / "database.npy")
     queries = np.load(folder / "queries.npy")
@@ -128,7 +128,7 @@ def run_method(method: str, folder: Path, args: argparse.Namespace) -> dict:
 
 
 def voted(report: dict, n_query: int, n_ref: int, args: argparse.Namespace):
-    from vprflow.voting import vote_ranking
+    from vprflow.search.voting import vote_ranking
 
     query_image = np.arange(args.query_segments) // SEGMENTS_PER_IMAGE
     ref_image = np.arange(args.ref_segments) // SEGMENTS_PER_IMAGE
@@ -169,7 +169,7 @@ def main() -> None:
     import faiss
     import torch
 
-    from vprflow.knn.topk import topk_agreement
+    from vprflow.search.topk import topk_agreement
 
     with tempfile.TemporaryDirectory(prefix="bench_retrieval_") as tmp:
         folder = Path(tmp)

@@ -27,7 +27,7 @@ time measured on the single image, with the process's peak memory after that bat
 
 ``--decoders`` times prompt decoding alone, at the published decoder sizes (256
 channels, 64 x 64 embedding; SAM-HQ with ViT-H's 1280-channel early features) on random
-embeddings: vprflow's shared-image decoder (``vprflow.sam_decoder``) against a call of
+embeddings: vprflow's shared-image decoder (``vprflow.models.sam.decoder``) against a call of
 the transformers model, per 1,024 prompts (one 32 x 32 grid), with peak memory growth
 (CUDA: peak allocated).
 
@@ -130,9 +130,9 @@ def _large_segmenter(model: str, params: dict, device: str, dtype_name: str):
     import torch
     import transformers
 
-    from vprflow.devices import resolve_device, resolve_dtype
-    from vprflow.sam_adapters import SAM_KINDS, sam_params
-    from vprflow.sam_generator import SamSegmenter
+    from vprflow.core.devices import resolve_device, resolve_dtype
+    from vprflow.models.sam.adapters import SAM_KINDS, sam_params
+    from vprflow.models.sam.generator import SamSegmenter
 
     kind, config_name, config = LARGE[model]
     class_name, adapter_class = SAM_KINDS[kind]
@@ -161,7 +161,7 @@ def run_one(
     import torch
     from transformers import SamConfig, SamModel
 
-    from vprflow.sam_adapters import load_sam
+    from vprflow.models.sam.adapters import load_sam
 
     params = {"points_per_side": side, **FILTERS[filters]}
     if model in LARGE:
@@ -239,8 +239,8 @@ def decoder_one(
     import torch
     import transformers
 
-    from vprflow.devices import resolve_device
-    from vprflow.sam_adapters import SAM_KINDS
+    from vprflow.core.devices import resolve_device
+    from vprflow.models.sam.adapters import SAM_KINDS
 
     torch_device = resolve_device(device)
     cuda = torch_device.type == "cuda"

@@ -1,4 +1,4 @@
-"""Per-image SNSM time: vectorised ``vprflow.snsm`` vs a direct per-cell loop.
+"""Per-image SNSM time: vectorised ``vprflow.aggregation.snsm`` vs a direct per-cell loop.
 
 Three implementations, all starting from the same random token grid and timed end to end
 (normalisation, upscaling, windowing, support map):
@@ -22,7 +22,7 @@ import time
 
 import numpy as np
 
-from vprflow.snsm import normalize_tokens, snsm_descriptor, support_map, window_grid
+from vprflow.aggregation.snsm import normalize_tokens, snsm_descriptor, support_map, window_grid
 
 OFFSETS = {
     "diagonal4": [(-1, -1), (-1, 1), (1, -1), (1, 1)],

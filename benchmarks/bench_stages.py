@@ -18,19 +18,19 @@ import time
 
 import numpy as np
 
-from vprflow.arrays import l2_normalize
-from vprflow.backbones import DaisyBackbone
-from vprflow.knn.flat import flat_knn
-from vprflow.pca import fit_pca
-from vprflow.segmenters import SlicSegmenter
-from vprflow.segvlad import (
+from vprflow.aggregation.pca import fit_pca
+from vprflow.aggregation.segvlad import (
     mask_patch_membership,
     neighbourhood,
     segment_adjacency,
     segment_centroids,
 )
-from vprflow.vlad import assign, vlad, vlad_per_region
-from vprflow.voting import vote_ranking
+from vprflow.aggregation.vlad import assign, vlad, vlad_per_region
+from vprflow.core.arrays import l2_normalize
+from vprflow.models.backbones import DaisyBackbone
+from vprflow.models.segmenters import SlicSegmenter
+from vprflow.search.flat import flat_knn
+from vprflow.search.voting import vote_ranking
 
 
 def best_of(function, repeats: int) -> float:

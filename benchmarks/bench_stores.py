@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 import zarr
 
-from vprflow import stores
+from vprflow.core import stores
 
 BLOCKS = 32  # VLAD clusters per row
 

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import yaml
 
-from vprflow.config import config_readme, load_schema
+from vprflow.planning.config import config_readme, load_schema
 
 REPO = Path(__file__).resolve().parents[1]
 schema = load_schema(REPO / "workflow" / "schemas" / "config.schema.yaml")

@@ -13,7 +13,7 @@ import numpy as np
 from PIL import Image
 from synthetic import place_image, write_vprbench_ground_truth
 
-from vprflow.published_truth import MSLS_FILES, published_order
+from vprflow.data.published_truth import MSLS_FILES, published_order
 
 SIZE = (40, 30)  # stored image size; the test backbone resizes to its own
 

@@ -17,9 +17,9 @@ import pytest
 import torch
 from tiny_models import tiny_vit
 
-from vprflow.checkpoints import CheckpointError, load_hub_checkpoint
-from vprflow.fingerprints import source_fingerprint
-from vprflow.vit import load_vit
+from vprflow.models.checkpoints import CheckpointError, load_hub_checkpoint
+from vprflow.models.vit import load_vit
+from vprflow.planning.fingerprints import source_fingerprint
 
 HIDDEN = 32
 SPREAD = {"scale": 0.3, "skip_norms": False, "bias_offset": 0.5}

@@ -9,7 +9,8 @@ import pytest
 import yaml
 from workflow_helpers import REPO
 
-from vprflow.config import (
+from vprflow.core.paths import check_inside_outputs
+from vprflow.planning.config import (
     MAX_SHOWN,
     ConfigError,
     check_config_files,
@@ -17,7 +18,6 @@ from vprflow.config import (
     load_schema,
     validate_config,
 )
-from vprflow.paths import check_inside_outputs
 
 SCHEMA_PATH = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
@@ -101,7 +101,7 @@ def test_top_level_vocabulary_keys_may_serve_methods_of_other_sources(raw):
 
 
 def test_the_shipped_configs_and_every_preset_read_every_key_they_set(raw):
-    from vprflow.presets import presets
+    from vprflow.data.presets import presets
 
     for name in presets():
         raw["datasets"][name] = {}
@@ -156,7 +156,7 @@ def test_a_dataset_named_to_climb_out_of_results_is_refused_by_name(raw):
 def test_the_wildcards_admit_exactly_the_config_names_and_rows_joined_by_a_plus():
     # The schema's name (config entries) and paths.NAME_PATTERN (the `dataset` and
     # `method` wildcards, whose methods include rows `<method>+<reranker>`) agree.
-    from vprflow.paths import NAME_PATTERN
+    from vprflow.core.paths import NAME_PATTERN
 
     pattern = load_schema(SCHEMA_PATH)["definitions"]["name"]["pattern"]
     assert pattern == "^" + NAME_PATTERN.replace("+", "") + "$"

@@ -1,4 +1,4 @@
-"""Dataset layouts (vprflow.datasets): folders in natural order, image lists, references
+"""Dataset layouts (vprflow.data.datasets): folders in natural order, image lists, references
 that are also queries, and paired layouts matched by name; errors name what is at fault."""
 
 from __future__ import annotations
@@ -11,8 +11,9 @@ from dataset_helpers import SPEC, touch_images
 from PIL import Image
 from workflow_helpers import dataset_spec
 
-from vprflow.datasets import DatasetError, list_dataset
-from vprflow.images import ImageReadError, scan_images
+from vprflow.core.errors import DatasetError
+from vprflow.data.datasets import list_dataset
+from vprflow.data.images import ImageReadError, scan_images
 
 # ------------------------------------------------------------------ folders
 

@@ -13,7 +13,7 @@ from pathlib import Path
 import yaml
 from packaging.specifiers import SpecifierSet
 
-from vprflow.plan import FORMAT_VERSIONS
+from vprflow.planning.plan import FORMAT_VERSIONS
 
 REPO = Path(__file__).resolve().parents[1]
 WORKFLOW = REPO / "workflow"
@@ -128,8 +128,8 @@ def test_the_readmes_own_image_recipes_validate_and_plan(tmp_path):
     from synthetic import make_dataset
     from workflow_helpers import expected_rows, repo_config
 
-    from vprflow.config import validate_config
-    from vprflow.plan import build_plan
+    from vprflow.planning.config import validate_config
+    from vprflow.planning.plan import build_plan
 
     recipes = readme_yaml_blocks()
     assert len(recipes) == 2

@@ -18,9 +18,9 @@ import torch
 from tiny_models import save_tiny_dinov3
 from transformers import AutoModel
 
-from vprflow import registry
-from vprflow.fingerprints import source_fingerprint
-from vprflow.vit import load_vit
+from vprflow.core import registry
+from vprflow.models.vit import load_vit
+from vprflow.planning.fingerprints import source_fingerprint
 
 HIDDEN = 32
 REGISTERS = 4
@@ -82,7 +82,7 @@ def test_registry_defaults_and_rope():
     # ViT-L/16 has 24 blocks: 18 (0-based) runs 19 of them, AnyLoc's 32 of 40 in depth.
     assert kind.defaults["layer"] == 18
     assert "pos_embed_interpolation" not in kind.defaults
-    assert kind.loader == "vprflow.vit:load_vit" and kind.weights == "model"
+    assert kind.loader == "vprflow.models.vit:load_vit" and kind.weights == "model"
 
 
 def test_shapes_registers_dropped_and_sdpa(dinov3_dir):

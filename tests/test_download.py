@@ -1,4 +1,4 @@
-"""Public datasets on demand (vprflow.download, the `download` rule), against an HTTP
+"""Public datasets on demand (vprflow.data.download, the `download` rule), against an HTTP
 server on 127.0.0.1: no test needs a network."""
 
 from __future__ import annotations
@@ -23,9 +23,10 @@ import pytest
 from synthetic import make_dataset
 from workflow_helpers import dataset_spec, scheduled_stages, snakemake, toy_config, write_config
 
-from vprflow import download
-from vprflow.datasets import DatasetError, list_dataset
-from vprflow.download import (
+from vprflow.core.errors import DatasetError
+from vprflow.data import download
+from vprflow.data.datasets import list_dataset
+from vprflow.data.download import (
     DownloadError,
     download_dataset,
     download_entry,
@@ -485,7 +486,7 @@ def test_two_downloads_of_one_dataset_at_once_both_finish_with_one_folder(
 
 
 def test_only_abandoned_download_folders_are_removed(tmp_path):
-    from vprflow.files import host_name
+    from vprflow.core.files import host_name
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()

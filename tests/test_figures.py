@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from vprflow import figures
-from vprflow.segvlad import _source_index
+from vprflow.aggregation.segvlad import _source_index
+from vprflow.evaluation import figures
 from vprflow.stages.figures import segment_matches
 
 
@@ -228,7 +228,7 @@ def test_every_curve_of_a_crowded_figure_has_its_own_style_and_rows_stay_with_th
 
 
 def test_a_16_bit_grayscale_image_keeps_its_range_in_a_thumbnail(tmp_path):
-    from vprflow.images import read_image
+    from vprflow.data.images import read_image
 
     ramp = np.tile(np.linspace(0, 65535, 64).astype(np.uint16), (48, 1))
     path = tmp_path / "thermal16.png"

@@ -1,4 +1,4 @@
-"""Ground-truth kinds (vprflow.ground_truth) against direct formulas: exact integer
+"""Ground-truth kinds (vprflow.data.ground_truth) against direct formulas: exact integer
 index sets, the safe VPR-Bench loader against live malicious pickles, errors that name
 the file, row or folder at fault, and the table of kinds against the schema.
 
@@ -19,8 +19,9 @@ import pytest
 from dataset_helpers import SPEC, assert_truth_equal, touch_images, utm_name
 from workflow_helpers import SCHEMA, dataset_spec, truth_spec
 
-from vprflow.datasets import DatasetError, DatasetFiles, list_dataset
-from vprflow.ground_truth import (
+from vprflow.core.errors import DatasetError
+from vprflow.data.datasets import DatasetFiles, list_dataset
+from vprflow.data.ground_truth import (
     KINDS,
     frame_window_ground_truth,
     ground_truth,
@@ -359,7 +360,7 @@ def test_no_ground_truth_gives_empty_lists_and_its_rule():
 def test_the_schema_admits_exactly_the_table_of_kinds():
     # The enum is filled from KINDS (config.load_schema): a kind the schema admits is
     # one ground_truth() computes, and the other way round.
-    from vprflow.config import load_schema
+    from vprflow.planning.config import load_schema
 
     dataset = load_schema(SCHEMA)["definitions"]["dataset"]["properties"]
     assert dataset["ground_truth"]["properties"]["kind"]["enum"] == list(KINDS)

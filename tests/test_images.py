@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from vprflow.images import (
+from vprflow.data.images import (
     EXIF_ORIENTATIONS,
     RESIZE_METHODS,
     ImageReadError,

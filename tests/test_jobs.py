@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from vprflow.plan import FORMAT_VERSIONS
+from vprflow.planning.plan import FORMAT_VERSIONS
 from vprflow.stages.jobs import RUNNERS, SHARDED, Job, combine_shards, run_job, shard_ranges
 
 

@@ -7,10 +7,10 @@ import numpy as np
 import pytest
 from knn_helpers import clustered, unit_vectors
 
-from vprflow.knn.approximate import ivf_flat_knn, ivf_pq_knn
-from vprflow.knn.exact import exact_knn
-from vprflow.knn.topk import topk_agreement
-from vprflow.registry import SEARCH_INDEXES, search_index
+from vprflow.core.registry import SEARCH_INDEXES, search_index
+from vprflow.search.approximate import ivf_flat_knn, ivf_pq_knn
+from vprflow.search.exact import exact_knn
+from vprflow.search.topk import topk_agreement
 
 
 @pytest.mark.parametrize(

@@ -8,10 +8,10 @@ import pytest
 import torch
 from knn_helpers import DIST_TOL, GAP, brute_force, check_against_float64, clustered, unit_vectors
 
-from vprflow.knn import exact as knn_exact
-from vprflow.knn.exact import exact_knn
-from vprflow.knn.flat import flat_knn
-from vprflow.knn.topk import topk_agreement
+from vprflow.search import exact as knn_exact
+from vprflow.search.exact import exact_knn
+from vprflow.search.flat import flat_knn
+from vprflow.search.topk import topk_agreement
 
 
 @pytest.mark.parametrize("candidate_dtype", ["bfloat16", "float32"])

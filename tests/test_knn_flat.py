@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vprflow.knn.flat import flat_knn
+from vprflow.search.flat import flat_knn
 
 
 def brute_force(database, queries):

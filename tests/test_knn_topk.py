@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from knn_helpers import unit_vectors
 
-from vprflow.knn.exact import exact_knn
-from vprflow.knn.topk import merge_knn, topk_agreement
+from vprflow.search.exact import exact_knn
+from vprflow.search.topk import merge_knn, topk_agreement
 
 
 def test_merge_knn_of_shards_equals_one_search():

@@ -14,7 +14,7 @@ from synthetic import make_dataset
 from tiny_models import save_tiny_dino, save_tiny_dinov2, save_tiny_sam
 from workflow_helpers import expected_rows, repo_config, snakemake, toy_config, write_config
 
-from vprflow.images import scan_images
+from vprflow.data.images import scan_images
 
 pytestmark = pytest.mark.workflow
 

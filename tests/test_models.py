@@ -8,9 +8,9 @@ import pytest
 import torch
 from tiny_models import save_tiny_dino
 
-from vprflow.devices import resolve_device, resolve_dtype
-from vprflow.models import ModelNotFoundError, resolve_model_source, weights_fingerprint
-from vprflow.vit import load_vit
+from vprflow.core.devices import resolve_device, resolve_dtype
+from vprflow.models.hub import ModelNotFoundError, resolve_model_source, weights_fingerprint
+from vprflow.models.vit import load_vit
 
 MISSING_ID = "vprflow-tests/no-such-model"
 
@@ -141,7 +141,7 @@ def test_resolve_dtype():
 
 @pytest.mark.parametrize("damage", ["random", "truncated"])
 def test_corrupt_safetensors_names_the_directory_and_the_remedy(tiny_dir, tmp_path, damage):
-    from vprflow.models import ModelLoadError
+    from vprflow.models.hub import ModelLoadError
 
     broken = tmp_path / "broken"
     shutil.copytree(tiny_dir, broken)
@@ -159,7 +159,7 @@ def test_corrupt_safetensors_names_the_directory_and_the_remedy(tiny_dir, tmp_pa
 
 
 def test_a_pickled_bin_checkpoint_is_refused_with_the_remedy(tiny_dir, tmp_path):
-    from vprflow.models import ModelLoadError
+    from vprflow.models.hub import ModelLoadError
 
     class Payload:
         def __reduce__(self):

@@ -13,7 +13,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vprflow.pca import Pca, _randomized_pca, exact_pca_bytes, fit_pca
+from vprflow.aggregation.pca import Pca, _randomized_pca, exact_pca_bytes, fit_pca
 
 
 def anisotropic(n, d, seed=0):

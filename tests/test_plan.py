@@ -8,9 +8,10 @@ import pytest
 import yaml
 from workflow_helpers import REPO
 
-from vprflow import registry
-from vprflow.config import ConfigError, PlanError, validate_config
-from vprflow.plan import build_plan, content_key
+from vprflow.core import registry
+from vprflow.core.errors import ConfigError, PlanError
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import build_plan, content_key
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
@@ -352,7 +353,7 @@ def test_resolution_below_one_patch_names_the_config_key(config):
 
 
 def test_corrupt_fingerprints_cache_is_named_ignored_and_rewritten_atomically(tmp_path):
-    from vprflow.fingerprints import load_fingerprints, save_fingerprints
+    from vprflow.planning.fingerprints import load_fingerprints, save_fingerprints
 
     path = tmp_path / "fingerprints.json"
     path.write_text('{"half": "writ')
@@ -389,7 +390,7 @@ def test_the_dataset_stage_lists_images_as_the_plan_did(tmp_path):
     from synthetic import make_dataset
     from workflow_helpers import toy_config
 
-    from vprflow.datasets import list_dataset
+    from vprflow.data.datasets import list_dataset
 
     make_dataset(tmp_path / "toy", n_places=3)
     extra = tmp_path / "toy" / "query" / "extra"
@@ -498,7 +499,7 @@ def test_native_resolution_plans_the_images_own_size_and_the_stage_refuses_anoth
     from synthetic import make_dataset
     from workflow_helpers import toy_config
 
-    from vprflow.datasets import DatasetError
+    from vprflow.core.errors import DatasetError
     from vprflow.stages.dataset import build_images
 
     make_dataset(tmp_path / "toy", n_places=3, width=80, height=60)

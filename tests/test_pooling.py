@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from vprflow.pooling import average_pool, gem, max_pool, segment_gem
+from vprflow.aggregation.pooling import average_pool, gem, max_pool, segment_gem
 
 
 def tokens(shape=(4, 5, 6), seed=0):
@@ -134,7 +134,7 @@ def direct_channel_normalised(x):
 
 def features_store(tmp_path, grid: np.ndarray) -> str:
     """A features store holding one image's float32 grid ``[h, w, D]``."""
-    from vprflow import stores
+    from vprflow.core import stores
 
     path = str(tmp_path / "features.zarr")
     with stores.atomic_store(path, {"stage": "features"}) as group:
@@ -144,7 +144,7 @@ def features_store(tmp_path, grid: np.ndarray) -> str:
 
 def image_descriptor(spec: dict, inputs: dict) -> np.ndarray:
     """Image 0's descriptor through the aggregator's registry entry."""
-    from vprflow.registry import aggregator
+    from vprflow.core.registry import aggregator
 
     return aggregator(spec["aggregator"]).descriptor_function(spec, inputs)(0)
 
@@ -173,7 +173,7 @@ def test_stage_vlad_normalises_each_patch_first(tmp_path):
     and residuals; float32 vs float64 loops, rtol 1e-4 / atol 1e-5."""
     from test_vlad import direct_vlad
 
-    from vprflow import stores
+    from vprflow.core import stores
 
     rng = np.random.default_rng(5)
     grid = (rng.standard_normal((3, 4, 8)) * rng.uniform(0.2, 5.0, (3, 4, 1))).astype(np.float32)

@@ -1,4 +1,4 @@
-"""Positions (vprflow.positions): distances against written-out formulas, coordinate
+"""Positions (vprflow.data.positions): distances against written-out formulas, coordinate
 files and EXIF GPS tags read by name with errors naming the line, UTM file names, and
 the radius rules against pairwise loops."""
 
@@ -15,9 +15,10 @@ from PIL import Image
 from PIL.TiffImagePlugin import IFDRational
 from workflow_helpers import dataset_spec
 
-from vprflow.datasets import DatasetError, list_dataset
-from vprflow.ground_truth import ground_truth, ground_truth_rule
-from vprflow.positions import (
+from vprflow.core.errors import DatasetError
+from vprflow.data.datasets import list_dataset
+from vprflow.data.ground_truth import ground_truth, ground_truth_rule
+from vprflow.data.positions import (
     EARTH_RADIUS_M,
     Positions,
     coordinates_ground_truth,

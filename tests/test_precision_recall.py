@@ -1,4 +1,4 @@
-"""vprflow.precision_recall against slow, by-hand versions of VPR-Bench's definitions
+"""vprflow.evaluation.precision_recall against slow, by-hand versions of VPR-Bench's definitions
 (performance_comparison.py at MubarizZaffar/VPR-Bench 77ad30f3: sklearn's
 precision_recall_curve of "top-1 is a positive" labels, sklearn's auc, and EP)."""
 
@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from vprflow.precision_recall import (
+from vprflow.evaluation.precision_recall import (
     auc_pr,
     extended_precision,
     precision_recall_curve,

@@ -10,16 +10,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 from preset_miniatures import MINIATURES, write_image
+from script_helpers import load_script
 from workflow_helpers import repo_config, snakemake, write_config
 
-from vprflow.config import ConfigError, PlanError, validate_config
-from vprflow.datasets import DatasetError, list_dataset
-from vprflow.ground_truth import ground_truth
-from vprflow.plan import build_plan
-from vprflow.presets import datasets_doc, merge_entry, presets, unknown_dataset
+from vprflow.core.errors import ConfigError, DatasetError, PlanError
+from vprflow.data.datasets import list_dataset
+from vprflow.data.ground_truth import ground_truth
+from vprflow.data.presets import merge_entry, presets, unknown_dataset
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import build_plan
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+
+datasets_doc = load_script("write_datasets_doc").datasets_doc
 
 
 def config_with(data_root: Path, **changes) -> dict:

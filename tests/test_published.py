@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from vprflow.published import (
+from vprflow.data.published import (
     PublishedDataError,
     load_c_centers,
     read_features_h5,

@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vprflow.datasets import DatasetError, DatasetFiles
-from vprflow.ground_truth import ground_truth, ground_truth_rule
-from vprflow.published_truth import (
+from vprflow.core.errors import DatasetError
+from vprflow.data.datasets import DatasetFiles
+from vprflow.data.ground_truth import ground_truth, ground_truth_rule
+from vprflow.data.published_truth import (
     MSLS_FILES,
     camera_centres,
     load_object_npy,
@@ -238,7 +239,7 @@ def test_rows_and_leading_columns_of_one_pose_list_give_each_roles_positions(tmp
 
 
 def test_a_matches_table_gives_row_is_positives_and_names_a_bad_index(tmp_path):
-    from vprflow.published_truth import matches_csv_ground_truth
+    from vprflow.data.published_truth import matches_csv_ground_truth
 
     path = tmp_path / "gt_matches.csv"
     path.write_text("query_ind,top_2_ref_ind,top_1_ref_ind\n7,3,1\n9,0,0\n")
@@ -253,7 +254,7 @@ def test_a_matches_table_gives_row_is_positives_and_names_a_bad_index(tmp_path):
 
 
 def test_a_vprbench_file_read_by_position_ignores_the_first_field_and_keeps_rows(tmp_path):
-    from vprflow.ground_truth import vprbench_ground_truth
+    from vprflow.data.ground_truth import vprbench_ground_truth
 
     rows = np.empty((4, 2), dtype=object)
     for i, (q, refs) in enumerate([(0, [0]), (1, [1]), (11, [2]), (12, [0, 2])]):
@@ -374,7 +375,7 @@ def test_a_listed_msls_image_missing_from_the_folder_is_refused_naming_it(tmp_pa
 
 
 def test_an_msls_preset_lists_only_the_images_of_the_published_lists(tmp_path):
-    from vprflow.datasets import list_dataset
+    from vprflow.data.datasets import list_dataset
 
     lists = write_msls_lists(tmp_path, np.random.default_rng(11))
     for path in lists["db"][:8] + ["unlisted.jpg"]:
@@ -459,8 +460,8 @@ def test_a_pickle_calling_the_array_class_itself_is_refused(tmp_path):
 
 @pytest.mark.parametrize("name", ["msls_sf", "msls_cph", "msls_val"])
 def test_the_msls_presets_divide_recall_by_every_kept_query_as_salad(tmp_path, name):
-    from vprflow.presets import presets
-    from vprflow.recall import recall_at
+    from vprflow.data.presets import presets
+    from vprflow.evaluation.recall import recall_at
 
     # SALAD's get_validation_recalls divides the hits by len(predictions): every kept
     # query, whether or not its pIdx row lists a positive.

@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vprflow.recall import average_precision_at, correct_at, map_at, recall_at
+from vprflow.evaluation.recall import average_precision_at, correct_at, map_at, recall_at
 
 
 def direct_recall(ranking, truth, ns):
@@ -144,7 +144,7 @@ def test_the_denominator_counts_queries_without_positives_as_misses_when_all():
 def toy_stores(tmp_path, truth: list[list[int]], n_ref: int = 3):
     """A dataset store (``truth`` per query, rule ``frame_window:+-0``) and a global
     descriptors store in which query ``q`` is nearest reference ``q % n_ref``."""
-    from vprflow import stores
+    from vprflow.core import stores
 
     n_query = len(truth)
     names = [f"ref/r{i}.jpg" for i in range(n_ref)] + [f"query/q{i}.jpg" for i in range(n_query)]
@@ -171,7 +171,7 @@ def toy_stores(tmp_path, truth: list[list[int]], n_ref: int = 3):
 
 
 def test_queries_without_positive_are_listed_in_order():
-    from vprflow.recall import queries_without_positive
+    from vprflow.evaluation.recall import queries_without_positive
 
     truth = [np.array([0]), np.zeros(0, np.int64), np.array([1, 2]), np.zeros(0, np.int64)]
     assert queries_without_positive(truth).tolist() == [1, 3]
@@ -191,7 +191,7 @@ def test_the_recall_store_and_table_count_queries_without_positive_and_the_log_n
     # without a word (with_positives), or sank recall unexplained (all).
     import csv
 
-    from vprflow import stores
+    from vprflow.core import stores
     from vprflow.stages.recall import evaluate
     from vprflow.stages.report import write_report
 

@@ -9,9 +9,14 @@ from pathlib import Path
 import pytest
 import yaml
 
-from vprflow import registry
-from vprflow.config import METHOD_DEFAULT_SECTIONS, ConfigError, load_schema, validate_config
-from vprflow.plan import FORMAT_VERSIONS, build_plan
+from vprflow.core import registry
+from vprflow.planning.config import (
+    METHOD_DEFAULT_SECTIONS,
+    ConfigError,
+    load_schema,
+    validate_config,
+)
+from vprflow.planning.plan import FORMAT_VERSIONS, build_plan
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA_PATH = REPO / "workflow" / "schemas" / "config.schema.yaml"
@@ -64,7 +69,7 @@ def test_every_search_index_is_one_the_search_stage_can_run():
 def test_exact_knn_takes_its_keyword_defaults_from_the_registry_entry():
     import inspect
 
-    from vprflow.knn.exact import exact_knn
+    from vprflow.search.exact import exact_knn
 
     # exact_knn's keyword defaults are read from the registry, never written again.
     keywords = inspect.signature(exact_knn).parameters
@@ -73,7 +78,7 @@ def test_exact_knn_takes_its_keyword_defaults_from_the_registry_entry():
 
 
 def test_config_readme_states_the_kind_and_search_index_defaults_from_the_registry():
-    from vprflow.config import config_readme
+    from vprflow.planning.config import config_readme
 
     readme = config_readme(SCHEMA)
     for index in registry.SEARCH_INDEXES.values():
@@ -165,7 +170,7 @@ def _properties(schema: dict):
 
 
 def test_every_config_key_is_described_and_config_readme_is_current():
-    from vprflow.config import config_readme
+    from vprflow.planning.config import config_readme
 
     undescribed = [name for name, prop in _properties(SCHEMA) if "description" not in prop]
     assert undescribed == []
@@ -185,7 +190,7 @@ def test_every_config_key_is_described_and_config_readme_is_current():
 
 
 def test_every_method_section_is_a_default_a_dataset_default_and_a_method_override():
-    from vprflow.plan import resolve_method
+    from vprflow.planning.plan import resolve_method
 
     raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     method = raw["methods"]["segvlad"]
@@ -206,7 +211,7 @@ def test_every_registry_default_is_a_key_its_kind_reads_and_x_kinds_name_real_ki
     # One place (the schema's x-kinds) says which kind reads a key; the registry's kind
     # defaults and re-ranker options must agree with it, or validation would refuse
     # what a kind fills in (or fill what it refuses).
-    from vprflow.config import kind_keys
+    from vprflow.planning.config import kind_keys
 
     definitions = SCHEMA["definitions"]
     for kinds, definition, kind_key in (

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from vprflow.reports import clear_superseded, closing_lines, runs_jobs
+from vprflow.planning.reports import clear_superseded, closing_lines, runs_jobs
 
 
 @pytest.mark.parametrize(

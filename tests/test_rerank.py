@@ -1,4 +1,4 @@
-"""Re-ranking by local patch matches (vprflow.rerank) against direct loops in float64.
+"""Re-ranking by local patch matches (vprflow.evaluation.rerank) against direct loops in float64.
 
 Mutual nearest neighbours: float32 inputs, the direct double loop computes every dot
 product in float64 and breaks ties by the lower index; similarities agree to 1e-6. The
@@ -17,10 +17,8 @@ import torch
 from synthetic import make_dataset
 from workflow_helpers import REPO, toy_config
 
-from vprflow import stores
-from vprflow.config import validate_config
-from vprflow.plan import build_plan
-from vprflow.rerank import (
+from vprflow.core import stores
+from vprflow.evaluation.rerank import (
     mnn_score,
     mutual_nearest_neighbours,
     patch_centres,
@@ -28,6 +26,8 @@ from vprflow.rerank import (
     rerank,
     rerank_scores,
 )
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import build_plan
 from vprflow.stages.jobs import Job, run_job
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"

@@ -10,9 +10,9 @@ import yaml
 from synthetic import make_dataset
 from workflow_helpers import REPO, toy_config
 
-from vprflow import reruns
-from vprflow.config import validate_config
-from vprflow.plan import FORMAT_VERSIONS, NOT_DATASET_STAGE, TRUTH_SETTINGS, build_plan
+from vprflow.planning import reruns
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import FORMAT_VERSIONS, NOT_DATASET_STAGE, TRUTH_SETTINGS, build_plan
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 SHIPPED = REPO / "config" / "config.yaml"

@@ -9,7 +9,7 @@ import pytest
 
 PROGRAM = """
 import sys
-from vprflow.runner import run_stage
+from vprflow.stages.runner import run_stage
 
 def stage():
     import faiss

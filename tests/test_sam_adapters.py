@@ -1,10 +1,10 @@
-"""The SAM kinds (``vprflow.sam_adapters``): registry entries and defaults, each
+"""The SAM kinds (``vprflow.models.sam.adapters``): registry entries and defaults, each
 adapter's preprocessing, loading, and prompt decoding.
 
 Tiny random ``SamModel`` / ``SamHQModel`` / ``Sam2Model`` checkpoints (the conftest's
 ``sam_kind_model``) are saved and loaded through the real loader. The low-res logits and
 IoUs the adapters decode (embedding computed once, prompts in batches through
-``vprflow.sam_decoder``) equal one direct call of the transformers model on the same
+``vprflow.models.sam.decoder``) equal one direct call of the transformers model on the same
 pixels and prompts (SAM-HQ: of the original decoder, written with the model's modules;
 see ``test_sam_decoder``).
 """
@@ -19,8 +19,8 @@ from PIL import Image
 from test_sam_decoder import hq_original
 from test_sam_generator import sample_image
 
-from vprflow.registry import SEGMENTERS
-from vprflow.sam_adapters import (
+from vprflow.core.registry import SEGMENTERS
+from vprflow.models.sam.adapters import (
     PIXEL_MEAN,
     PIXEL_STD,
     SAM_KINDS,
@@ -66,7 +66,7 @@ def test_registry_defaults_are_each_generators_defaults():
     for kind in KINDS:
         defaults = SEGMENTERS[kind].defaults
         assert {k: defaults[k] for k in common} == common, kind
-        assert SEGMENTERS[kind].loader == f"vprflow.sam_adapters:load_{kind}"
+        assert SEGMENTERS[kind].loader == f"vprflow.models.sam.adapters:load_{kind}"
     assert SEGMENTERS["sam"].defaults["pred_iou_thresh"] == 0.88
     assert SEGMENTERS["sam_hq"].defaults["pred_iou_thresh"] == 0.88  # SAM's generator
     assert SEGMENTERS["sam_hq"].defaults["hq_token_only"] is False
@@ -117,8 +117,8 @@ def test_sam2_preprocessing_stretches_and_normalises():
 
 
 def test_missing_model_error_names_the_model(tmp_path, monkeypatch):
-    models = pytest.importorskip("vprflow.models", reason="vprflow.models not written yet")
-    from vprflow.sam_adapters import load_sam
+    models = pytest.importorskip("vprflow.models.hub", reason="vprflow.models.hub not written yet")
+    from vprflow.models.sam.adapters import load_sam
 
     monkeypatch.setenv("HF_HUB_OFFLINE", "1")
     missing = tmp_path / "no-such-sam"

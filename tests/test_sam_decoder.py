@@ -1,4 +1,4 @@
-"""The shared-image mask decoder (``vprflow.sam_decoder``) against direct formulas.
+"""The shared-image mask decoder (``vprflow.models.sam.decoder``) against direct formulas.
 
 Reference for SAM and SAM 2: transformers' own mask decoder module, called as the model
 calls it (image embedding repeated per prompt). Reference for SAM-HQ: the original
@@ -24,7 +24,7 @@ from transformers.models.sam2.modeling_sam2 import Sam2MaskDecoder
 from transformers.models.sam_hq.configuration_sam_hq import SamHQMaskDecoderConfig
 from transformers.models.sam_hq.modeling_sam_hq import SamHQMaskDecoder
 
-from vprflow import sam_decoder
+from vprflow.models.sam import decoder as sam_decoder
 
 GRID = (6, 10)  # low-res image embedding h x w (64 x 64 for the published models)
 PROMPTS = 5

@@ -1,4 +1,4 @@
-"""Segment Anything automatic mask generation (``vprflow.sam_generator``), checked
+"""Segment Anything automatic mask generation (``vprflow.models.sam.generator``), checked
 against an independent reference.
 
 The models are tiny randomly initialised ``SamModel``s saved to a temporary directory (no
@@ -7,7 +7,7 @@ large spread: the default initialisation gives logits of ~1e-5, which would make
 mask the whole image. The reference pipeline below follows the original
 ``SamAutomaticMaskGenerator`` step by step (``F.interpolate`` upscaling, per-candidate
 filters, a pure-Python float64 NMS), so it shares no code with the generator or
-``vprflow.sam_masks``; only the image preprocessing is the library's, which has its own
+``vprflow.models.sam.masks``; only the image preprocessing is the library's, which has its own
 test (``test_sam_adapters``).
 
 The reference runs the model in float64, the library in float32 with its own batching,
@@ -36,8 +36,8 @@ from test_sam_masks import reference_nms
 from tiny_models import tiny_sam
 from transformers import SamModel
 
-from vprflow.sam_adapters import load_segmenter, preprocess_image, preprocess_shape
-from vprflow.sam_generator import point_grid
+from vprflow.models.sam.adapters import load_segmenter, preprocess_image, preprocess_shape
+from vprflow.models.sam.generator import point_grid
 
 MODEL_SIZE = 128  # the tiny model's input side (1024 for real checkpoints)
 HIDDEN = 32
@@ -69,7 +69,7 @@ NMS_MARGIN = 1e-3
 
 @pytest.fixture(scope="module")
 def sam_model(tmp_path_factory):
-    pytest.importorskip("vprflow.models", reason="vprflow.models not written yet")
+    pytest.importorskip("vprflow.models.hub", reason="vprflow.models.hub not written yet")
     # Weights re-drawn from N(0, 1), LayerNorms kept near identity.
     model = tiny_sam(hidden_size=HIDDEN, model_size=MODEL_SIZE, seed=0, scale=1.0)
     path = tmp_path_factory.mktemp("sam")
@@ -80,7 +80,7 @@ def sam_model(tmp_path_factory):
 @pytest.fixture(scope="module")
 def reference_model(tmp_path_factory):
     """The well-conditioned model of the float64 reference comparison (float32 weights)."""
-    pytest.importorskip("vprflow.models", reason="vprflow.models not written yet")
+    pytest.importorskip("vprflow.models.hub", reason="vprflow.models.hub not written yet")
     model = tiny_sam(
         hidden_size=HIDDEN, model_size=MODEL_SIZE, seed=REFERENCE_SEED, scale=REFERENCE_SCALE
     )
@@ -100,7 +100,7 @@ def sample_image(height: int = 48, width: int = 80, seed: int = 0) -> np.ndarray
 
 
 def _load(path, **params):
-    from vprflow.sam_adapters import load_sam
+    from vprflow.models.sam.adapters import load_sam
 
     return load_sam({"model": str(path), "points_per_side": SIDE, **params}, device="cpu")
 

@@ -1,4 +1,4 @@
-"""The tensor operations on masks of automatic mask generation (``vprflow.sam_masks``)
+"""The tensor operations on masks of automatic mask generation (``vprflow.models.sam.masks``)
 against direct formulas: ``F.interpolate`` in float64 for the logit upscaling, per-pixel
 counts for stability scores and boxes, a pure-Python float64 NMS (:func:`reference_nms`,
 also the NMS of ``test_sam_generator``'s reference pipeline).
@@ -13,8 +13,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from vprflow.sam_adapters import preprocess_shape
-from vprflow.sam_masks import (
+from vprflow.models.sam.adapters import preprocess_shape
+from vprflow.models.sam.masks import (
     LogitUpscaler,
     box_nms,
     masks_to_boxes,

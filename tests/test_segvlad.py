@@ -15,14 +15,14 @@ import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
-from vprflow.segvlad import (
+from vprflow.aggregation.segvlad import (
     image_segvlad,
     mask_patch_membership,
     neighbourhood,
     segment_adjacency,
     segment_centroids,
 )
-from vprflow.vlad import vlad_per_region
+from vprflow.aggregation.vlad import vlad_per_region
 
 ATOL = 1e-5
 
@@ -308,7 +308,7 @@ def test_segvlad_descriptors_with_given_labels_and_empty_clusters():
 
 
 def test_whole_image_region_equals_anyloc_vlad():
-    from vprflow.vlad import vlad
+    from vprflow.aggregation.vlad import vlad
 
     features, regions, centres = descriptor_problem(3)
     whole = vlad_per_region(features, regions[1:2], centres)[0]

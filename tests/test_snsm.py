@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import torch
 
-from vprflow.snsm import (
+from vprflow.aggregation.snsm import (
     normalize_tokens,
     snsm_descriptor,
     snsm_descriptors,

@@ -12,11 +12,11 @@ import pytest
 from synthetic import make_dataset
 from workflow_helpers import toy_config
 
-from vprflow import stores
-from vprflow.config import validate_config
-from vprflow.datasets import DatasetError
-from vprflow.images import read_image, resize_image
-from vprflow.plan import build_plan
+from vprflow.core import stores
+from vprflow.core.errors import DatasetError
+from vprflow.data.images import read_image, resize_image
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import build_plan
 from vprflow.stages.dataset import Dataset, build_images
 from vprflow.stages.descriptors import compute_descriptors
 from vprflow.stages.export import write_pairs
@@ -111,7 +111,7 @@ def stage_path(pipeline, stage: str, method: str = "segvlad") -> str:
     plan, runner, _, _ = pipeline
     run = {r.method: r for r in plan.runs["toy"]}[method]
     users = {}
-    from vprflow.store_index import stage_users
+    from vprflow.planning.store_index import stage_users
 
     for (name, key), rows in stage_users(plan).items():
         if name == stage and ("toy", method) in rows:
@@ -128,7 +128,7 @@ def test_dataset_lists_images_and_truth(pipeline):
 
 
 def test_sharded_daisy_features_equal_the_backbone_on_each_image(pipeline):
-    from vprflow.backbones import DaisyBackbone
+    from vprflow.models.backbones import DaisyBackbone
 
     _, _, _, root = pipeline
     group = stores.open_store(stage_path(pipeline, "features"))
@@ -161,7 +161,7 @@ def test_vocabulary_and_pca_shapes(pipeline):
 
 def test_segvlad_descriptors_are_the_projected_segment_vlads(pipeline):
     """The descriptors stage equals image_segvlad + the PCA projection, per image."""
-    from vprflow.segvlad import image_segvlad
+    from vprflow.aggregation.segvlad import image_segvlad
     from vprflow.stages.descriptors import vlad_input
 
     features = stores.open_store(stage_path(pipeline, "features"))
@@ -187,7 +187,7 @@ def test_segment_gem_descriptors_are_each_segments_gem_projected(pipeline):
     """A second per-segment aggregator on SegVLAD's segment path: its descriptors equal a
     float64 GeM over each segment's patches (channel-normalised tokens), L2-normalised,
     then its own PCA, per image; its recall comes from the segment search and voting."""
-    from vprflow.segvlad import mask_patch_membership
+    from vprflow.aggregation.segvlad import mask_patch_membership
 
     features = stores.open_store(stage_path(pipeline, "features", "segment_gem"))
     segments = stores.open_store(stage_path(pipeline, "segments", "segment_gem"))
@@ -375,7 +375,7 @@ def test_gather_of_one_shard_renames_it_with_the_gathered_attributes(tmp_path):
 
 def test_sharded_search_equals_one_faiss_search_over_all_references(pipeline):
     """Three reference shards merged give the lists of one exact search (ties by index)."""
-    from vprflow.knn.flat import flat_knn
+    from vprflow.search.flat import flat_knn
 
     group = stores.open_store(stage_path(pipeline, "descriptors"))
     offsets = np.asarray(group["descriptors_offsets"][...])
@@ -462,8 +462,8 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
 
 
 def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
-    """The stores a figure rule would get (vprflow.reports.figure_inputs), as run here."""
-    from vprflow.reports import FIGURES
+    """The stores a figure rule would get (vprflow.planning.reports.figure_inputs), as run here."""
+    from vprflow.planning.reports import FIGURES
 
     return {name: stage_path(pipeline, name, method) for name in FIGURES[figure].inputs}
 
@@ -481,7 +481,7 @@ def figure_stores(pipeline, method: str, figure: str) -> dict[str, str]:
 def test_figures_draw_from_the_method_stores(pipeline, tmp_path, method, figure):
     from PIL import Image
 
-    from vprflow.reports import figure_inputs
+    from vprflow.planning.reports import figure_inputs
     from vprflow.stages.figures import draw_figure
 
     plan, _, _, root = pipeline
@@ -515,8 +515,8 @@ def test_the_recall_plot_draws_each_methods_precision_recall_curve_beside_recall
 
 
 def test_a_method_has_the_figures_of_its_aggregator(pipeline):
-    from vprflow.config import PlanError
-    from vprflow.reports import dataset_outputs, figure_inputs
+    from vprflow.core.errors import PlanError
+    from vprflow.planning.reports import dataset_outputs, figure_inputs
 
     plan, _, _, _ = pipeline
     figures = {run.method: run.figures for run in plan.runs["toy"]}
@@ -556,7 +556,7 @@ def test_an_image_changed_after_the_dataset_stage_fails_the_stage_reading_it(tmp
 
 
 def test_an_image_changed_after_planning_fails_the_dataset_stage_naming_it(tmp_path):
-    from vprflow.fingerprints import save_fingerprints
+    from vprflow.planning.fingerprints import save_fingerprints
 
     memo = {}
     plan = small_plan(tmp_path, memo=memo)

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from vprflow import stores
-from vprflow.stores import (
+from vprflow.core import stores
+from vprflow.core.stores import (
     COMPRESSOR,
     RaggedWriter,
     StoreCorruptError,
@@ -389,7 +389,7 @@ def test_a_damaged_store_with_the_same_record_is_replaced_not_kept(tmp_path):
 
 
 def test_only_temporaries_without_a_live_writer_are_removed_at_job_start(tmp_path, caplog):
-    from vprflow.files import host_name
+    from vprflow.core.files import host_name
 
     out = tmp_path / "key.zarr"
     host = host_name()

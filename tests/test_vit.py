@@ -21,8 +21,8 @@ import torch
 from tiny_models import save_tiny_dino, save_tiny_dinov2
 from transformers import AutoModel, ViTModel
 
-from vprflow.arrays import center_crop_box
-from vprflow.vit import load_vit
+from vprflow.core.arrays import center_crop_box
+from vprflow.models.vit import load_vit
 
 HIDDEN = 32
 # Written out here, not imported, so a wrong constant in the module is caught.

@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from vprflow.vlad import assign, fit_spherical_kmeans, vlad
+from vprflow.aggregation.vlad import assign, fit_spherical_kmeans, vlad
 
 ATOL = 1e-5
 

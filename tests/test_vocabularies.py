@@ -15,19 +15,20 @@ import yaml
 from synthetic import make_dataset
 from workflow_helpers import snakemake, toy_config, write_config
 
-from vprflow import stores
-from vprflow.config import ConfigError, load_schema, validate_config
-from vprflow.download import DownloadError
-from vprflow.paths import PUBLISHED_VOCABULARY
-from vprflow.plan import build_plan
-from vprflow.stages.vocabulary import fit_vocabulary, read_centres
-from vprflow.vocabularies import (
+from vprflow.aggregation.vocabularies import (
     PATH,
     PUBLISHED,
     URL_ENV,
     fetch_vocabulary,
     vocabulary_url,
 )
+from vprflow.core import stores
+from vprflow.core.errors import ConfigError
+from vprflow.core.paths import PUBLISHED_VOCABULARY
+from vprflow.data.download import DownloadError
+from vprflow.planning.config import load_schema, validate_config
+from vprflow.planning.plan import build_plan
+from vprflow.stages.vocabulary import fit_vocabulary, read_centres
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"

@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from vprflow.voting import image_of_segment, segment_vote_scores, vote_ranking
+from vprflow.search.voting import image_of_segment, segment_vote_scores, vote_ranking
 
 
 def direct_vote(distances, indices, query_image, ref_image, n_query, n_ref):

@@ -26,8 +26,8 @@ from workflow_helpers import (
     write_config,
 )
 
-from vprflow.paths import PREDICTIONS_CSV, RECALL_CSV, RECALL_PLOT, RECALL_TABLE
-from vprflow.stores import array_items
+from vprflow.core.paths import PREDICTIONS_CSV, RECALL_CSV, RECALL_PLOT, RECALL_TABLE
+from vprflow.core.stores import array_items
 
 pytestmark = pytest.mark.workflow
 TARGET = "results/recall_toy.csv"

@@ -19,7 +19,7 @@ def with_schema_defaults(definition: str, **instance) -> dict:
     """``instance`` with every default the schema's ``definition`` declares filled in, as
     the workflow fills a config before a stage sees it: ``"dataset"``, or
     ``"dataset/properties/ground_truth"`` for a ground-truth spec."""
-    from vprflow.config import fill_defaults
+    from vprflow.planning.config import fill_defaults
 
     schema = yaml.safe_load(SCHEMA.read_text())
     return fill_defaults(instance, schema, f"#/definitions/{definition}")

@@ -3,11 +3,12 @@ import sys
 from functools import cache
 from pathlib import Path
 
-from vprflow.config import PlanError, validate_config
-from vprflow.datasets import list_dataset
-from vprflow.download import DownloadError, fetch_missing, requested_datasets
-from vprflow.fingerprints import load_fingerprints, save_fingerprints
-from vprflow.paths import (
+from vprflow.planning.config import validate_config
+from vprflow.core.errors import PlanError
+from vprflow.data.datasets import list_dataset
+from vprflow.data.download import DownloadError, fetch_missing, requested_datasets
+from vprflow.planning.fingerprints import load_fingerprints, save_fingerprints
+from vprflow.core.paths import (
     EXPORT,
     FIGURE,
     FINGERPRINTS,
@@ -25,9 +26,9 @@ from vprflow.paths import (
     store_path,
     store_pattern,
 )
-from vprflow.plan import build_plan, method_stores
-from vprflow.presets import unknown_dataset
-from vprflow.reports import (
+from vprflow.planning.plan import build_plan, method_stores
+from vprflow.data.presets import unknown_dataset
+from vprflow.planning.reports import (
     FIGURES,
     clear_superseded,
     closing_lines,
@@ -38,7 +39,7 @@ from vprflow.reports import (
     withdraw_stale_reports,
 )
 from vprflow.stages.jobs import SHARDED, shard_ranges
-from vprflow.store_index import write_index
+from vprflow.planning.store_index import write_index
 
 
 configfile: "config/config.yaml"

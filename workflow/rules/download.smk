@@ -2,14 +2,14 @@
 # results/downloads/<dataset>.json` fetches the dataset's `download` archive, verifies
 # it and lays out its folder under data_root when the folder is missing, then writes
 # this record. Nothing here lists images, so the target works while the data is absent.
-from vprflow.paths import (
+from vprflow.core.paths import (
     DOWNLOAD_LOG,
     DOWNLOAD_RECORD,
     PUBLISHED_VOCABULARY,
     dataset_folder,
 )
-from vprflow.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES, vocabulary_url
-from vprflow.download import download_entry, manifest_inputs
+from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES, vocabulary_url
+from vprflow.data.download import download_entry, manifest_inputs
 
 # Shipped manifests are named relative to workflow/ (found while this file is parsed).
 WORKFLOW_DIR = Path(workflow.current_basedir).parent
@@ -43,7 +43,7 @@ rule download:
         "../scripts/download.py"
 
 
-# A vocabulary the SegVLAD authors publish (vprflow.vocabularies), fetched once; the
+# A vocabulary the SegVLAD authors publish (vprflow.aggregation.vocabularies), fetched once; the
 # vocabulary stage checks the file's SHA-256 again, so one put here by hand must match.
 rule published_vocabulary:
     output:

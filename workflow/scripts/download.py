@@ -1,7 +1,7 @@
 import sys
 
-from vprflow.download import download_dataset, write_record
-from vprflow.runner import run_stage
+from vprflow.data.download import download_dataset, write_record
+from vprflow.stages.runner import run_stage
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 

@@ -1,5 +1,5 @@
-from vprflow.runner import run_stage
 from vprflow.stages.export import export_descriptors
+from vprflow.stages.runner import run_stage
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(

@@ -1,5 +1,5 @@
-from vprflow.runner import run_stage
 from vprflow.stages.figures import plot_recall
+from vprflow.stages.runner import run_stage
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 run_stage(

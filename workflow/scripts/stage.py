@@ -1,5 +1,5 @@
-from vprflow.runner import run_stage
 from vprflow.stages.jobs import Job, run_job
+from vprflow.stages.runner import run_stage
 
 sm = snakemake  # noqa: F821 (injected by Snakemake)
 params, wildcards = dict(sm.params.items()), dict(sm.wildcards.items())

@@ -12,7 +12,7 @@ def resolved_sources(params: dict) -> dict[str, str]:
     """The model directory or file a stage reads, as absolute paths (hub ids as they
     are), for its log and attributes: a ``..`` or absolute path outside ``data_root``
     is allowed, but never invisible."""
-    from vprflow.models import is_local_model
+    from vprflow.models.hub import is_local_model
 
     sources = {}
     for name in ("model", "file"):

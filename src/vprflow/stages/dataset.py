@@ -11,12 +11,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from vprflow import datasets, stores
-from vprflow.datasets import DatasetError
-from vprflow.fingerprints import file_digest
-from vprflow.ground_truth import ground_truth, ground_truth_rule
-from vprflow.images import ImageReadError, dataset_orientation, decode_image
-from vprflow.paths import dataset_folder
+from vprflow.core import stores
+from vprflow.core.errors import DatasetError
+from vprflow.core.paths import dataset_folder
+from vprflow.data import datasets
+from vprflow.data.ground_truth import ground_truth, ground_truth_rule
+from vprflow.data.images import ImageReadError, dataset_orientation, decode_image
+from vprflow.planning.fingerprints import file_digest, images_digest, truth_digest
 from vprflow.stages.base import shard_range
 
 log = logging.getLogger("vprflow")
@@ -47,7 +48,7 @@ def build_images(
         digests.append(hashlib.sha256(data).hexdigest())
         sizes[i] = decode_image(data, path, orientation).shape[:2]
     by_path = dict(zip(paths, digests, strict=True))
-    contents = datasets.images_digest(
+    contents = images_digest(
         files, data_root, params, lambda p, _: by_path.get(p) or file_digest(p)
     )
     if contents != params["contents"]:
@@ -110,7 +111,7 @@ def build_truth(
     name = listed["name"]
     entry = {**listed, "ground_truth": params["ground_truth"]}
     datasets.check_pairing(name, entry)  # pairs match query i with reference i
-    if datasets.truth_digest(data_root, entry, lambda p, _: file_digest(p)) != params["contents"]:
+    if truth_digest(data_root, entry, lambda p, _: file_digest(p)) != params["contents"]:
         raise DatasetError(
             f"dataset '{name}': its ground-truth files changed after this run planned it, so "
             "its key no longer describes them. Run snakemake again: it re-plans, and rebuilds "
@@ -177,7 +178,7 @@ def _changed_since_planning(
 ) -> str:
     """The message for files that differ from what the plan hashed: those whose stamp
     (size, mtime, ctime) or hash is not in the plan's memo."""
-    from vprflow.fingerprints import load_fingerprints, memo_key
+    from vprflow.planning.fingerprints import load_fingerprints, memo_key
 
     memo = load_fingerprints(fingerprints) if fingerprints else {}
     changed = [p for p in paths if memo.get(memo_key(p)) != digests[p]] if memo else []
@@ -207,7 +208,7 @@ class Dataset:
         self.exif_orientation = self.group.attrs["exif_orientation"]
 
     def read_image(self, index: int, exif_orientation: str | None = None) -> np.ndarray:
-        """Image ``index`` as :func:`vprflow.images.read_image` decodes it, with
+        """Image ``index`` as :func:`vprflow.data.images.read_image` decodes it, with
         ``exif_orientation`` (a method's stage passes its own) or the dataset's, after
         checking that the file still holds what the images stage hashed: an image
         changed during a run must fail, naming it, not be computed under the key of its

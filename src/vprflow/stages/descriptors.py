@@ -1,7 +1,7 @@
 """The ``descriptors`` rule: each method's descriptors of every image.
 
 What a method computes per image is its registry entry's ``image_descriptor``
-(:mod:`vprflow.registry`), one of the functions at the end of this module.
+(:mod:`vprflow.core.registry`), one of the functions at the end of this module.
 """
 
 from __future__ import annotations
@@ -15,9 +15,9 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from vprflow import stores
-from vprflow.arrays import l2_normalize
-from vprflow.registry import aggregator
+from vprflow.core import stores
+from vprflow.core.arrays import l2_normalize
+from vprflow.core.registry import aggregator
 from vprflow.stages.base import shard_range, stage_attrs
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.features import FeatureReader
@@ -124,7 +124,7 @@ def vlad_input(grid: np.ndarray, options: dict) -> np.ndarray:
 def segvlad_descriptors(options: dict, inputs: dict[str, str]):
     """SegVLAD: one VLAD vector per segment neighbourhood of ``options["order"]``
     (docs/methods.md §5), ``[S, K * D]``."""
-    from vprflow.segvlad import image_segvlad
+    from vprflow.aggregation.segvlad import image_segvlad
 
     features = stores.open_store(inputs["features"])
     read_features = FeatureReader(features)
@@ -150,7 +150,7 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
 
 def anyloc_vlad_descriptor(options: dict, inputs: dict[str, str]):
     """AnyLoc VLAD of the whole patch grid (docs/methods.md §4), ``[K * D]``."""
-    from vprflow.vlad import vlad
+    from vprflow.aggregation.vlad import vlad
 
     read_features = FeatureReader(stores.open_store(inputs["features"]))
     centres = read_centres(inputs["vocabulary"])
@@ -164,7 +164,7 @@ def anyloc_vlad_descriptor(options: dict, inputs: dict[str, str]):
 
 def snsm_descriptor(options: dict, inputs: dict[str, str]):
     """SNSM support-map descriptor (docs/methods.md §6)."""
-    from vprflow.snsm import snsm_descriptor as snsm
+    from vprflow.aggregation.snsm import snsm_descriptor as snsm
 
     read_features = FeatureReader(stores.open_store(inputs["features"]))
     keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
@@ -177,8 +177,8 @@ def snsm_descriptor(options: dict, inputs: dict[str, str]):
 def pooled_descriptor(options: dict, inputs: dict[str, str]):
     """GeM / average / max pooling of the channel-normalised tokens (docs/methods.md §7):
     the SNSM authors pool tokens normalised like SNSM's own input."""
-    from vprflow import pooling
-    from vprflow.snsm import normalize_tokens
+    from vprflow.aggregation import pooling
+    from vprflow.aggregation.snsm import normalize_tokens
 
     read_features = FeatureReader(stores.open_store(inputs["features"]))
     pool = {
@@ -197,9 +197,9 @@ def segment_gem_descriptors(options: dict, inputs: dict[str, str]):
     no neighbourhood) GeM-pooled after the pooling section's token normalisation, each
     row L2-normalised for the segment search, ``[S, D]``. SegVLAD's segment path with
     the simplest aggregation: a baseline for what VLAD and neighbourhoods add."""
-    from vprflow.pooling import segment_gem
-    from vprflow.segvlad import mask_patch_membership
-    from vprflow.snsm import normalize_tokens
+    from vprflow.aggregation.pooling import segment_gem
+    from vprflow.aggregation.segvlad import mask_patch_membership
+    from vprflow.aggregation.snsm import normalize_tokens
 
     features = stores.open_store(inputs["features"])
     read_features = FeatureReader(features)

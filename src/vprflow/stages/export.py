@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from vprflow import stores
-from vprflow.files import atomic_path
+from vprflow.core import stores
+from vprflow.core.files import atomic_path
 from vprflow.stages.dataset import Dataset
 
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from vprflow import stores
-from vprflow.images import resize_image
-from vprflow.registry import model_kind
+from vprflow.core import stores
+from vprflow.core.registry import model_kind
+from vprflow.data.images import resize_image
 from vprflow.stages.base import resolved_sources, stage_attrs
 from vprflow.stages.dataset import open_shard
 
@@ -71,8 +71,8 @@ def _feature_extractor(params: dict, device: str, width: int, height: int, datas
     """
     kind = model_kind("features", params)
     if kind.loader is None:
-        from vprflow.arrays import l2_normalize
-        from vprflow.published import read_features_h5
+        from vprflow.core.arrays import l2_normalize
+        from vprflow.data.published import read_features_h5
 
         def read(indices):
             grids = np.stack(

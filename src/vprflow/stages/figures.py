@@ -1,7 +1,7 @@
 """The figure rules: what the report shows of a dataset's results.
 
 Each function reads the stores of one dataset (and one method) and writes one PNG with
-:mod:`vprflow.figures`. Figures are not stages: they hash nothing and change no key, so
+:mod:`vprflow.evaluation.figures`. Figures are not stages: they hash nothing and change no key, so
 a changed figure setting (``figures:`` in the config) reruns only figures. Images are
 read with the project's reader from ``data_root``.
 """
@@ -12,8 +12,9 @@ import logging
 
 import numpy as np
 
-from vprflow import figures, stores
-from vprflow.files import write_text_atomic
+from vprflow.core import stores
+from vprflow.core.files import write_text_atomic
+from vprflow.evaluation import figures
 from vprflow.stages.dataset import Dataset
 
 log = logging.getLogger("vprflow")
@@ -32,8 +33,8 @@ def plot_recall(
 ) -> None:
     """All methods' Recall@N for N = 1 .. the largest configured N, and beside them the
     precision-recall curves of their top-1 matches (the table's counting), on one figure."""
-    from vprflow.precision_recall import precision_recall_curve
-    from vprflow.recall import counted_queries
+    from vprflow.evaluation.precision_recall import precision_recall_curve
+    from vprflow.evaluation.recall import counted_queries
     from vprflow.stages.recall import top1_matches
 
     dataset = Dataset(dataset_path)
@@ -229,7 +230,7 @@ def draw_support_maps(
     support maps, computed with the method's own settings from the ``features`` store;
     ``inputs`` also has ``dataset``, ``recall`` and ``descriptors`` (whose attributes
     hold those settings)."""
-    from vprflow.snsm import snsm_descriptor, snsm_grid_shape
+    from vprflow.aggregation.snsm import snsm_descriptor, snsm_grid_shape
     from vprflow.stages.features import FeatureReader
 
     dataset = Dataset(inputs["dataset"], data_root)
@@ -271,10 +272,10 @@ def draw_support_maps(
 def draw_figure(
     figure: str, inputs: dict[str, str], data_root: str, method: str, settings: dict, out: str
 ) -> None:
-    """Draw one method's ``figure`` (a name in :data:`vprflow.reports.FIGURES`) with
+    """Draw one method's ``figure`` (a name in :data:`vprflow.planning.reports.FIGURES`) with
     this module's ``draw_<figure>``: a figure rule passes the figure's name, never its
     rule name, which a host workflow may prefix."""
-    from vprflow.reports import FIGURES
+    from vprflow.planning.reports import FIGURES
 
     if figure not in FIGURES:
         raise ValueError(f"unknown figure {figure!r}; figures: {sorted(FIGURES)}")

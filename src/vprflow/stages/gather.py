@@ -6,7 +6,7 @@ import numpy as np
 import zarr
 from tqdm import tqdm
 
-from vprflow import stores
+from vprflow.core import stores
 
 
 def gather(shard_paths: list[str], record: dict, out: str) -> None:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 class Job:
     """What one job of a stage needs.
 
-    ``record`` is the stage's hashed record (:class:`vprflow.plan.Stage`); ``inputs``
+    ``record`` is the stage's hashed record (:class:`vprflow.planning.plan.Stage`); ``inputs``
     its upstream stores by name; ``start``/``stop`` the image range of a sharded
     stage's job (references first, then queries; for ``search``, reference images);
     ``data_root``, ``device`` and ``batch_size`` do not shape the output.
@@ -148,7 +148,7 @@ def _rerank(job: Job) -> None:
     rerank_stage(job.inputs, job.record, job.out, job.device)
 
 
-# Every stage the plan makes (vprflow.plan.FORMAT_VERSIONS), by name. Stage modules
+# Every stage the plan makes (vprflow.planning.plan.FORMAT_VERSIONS), by name. Stage modules
 # are imported by the runner that needs them: importing torch or faiss costs seconds.
 RUNNERS: dict[str, Callable[[Job], None]] = {
     "images": _images,

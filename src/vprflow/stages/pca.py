@@ -6,8 +6,8 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
-from vprflow import stores
-from vprflow.registry import aggregator
+from vprflow.core import stores
+from vprflow.core.registry import aggregator
 from vprflow.stages.dataset import Dataset
 
 
@@ -15,7 +15,7 @@ def fit_pca_stage(inputs: dict[str, str], record: dict, out: str) -> None:
     """PCA fitted on a random sample of the reference images' segment descriptors,
     computed by the method's aggregator with the options ``fit_on`` (SegVLAD: at
     ``pca.fit_order``, docs/methods.md §5)."""
-    from vprflow.pca import fit_pca
+    from vprflow.aggregation.pca import fit_pca
 
     params = record["params"]
     dataset = Dataset(inputs["images"])
@@ -55,7 +55,7 @@ def fit_pca_stage(inputs: dict[str, str], record: dict, out: str) -> None:
 
 
 def read_pca(path: str):
-    from vprflow.pca import Pca
+    from vprflow.aggregation.pca import Pca
 
     group = stores.open_store(path)
     return Pca(

@@ -8,7 +8,8 @@ import time
 
 import numpy as np
 
-from vprflow import stores
+from vprflow.core import stores
+from vprflow.evaluation.recall import COST_COLUMNS
 from vprflow.stages.dataset import Dataset
 
 log = logging.getLogger("vprflow")
@@ -25,9 +26,9 @@ def retrieve(
     score kind)``. Per-segment descriptors are ranked by voting over the segment lists
     of the ``search`` stage (``search_path``); scores are votes (higher is better).
     Global ones by exact search; scores are squared L2 distances (lower is better)."""
-    from vprflow.knn.flat import flat_knn
+    from vprflow.search.flat import flat_knn
+    from vprflow.search.voting import image_of_segment, scored_vote_ranking
     from vprflow.stages.search import read_search
-    from vprflow.voting import image_of_segment, scored_vote_ranking
 
     group = stores.open_store(descriptors_path)
     n_ref, n_query = dataset.n_reference, dataset.n_query
@@ -56,9 +57,6 @@ def retrieve(
 
 
 # What a query costs, as the recall store's `cost` and the results table name it.
-COST_COLUMNS = ("descriptor_bytes_per_image", "search_ms_per_query", "rerank_ms_per_query")
-
-
 def descriptor_bytes_per_image(descriptors, n_images: int) -> float:
     """Bytes of descriptors an image costs in the database, as stored (``descriptors``:
     the store's array): the vector of a global method; every segment's vector of a
@@ -88,10 +86,10 @@ def top1_matches(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """What the precision-recall metrics judge, over the ``counted [Nq]`` queries:
     ``(confidence, correct, has_positive)``, each ``[n counted]``, of every query's
-    top-1 match (:mod:`vprflow.precision_recall`); None when no counted query has a
+    top-1 match (:mod:`vprflow.evaluation.precision_recall`); None when no counted query has a
     correct top-1 match, where VPR-Bench's recall is 0 / 0."""
-    from vprflow.precision_recall import top1_confidence
-    from vprflow.recall import correct_at, counted_queries
+    from vprflow.evaluation.precision_recall import top1_confidence
+    from vprflow.evaluation.recall import correct_at, counted_queries
 
     counted = np.asarray(counted, dtype=bool)
     correct = (correct_at(ranking, truth) == 0)[counted]
@@ -140,8 +138,8 @@ def evaluate(
     the same descriptors: its Recall@N is stored too (``recall_exact``), so the table
     can say what the approximation cost.
     """
-    from vprflow.precision_recall import summary
-    from vprflow.recall import (
+    from vprflow.evaluation.precision_recall import summary
+    from vprflow.evaluation.recall import (
         correct_at,
         counted_queries,
         map_at,

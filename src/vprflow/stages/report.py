@@ -7,15 +7,14 @@ import csv
 
 import numpy as np
 
-from vprflow import stores
-from vprflow.files import atomic_path
-from vprflow.precision_recall import SUMMARY
+from vprflow.core import stores
+from vprflow.core.files import atomic_path
+from vprflow.evaluation.precision_recall import SUMMARY
+from vprflow.evaluation.recall import COST_COLUMNS
 from vprflow.stages.dataset import Dataset
-from vprflow.stages.recall import COST_COLUMNS
 
 # The precision-recall summary of the top-1 matches and what a query costs (descriptor
 # bytes are exact; milliseconds are this run's, not a result).
-PRECISION_COLUMNS = tuple(SUMMARY)
 
 
 def write_report(
@@ -38,7 +37,7 @@ def write_report(
     header = ["dataset", "method"]
     header += [f"recall@{n}" for n in recall_columns]
     header += [f"map@{n}" for n in recall_columns]
-    header += [*PRECISION_COLUMNS]
+    header += [*SUMMARY]
     # Rows of an approximate segment search also show an exact search's recall.
     exact = [r.attrs.get("recall_exact") or {} for r in results]
     if any(exact):
@@ -52,7 +51,7 @@ def write_report(
             [dataset_name, run["method"]]
             + _metric_cells(attrs["recall"], recall_columns)
             + _metric_cells(attrs["map"], recall_columns)
-            + [_number(attrs["precision_recall"].get(c), ".6f") for c in PRECISION_COLUMNS]
+            + [_number(attrs["precision_recall"].get(c), ".6f") for c in SUMMARY]
             + (_metric_cells(exact_recall, recall_columns) if any(exact) else [])
             + [attrs["n_queries"], attrs["n_short_rankings"], attrs["n_queries_without_positive"]]
             + [attrs["ground_truth_rule"], attrs["denominator"], attrs["descriptor_dim"]]

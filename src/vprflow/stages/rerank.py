@@ -1,5 +1,5 @@
 """The ``rerank`` rule: re-order each query's top-K retrieved references by local
-matches between dense patch features (:mod:`vprflow.rerank`).
+matches between dense patch features (:mod:`vprflow.evaluation.rerank`).
 
 The retrieval is the method's own (:func:`vprflow.stages.recall.retrieve`, the ranking
 its recall row is computed from, as deep as ``depth``, the recall's, or ``top_k`` if
@@ -17,7 +17,7 @@ import time
 import numpy as np
 from tqdm import tqdm
 
-from vprflow import stores
+from vprflow.core import stores
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.recall import timed_retrieve
 
@@ -31,12 +31,12 @@ _IN_MEMORY_BYTES = 2 << 30
 def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "auto") -> None:
     """Store ``ranking [Nq, D]`` (reference indices, -1 = none; the top ``K = top_k``
     re-ordered, then the rest of the retrieval), ``scores [Nq, D]`` (the re-ranker's,
-    higher is better; see :func:`vprflow.rerank.rerank` for the entries not re-ranked)
+    higher is better; see :func:`vprflow.evaluation.rerank.rerank` for the entries not re-ranked)
     and the retrieval they re-order (``retrieval_ranking [Nq, D]``), ``D = max(depth,
     top_k)`` capped at the references; ``ms_per_query`` times the re-ranking alone,
     ``search_ms_per_query`` the retrieval."""
-    from vprflow.devices import resolve_device
-    from vprflow.rerank import rerank, rerank_scores
+    from vprflow.core.devices import resolve_device
+    from vprflow.evaluation.rerank import rerank, rerank_scores
 
     params = record["params"]
     dataset = Dataset(inputs["images"])

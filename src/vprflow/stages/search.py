@@ -17,9 +17,9 @@ import logging
 import numpy as np
 from tqdm import tqdm
 
-from vprflow import stores
-from vprflow.knn.topk import merge_knn
-from vprflow.registry import search_index
+from vprflow.core import stores
+from vprflow.core.registry import search_index
+from vprflow.search.topk import merge_knn
 from vprflow.stages.base import stage_attrs
 from vprflow.stages.dataset import Dataset
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from vprflow import stores
-from vprflow.images import resize_image
-from vprflow.registry import model_kind
+from vprflow.core import stores
+from vprflow.core.registry import model_kind
+from vprflow.data.images import resize_image
 from vprflow.stages.base import resolved_sources, stage_attrs
 from vprflow.stages.dataset import open_shard
 
@@ -77,7 +77,7 @@ def _mask_source(params: dict, device: str, dataset):
     """
     kind = model_kind("segments", params)
     if kind.loader is None:
-        from vprflow.published import read_masks_h5
+        from vprflow.data.published import read_masks_h5
 
         return lambda indices: [
             read_masks_h5(params["file"], Path(dataset.paths[i]).name) for i in indices
@@ -105,7 +105,7 @@ def read_masks(group, index: int) -> np.ndarray:
 
 class MaskReader:
     """``reader(index) -> bool [S, Hm, Wm]``, reading the packed masks of many images
-    per store access (see :class:`vprflow.stores.RaggedReader`)."""
+    per store access (see :class:`vprflow.core.stores.RaggedReader`)."""
 
     def __init__(self, group):
         self.packed = stores.RaggedReader(group, "masks")

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 from tqdm import tqdm
 
-from vprflow import stores
-from vprflow.fingerprints import file_digest
+from vprflow.core import stores
+from vprflow.planning.fingerprints import file_digest
 from vprflow.stages.base import resolved_sources
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.features import read_features
@@ -29,7 +29,7 @@ def load_centres_file(path: str) -> np.ndarray:
                 f"{centres.dtype} {centres.shape}"
             )
         return centres.astype(np.float32)
-    from vprflow.published import load_c_centers
+    from vprflow.data.published import load_c_centers
 
     return load_c_centers(path)
 
@@ -39,7 +39,7 @@ def fit_vocabulary(
 ) -> None:
     """VLAD centres ``[K, D]``: spherical k-means on sampled patch descriptors, a file, or
     a published vocabulary (``centres_path``, fetched by its rule)."""
-    from vprflow.vlad import fit_spherical_kmeans
+    from vprflow.aggregation.vlad import fit_spherical_kmeans
 
     params = record["params"]
     if params["source"] in ("file", "published"):

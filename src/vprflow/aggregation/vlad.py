@@ -1,0 +1,124 @@
+"""VLAD vocabularies and AnyLoc-style VLAD aggregation (docs/methods.md §3-4).
+
+Shapes: ``x`` patch descriptors ``[N, D]``; ``centres`` ``[K, D]``; a VLAD vector is
+``[K * D]`` (cluster-major: block ``c`` holds the residual sum of cluster ``c``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from vprflow.core.arrays import l2_normalize
+
+CENTRES = ("mean", "unit")
+
+
+def fit_spherical_kmeans(
+    x: np.ndarray, n_clusters: int = 32, n_iter: int = 100, seed: int = 0, centres: str = "mean"
+) -> np.ndarray:
+    """Spherical (cosine) k-means with faiss -> centres ``[K, D]`` float32.
+
+    ``x`` is L2-normalised first. faiss's own subsampling is disabled: the caller
+    decides how many descriptors to use.
+
+    ``centres="mean"`` (default, as AnyLoc's cosine k-means): each centre is the plain
+    mean of the unit descriptors assigned to it (by cosine to the faiss centroids), NOT
+    re-normalised, so its norm is below 1 and shrinks with the cluster's spread (the
+    published 17places ``c_centers.pt`` has norms 0.36-0.99). VLAD assigns with the
+    normalised centres and takes residuals to these un-normalised ones, so the norms
+    matter. A cluster that receives no descriptor keeps its unit faiss centroid.
+    ``centres="unit"``: the unit-norm faiss centroids.
+    """
+    import faiss
+
+    if centres not in CENTRES:
+        raise ValueError(f"unknown vocabulary centres {centres!r}; expected one of {CENTRES}")
+    x = np.ascontiguousarray(l2_normalize(np.asarray(x, dtype=np.float32)))
+    if len(x) < n_clusters:
+        raise ValueError(f"k-means needs at least {n_clusters} descriptors, got {len(x)}")
+    kmeans = faiss.Kmeans(
+        x.shape[1],
+        n_clusters,
+        niter=n_iter,
+        spherical=True,
+        seed=seed,
+        max_points_per_centroid=max(256, len(x) // n_clusters + 1),
+        verbose=False,
+    )
+    kmeans.train(x)
+    unit = l2_normalize(kmeans.centroids.astype(np.float32))
+    if centres == "unit":
+        return unit
+    return cluster_means(x, assign(x, unit), unit)
+
+
+def cluster_means(x: np.ndarray, labels: np.ndarray, fallback: np.ndarray) -> np.ndarray:
+    """Mean of the rows of ``x`` ``[N, D]`` per label ``[N]`` -> ``[K, D]`` float32
+    (summed in float64); a label with no rows takes its row of ``fallback`` ``[K, D]``."""
+    k = len(fallback)
+    sums = np.zeros((k, x.shape[1]), dtype=np.float64)
+    for start in range(0, len(x), 16384):  # one-hot products, float64 a chunk at a time
+        chunk = slice(start, start + 16384)
+        one_hot = labels[chunk, None] == np.arange(k)
+        sums += one_hot.T.astype(np.float64) @ np.asarray(x[chunk], dtype=np.float64)
+    counts = np.bincount(labels, minlength=k)
+    means = np.array(fallback, dtype=np.float64)
+    filled = counts > 0
+    means[filled] = sums[filled] / counts[filled, None]
+    return means.astype(np.float32)
+
+
+def assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """Hard assignment ``argmax_c x . normalize(C_c)`` -> labels ``[N]`` (int64)."""
+    x = np.asarray(x, dtype=np.float32)
+    unit = l2_normalize(np.asarray(centres, dtype=np.float32))
+    if len(x) == 0:
+        return np.zeros(0, dtype=np.int64)
+    return np.argmax(x @ unit.T, axis=1).astype(np.int64)
+
+
+def vlad_per_region(
+    features: np.ndarray,
+    regions: np.ndarray,
+    centres: np.ndarray,
+    labels: np.ndarray | None = None,
+) -> np.ndarray:
+    """VLAD of the patches of every region: ``[S, K * D]`` float32.
+
+    ``features`` ``[N, D]``; ``regions`` bool ``[S, N]`` (for SegVLAD, the patches of
+    each segment neighbourhood); ``centres`` ``[K, D]``. Residuals to the
+    un-normalised centres, per-cluster sums, intra-normalisation, flatten, L2.
+    Patches are sorted by cluster and their centre is subtracted first, so cluster
+    ``c``'s residual sums are one product ``regions[:, P_c] @ (x[P_c] - C_c)``:
+    ``S * N * D`` multiply-adds in all (the minimum). Plain numpy: torch multiplied
+    these small products no faster, and importing it cost a descriptors job ~1 s.
+    """
+    features = np.asarray(features, dtype=np.float32)
+    centres = np.asarray(centres, dtype=np.float32)
+    labels = assign(features, centres) if labels is None else np.asarray(labels)
+    k, d = centres.shape
+    n_regions = len(regions)
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(k + 1))
+    residuals = features[order] - centres[labels[order]]
+    weights = np.asarray(regions)[:, order].astype(np.float32)
+    sums = np.zeros((n_regions, k, d), dtype=np.float32)  # the [S, K * D] output layout
+    for c in range(k):
+        a, b = int(bounds[c]), int(bounds[c + 1])
+        if b > a:
+            np.matmul(weights[:, a:b], residuals[a:b], out=sums[:, c])
+    # Fused normalisation: after intra-normalisation every non-empty block has unit
+    # norm, so the final L2 norm is sqrt(#non-empty blocks); one scaling pass does both.
+    norms = np.sqrt(np.einsum("skd,skd->sk", sums, sums))
+    nonzero = norms > 1e-12
+    scale = np.where(nonzero, 1.0 / np.maximum(norms, 1e-12), np.float32(0))
+    scale /= np.sqrt(np.maximum(nonzero.sum(axis=1, keepdims=True), 1), dtype=np.float32)
+    sums *= scale[:, :, None]
+    return sums.reshape(n_regions, k * d)
+
+
+def vlad(x: np.ndarray, centres: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
+    """AnyLoc VLAD of descriptors ``x`` ``[N, D]`` -> ``[K * D]`` float32: the one
+    region that holds every patch."""
+    x = np.asarray(x, dtype=np.float32)
+    return vlad_per_region(x, np.ones((1, len(x)), dtype=bool), centres, labels)[0]

@@ -1,0 +1,468 @@
+"""Every component vprflow knows, in one place: model kinds and aggregators.
+
+The plan (which stages a method needs, what each key covers), the stages (which
+function computes a descriptor, which loader builds a model), the GPU request, the
+weight fingerprints and the schema's enums all read this module;
+``tests/test_registry.py`` checks that ``workflow/schemas/config.schema.yaml`` agrees.
+
+Adding an aggregator: its per-image function (``vprflow.stages.descriptors``), one
+:data:`AGGREGATORS` entry, its schema section and its test. Adding a backbone or
+segmenter: its loader, one :data:`BACKBONES` / :data:`SEGMENTERS` entry and the schema
+properties of its parameters.
+
+Only data and lazy ``"module:function"`` references live here, so that planning a
+workflow never imports torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+# ------------------------------------------------------------------ model kinds
+
+
+@dataclass(frozen=True)
+class ModelKind:
+    """A backbone (``role="backbone"``) or segmenter (``role="segmenter"``) kind.
+
+    ``loader`` is ``"module:function"`` with signature ``(params, device) -> model``;
+    ``None`` for ``import``, which reads the authors' published HDF5 file instead.
+    ``defaults`` are filled into every config entry of this kind before hashing, so a
+    key records what ran. ``weights`` says what identifies the model's output beyond
+    its parameters: ``"model"`` (hub id, or a local directory hashed by content),
+    ``"file"`` (the imported file, hashed) or ``"none"`` (weight-free). ``model_files``:
+    files of a local model directory besides ``config.json`` and the weights that change
+    the output (hashed into the key when present).
+    """
+
+    name: str
+    role: str
+    loader: str | None
+    defaults: dict = field(default_factory=dict)
+    weights: str = "none"
+    uses_gpu: bool = False
+    model_files: tuple[str, ...] = ()
+
+    def load(self, params: dict, device: str = "auto"):
+        if self.loader is None:
+            raise ValueError(f"{self.role} {self.name!r} reads a file; it has no model to load")
+        return resolve(self.loader)(params, device)
+
+
+_VIT = {
+    "facet": "value",
+    "final_norm": False,
+    "dtype": "float32",
+    "pos_embed_interpolation": "original",
+    "cache_dir": None,
+}
+
+# Segment Anything's automatic mask generator defaults (segment-anything's
+# SamAutomaticMaskGenerator), shared by the SAM-family segmenters unless noted.
+_SAM_GENERATOR = {
+    "cache_dir": None,
+    "points_per_side": 32,
+    "points_per_batch": 64,
+    "pred_iou_thresh": 0.88,
+    "stability_score_thresh": 0.95,
+    "stability_score_offset": 1.0,
+    "box_nms_thresh": 0.7,
+    "min_mask_region_area": 0,
+    "mask_threshold": 0.0,
+    "dtype": "float32",
+}
+
+BACKBONES: dict[str, ModelKind] = {
+    kind.name: kind
+    for kind in (
+        ModelKind(
+            "daisy",
+            "backbone",
+            "vprflow.models.backbones:load_daisy",
+            {"patch_size": 8, "radius": 12, "rings": 2, "histograms": 6, "orientations": 8},
+        ),
+        # AnyLoc / SegVLAD: value facet of block 31 (0-based) of ViT-G/14's 40.
+        ModelKind(
+            "dinov2",
+            "backbone",
+            "vprflow.models.vit:load_vit",
+            {"model": "facebook/dinov2-giant", "layer": 31, **_VIT},
+            weights="model",
+            uses_gpu=True,
+        ),
+        # DINOv3 ViT-L/16 (24 blocks): block 18 (0-based) runs 19 of 24, the depth of
+        # AnyLoc's 31 of 40 (32 of 40 run); RoPE, so no pos_embed_interpolation. Its
+        # mean/std come from preprocessor_config.json when the directory has one.
+        ModelKind(
+            "dinov3",
+            "backbone",
+            "vprflow.models.vit:load_vit",
+            {
+                "model": "facebook/dinov3-vitl16-pretrain-lvd1689m",
+                "layer": 18,
+                **{k: v for k, v in _VIT.items() if k != "pos_embed_interpolation"},
+            },
+            weights="model",
+            uses_gpu=True,
+            model_files=("preprocessor_config.json",),
+        ),
+        # DINO v1: the last block (-1 counts from the end).
+        ModelKind(
+            "dino",
+            "backbone",
+            "vprflow.models.vit:load_vit",
+            {"model": "facebook/dino-vitb8", "layer": -1, **_VIT},
+            weights="model",
+            uses_gpu=True,
+        ),
+        ModelKind("import", "backbone", None, {"patch_size": 14}, weights="file"),
+    )
+}
+
+SEGMENTERS: dict[str, ModelKind] = {
+    kind.name: kind
+    for kind in (
+        ModelKind(
+            "slic",
+            "segmenter",
+            "vprflow.models.segmenters:load_slic",
+            {"n_segments": 50, "compactness": 10.0, "sigma": 1.0},
+        ),
+        ModelKind(
+            "felzenszwalb",
+            "segmenter",
+            "vprflow.models.segmenters:load_felzenszwalb",
+            {"scale": 100.0, "sigma": 0.8, "min_size": 50},
+        ),
+        # The original automatic mask generator's defaults (ViT-H).
+        ModelKind(
+            "sam",
+            "segmenter",
+            "vprflow.models.sam.adapters:load_sam",
+            {"model": "facebook/sam-vit-huge", **_SAM_GENERATOR},
+            weights="model",
+            uses_gpu=True,
+        ),
+        # SAM-HQ's automatic mask generator (SAM's, defaults unchanged) on the HQ decoder:
+        # one mask per point, best multimask logits + HQ logits (hq_token_only off).
+        ModelKind(
+            "sam_hq",
+            "segmenter",
+            "vprflow.models.sam.adapters:load_sam_hq",
+            {"model": "syscv-community/sam-hq-vit-huge", **_SAM_GENERATOR, "hq_token_only": False},
+            weights="model",
+            uses_gpu=True,
+        ),
+        # SAM 2's own automatic mask generator defaults (Hiera-L): pred_iou_thresh 0.8;
+        # multimask output on and use_m2m off (fixed here).
+        ModelKind(
+            "sam2",
+            "segmenter",
+            "vprflow.models.sam.adapters:load_sam2",
+            {"model": "facebook/sam2.1-hiera-large", **_SAM_GENERATOR, "pred_iou_thresh": 0.8},
+            weights="model",
+            uses_gpu=True,
+        ),
+        ModelKind("import", "segmenter", None, weights="file"),
+    )
+}
+
+# The config key that names an entry's kind, and the registry of each stage that runs one.
+KIND_KEY = {"features": "backbone", "segments": "segmenter"}
+MODEL_STAGES = {"features": BACKBONES, "segments": SEGMENTERS}
+
+
+def model_kind(stage: str, entry: dict) -> ModelKind:
+    """The kind of a backbone entry (``stage="features"``) or segmenter entry
+    (``stage="segments"``)."""
+    kinds = MODEL_STAGES[stage]
+    name = entry[KIND_KEY[stage]]
+    if name not in kinds:
+        raise ValueError(f"unknown {KIND_KEY[stage]} {name!r}; expected one of {sorted(kinds)}")
+    return kinds[name]
+
+
+def with_defaults(stage: str, entry: dict) -> dict:
+    """``entry`` with its kind's defaults filled in where it names none (or ``None``)."""
+    filled = dict(entry)
+    for name, value in model_kind(stage, entry).defaults.items():
+        if filled.get(name) is None:
+            filled[name] = value
+    return filled
+
+
+# ------------------------------------------------------------------ aggregators
+
+
+@dataclass(frozen=True)
+class Aggregator:
+    """A method's descriptor: what it needs upstream and what it outputs.
+
+    ``needs``: upstream stages besides ``dataset`` and ``features``, in plan order
+    (``pca`` is planned only when the method's ``pca.enabled``). ``output``:
+    ``"global"`` (one vector per image) or ``"segments"`` (one per segment, retrieved
+    by voting). ``options(method)`` is the descriptor stage's own hashed settings
+    (method = the resolved method settings); ``columns(method)`` its CSV columns.
+    ``image_descriptor`` is ``"module:function"`` with signature
+    ``(options, input store paths) -> ImageDescriptor`` (stages/descriptors.py): a
+    callable ``image index -> [dim] or [S, dim]`` split into store reads and arithmetic.
+    ``explanation``: the report's figure of how the method decided, besides the
+    retrievals every method gets (a name in :data:`vprflow.planning.reports.FIGURES`), or None.
+    ``pca_fit``: see :meth:`pca_descriptor_options` (for aggregators with ``pca``).
+    ``resize``: how the published pipeline resizes images before the backbone (a
+    :data:`vprflow.data.images.RESIZE_METHODS` name), the default of a backbone's
+    ``resize: method``: SegVLAD's and AnyLoc's readers use OpenCV, SNSM's (and its
+    pooling baselines') torchvision on PIL images. ``exif_orientation``: whether that
+    reader turns images as their EXIF Orientation tag says (a
+    :data:`vprflow.data.images.EXIF_ORIENTATIONS` name), the default of a dataset's
+    ``exif_orientation: method``: ``cv2.imread`` (SegVLAD, AnyLoc) applies it, SNSM's
+    ``PIL.Image.open(...).convert('RGB')`` ignores it.
+    """
+
+    name: str
+    needs: tuple[str, ...]
+    output: str
+    options: Callable[[dict], dict]
+    columns: Callable[[dict], dict]
+    image_descriptor: str
+    explanation: str | None = None
+    resize: str = "linear"
+    exif_orientation: str = "apply"
+    pca_fit: Callable[[dict, dict], dict] | None = None
+
+    def pca_descriptor_options(self, method: dict, options: dict) -> dict:
+        """The descriptor options of the vectors a PCA is fitted on (the PCA stage
+        computes them with :meth:`descriptor_function`): the method's own, less how
+        they are stored, unless the aggregator's ``pca_fit(method, options)`` says
+        otherwise (SegVLAD: at ``pca.fit_order``)."""
+        if self.pca_fit is not None:
+            return self.pca_fit(method, options)
+        return {k: v for k, v in options.items() if k != "store_dtype"}
+
+    def descriptor_function(self, options: dict, inputs: dict[str, str]):
+        return resolve(self.image_descriptor)(options, inputs)
+
+
+def prefixed(section: str, values: dict) -> dict:
+    """CSV columns ``<section>.<key>`` of a settings section."""
+    return {f"{section}.{k}": v for k, v in values.items()}
+
+
+def _segvlad_pca_fit(method: dict, options: dict) -> dict:
+    """Published: one PCA per neighbourhood order, fitted on descriptors of the method's
+    own order; an integer ``pca.fit_order`` fixes the order instead."""
+    fit_order = method["pca"]["fit_order"]
+    order = options["order"] if fit_order == "method" else fit_order
+    return {**{k: v for k, v in options.items() if k != "store_dtype"}, "order": order}
+
+
+def _segvlad_options(method: dict) -> dict:
+    segvlad = method["segvlad"]
+    return {
+        "order": segvlad["order"],
+        "mask_to_patch": segvlad["mask_to_patch"],
+        "small_graph": segvlad["small_graph"],
+        "store_dtype": segvlad["store_dtype"],
+        **method["vlad"],
+    }
+
+
+_DESCRIPTORS = "vprflow.stages.descriptors"
+
+
+def _pooling(name: str) -> Aggregator:
+    """GeM, average or max pooling: the `pooling` settings it uses (``gem_p`` for GeM
+    only, passed to the pooling function as ``p``) are its options and its columns."""
+    keys = ("normalization", "gem_p") if name == "gem" else ("normalization",)
+    return Aggregator(
+        name,
+        (),
+        "global",
+        lambda m: {"p" if k == "gem_p" else k: m["pooling"][k] for k in keys},
+        lambda m: prefixed("pooling", {k: m["pooling"][k] for k in keys}),
+        f"{_DESCRIPTORS}:pooled_descriptor",
+        resize="antialias",
+        exif_orientation="ignore",
+    )
+
+
+AGGREGATORS: dict[str, Aggregator] = {
+    agg.name: agg
+    for agg in (
+        Aggregator(
+            "segvlad",
+            ("segments", "vocabulary", "pca"),
+            "segments",
+            _segvlad_options,
+            lambda m: {**prefixed("segvlad", m["segvlad"]), **prefixed("vlad", m["vlad"])},
+            f"{_DESCRIPTORS}:segvlad_descriptors",
+            explanation="segment_matches",
+            pca_fit=_segvlad_pca_fit,
+        ),
+        Aggregator(
+            "segment_gem",
+            ("segments", "pca"),
+            "segments",
+            lambda m: {"p": m["pooling"]["gem_p"], "normalization": m["pooling"]["normalization"]},
+            lambda m: prefixed("pooling", {k: m["pooling"][k] for k in ("gem_p", "normalization")}),
+            f"{_DESCRIPTORS}:segment_gem_descriptors",
+            explanation="segment_matches",
+        ),
+        Aggregator(
+            "anyloc_vlad",
+            ("vocabulary",),
+            "global",
+            lambda m: dict(m["vlad"]),
+            lambda m: prefixed("vlad", m["vlad"]),
+            f"{_DESCRIPTORS}:anyloc_vlad_descriptor",
+        ),
+        Aggregator(
+            "snsm",
+            (),
+            "global",
+            lambda m: dict(m["snsm"]),
+            lambda m: prefixed("snsm", m["snsm"]),
+            f"{_DESCRIPTORS}:snsm_descriptor",
+            explanation="support_maps",
+            resize="antialias",
+            exif_orientation="ignore",
+        ),
+        *(_pooling(name) for name in ("gem", "average", "max")),
+    )
+}
+
+
+# ------------------------------------------------------------------ search indexes
+
+
+@dataclass(frozen=True)
+class SearchIndex:
+    """A ``retrieval.index``: whether it returns the exact top-k (an approximate one makes
+    the plan add an exact search, so the table can report the difference), the function
+    that runs it, whether it runs on a GPU when there is one, and its parameters'
+    defaults (``None``: chosen at run time by its function), filled into a method's
+    ``retrieval.params`` before hashing (:func:`search_settings`).
+
+    ``knn`` is ``"module:function"`` with signature ``(database [Nd, D], queries [Nq, D],
+    k, **params) -> (distances [Nq, k'] float32, indices [Nq, k'] int64)`` (see
+    :mod:`vprflow.search`), plus ``device`` when ``uses_gpu``; :meth:`search` calls it.
+    The defaults live here rather than in :mod:`vprflow.search`, whose functions read them:
+    planning must fill them into keys without importing torch, as for the model kinds.
+    """
+
+    name: str
+    exact: bool
+    knn: str
+    uses_gpu: bool = False
+    defaults: dict = field(default_factory=dict)
+
+    def search(self, database, queries, k: int, params: dict | None = None, device="auto"):
+        """Squared-L2 ``k`` nearest ``database`` rows of every query with this index and
+        ``params`` (left out: :attr:`defaults`): ``(distances [Nq, k'] float32, indices
+        [Nq, k'] int64)``, ``k' = min(k, Nd)``, nearest first. Rows of an approximate
+        index may end in index -1 (fewer than k found). ``device`` (``"auto"``, ``"cpu"``,
+        ``"cuda"``) is used by the indexes that run on a GPU."""
+        params = dict(params or {})
+        _check_search_params(self, params, "params")
+        if self.uses_gpu:
+            params["device"] = device
+        return resolve(self.knn)(database, queries, k, **params)
+
+
+_IVF = {"nlist": None, "nprobe": 16, "seed": 1234}
+_KNN = "vprflow.search"
+
+SEARCH_INDEXES: dict[str, SearchIndex] = {
+    index.name: index
+    for index in (
+        # faiss IndexFlatL2, published.
+        SearchIndex("flat", exact=True, knn=f"{_KNN}.flat:flat_knn"),
+        # margin None: by candidate dtype (vprflow.search.exact.DEFAULT_MARGINS).
+        # None of these changes the result, only speed and memory.
+        SearchIndex(
+            "exact_fast",
+            exact=True,
+            knn=f"{_KNN}.exact:exact_knn",
+            uses_gpu=True,
+            defaults={
+                "candidate_dtype": "bfloat16",
+                "block_queries": 4096,
+                "block_database": 65536,
+                "margin": None,
+            },
+        ),
+        SearchIndex(
+            "ivf_flat", exact=False, knn=f"{_KNN}.approximate:ivf_flat_knn", defaults=dict(_IVF)
+        ),
+        SearchIndex(
+            "ivf_pq",
+            exact=False,
+            knn=f"{_KNN}.approximate:ivf_pq_knn",
+            defaults={**_IVF, "m": None, "nbits": 8},
+        ),
+        SearchIndex(
+            "hnsw",
+            exact=False,
+            knn=f"{_KNN}.approximate:hnsw_knn",
+            defaults={"M": 32, "ef_search": 128, "ef_construction": 200},
+        ),
+    )
+}
+
+
+def search_index(name: str) -> SearchIndex:
+    if name not in SEARCH_INDEXES:
+        raise ValueError(f"unknown search index {name!r}; expected one of {sorted(SEARCH_INDEXES)}")
+    return SEARCH_INDEXES[name]
+
+
+def search_settings(retrieval: dict) -> dict:
+    """A ``retrieval`` section (``index``, ``params``) with the index's parameter defaults
+    filled into ``params``, so a key records what ran; a parameter the index does not
+    take is refused by name."""
+    index = search_index(retrieval["index"])
+    params = retrieval["params"]
+    _check_search_params(index, params, "retrieval.params")
+    return {**retrieval, "params": {**index.defaults, **params}}
+
+
+def _check_search_params(index: SearchIndex, params: dict, what: str) -> None:
+    unknown = sorted(set(params) - set(index.defaults))
+    if unknown:
+        raise ValueError(
+            f"{what} {unknown} are not parameters of index {index.name!r}; "
+            f"it takes {sorted(index.defaults) or 'none'}"
+        )
+
+
+@dataclass(frozen=True)
+class Reranker:
+    """A ``rerankers.<name>.kind``: the entry's keys that shape its scores (the rest of
+    the entry, ``features`` and ``top_k``, reach the key through the plan), filled from
+    the schema's defaults; :func:`vprflow.evaluation.rerank.rerank_scores` computes them."""
+
+    name: str
+    options: tuple[str, ...]
+
+
+RERANKERS: dict[str, Reranker] = {
+    r.name: r
+    for r in (
+        Reranker("mnn", ("weighting", "min_similarity")),
+        Reranker("ransac", ("min_similarity", "threshold", "seed")),
+    )
+}
+
+
+def aggregator(name: str) -> Aggregator:
+    if name not in AGGREGATORS:
+        raise ValueError(f"unknown aggregator {name!r}; expected one of {sorted(AGGREGATORS)}")
+    return AGGREGATORS[name]
+
+
+def resolve(reference: str):
+    """The object a ``"module:function"`` reference names (imported on first use)."""
+    module, _, name = reference.partition(":")
+    return getattr(importlib.import_module(module), name)
