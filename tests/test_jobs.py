@@ -1,17 +1,35 @@
-"""The table of stage runners and the sharding policy the rules, tests and benchmarks
-share."""
+"""How a job of any stage runs, and the sharding policy the rules, tests and benchmarks
+share, all read from the plan's table of stages."""
 
 from __future__ import annotations
 
+import inspect
+
 import pytest
 
-from vprflow.planning.plan import FORMAT_VERSIONS
-from vprflow.stages.jobs import RUNNERS, SHARDED, Job, combine_shards, run_job, shard_ranges
+from vprflow.core.registry import resolve
+from vprflow.planning.plan import STAGES
+from vprflow.stages import jobs
+from vprflow.stages.base import Job as BaseJob
+from vprflow.stages.jobs import Job, combine_shards, run_job, shard_ranges
 
 
-def test_every_stage_the_plan_makes_has_a_runner_and_every_sharded_stage_is_one():
-    assert set(RUNNERS) == set(FORMAT_VERSIONS)
-    assert set(SHARDED) <= set(RUNNERS)
+@pytest.mark.parametrize("stage", sorted(STAGES))
+def test_every_stage_runs_by_one_function_of_one_job(stage):
+    """Each runner the table names imports and takes the job alone: no stage needs an
+    adapter between the rules' script and its function."""
+    runner = resolve(STAGES[stage].runner)
+    assert STAGES[stage].runner.startswith(f"vprflow.stages.{runner.__module__.split('.')[-1]}:")
+    parameters = inspect.signature(runner).parameters
+    assert list(parameters) == ["job"], f"{STAGES[stage].runner}{inspect.signature(runner)}"
+    if STAGES[stage].shards:
+        assert callable(resolve(STAGES[stage].combine))
+
+
+def test_the_jobs_lists_are_the_table_by_column():
+    assert jobs.RUNNERS == {name: stage.runner for name, stage in STAGES.items()}
+    assert jobs.SHARDED == ("features", "segments", "descriptors", "search")
+    assert Job is BaseJob
 
 
 @pytest.mark.parametrize("size", [1, 3, 4, 7, 100])
@@ -39,13 +57,26 @@ def test_an_unsharded_stage_has_no_shard_ranges():
         shard_ranges("recall", 4, 3, 2, 2)
 
 
+SEEN: list[Job] = []
+
+
+def _record_job(job: Job) -> None:
+    SEEN.append(job)
+
+
 def test_a_job_runs_the_runner_its_record_names(monkeypatch):
-    seen = []
-    monkeypatch.setitem(RUNNERS, "pca", seen.append)
+    SEEN.clear()
+    monkeypatch.setitem(jobs.RUNNERS, "pca", f"{__name__}:_record_job")
     job = Job({"stage": "pca", "params": {}}, {"images": "d.zarr"}, "out.zarr")
     run_job(job)
-    assert seen == [job]
+    assert SEEN == [job]
     assert (job.device, job.batch_size) == ("auto", 1)
+
+
+def test_a_jobs_images_are_its_range_within_the_stores_images():
+    job = Job({"stage": "features", "params": {}}, {}, "o.zarr")
+    assert job.images(5) == range(5)
+    assert Job(job.record, {}, "o.zarr", start=2, stop=9).images(5) == range(2, 5)
 
 
 def test_search_shards_are_merged_and_other_shards_concatenated(monkeypatch):

@@ -501,6 +501,7 @@ def test_native_resolution_plans_the_images_own_size_and_the_stage_refuses_anoth
 
     from vprflow.core.errors import DatasetError
     from vprflow.stages.dataset import build_images
+    from vprflow.stages.jobs import Job
 
     make_dataset(tmp_path / "toy", n_places=3, width=80, height=60)
     native = validate_config(toy_config(tmp_path, resolution="native"), SCHEMA)
@@ -524,12 +525,12 @@ def test_native_resolution_plans_the_images_own_size_and_the_stage_refuses_anoth
     assert native["datasets"]["toy"]["resolution"] == "native"  # the caller's config as given
     (stage,) = build_plan(native).stages["images"].values()
     assert stage.record["params"]["native_size"] == [80, 60]
-    build_images("toy", stage.record, str(tmp_path), str(tmp_path / "ok.zarr"))
+    build_images(Job(stage.record, {}, str(tmp_path / "ok.zarr"), data_root=str(tmp_path)))
 
     Image.new("RGB", (60, 80)).save(tmp_path / "toy" / "query" / "zz_portrait.png")
     (stage,) = build_plan(native).stages["images"].values()
     with pytest.raises(DatasetError, match=r"zz_portrait\.png is 60 x 80.*resolution: \[width"):
-        build_images("toy", stage.record, str(tmp_path), str(tmp_path / "bad.zarr"))
+        build_images(Job(stage.record, {}, str(tmp_path / "bad.zarr"), data_root=str(tmp_path)))
     assert not (tmp_path / "bad.zarr").exists()
 
 
@@ -624,3 +625,24 @@ def test_a_config_with_its_keys_in_another_order_gives_records_of_the_same_repr(
     assert records == {
         s: {k: repr(v.record) for k, v in stages.items()} for s, stages in other.stages.items()
     }
+
+
+def test_the_stages_an_aggregator_may_need_are_planned_as_the_table_of_stages_says(
+    config, monkeypatch
+):
+    """Between features and descriptors the plan plans only what STAGES gives a planner:
+    the same table the stage versions, runners and sharding come from."""
+    from dataclasses import replace
+
+    from vprflow.planning import plan
+
+    assert {name for name, stage in plan.STAGES.items() if stage.needed} == {
+        "segments",
+        "vocabulary",
+        "pca",
+    }
+    for needs in registry.AGGREGATORS["segvlad"].needs:
+        assert plan.STAGES[needs].needed is not None
+    monkeypatch.setitem(plan.STAGES, "pca", replace(plan.STAGES["pca"], needed=None))
+    with pytest.raises(PlanError, match="aggregator 'segvlad' needs unknown stage 'pca'"):
+        build_plan(config)

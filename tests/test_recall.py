@@ -192,6 +192,7 @@ def test_the_recall_store_and_table_count_queries_without_positive_and_the_log_n
     import csv
 
     from vprflow.core import stores
+    from vprflow.stages.jobs import Job
     from vprflow.stages.recall import evaluate
     from vprflow.stages.report import write_report
 
@@ -199,7 +200,7 @@ def test_the_recall_store_and_table_count_queries_without_positive_and_the_log_n
     record = {"params": {"denominator": denominator, "top_k": 3, "recall_at": [1, 2]}}
     out = tmp_path / "recall.zarr"
     with caplog.at_level("WARNING", logger="vprflow"):
-        evaluate(dataset, descriptors, record, str(out))
+        evaluate(Job(record, {"dataset": dataset, "descriptors": descriptors}, str(out)))
     attrs = stores.open_store(out).attrs
     assert attrs["n_queries"] == counted
     assert attrs["n_queries_without_positive"] == 2

@@ -403,7 +403,7 @@ def test_float16_segment_descriptors_are_the_float32_ones_rounded(pipeline, tmp_
     inputs = {name: runner.path(*ref) for name, ref in stage.inputs.items()}
     params = {**stage.record, "params": {**stage.record["params"], "store_dtype": "float16"}}
     out = str(tmp_path / "half.zarr")
-    compute_descriptors(inputs, params, out)
+    compute_descriptors(Job(params, inputs, out))
     half = stores.open_store(out)["descriptors"]
     full = stores.open_store(stage_path(pipeline, "descriptors"))["descriptors"]
     assert half.dtype == np.float16
@@ -419,7 +419,7 @@ def test_descriptors_are_the_same_bits_with_more_threads(pipeline, tmp_path, met
     ]
     inputs = {name: runner.path(*ref) for name, ref in stage.inputs.items()}
     out = str(tmp_path / "threads.zarr")
-    compute_descriptors(inputs, stage.record, out, threads=3)
+    compute_descriptors(Job(stage.record, inputs, out, threads=3))
     threaded = stores.open_store(out)
     stored = stores.open_store(stage_path(pipeline, "descriptors", method))
     for name, array in stores.array_items(stored):
@@ -443,7 +443,7 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     inputs = {name: runner.path(*ref) for name, ref in search.inputs.items()}
     spec = {**search.record["params"], "index": index, "params": options}
     out = str(tmp_path / "search.zarr")
-    search_shard(inputs["images"], inputs["descriptors"], {**search.record, "params": spec}, out)
+    search_shard(Job({**search.record, "params": spec}, inputs, out))
     distances, indices = read_search(out)
     flat_distances, flat_indices = read_search(stage_path(pipeline, "search"))
     np.testing.assert_array_equal(indices, flat_indices)
@@ -455,7 +455,14 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     ]
     result = str(tmp_path / "recall.zarr")
     dataset = stage_path(pipeline, "dataset")
-    evaluate(dataset, inputs["descriptors"], recall.record, result, out, out)
+    both = {"search": out, "exact_search": out}
+    evaluate(
+        Job(
+            recall.record,
+            {"dataset": dataset, "descriptors": inputs["descriptors"], **both},
+            result,
+        )
+    )
     attrs = stores.open_store(result).attrs
     flat = stores.open_store(stage_path(pipeline, "recall", "segvlad")).attrs
     assert attrs["recall_exact"] == attrs["recall"] == flat["recall"]
@@ -545,13 +552,21 @@ def test_an_image_changed_after_the_dataset_stage_fails_the_stage_reading_it(tmp
     plan = small_plan(tmp_path)
     dataset_stage = plan.get("images", plan.images_keys["toy"])
     dataset_path = str(tmp_path / "dataset.zarr")
-    build_images("toy", dataset_stage.record, str(tmp_path / "data"), dataset_path)
+    build_images(Job(dataset_stage.record, {}, dataset_path, data_root=str(tmp_path / "data")))
     features = next(iter(plan.stages["features"].values()))
     changed = tmp_path / "data/toy/query/0001.jpg"
     changed.write_bytes((tmp_path / "data/toy/query/0002.jpg").read_bytes())
     out = tmp_path / "features.zarr"
     with pytest.raises(DatasetError, match=r"query/0001\.jpg changed after the images stage"):
-        compute_features(dataset_path, features.record, str(out), str(tmp_path / "data"), "cpu")
+        compute_features(
+            Job(
+                features.record,
+                {"images": dataset_path},
+                str(out),
+                data_root=str(tmp_path / "data"),
+                run={"device": "cpu"},
+            )
+        )
     assert not out.exists()
 
 
@@ -567,11 +582,13 @@ def test_an_image_changed_after_planning_fails_the_dataset_stage_naming_it(tmp_p
     out = tmp_path / "dataset.zarr"
     with pytest.raises(DatasetError, match=r"changed after this run planned it.*ref/0002\.png"):
         build_images(
-            "toy",
-            stage.record,
-            str(tmp_path / "data"),
-            str(out),
-            str(tmp_path / "fingerprints.json"),
+            Job(
+                stage.record,
+                {},
+                str(out),
+                data_root=str(tmp_path / "data"),
+                fingerprints=str(tmp_path / "fingerprints.json"),
+            )
         )
     assert not out.exists()
 
@@ -584,7 +601,9 @@ def test_a_query_that_is_a_copy_of_a_reference_is_refused(tmp_path):
     plan = small_plan(tmp_path, make=False)
     stage = plan.get("images", plan.images_keys["toy"])
     with pytest.raises(DatasetError, match=r"byte-identical.*query/0001\.png = .*ref/0001\.png"):
-        build_images("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
+        build_images(
+            Job(stage.record, {}, str(tmp_path / "d.zarr"), data_root=str(tmp_path / "data"))
+        )
 
 
 def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_path):
@@ -600,7 +619,7 @@ def test_images_are_read_upright_everywhere_as_their_exif_orientation_says(tmp_p
     )
     plan = small_plan(tmp_path, make=False)
     stage = plan.get("images", plan.images_keys["toy"])
-    build_images("toy", stage.record, str(tmp_path / "data"), str(tmp_path / "d.zarr"))
+    build_images(Job(stage.record, {}, str(tmp_path / "d.zarr"), data_root=str(tmp_path / "data")))
     dataset = Dataset(str(tmp_path / "d.zarr"), str(tmp_path / "data"))
     np.testing.assert_array_equal(dataset.read_image(1), upright.astype(np.float32) / 255.0)
     # A method whose published reader ignores the tag (SNSM) reads the stored pixels.
@@ -631,7 +650,7 @@ def test_the_dataset_stage_lists_images_as_planned(tmp_path):
         plan = build_plan(validate_config(config, SCHEMA))
         stage = plan.get("images", plan.images_keys["toy"])
         out = tmp_path / f"{root.name}.zarr"
-        build_images("toy", stage.record, str(root), str(out))
+        build_images(Job(stage.record, {}, str(out), data_root=str(root)))
         names = Dataset(str(out)).names
         expected = ["run1/0000.jpg", "run1/0001.jpg", "run1/0002.jpg"]
         if root.name == "nested":

@@ -28,6 +28,7 @@ from vprflow.core.paths import PUBLISHED_VOCABULARY
 from vprflow.data.download import DownloadError
 from vprflow.planning.config import load_schema, validate_config
 from vprflow.planning.plan import build_plan
+from vprflow.stages.jobs import Job
 from vprflow.stages.vocabulary import fit_vocabulary, read_centres
 
 REPO = Path(__file__).resolve().parents[1]
@@ -108,16 +109,17 @@ def test_the_stage_reads_the_pinned_file_and_refuses_another(tmp_path):
     sha256 = tiny_centres(centres)
     features = features_store(tmp_path / "features.zarr", 3)
     record = {"params": {"source": "published", "name": "urban", "sha256": sha256}}
-    fit_vocabulary("", features, record, str(tmp_path / "v.zarr"), str(centres))
+    inputs = {"features": features, "centres": str(centres)}
+    fit_vocabulary(Job(record, inputs, str(tmp_path / "v.zarr")))
     expected = np.arange(12, dtype=np.float64).reshape(4, 3) / 10
     np.testing.assert_allclose(read_centres(str(tmp_path / "v.zarr")), expected, rtol=1e-7)
     record["params"]["sha256"] = "f" * 64  # a file put there by hand, not the published one
     with pytest.raises(ValueError, match="not the published"):
-        fit_vocabulary("", features, record, str(tmp_path / "w.zarr"), str(centres))
+        fit_vocabulary(Job(record, inputs, str(tmp_path / "w.zarr")))
     record["params"]["sha256"] = sha256
     wider = features_store(tmp_path / "features4.zarr", 4)
     with pytest.raises(ValueError, match="3 dimensions but the features have 4"):
-        fit_vocabulary("", wider, record, str(tmp_path / "x.zarr"), str(centres))
+        fit_vocabulary(Job(record, {**inputs, "features": wider}, str(tmp_path / "x.zarr")))
 
 
 @pytest.mark.workflow

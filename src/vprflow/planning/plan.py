@@ -6,8 +6,11 @@ Outputs live at ``results/cache/<stage>/<key>.zarr``. Two experiments that agree
 a stage's parameters and inputs get the same key and share the store; changing a
 parameter changes the key of that stage and of everything downstream only.
 
-Bump a stage's entry in :data:`FORMAT_VERSIONS` whenever the code changes what the
-stage writes: Snakemake does not track the library's source, only the key does.
+Every stage is one row of :data:`STAGES` (at the end of this module): its format version,
+the function that runs its jobs, whether its jobs take ranges of images, and, for a stage
+an aggregator may need, how it is planned. Bump a stage's ``version`` whenever the code
+changes what the stage writes: Snakemake does not track the library's source, only the
+key does.
 """
 
 from __future__ import annotations
@@ -15,8 +18,9 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 from vprflow.core.errors import PlanError
@@ -42,30 +46,6 @@ from vprflow.core.registry import (
     prefixed,
     search_settings,
 )
-
-FORMAT_VERSIONS = {
-    # What the images are: their list, order, paths, sizes, SHA-256 and how they are read
-    # (1: split from the dataset stage, issue 30, so the ground truth keys no model stage)
-    "images": 1,
-    # What is true about them, over the images store (its arrays copied): 2: paths
-    # relative to data_root, contents in the key; 3: the ground truth only, keyed by the
-    # images store's key, the ground-truth settings and the ground-truth files
-    "dataset": 3,
-    "features": 3,  # 2: crop offsets round like torchvision; 3: published resize, pos-embed
-    # 2: published (OpenCV INTER_LINEAR) resize; 3: SAM prompts through sam_decoder
-    # (float32 rounding differs; SAM-HQ masks upscaled from the transformer's output)
-    "segments": 3,
-    "vocabulary": 3,  # 2: `centres` (plain cluster means by default); 3: numpy assignment
-    "pca": 3,  # 2: exact solver by default, capped at the numerical rank; 3: numpy VLAD
-    # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm; 4: VLAD in
-    # numpy, one BLAS thread per image (float32 rounding differs from torch's)
-    "descriptors": 4,
-    "search": 1,
-    "rerank": 2,  # 2: the top K re-ordered, then the rest of the retrieval (to `depth`)
-    # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
-    # summary and cost per query, re-ranked lists; 6: n_queries_without_positive
-    "recall": 6,
-}
 
 # Which dataset settings shape which store. A dataset's settings are split between
 # what the images are (the `images` store: list, order, content, reader) and what is
@@ -168,7 +148,7 @@ class Plan:
     ) -> str:
         record = {
             "stage": stage,
-            "version": FORMAT_VERSIONS[stage],
+            "version": STAGES[stage].version,
             "store_format": 2,  # 2: crc32c checksums on every chunk
             "params": params,
             "inputs": {name: key for name, (_, key) in sorted(inputs.items())},
@@ -395,9 +375,10 @@ def _plan_method(
         row["protocol"] = dataset["protocol"]
     inputs = {"images": m.images_store, "features": features}
     for stage in agg.needs:
-        if stage not in _NEEDED_STAGES:  # a registry entry naming a stage the plan does not know
+        spec = STAGES.get(stage)
+        if spec is None or spec.needed is None:  # a registry entry the table does not back
             raise PlanError(f"aggregator {agg.name!r} needs unknown stage {stage!r}")
-        store, columns = _NEEDED_STAGES[stage](m, inputs)
+        store, columns = spec.needed(m, inputs)
         if store is not None:
             inputs[stage] = store
         row.update(columns)
@@ -528,15 +509,6 @@ def _plan_pca(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef | Non
     return m.add("pca", params, dict(inputs)), _prefixed("pca", pca)
 
 
-# The stages an aggregator may need between features and descriptors (Aggregator.needs),
-# each planned as ``(method, inputs planned so far) -> (its store or None, CSV columns)``.
-_NEEDED_STAGES = {
-    "segments": _plan_segments,
-    "vocabulary": _plan_vocabulary,
-    "pca": _plan_pca,
-}
-
-
 def _plan_retrieval(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict, dict]:
     """What ranks the references for each query, for recall and re-ranking alike: the
     inputs (descriptors; and the segment search a per-segment method votes over), the
@@ -660,3 +632,73 @@ def _flatten(prefix: str, value, out: dict) -> None:
         out[prefix] = " ".join(str(v) for v in value)
     else:
         out[prefix] = value
+
+
+# ------------------------------------------------------------------ the stages
+
+# (method, inputs planned so far) -> (its store or None, CSV columns)
+_NeededPlanner = Callable[[_Method, dict[str, _StoreRef]], tuple[_StoreRef | None, dict]]
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One stage of the workflow, as the plan, the rules and their script know it."""
+
+    # The format version, in every key of the stage: bump it when what the stage writes
+    # changes (reasons below, by stage).
+    version: int
+    # The function that runs one job, ``(job: vprflow.stages.base.Job) -> None``, as
+    # ``"module:function"``: the stages sit above planning, and importing a stage's module
+    # (torch, faiss) costs seconds, so vprflow.stages.jobs imports it when a job runs.
+    runner: str
+    # Whose ranges the stage's jobs take: "images" (references then queries,
+    # `shard_size` a job) or "references" (`search_shard_size` a job); None: one job.
+    # A sharded stage's rule writes shards; its `gather` rule combines them by `combine`.
+    shards: Literal["images", "references"] | None = None
+    combine: str = "vprflow.stages.gather:gather"
+    # For a stage an aggregator may need (``Aggregator.needs``): how it is planned,
+    # between the features and the descriptors.
+    needed: _NeededPlanner | None = None
+
+
+# Every stage, in the order a query's data flows through them (the rerun table's order).
+STAGES: dict[str, StageSpec] = {
+    # What the images are: their list, order, paths, sizes, SHA-256 and how they are read
+    # (1: split from the dataset stage, issue 30, so the ground truth keys no model stage)
+    "images": StageSpec(1, "vprflow.stages.dataset:build_images"),
+    # What is true about them, over the images store (its arrays copied): 2: paths
+    # relative to data_root, contents in the key; 3: the ground truth only, keyed by the
+    # images store's key, the ground-truth settings and the ground-truth files
+    "dataset": StageSpec(3, "vprflow.stages.dataset:build_truth"),
+    # 2: crop offsets round like torchvision; 3: published resize, pos-embed
+    "features": StageSpec(3, "vprflow.stages.features:compute_features", shards="images"),
+    # 2: published (OpenCV INTER_LINEAR) resize; 3: SAM prompts through sam_decoder
+    # (float32 rounding differs; SAM-HQ masks upscaled from the transformer's output)
+    "segments": StageSpec(
+        3, "vprflow.stages.segments:compute_segments", shards="images", needed=_plan_segments
+    ),
+    # 2: `centres` (plain cluster means by default); 3: numpy assignment
+    "vocabulary": StageSpec(3, "vprflow.stages.vocabulary:fit_vocabulary", needed=_plan_vocabulary),
+    # 2: exact solver by default, capped at the numerical rank; 3: numpy VLAD
+    "pca": StageSpec(3, "vprflow.stages.pca:fit_pca_stage", needed=_plan_pca),
+    # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm; 4: VLAD in
+    # numpy, one BLAS thread per image (float32 rounding differs from torch's)
+    "descriptors": StageSpec(4, "vprflow.stages.descriptors:compute_descriptors", shards="images"),
+    # A range of reference images per job; the shards' top-k lists are merged, not
+    # concatenated.
+    "search": StageSpec(
+        1,
+        "vprflow.stages.search:search_shard",
+        shards="references",
+        combine="vprflow.stages.search:merge_search",
+    ),
+    # 2: the top K re-ordered, then the rest of the retrieval (to `depth`)
+    "rerank": StageSpec(2, "vprflow.stages.rerank:rerank_stage"),
+    # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
+    # summary and cost per query, re-ranked lists; 6: n_queries_without_positive
+    "recall": StageSpec(6, "vprflow.stages.recall:evaluate"),
+}
+
+# The table by column: what the keys hash, and the stages run in shards.
+FORMAT_VERSIONS = {name: stage.version for name, stage in STAGES.items()}
+SHARDED = tuple(name for name, stage in STAGES.items() if stage.shards)

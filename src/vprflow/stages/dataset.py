@@ -18,14 +18,12 @@ from vprflow.data import datasets
 from vprflow.data.ground_truth import ground_truth, ground_truth_rule
 from vprflow.data.images import ImageReadError, dataset_orientation, decode_image
 from vprflow.planning.fingerprints import file_digest, images_digest, truth_digest
-from vprflow.stages.base import shard_range
+from vprflow.stages.base import Job, shard_range
 
 log = logging.getLogger("vprflow")
 
 
-def build_images(
-    name: str, record: dict, data_root: str, out: str, fingerprints: str | None = None
-) -> None:
+def build_images(job: Job) -> None:
     """The ``images`` rule: list and decode every image once (so a corrupt file fails
     here, by name) and store paths (relative to ``data_root``, so the data folder may
     move), names, sizes (after the EXIF orientation) and each image's SHA-256. The
@@ -33,10 +31,11 @@ def build_images(
 
     What is read must be what the key covers: the images' digest as read here must equal
     the plan's (``record["params"]["contents"]``), else a file changed after planning,
-    and it is named (with ``fingerprints``, the plan's memo of hashes by file stamp).
+    and it is named (with ``job.fingerprints``, the plan's memo of hashes by file stamp).
     Queries byte-identical to a reference are refused.
     """
-    params = record["params"]
+    record, data_root, out, params = job.record, job.data_root, job.out, job.params
+    name = params["name"]
     files = datasets.list_dataset(data_root, name, params)
     folder = dataset_folder(data_root, params)
     paths = files.reference + files.query
@@ -52,7 +51,7 @@ def build_images(
         files, data_root, params, lambda p, _: by_path.get(p) or file_digest(p)
     )
     if contents != params["contents"]:
-        raise DatasetError(_changed_since_planning(name, paths, by_path, fingerprints))
+        raise DatasetError(_changed_since_planning(name, paths, by_path, job.fingerprints))
     if "native_size" in params:
         _check_native_size(name, paths, sizes, params["native_size"])
     # A copied folder: the same images under other names.
@@ -98,15 +97,13 @@ def build_images(
 IMAGE_ARRAYS = ("paths", "names", "sha256", "image_sizes")
 
 
-def build_truth(
-    images_path: str, record: dict, data_root: str, out: str, fingerprints: str | None = None
-) -> None:
-    """The ``dataset`` rule: the ground truth of the images in ``images_path`` (the
+def build_truth(job: Job) -> None:
+    """The ``dataset`` rule: the ground truth of the images in the ``images`` input (the
     images store), stored with that store's arrays and counts, so recall, the report and
     the figures read one store. The ground-truth files as read here must hold what the
     key covers (``record["params"]["contents"]``)."""
-    params = record["params"]
-    images = stores.open_store(images_path)
+    record, data_root, out, params = job.record, job.data_root, job.out, job.params
+    images = stores.open_store(job.inputs["images"])
     listed = images.attrs["record"]["params"]  # how the images were listed
     name = listed["name"]
     entry = {**listed, "ground_truth": params["ground_truth"]}

@@ -18,7 +18,7 @@ from tqdm import tqdm
 from vprflow.core import stores
 from vprflow.core.arrays import l2_normalize
 from vprflow.core.registry import aggregator
-from vprflow.stages.base import shard_range, stage_attrs
+from vprflow.stages.base import Job, stage_attrs
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.features import FeatureReader
 from vprflow.stages.pca import read_pca
@@ -26,37 +26,31 @@ from vprflow.stages.segments import MaskReader
 from vprflow.stages.vocabulary import read_centres
 
 
-def compute_descriptors(
-    inputs: dict[str, str],
-    record: dict,
-    out: str,
-    start: int | None = None,
-    stop: int | None = None,
-    threads: int = 1,
-) -> None:
-    """Per-image descriptors of one method, as its registry entry computes them.
+def compute_descriptors(job: Job) -> None:
+    """Per-image descriptors of one method over the job's images, as its registry entry
+    computes them.
 
     Aggregators with ``output="segments"`` write a ragged ``descriptors`` array (one
     row per segment, offsets per image), projected by the ``pca`` input when there is
     one; ``output="global"`` aggregators write ``descriptors [n, dim]``.
 
-    ``threads`` images are computed at once, each with one BLAS thread: per-image
+    ``job.threads`` images are computed at once, each with one BLAS thread: per-image
     products are small, and BLAS threads on them cost more than they save (up to 10x
     on a busy machine, the pool's threads waiting for each other), while whole images
     keep every thread busy. The stored values are the same for any ``threads``
     (OpenBLAS rounds a product differently with a different number of its threads).
     """
-    params = record["params"]
+    inputs, params, threads = job.inputs, job.params, job.threads
     agg = aggregator(params["aggregator"])
     dataset = Dataset(inputs["images"])
-    images = shard_range(dataset.n_images, start, stop)
+    images = job.images(dataset.n_images)
     describe = agg.descriptor_function(params, inputs)
     by_segment = agg.output == "segments"
     pca = read_pca(inputs["pca"]) if "pca" in inputs else None
     # An aggregator that offers a storage precision has it among its options (SegVLAD:
     # segvlad.store_dtype); the others store float32.
     dtype = np.dtype(params["store_dtype"] if "store_dtype" in params else np.float32)
-    attrs = {**stage_attrs("descriptors", record, images), "kind": agg.output}
+    attrs = {**stage_attrs("descriptors", job.record, images), "kind": agg.output}
 
     def rows_of(data: tuple) -> np.ndarray:
         rows = describe.compute(*data)
@@ -64,7 +58,7 @@ def compute_descriptors(
         return rows if pca is None else pca.transform(rows)
 
     with (
-        stores.atomic_store(out, attrs) as group,
+        stores.atomic_store(job.out, attrs) as group,
         threadpool_limits(limits=1),
         ThreadPoolExecutor(threads) as pool,
     ):

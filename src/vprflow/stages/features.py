@@ -11,30 +11,22 @@ from tqdm import tqdm
 from vprflow.core import stores
 from vprflow.core.registry import model_kind
 from vprflow.data.images import resize_image
-from vprflow.stages.base import resolved_sources, stage_attrs
+from vprflow.stages.base import Job, resolved_sources, stage_attrs
 from vprflow.stages.dataset import open_shard
 
 log = logging.getLogger("vprflow")
 
 
-def compute_features(
-    dataset_path: str,
-    record: dict,
-    out: str,
-    data_root: str,
-    device: str = "auto",
-    batch_size: int = 1,
-    start: int | None = None,
-    stop: int | None = None,
-) -> None:
-    """Dense patch descriptors ``features [n, h, w, D]`` of images ``start..stop``."""
-    params = record["params"]
-    dataset, images = open_shard(dataset_path, data_root, start, stop)
+def compute_features(job: Job) -> None:
+    """Dense patch descriptors ``features [n, h, w, D]`` of the job's images, ``batch_size``
+    images a model call."""
+    params, batch_size = job.params, job.batch_size
+    dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
     width, height = params["resolution"]
     store_dtype = np.dtype(params["store_dtype"])
-    extract, patch_size = _feature_extractor(params, device, width, height, dataset)
-    attrs = {**stage_attrs("features", record, images), "sources": resolved_sources(params)}
-    with stores.atomic_store(out, attrs) as group:
+    extract, patch_size = _feature_extractor(params, job.device, width, height, dataset)
+    attrs = {**stage_attrs("features", job.record, images), "sources": resolved_sources(params)}
+    with stores.atomic_store(job.out, attrs) as group:
         array = None
         batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
         for batch in tqdm(batches, desc="features", unit="batch"):

@@ -8,16 +8,17 @@ from tqdm import tqdm
 
 from vprflow.core import stores
 from vprflow.core.registry import aggregator
+from vprflow.stages.base import Job
 from vprflow.stages.dataset import Dataset
 
 
-def fit_pca_stage(inputs: dict[str, str], record: dict, out: str) -> None:
+def fit_pca_stage(job: Job) -> None:
     """PCA fitted on a random sample of the reference images' segment descriptors,
     computed by the method's aggregator with the options ``fit_on`` (SegVLAD: at
     ``pca.fit_order``, docs/methods.md §5)."""
     from vprflow.aggregation.pca import fit_pca
 
-    params = record["params"]
+    inputs, record, params = job.inputs, job.record, job.params
     dataset = Dataset(inputs["images"])
     describe = aggregator(params["aggregator"]).descriptor_function(params["fit_on"], inputs)
     segments_path = inputs["segments"]
@@ -44,7 +45,7 @@ def fit_pca_stage(inputs: dict[str, str], record: dict, out: str) -> None:
     fitted = fit_pca(
         sample, params["dim"], params["whiten"], params["seed"], solver=params["solver"]
     )
-    with stores.atomic_store(out, {"stage": "pca", "record": record}) as group:
+    with stores.atomic_store(job.out, {"stage": "pca", "record": record}) as group:
         # `dim` is the effective dimension: capped at the sample's numerical rank.
         group.attrs.update(
             whiten=fitted.whiten, n_samples=len(chosen), dim=fitted.dim, requested_dim=params["dim"]

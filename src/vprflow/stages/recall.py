@@ -10,6 +10,7 @@ import numpy as np
 
 from vprflow.core import stores
 from vprflow.evaluation.recall import COST_COLUMNS
+from vprflow.stages.base import Job
 from vprflow.stages.dataset import Dataset
 
 log = logging.getLogger("vprflow")
@@ -121,20 +122,13 @@ def log_without_positive(dataset: Dataset, queries: np.ndarray, denominator: str
     )
 
 
-def evaluate(
-    dataset_path: str,
-    descriptors_path: str,
-    record: dict,
-    out: str,
-    search_path: str | None = None,
-    exact_search_path: str | None = None,
-    rerank_path: str | None = None,
-) -> None:
-    """Rank the references for every query (:func:`retrieve`, or the re-ranked lists
-    of a ``rerank`` store, ``rerank_path``) and compute Recall@N, mAP@N and the
-    precision-recall summary of the top-1 matches.
+def evaluate(job: Job) -> None:
+    """Rank the references for every query (:func:`retrieve`, over the ``search`` input
+    for per-segment descriptors, or the re-ranked lists of a ``rerank`` input) and
+    compute Recall@N, mAP@N and the precision-recall summary of the top-1 matches, by the
+    ``dataset`` input's ground truth.
 
-    With an approximate segment search, ``exact_search_path`` holds an exact search of
+    With an approximate segment search, the ``exact_search`` input is an exact search of
     the same descriptors: its Recall@N is stored too (``recall_exact``), so the table
     can say what the approximation cost.
     """
@@ -147,8 +141,12 @@ def evaluate(
         recall_at,
     )
 
-    params = record["params"]
-    dataset = Dataset(dataset_path)
+    record, params = job.record, job.params
+    descriptors_path = job.inputs["descriptors"]
+    search_path = job.inputs.get("search")
+    exact_search_path = job.inputs.get("exact_search")
+    rerank_path = job.inputs.get("rerank")
+    dataset = Dataset(job.inputs["dataset"])
     n_ref, n_query = dataset.n_reference, dataset.n_query
     truth = dataset.truth()
     has_truth = dataset.has_ground_truth
@@ -189,7 +187,7 @@ def evaluate(
     ranked = (ranking >= 0).sum(axis=1)
     descriptors = stores.open_store(descriptors_path)
     bytes_per_image = descriptor_bytes_per_image(descriptors["descriptors"], n_ref + n_query)
-    with stores.atomic_store(out, {"stage": "recall", "record": record}) as result:
+    with stores.atomic_store(job.out, {"stage": "recall", "record": record}) as result:
         result.attrs.update(
             recall={str(n): v for n, v in recalls.items()},
             map={str(n): v for n, v in maps.items()},

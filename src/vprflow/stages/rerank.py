@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
+from vprflow.stages.base import Job
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.recall import timed_retrieve
 
@@ -28,7 +29,7 @@ log = logging.getLogger("vprflow")
 _IN_MEMORY_BYTES = 2 << 30
 
 
-def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "auto") -> None:
+def rerank_stage(job: Job) -> None:
     """Store ``ranking [Nq, D]`` (reference indices, -1 = none; the top ``K = top_k``
     re-ordered, then the rest of the retrieval), ``scores [Nq, D]`` (the re-ranker's,
     higher is better; see :func:`vprflow.evaluation.rerank.rerank` for the entries not re-ranked)
@@ -38,7 +39,7 @@ def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "
     from vprflow.core.devices import resolve_device
     from vprflow.evaluation.rerank import rerank, rerank_scores
 
-    params = record["params"]
+    inputs, record, params = job.inputs, job.record, job.params
     dataset = Dataset(inputs["images"])
     n_ref = dataset.n_reference
     (retrieved, _, _), search_ms = timed_retrieve(
@@ -55,7 +56,7 @@ def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "
     per_image = 4 * int(np.prod(array.shape[1:]))
     in_memory = per_image * n_ref <= _IN_MEMORY_BYTES
     references = np.asarray(array[:n_ref], dtype=np.float32) if in_memory else None
-    torch_device = resolve_device(device)
+    torch_device = resolve_device(job.device)
     options = params["options"]
     ranking = np.full_like(retrieved, -1)
     scores = np.zeros(retrieved.shape)  # padding (rank -1) scores 0, as in voting
@@ -83,7 +84,7 @@ def rerank_stage(inputs: dict[str, str], record: dict, out: str, device: str = "
         )
         ranking[q], scores[q] = rerank(retrieved[q], found)
     seconds = time.perf_counter() - started
-    with stores.atomic_store(out, {"stage": "rerank", "record": record}) as group:
+    with stores.atomic_store(job.out, {"stage": "rerank", "record": record}) as group:
         group.attrs.update(
             score="matches",
             ms_per_query=1000 * seconds / max(dataset.n_query, 1),

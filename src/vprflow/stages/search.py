@@ -20,7 +20,7 @@ from tqdm import tqdm
 from vprflow.core import stores
 from vprflow.core.registry import search_index
 from vprflow.search.topk import merge_knn
-from vprflow.stages.base import stage_attrs
+from vprflow.stages.base import Job, stage_attrs
 from vprflow.stages.dataset import Dataset
 
 log = logging.getLogger("vprflow")
@@ -29,37 +29,32 @@ log = logging.getLogger("vprflow")
 QUERY_BLOCK = 1 << 16
 
 
-def search_shard(
-    dataset_path: str,
-    descriptors_path: str,
-    record: dict,
-    out: str,
-    start: int | None = None,
-    stop: int | None = None,
-    device: str = "auto",
-) -> None:
-    """Top-``top_segments`` reference segments of reference images ``start..stop`` for
-    every query segment: ``distances [Sq, k']`` float32, ``indices [Sq, k']`` int64
-    (global reference segment rows), k' = min(top_segments, segments in the shard)."""
-    params = record["params"]
+def search_shard(job: Job) -> None:
+    """Top-``top_segments`` reference segments of the job's reference images
+    (``start..stop``) for every query segment: ``distances [Sq, k']`` float32,
+    ``indices [Sq, k']`` int64 (global reference segment rows), k' = min(top_segments,
+    segments in the shard)."""
+    record, params = job.record, job.params
     index = search_index(params["index"])
-    dataset = Dataset(dataset_path)
-    start = 0 if start is None else start
-    stop = dataset.n_reference if stop is None else min(stop, dataset.n_reference)
-    group = stores.open_store(descriptors_path)
+    dataset = Dataset(job.inputs["images"])
+    references = job.images(dataset.n_reference)
+    start, stop = references.start, references.stop
+    group = stores.open_store(job.inputs["descriptors"])
     offsets = np.asarray(group["descriptors_offsets"][...])
     low, high = int(offsets[start]), int(offsets[stop])
     split, total = int(offsets[dataset.n_reference]), int(offsets[-1])
     vectors = group["descriptors"]
     database = np.asarray(vectors[low:high], dtype=np.float32)
     k = min(params["top_segments"], len(database))
-    attrs = {**stage_attrs("search", record, range(start, stop)), "rows": [low, high]}
-    with stores.atomic_store(out, attrs) as result:
+    attrs = {**stage_attrs("search", record, references), "rows": [low, high]}
+    with stores.atomic_store(job.out, attrs) as result:
         found = _list_writers(result, k)
         for block in tqdm(range(split, total, QUERY_BLOCK), desc="search", unit="block"):
             queries = np.asarray(vectors[block : min(block + QUERY_BLOCK, total)], np.float32)
             if k:
-                distances, indices = index.search(database, queries, k, params["params"], device)
+                distances, indices = index.search(
+                    database, queries, k, params["params"], job.device
+                )
                 found_any = indices >= 0  # approximate indexes pad short rows with -1
                 indices = np.where(found_any, indices + low, -1)
                 distances = np.where(found_any, distances, np.inf).astype(np.float32)

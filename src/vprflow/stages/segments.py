@@ -11,33 +11,25 @@ from tqdm import tqdm
 from vprflow.core import stores
 from vprflow.core.registry import model_kind
 from vprflow.data.images import resize_image
-from vprflow.stages.base import resolved_sources, stage_attrs
+from vprflow.stages.base import Job, resolved_sources, stage_attrs
 from vprflow.stages.dataset import open_shard
 
 log = logging.getLogger("vprflow")
 
 
-def compute_segments(
-    dataset_path: str,
-    record: dict,
-    out: str,
-    data_root: str,
-    device: str = "auto",
-    batch_size: int = 1,
-    start: int | None = None,
-    stop: int | None = None,
-) -> None:
-    """Bit-packed masks per image at the segmentation resolution (ragged ``masks``).
+def compute_segments(job: Job) -> None:
+    """Bit-packed masks per image of the job's images at the segmentation resolution
+    (ragged ``masks``).
 
     ``batch_size`` images share one image-encoder pass (SAM kinds; others run one by one).
     """
-    params = record["params"]
-    dataset, images = open_shard(dataset_path, data_root, start, stop)
-    segment = _mask_source(params, device, dataset)
-    attrs = {**stage_attrs("segments", record, images), "sources": resolved_sources(params)}
-    with stores.atomic_store(out, attrs) as group:
+    params = job.params
+    dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
+    segment = _mask_source(params, job.device, dataset)
+    attrs = {**stage_attrs("segments", job.record, images), "sources": resolved_sources(params)}
+    with stores.atomic_store(job.out, attrs) as group:
         writer, shape = None, None
-        for i, masks in _segmented(segment, images, batch_size):
+        for i, masks in _segmented(segment, images, job.batch_size):
             if shape is None:
                 shape = masks.shape[1:]
                 group.attrs.update(mask_height=shape[0], mask_width=shape[1])

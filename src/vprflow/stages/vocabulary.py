@@ -7,7 +7,7 @@ from tqdm import tqdm
 
 from vprflow.core import stores
 from vprflow.planning.fingerprints import file_digest
-from vprflow.stages.base import resolved_sources
+from vprflow.stages.base import Job, resolved_sources
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.features import read_features
 
@@ -34,17 +34,16 @@ def load_centres_file(path: str) -> np.ndarray:
     return load_c_centers(path)
 
 
-def fit_vocabulary(
-    dataset_path: str, features_path: str, record: dict, out: str, centres_path: str | None = None
-) -> None:
+def fit_vocabulary(job: Job) -> None:
     """VLAD centres ``[K, D]``: spherical k-means on sampled patch descriptors, a file, or
-    a published vocabulary (``centres_path``, fetched by its rule)."""
+    a published vocabulary (the ``centres`` input, fetched by its rule)."""
     from vprflow.aggregation.vlad import fit_spherical_kmeans
 
-    params = record["params"]
+    record, params = job.record, job.params
+    features_path = job.inputs["features"]
     if params["source"] in ("file", "published"):
         if params["source"] == "published":
-            path, what = centres_path, f"published vocabulary {params['name']!r}"
+            path, what = job.inputs["centres"], f"published vocabulary {params['name']!r}"
             # The file may have been put there by hand: it must be the pinned one.
             actual = file_digest(path)
             if actual != params["sha256"]:
@@ -62,7 +61,7 @@ def fit_vocabulary(
                 f"{dim}; the vocabulary belongs to another backbone or layer"
             )
     else:
-        dataset = Dataset(dataset_path)
+        dataset = Dataset(job.inputs["images"])
         features = stores.open_store(features_path)
         images = dataset.indices(params["fit_on"])
         h, w = features.attrs["grid"]
@@ -93,7 +92,7 @@ def fit_vocabulary(
             centres=params["centres"],
         )
     attrs = {"stage": "vocabulary", "record": record, "sources": resolved_sources(params)}
-    with stores.atomic_store(out, attrs) as group:
+    with stores.atomic_store(job.out, attrs) as group:
         stores.write_array(group, "centres", centres.astype(np.float32))
 
 
