@@ -1,7 +1,8 @@
 """How the workflow is deployed stays in step with the package: the rules' conda
 environment (workflow/envs/vprflow.yaml) takes Python from requires-python's range and
 every other dependency from pyproject.toml, every rule that runs something uses it,
-and the catalog file and the profiles' README describe what is there."""
+every stage of the plan's table has its rule, and the catalog file and the profiles'
+README describe what is there."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 import yaml
 from packaging.specifiers import SpecifierSet
 
-from vprflow.planning.plan import FORMAT_VERSIONS
+from vprflow.planning.plan import STAGES
 
 REPO = Path(__file__).resolve().parents[1]
 WORKFLOW = REPO / "workflow"
@@ -51,13 +52,37 @@ def rules() -> dict[str, tuple[Path, dict[str, str]]]:
 def test_every_rule_that_runs_code_uses_the_one_environment():
     parsed = rules()
     # The parser found the rules: one per stage (named after it) at least.
-    assert set(FORMAT_VERSIONS) <= set(parsed), sorted(set(FORMAT_VERSIONS) - set(parsed))
+    assert set(STAGES) <= set(parsed), sorted(set(STAGES) - set(parsed))
     running = {n: r for n, r in parsed.items() if set(r[1]) & set(ACTIONS)}
     assert {n for n, (p, _) in parsed.items() if p.parent.name == "rules"} <= set(running)
     for name, (path, directives) in running.items():
         assert "conda" in directives, f"rule {name} ({path.name}) has no conda: environment"
         env = (path.parent / ast.literal_eval(directives["conda"])).resolve()
         assert env == ENV, f"rule {name} ({path.name}) uses {env}, not {ENV}"
+
+
+def test_every_stage_of_the_plans_table_has_its_rule_and_every_stage_rule_a_stage():
+    """The rules that run the stage script are the table's stages, each named after its
+    stage, in a file the Snakefile includes, planned by its own name, writing shards
+    exactly when the table shards the stage (and the gather rule takes those stages)."""
+    parsed = rules()
+    runs_a_stage = {n for n, (_, d) in parsed.items() if d.get("script") == '"../scripts/stage.py"'}
+    assert runs_a_stage == set(STAGES)
+    snakefile = (WORKFLOW / "Snakefile").read_text()
+    for name, stage in STAGES.items():
+        path, directives = parsed[name]
+        assert f'include: "rules/{path.name}"' in snakefile, path
+        assert directives["params"] == f'record=stage_record("{name}"),', name
+        if "input" in directives:  # the images stage reads no store
+            assert directives["input"] == f'unpack(stage_inputs("{name}")),', name
+        output = (
+            f'temp(directory(shard_pattern("{name}"))),'
+            if stage.shards
+            else f'directory(store_pattern("{name}")),'
+        )
+        assert directives["output"] == output, name
+    gather = parsed["gather"][1]
+    assert gather["wildcard_constraints"] == "stage=SHARDED_STAGES,"
 
 
 def environment() -> tuple[list[str], list[str]]:
