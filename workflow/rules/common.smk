@@ -86,6 +86,7 @@ if len(_memo) != _memo_size:
 # cluster job steps, which parse this file again.
 if workflow.is_main_process:
     write_index(PLAN, PREFIX)
+# The stages vprflow.planning.plan.STAGES runs in shards: the `gather` rule combines them.
 SHARDED_STAGES = "|".join(SHARDED)
 
 

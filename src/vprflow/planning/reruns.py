@@ -20,7 +20,7 @@ import numpy as np
 import yaml
 
 from vprflow.planning.config import validate_config
-from vprflow.planning.plan import FORMAT_VERSIONS, build_plan
+from vprflow.planning.plan import STAGES, build_plan
 
 # The toy's images: references and queries of the same names, so `paired` may pair them.
 N_IMAGES = 4
@@ -200,12 +200,12 @@ CHANGES: tuple[Change, ...] = (
 
 
 def _stages(plan) -> dict[str, set[str]]:
-    return {stage: set(plan.stages.get(stage, {})) for stage in FORMAT_VERSIONS}
+    return {stage: set(plan.stages.get(stage, {})) for stage in STAGES}
 
 
 def changed_stages(change: Change, shipped: dict, schema: Path) -> tuple[str, ...]:
-    """The stages (in :data:`vprflow.planning.plan.FORMAT_VERSIONS` order) that ``change`` reruns
-    on the toy: those with a key after it that the plan before it did not have."""
+    """The stages (in :data:`vprflow.planning.plan.STAGES` order) that ``change`` reruns on
+    the toy: those with a key after it that the plan before it did not have."""
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
         make_toy(root / "data" / "toy")
@@ -218,7 +218,7 @@ def changed_stages(change: Change, shipped: dict, schema: Path) -> tuple[str, ..
         target = config if change.top else config["datasets"]["toy"]
         change.edit(target, Path(config["data_root"]) / "toy")
         after = _stages(build_plan(validate_config(config, schema)))
-    return tuple(stage for stage in FORMAT_VERSIONS if after[stage] - before[stage])
+    return tuple(stage for stage in STAGES if after[stage] - before[stage])
 
 
 def rerun_table(shipped: dict, schema: Path) -> list[tuple[Change, tuple[str, ...]]]:

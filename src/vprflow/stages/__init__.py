@@ -1,14 +1,18 @@
 """The workflow's stages, one module per Snakemake rule, named after it.
 
-Each module holds the function its rule runs (inputs are store paths, output is a
-store) and the readers later stages use on that store; :mod:`.jobs` is the table of
-those functions that the rules' one script (``workflow/scripts/stage.py``), the tests
-and the benchmarks share. ``record`` is the stage's hashed record from
+Each stage's function takes one :class:`~vprflow.stages.base.Job` (its record, input
+stores by name, output, image range and how to run) and writes its output store; its
+module also holds the readers later stages use on that store.
+:data:`vprflow.planning.plan.STAGES` names the function of each stage, and
+:mod:`.jobs` runs it for the rules' one script (``workflow/scripts/stage.py``), the tests
+and the benchmarks. ``record`` is the stage's hashed record from
 :mod:`vprflow.planning.plan` (``record["params"]`` holds the stage's own parameters); it is
 written into the output store's attributes so every store documents itself.
 
-Per-image stages (features, segments, descriptors) take ``start``/``stop``: a shard
-of the concatenated image list (references first, then queries); :mod:`.gather`
-concatenates the shards. Reading order: dataset, features, segments, vocabulary, pca,
-descriptors, gather, recall, report.
+Sharded stages (features, segments, descriptors over all images, references first; the
+segment search over the reference images) run one job per ``start``/``stop`` range;
+:mod:`.gather` concatenates the shards, :func:`.search.merge_search` merges search
+shards. Reading order, as the data flows: dataset (the ``images`` and ``dataset``
+stages), features, segments, vocabulary, pca, descriptors, search, rerank, recall, then
+the outputs that are no stages: report, figures, export.
 """
