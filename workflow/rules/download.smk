@@ -8,7 +8,10 @@ from vprflow.core.paths import (
     PUBLISHED_VOCABULARY,
     dataset_folder,
 )
-from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES, vocabulary_url
+from vprflow.aggregation.vocabularies import (
+    PUBLISHED as PUBLISHED_VOCABULARIES,
+    vocabulary_url,
+)
 from vprflow.data.download import download_entry, manifest_inputs
 
 # Shipped manifests are named relative to workflow/ (found while this file is parsed).
