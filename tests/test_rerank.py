@@ -9,6 +9,7 @@ correspondences from a known homography plus uniform outliers.
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -17,7 +18,7 @@ import torch
 from synthetic import make_dataset
 from workflow_helpers import REPO, toy_config
 
-from vprflow.core import stores
+from vprflow.core import registry, stores
 from vprflow.evaluation.rerank import (
     mnn_score,
     mutual_nearest_neighbours,
@@ -262,6 +263,33 @@ def test_rerank_scores_min_similarity_drops_weak_pairs_before_counting():
     strong = rerank_scores(query, candidates, (6, 8), 14, "mnn", min_similarity=0.99)
     np.testing.assert_array_equal(strong, [0, 48, 42])
     assert (everything >= strong).all()
+
+
+def test_rerank_scores_takes_each_methods_defaults_from_its_registry_entry(monkeypatch):
+    # The registry's Reranker entry is the one place of a kind's defaults: changing it
+    # changes what rerank_scores does when the option is left out.
+    query, candidates = toy_candidates(0)
+    counted = rerank_scores(query, candidates, (6, 8), 14, "mnn")
+    summed = rerank_scores(query, candidates, (6, 8), 14, "mnn", weighting="similarity")
+    assert not np.array_equal(counted, summed)
+    entry = registry.RERANKERS["mnn"]
+    changed = dataclasses.replace(entry, defaults={**entry.defaults, "weighting": "similarity"})
+    monkeypatch.setitem(registry.RERANKERS, "mnn", changed)
+    np.testing.assert_array_equal(rerank_scores(query, candidates, (6, 8), 14, "mnn"), summed)
+
+
+def test_rerank_scores_runs_each_kinds_score_function_with_its_settings():
+    pytest.importorskip("cv2")
+    query, candidates = toy_candidates(3)
+    centres = patch_centres(6, 8, 14)
+    for name, reranker in registry.RERANKERS.items():
+        settings = {**reranker.defaults, **reranker.fixed}
+        direct = registry.resolve(reranker.scores)(
+            torch.as_tensor(query), torch.as_tensor(candidates), centres, 14, **settings
+        )
+        np.testing.assert_array_equal(
+            rerank_scores(query, candidates, (6, 8), 14, name), direct, err_msg=name
+        )
 
 
 def test_rerank_scores_of_no_candidates_are_empty():

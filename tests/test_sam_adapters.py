@@ -66,7 +66,7 @@ def test_registry_defaults_are_each_generators_defaults():
     for kind in KINDS:
         defaults = SEGMENTERS[kind].defaults
         assert {k: defaults[k] for k in common} == common, kind
-        assert SEGMENTERS[kind].loader == f"vprflow.models.sam.adapters:load_{kind}"
+        assert SEGMENTERS[kind].loader == "vprflow.models.sam.adapters:load_sam"
     assert SEGMENTERS["sam"].defaults["pred_iou_thresh"] == 0.88
     assert SEGMENTERS["sam_hq"].defaults["pred_iou_thresh"] == 0.88  # SAM's generator
     assert SEGMENTERS["sam_hq"].defaults["hq_token_only"] is False
@@ -131,6 +131,20 @@ def test_missing_model_error_names_the_model(tmp_path, monkeypatch):
 def test_loaded_with_sdpa_attention(sam_kind_model):
     kind, path, _ = sam_kind_model
     assert _load(kind, path).adapter.model.config._attn_implementation == "sdpa"
+
+
+def test_the_registrys_one_sam_loader_builds_the_kind_its_entry_names(sam_kind_model):
+    # One loader serves every SAM kind: the entry's `segmenter` picks the model class,
+    # the adapter and the adapter's options (SAM-HQ's hq_token_only).
+    kind, path, _ = sam_kind_model
+    extra = {"hq_token_only": True} if kind == "sam_hq" else {}
+    entry = {"segmenter": kind, "model": str(path), "points_per_side": SIDE, **extra}
+    segmenter = SEGMENTERS[kind].load(entry, "cpu")
+    class_name, adapter_class = SAM_KINDS[kind]
+    assert type(segmenter.adapter) is adapter_class
+    assert type(segmenter.adapter.model).__name__ == class_name
+    if kind == "sam_hq":
+        assert segmenter.adapter.hq_token_only is True
 
 
 def _direct(kind, model, pixels, points):

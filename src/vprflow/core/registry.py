@@ -1,4 +1,5 @@
-"""Every component vprflow knows, in one place: model kinds and aggregators.
+"""Every component vprflow knows, in one place: model kinds, aggregators, search
+indexes and re-rankers, one entry each.
 
 The plan (which stages a method needs, what each key covers), the stages (which
 function computes a descriptor, which loader builds a model), the GPU request, the
@@ -11,7 +12,9 @@ segmenter: its loader, one :data:`BACKBONES` / :data:`SEGMENTERS` entry and the 
 properties of its parameters.
 
 Only data and lazy ``"module:function"`` references live here, so that planning a
-workflow never imports torch.
+workflow never imports torch. Those strings are ties an import graph does not show (the
+loaders and score functions import this module back): :func:`references` lists every
+one of them, and ``tests/test_registry.py`` imports each.
 """
 
 from __future__ import annotations
@@ -34,7 +37,9 @@ class ModelKind:
     its parameters: ``"model"`` (hub id, or a local directory hashed by content),
     ``"file"`` (the imported file, hashed) or ``"none"`` (weight-free). ``model_files``:
     files of a local model directory besides ``config.json`` and the weights that change
-    the output (hashed into the key when present).
+    the output (hashed into the key when present). ``spec``: what the kind's loader
+    needs beyond the config entry (a :class:`VitFamily`, a :class:`SamKind`), so one
+    loader serves several kinds and each kind is named only here.
     """
 
     name: str
@@ -44,12 +49,50 @@ class ModelKind:
     weights: str = "none"
     uses_gpu: bool = False
     model_files: tuple[str, ...] = ()
+    spec: VitFamily | SamKind | None = None
 
     def load(self, params: dict, device: str = "auto"):
         if self.loader is None:
             raise ValueError(f"{self.role} {self.name!r} reads a file; it has no model to load")
         return resolve(self.loader)(params, device)
 
+
+@dataclass(frozen=True)
+class VitFamily:
+    """What differs between the ViT backbones :func:`vprflow.models.vit.load_vit` loads.
+
+    ``model_types``: the transformers ``model_type`` values a model of this backbone may
+    have, each with whether its transformers position-embedding interpolation differs
+    from the original repository's (and is replaced under ``pos_embed_interpolation:
+    original``); "dinov2_with_registers" already matches. ``rope``: positions from RoPE,
+    no position embeddings to interpolate. ``model_normalisation``: mean/std from the
+    model's preprocessor_config.json, else ImageNet's. ``hub_checkpoint``: takes a
+    torch-hub-layout ``checkpoint`` (SegVLAD-FineT). ``pooler``: False when the
+    checkpoints carry no pooler (skips a spurious random initialisation).
+    """
+
+    model_types: dict[str, bool]
+    rope: bool = False
+    model_normalisation: bool = False
+    hub_checkpoint: bool = False
+    pooler: bool = True
+
+
+@dataclass(frozen=True)
+class SamKind:
+    """What differs between the SAM kinds :func:`vprflow.models.sam.adapters.load_sam`
+    loads: the transformers model class, the adapter class (``"module:Class"``, see
+    :mod:`vprflow.models.sam.adapters`) and the config keys passed to its constructor."""
+
+    model_class: str
+    adapter: str
+    adapter_options: tuple[str, ...] = ()
+
+
+# The ViT backbones' choices: which projection is read, how position embeddings are
+# interpolated (vprflow.models.vit; here so that the schema lists them without torch).
+FACETS = ("query", "key", "value", "token")
+POS_EMBED_INTERPOLATIONS = ("original", "transformers")
 
 _VIT = {
     "facet": "value",
@@ -91,6 +134,7 @@ BACKBONES: dict[str, ModelKind] = {
             {"model": "facebook/dinov2-giant", "layer": 31, **_VIT},
             weights="model",
             uses_gpu=True,
+            spec=VitFamily({"dinov2": True, "dinov2_with_registers": False}, hub_checkpoint=True),
         ),
         # DINOv3 ViT-L/16 (24 blocks): block 18 (0-based) runs 19 of 24, the depth of
         # AnyLoc's 31 of 40 (32 of 40 run); RoPE, so no pos_embed_interpolation. Its
@@ -107,6 +151,7 @@ BACKBONES: dict[str, ModelKind] = {
             weights="model",
             uses_gpu=True,
             model_files=("preprocessor_config.json",),
+            spec=VitFamily({"dinov3_vit": False}, rope=True, model_normalisation=True),
         ),
         # DINO v1: the last block (-1 counts from the end).
         ModelKind(
@@ -116,10 +161,14 @@ BACKBONES: dict[str, ModelKind] = {
             {"model": "facebook/dino-vitb8", "layer": -1, **_VIT},
             weights="model",
             uses_gpu=True,
+            spec=VitFamily({"vit": True}, pooler=False),
         ),
         ModelKind("import", "backbone", None, {"patch_size": 14}, weights="file"),
     )
 }
+
+_SAM_ADAPTERS = "vprflow.models.sam.adapters"
+_SAM_LOADER = f"{_SAM_ADAPTERS}:load_sam"
 
 SEGMENTERS: dict[str, ModelKind] = {
     kind.name: kind
@@ -140,30 +189,33 @@ SEGMENTERS: dict[str, ModelKind] = {
         ModelKind(
             "sam",
             "segmenter",
-            "vprflow.models.sam.adapters:load_sam",
+            _SAM_LOADER,
             {"model": "facebook/sam-vit-huge", **_SAM_GENERATOR},
             weights="model",
             uses_gpu=True,
+            spec=SamKind("SamModel", f"{_SAM_ADAPTERS}:SamAdapter"),
         ),
         # SAM-HQ's automatic mask generator (SAM's, defaults unchanged) on the HQ decoder:
         # one mask per point, best multimask logits + HQ logits (hq_token_only off).
         ModelKind(
             "sam_hq",
             "segmenter",
-            "vprflow.models.sam.adapters:load_sam_hq",
+            _SAM_LOADER,
             {"model": "syscv-community/sam-hq-vit-huge", **_SAM_GENERATOR, "hq_token_only": False},
             weights="model",
             uses_gpu=True,
+            spec=SamKind("SamHQModel", f"{_SAM_ADAPTERS}:SamHQAdapter", ("hq_token_only",)),
         ),
         # SAM 2's own automatic mask generator defaults (Hiera-L): pred_iou_thresh 0.8;
         # multimask output on and use_m2m off (fixed here).
         ModelKind(
             "sam2",
             "segmenter",
-            "vprflow.models.sam.adapters:load_sam2",
+            _SAM_LOADER,
             {"model": "facebook/sam2.1-hiera-large", **_SAM_GENERATOR, "pred_iou_thresh": 0.8},
             weights="model",
             uses_gpu=True,
+            spec=SamKind("Sam2Model", f"{_SAM_ADAPTERS}:Sam2Adapter"),
         ),
         ModelKind("import", "segmenter", None, weights="file"),
     )
@@ -194,6 +246,11 @@ def with_defaults(stage: str, entry: dict) -> dict:
 
 
 # ------------------------------------------------------------------ aggregators
+
+# The value of a backbone's `resize` and a dataset's `exif_orientation` that defers to
+# the method's aggregator (its `resize` / `exif_orientation` below): the published
+# pipeline's reader.
+BY_METHOD = "method"
 
 
 @dataclass(frozen=True)
@@ -439,21 +496,69 @@ def _check_search_params(index: SearchIndex, params: dict, what: str) -> None:
 
 @dataclass(frozen=True)
 class Reranker:
-    """A ``rerankers.<name>.kind``: the entry's keys that shape its scores (the rest of
-    the entry, ``features`` and ``top_k``, reach the key through the plan), filled from
-    the schema's defaults; :func:`vprflow.evaluation.rerank.rerank_scores` computes them."""
+    """A ``rerankers.<name>.kind``: how it scores a query's candidates.
+
+    ``scores`` is ``"module:function"`` with signature ``(query [P, D], candidates
+    [K, Q, D], centres [P, 2], patch, **settings) -> scores [K] float64`` (higher is
+    better; :func:`vprflow.evaluation.rerank.rerank_scores` checks the inputs and calls
+    it). ``defaults``: the entry's keys that shape its scores, with their defaults
+    (``load_schema`` writes them into the schema, so the config's defaults are these);
+    the rest of the entry, ``features`` and ``top_k``, reach the key through the plan.
+    ``fixed``: the function's further settings, which the config leaves at these values
+    (not in the key: only a code change moves them). ``score``: the kind of score stored
+    (a :data:`vprflow.evaluation.precision_recall.SCORE_KINDS` name).
+    """
 
     name: str
-    options: tuple[str, ...]
+    scores: str
+    defaults: dict
+    fixed: dict = field(default_factory=dict)
+    score: str = "matches"
 
+    @property
+    def options(self) -> tuple[str, ...]:
+        """The config keys the kind reads besides ``kind``, ``features`` and ``top_k``."""
+        return tuple(self.defaults)
+
+    def settings(self, options: dict) -> dict:
+        """Every setting of the score function: ``options`` over the defaults; a key
+        the kind does not take is refused by name."""
+        known = {**self.defaults, **self.fixed}
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            raise TypeError(
+                f"re-ranker {self.name!r} got unknown options {unknown}; it takes {list(known)}"
+            )
+        return {**known, **options}
+
+
+_RERANK = "vprflow.evaluation.rerank"
 
 RERANKERS: dict[str, Reranker] = {
     r.name: r
     for r in (
-        Reranker("mnn", ("weighting", "min_similarity")),
-        Reranker("ransac", ("min_similarity", "threshold", "seed")),
+        # EffoVPR's zero-shot score: the count of mutual pairs at least T2 similar.
+        Reranker(
+            "mnn",
+            f"{_RERANK}:mnn_scores",
+            {"weighting": "count", "min_similarity": None},
+        ),
+        # Patch-NetVLAD's RANSAC score; threshold in patches (1.5, as published). The
+        # estimator's budget stays fixed: the config never set it.
+        Reranker(
+            "ransac",
+            f"{_RERANK}:ransac_scores",
+            {"min_similarity": None, "threshold": 1.5, "seed": 0},
+            fixed={"model": "homography", "max_iters": 2000, "confidence": 0.999},
+        ),
     )
 }
+
+
+def reranker(name: str) -> Reranker:
+    if name not in RERANKERS:
+        raise ValueError(f"unknown re-ranker kind {name!r}; expected one of {sorted(RERANKERS)}")
+    return RERANKERS[name]
 
 
 def aggregator(name: str) -> Aggregator:
@@ -466,3 +571,22 @@ def resolve(reference: str):
     """The object a ``"module:function"`` reference names (imported on first use)."""
     module, _, name = reference.partition(":")
     return getattr(importlib.import_module(module), name)
+
+
+def references() -> list[tuple[str, str]]:
+    """Every lazy reference of the registry, as ``(where, "module:name")``: each model
+    kind's loader and SAM adapter, each aggregator's descriptor function, each search
+    index's function and each re-ranker's score function. These modules import the
+    registry; the registry names them only by string, so that planning never imports
+    torch. This list is what makes those two-way ties visible."""
+    found = []
+    for role, kinds in (("backbone", BACKBONES), ("segmenter", SEGMENTERS)):
+        for kind in kinds.values():
+            if kind.loader is not None:
+                found.append((f"{role} {kind.name}: loader", kind.loader))
+            if isinstance(kind.spec, SamKind):
+                found.append((f"{role} {kind.name}: adapter", kind.spec.adapter))
+    found += [(f"aggregator {a.name}", a.image_descriptor) for a in AGGREGATORS.values()]
+    found += [(f"search index {i.name}", i.knn) for i in SEARCH_INDEXES.values()]
+    found += [(f"re-ranker {r.name}", r.scores) for r in RERANKERS.values()]
+    return found

@@ -4,14 +4,17 @@ between dense patch features.
 vprflow stores, per image, a ``[H_p, W_p]`` grid of patch descriptors ``[D]`` (L2-normalised
 by default), read here flattened row-major: ``[P, D]`` with ``P = H_p * W_p``. Each
 candidate reference gets a score (higher is better) and :func:`rerank` re-orders the
-candidates by it. Two scores, named by ``method`` (the ``kind`` of a ``rerankers`` entry):
+candidates by it. Two scores, named by ``method`` (the ``kind`` of a ``rerankers`` entry,
+one :data:`vprflow.core.registry.RERANKERS` entry each: its score function, options,
+defaults and score kind):
 
 ``"mnn"``
-    :func:`mnn_score`: how many patch pairs are mutual nearest neighbours (or the sum of
-    their similarities).
+    :func:`mnn_scores` (:func:`mnn_score` per candidate): how many patch pairs are mutual
+    nearest neighbours (or the sum of their similarities).
 ``"ransac"``
-    :func:`ransac_inliers`: how many of those mutual pairs, placed at their patch centres
-    (:func:`patch_centres`), are inliers of one robustly fitted homography.
+    :func:`ransac_scores` (:func:`ransac_inliers` per candidate): how many of those
+    mutual pairs, placed at their patch centres (:func:`patch_centres`), are inliers of
+    one robustly fitted homography.
 
 Published variants and how each function reproduces them
 --------------------------------------------------------
@@ -61,26 +64,25 @@ EffoVPR (Tzachor et al., ICLR 2025, arXiv:2405.18065), zero-shot re-ranking:
   equality. ``weighting="similarity"`` (the sum of the kept pairs' similarities) is a
   vprflow variant, not published.
 
-Nothing here keeps state between calls; the RANSAC sampler is seeded per call.
+Nothing here keeps state between calls; the RANSAC sampler is seeded per call. torch is
+imported where it is used: the config schema lists :data:`WEIGHTINGS` from here, and
+validating a config must not import torch.
 """
 
 from __future__ import annotations
 
 import math
+from typing import TYPE_CHECKING
 
 import numpy as np
-import torch
 
-METHODS = ("mnn", "ransac")
+from vprflow.core.registry import reranker, resolve
+
+if TYPE_CHECKING:
+    import torch
+
 WEIGHTINGS = ("count", "similarity")
 MODELS = ("homography", "affine")
-
-# Options each method takes through rerank_scores (besides `device`): the keys of a
-# `rerankers` entry, plus the RANSAC budget, which the config leaves at its defaults.
-_OPTIONS = {
-    "mnn": ("weighting", "min_similarity"),
-    "ransac": ("min_similarity", "threshold", "seed", "model", "max_iters", "confidence"),
-}
 
 # A homography needs 4 correspondences; with exactly the minimal sample of any model
 # every pair is trivially an inlier, so fewer than 4 score 0 for both models
@@ -90,6 +92,8 @@ _MIN_CORRESPONDENCES = 4
 
 def _as_matrix(x, name: str, device: torch.device | str | None = None) -> torch.Tensor:
     """``x`` as a 2-D floating tensor (numpy arrays are wrapped, not copied, on the CPU)."""
+    import torch
+
     t = torch.as_tensor(x)
     if t.ndim != 2:
         raise ValueError(f"{name} must be [N, D] patch descriptors, got shape {tuple(t.shape)}")
@@ -114,6 +118,8 @@ def mutual_nearest_neighbours(
     Returns ``(i [M] int64, j [M] int64, similarity [M] float32)`` as CPU numpy arrays,
     ordered by increasing ``i``; each ``i`` and each ``j`` occurs at most once.
     """
+    import torch
+
     q = _as_matrix(query, "query")
     c = _as_matrix(candidate, "candidate", q.device)
     if c.shape[1] != q.shape[1]:
@@ -323,28 +329,23 @@ def rerank_scores(
     descriptors flattened row-major from a ``grid = (h, w)`` of ``patch``-pixel patches,
     so ``P = Q = h * w``; float32 numpy arrays or torch tensors.
 
-    ``method`` and its ``options`` (the keys of a ``rerankers`` entry):
+    ``method`` names a :data:`vprflow.core.registry.RERANKERS` entry, whose score function
+    (:func:`mnn_scores`, :func:`ransac_scores`) gets ``options`` (the keys of a
+    ``rerankers`` entry, and the entry's fixed settings) over the entry's defaults; an
+    option the method does not take is a ``TypeError`` naming it.
 
-    * ``"mnn"``: :func:`mnn_score` with ``weighting`` (``"count"``) and
-      ``min_similarity`` (``None``).
-    * ``"ransac"``: :func:`ransac_inliers` over the mutual nearest neighbour pairs kept by
-      ``min_similarity`` (``None``), placed at their :func:`patch_centres`;
-      ``threshold`` (1.5) is in patches (``threshold * patch`` pixels), then ``seed`` (0),
-      ``model`` (``"homography"``), ``max_iters`` (2000), ``confidence`` (0.999).
-
-    Both take ``device`` (``None``: where ``query_features`` is, the CPU for numpy): where
-    the similarity matrices are computed. Candidates are moved there one at a time, so
+    ``device`` (``None``: where ``query_features`` is, the CPU for numpy): where the
+    similarity matrices are computed. Candidates are moved there one at a time, so
     device memory holds one ``[P, Q]`` matrix, not ``K``.
     """
-    if method not in METHODS:
-        raise ValueError(f"method must be one of {list(METHODS)}, got {method!r}")
+    import torch
+
+    try:
+        entry = reranker(method)
+    except ValueError as error:
+        raise ValueError(f"method: {error}") from None
     device = options.pop("device", None)
-    unknown = sorted(set(options) - set(_OPTIONS[method]))
-    if unknown:
-        raise TypeError(
-            f"rerank_scores(method={method!r}) got unknown options {unknown}; "
-            f"it takes {list(_OPTIONS[method])} and device"
-        )
+    settings = entry.settings(options)
     query = _as_matrix(query_features, "query_features", device)
     candidates = torch.as_tensor(candidates_features)
     if candidates.ndim != 3:
@@ -370,30 +371,50 @@ def rerank_scores(
             f"candidates_features has descriptors of dimension {candidates.shape[2]}, "
             f"query_features {query.shape[1]}"
         )
-    min_similarity = options.get("min_similarity")
+    return resolve(entry.scores)(query, candidates, centres, patch, **settings)
+
+
+def mnn_scores(
+    query, candidates, centres: np.ndarray, patch: int, *, weighting: str, min_similarity
+) -> np.ndarray:
+    """The ``"mnn"`` re-ranker: :func:`mnn_score` of each candidate ``[K, Q, D]`` for
+    ``query`` ``[P, D]`` (checked by :func:`rerank_scores`; ``centres`` and ``patch``
+    unused), float64 ``[K]``."""
+    _check_weighting(weighting)
     _check_min_similarity(min_similarity)
     scores = np.zeros(candidates.shape[0], dtype=np.float64)
-    if method == "mnn":
-        weighting = options.get("weighting", "count")
-        _check_weighting(weighting)
-        for k in range(candidates.shape[0]):
-            scores[k] = mnn_score(query, candidates[k], weighting, min_similarity)
-        return scores
+    for k in range(candidates.shape[0]):
+        scores[k] = mnn_score(query, candidates[k], weighting, min_similarity)
+    return scores
 
-    patches = options.get("threshold", 1.5)
-    ransac = {
-        "model": options.get("model", "homography"),
-        "seed": options.get("seed", 0),
-        "max_iters": options.get("max_iters", 2000),
-        "confidence": options.get("confidence", 0.999),
-    }
+
+def ransac_scores(
+    query,
+    candidates,
+    centres: np.ndarray,
+    patch: int,
+    *,
+    min_similarity,
+    threshold: float,
+    seed: int,
+    model: str,
+    max_iters: int,
+    confidence: float,
+) -> np.ndarray:
+    """The ``"ransac"`` re-ranker: :func:`ransac_inliers` over each candidate's mutual
+    nearest neighbour pairs with ``query`` kept by ``min_similarity``, placed at their
+    ``centres`` (:func:`patch_centres`); ``threshold`` is in patches (``threshold *
+    patch`` pixels). Float64 ``[K]``."""
+    _check_min_similarity(min_similarity)
+    ransac = {"model": model, "seed": seed, "max_iters": max_iters, "confidence": confidence}
     # Checked once here so a bad option fails even when no candidate reaches the fit.
-    _check_ransac_options(patches, **ransac)
-    threshold = float(patches) * patch
+    _check_ransac_options(threshold, **ransac)
+    pixels = float(threshold) * patch
+    scores = np.zeros(candidates.shape[0], dtype=np.float64)
     for k in range(candidates.shape[0]):
         i, j, similarity = mutual_nearest_neighbours(query, candidates[k])
         kept = _kept(similarity, min_similarity)
-        scores[k] = ransac_inliers(centres[i[kept]], centres[j[kept]], threshold, **ransac)
+        scores[k] = ransac_inliers(centres[i[kept]], centres[j[kept]], pixels, **ransac)
     return scores
 
 

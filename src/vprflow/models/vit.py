@@ -52,7 +52,6 @@ import inspect
 import json
 import math
 import types
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -61,33 +60,22 @@ from torch import nn
 
 from vprflow.core.arrays import center_crop_box
 from vprflow.core.devices import resolve_device, resolve_dtype
-from vprflow.core.registry import with_defaults
+from vprflow.core.registry import (
+    BACKBONES,
+    FACETS,
+    POS_EMBED_INTERPOLATIONS,
+    VitFamily,
+    with_defaults,
+)
 from vprflow.models.hub import load_pretrained, resolve_model_source
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
-@dataclass(frozen=True)
-class VitFamily:
-    """What differs between the ViT backbones vprflow loads (their config defaults,
-    such as the layer, are in :mod:`vprflow.core.registry`)."""
-
-    # transformers ``model_type`` values a model of this backbone may have, each with
-    # whether its transformers position-embedding interpolation differs from the
-    # original repository's (and is replaced under ``pos_embed_interpolation:
-    # original``); "dinov2_with_registers" already matches.
-    model_types: dict[str, bool]
-    rope: bool = False  # positions from RoPE: no position embeddings to interpolate
-    model_normalisation: bool = False  # mean/std from preprocessor_config.json, else ImageNet's
-    hub_checkpoint: bool = False  # takes a torch-hub-layout `checkpoint` (SegVLAD-FineT)
-    pooler: bool = True  # False: the checkpoints carry no pooler (skip a spurious random init)
-
-
+# Backbone kind -> its VitFamily: the registry's ViT entries, each kind named there once.
 VIT_FAMILIES = {
-    "dinov2": VitFamily({"dinov2": True, "dinov2_with_registers": False}, hub_checkpoint=True),
-    "dinov3": VitFamily({"dinov3_vit": False}, rope=True, model_normalisation=True),
-    "dino": VitFamily({"vit": True}, pooler=False),
+    name: kind.spec for name, kind in BACKBONES.items() if isinstance(kind.spec, VitFamily)
 }
 # Model type -> whether "original" replaces its interpolation, over every family.
 _ORIGINAL_INTERPOLATION = {
@@ -96,7 +84,6 @@ _ORIGINAL_INTERPOLATION = {
     if not family.rope
     for model_type, replaced in family.model_types.items()
 }
-FACETS = ("query", "key", "value", "token")
 # Submodule names of the q/k/v projections: transformers >= 5 ("q_proj") and the
 # older layout ("attention.attention.query") that transformers 4.x builds.
 _FACET_LINEARS = {
@@ -108,7 +95,6 @@ _BLOCK_LISTS = ("encoder.layer", "layers", "encoder.layers", "model.layer")
 # The final LayerNorm: Dinov2Model / ViTModel call it `layernorm`, DINOv3ViTModel `norm`.
 _FINAL_NORMS = ("layernorm", "norm")
 PREPROCESSOR_CONFIG = "preprocessor_config.json"
-POS_EMBED_INTERPOLATIONS = ("original", "transformers")
 
 
 def _find_blocks(model: nn.Module) -> tuple[nn.Module, str, nn.ModuleList]:

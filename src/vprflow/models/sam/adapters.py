@@ -5,9 +5,9 @@ An adapter is the model-specific part of automatic mask generation: preprocessin
 the image embedding, prompt decoding to low-resolution logits and predicted IoUs, and
 the upscaling map (:class:`SamAdapter`, :class:`SamHQAdapter`, :class:`Sam2Adapter`;
 see their docstrings). Everything else (point grid, filters, NMS, clean-up) is the
-shared generator, :class:`vprflow.models.sam.generator.SamSegmenter`; the registry's loaders
-(:func:`load_sam`, :func:`load_sam_hq`, :func:`load_sam2`) return one around the
-kind's adapter.
+shared generator, :class:`vprflow.models.sam.generator.SamSegmenter`; the registry's
+loader of every SAM kind, :func:`load_sam`, returns one around the kind's adapter (the
+registry's :class:`vprflow.core.registry.SamKind` names the model class and adapter).
 
 Prompts are decoded by :mod:`vprflow.models.sam.decoder` (the same function with the image-side
 work shared across a batch's prompts). For SAM-HQ it follows the original
@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from vprflow.core.registry import SEGMENTERS, with_defaults
+from vprflow.core.registry import SEGMENTERS, SamKind, resolve, with_defaults
 from vprflow.models.sam import decoder as sam_decoder
 from vprflow.models.sam.generator import SamSegmenter
 from vprflow.models.sam.masks import LogitUpscaler
@@ -274,13 +274,6 @@ class Sam2Adapter(SamAdapter):
 
 # ---------------------------------------------------------------------------- loading
 
-# kind: (transformers class name, adapter class)
-SAM_KINDS = {
-    "sam": ("SamModel", SamAdapter),
-    "sam_hq": ("SamHQModel", SamHQAdapter),
-    "sam2": ("Sam2Model", Sam2Adapter),
-}
-
 
 def sam_params(params: dict, kind: str = "sam") -> dict:
     """Config dict -> complete parameters of SAM kind ``kind`` (its registry defaults
@@ -300,7 +293,8 @@ def sam_params(params: dict, kind: str = "sam") -> dict:
 
 def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmenter:
     """Load a model of SAM kind ``kind`` (hub id or local directory, scaled-dot-product
-    attention) as a :class:`SamSegmenter`.
+    attention) as a :class:`SamSegmenter`: the registry entry's transformers class
+    around its adapter, which gets the entry's ``adapter_options``.
 
     Raises ``vprflow.models.hub.ModelNotFoundError`` naming the model when it is neither a
     local directory nor obtainable from the hub.
@@ -311,6 +305,7 @@ def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmente
     from vprflow.models.hub import load_pretrained, resolve_model_source
 
     merged = sam_params(params, kind)
+    spec = SEGMENTERS[kind].spec
     class_name, adapter_class = SAM_KINDS[kind]
     torch_device = resolve_device(device)
     dtype = resolve_dtype(merged["dtype"], torch_device)
@@ -318,23 +313,20 @@ def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmente
     load = getattr(transformers, class_name).from_pretrained
     model = load_pretrained(load, source, str(merged["model"]), attn_implementation="sdpa")
     model = model.to(device=torch_device, dtype=dtype).eval()
-    extra = {"hq_token_only": merged["hq_token_only"]} if kind == "sam_hq" else {}
+    extra = {name: merged[name] for name in spec.adapter_options}
     return SamSegmenter(adapter_class(model, torch_device, dtype, **extra), merged)
 
 
 def load_sam(params: dict, device: str = "auto") -> SamSegmenter:
-    """Segment Anything (``segmenter: sam``); defaults: the registry's (the original
-    library's, ViT-H)."""
-    return load_segmenter("sam", params, device)
+    """The registry's loader of every SAM kind: the kind its ``segmenter`` names
+    (``sam`` when it names none), defaults the registry's (each kind's own generator's)."""
+    return load_segmenter(params.get("segmenter") or "sam", params, device)
 
 
-def load_sam_hq(params: dict, device: str = "auto") -> SamSegmenter:
-    """SAM-HQ (``segmenter: sam_hq``); defaults: the registry's (SAM-HQ's automatic
-    generator = SAM's, HQ output, ViT-H)."""
-    return load_segmenter("sam_hq", params, device)
-
-
-def load_sam2(params: dict, device: str = "auto") -> SamSegmenter:
-    """SAM 2 (``segmenter: sam2``); defaults: the registry's (SAM 2's automatic
-    generator, Hiera-L)."""
-    return load_segmenter("sam2", params, device)
+# kind -> (transformers class name, adapter class), from the registry's SAM entries:
+# each kind is named there once, and its adapter by a "module:Class" reference.
+SAM_KINDS = {
+    name: (kind.spec.model_class, resolve(kind.spec.adapter))
+    for name, kind in SEGMENTERS.items()
+    if isinstance(kind.spec, SamKind)
+}
