@@ -15,7 +15,9 @@ from __future__ import annotations
 
 import torch
 
-DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16, "float16": torch.float16}
+from vprflow.core.dtypes import COMPUTE_DTYPES
+
+DTYPES = {name: getattr(torch, name) for name in COMPUTE_DTYPES}
 
 
 def _mps_available() -> bool:

@@ -14,7 +14,7 @@ defaults into the merged ``retrieval`` (:func:`vprflow.core.registry.search_sett
 from __future__ import annotations
 
 import copy
-import json
+import importlib
 from pathlib import Path
 
 import yaml
@@ -27,6 +27,20 @@ from vprflow.core.registry import (
     SEARCH_INDEXES,
     SEGMENTERS,
     with_defaults,
+)
+
+# The modules whose constants a schema `x-enum` may name: the config is validated
+# without importing torch, so each of these must import without it (test_enumerations).
+ENUM_MODULES = (
+    "vprflow.core.dtypes",
+    "vprflow.core.registry",
+    "vprflow.data.images",
+    "vprflow.search.voting",
+    "vprflow.aggregation.vlad",
+    "vprflow.aggregation.pca",
+    "vprflow.aggregation.snsm",
+    "vprflow.evaluation.recall",
+    "vprflow.evaluation.rerank",
 )
 
 # Top-level sections that every method inherits (each may be omitted: its schema default is {}).
@@ -273,15 +287,19 @@ def unread_keys(config: dict, schema: dict) -> list[str]:
 
 def load_schema(path: str | Path) -> dict:
     """The schema file, completed with the lists the code owns: the names of backbones,
-    segmenters, aggregators and search indexes (:mod:`vprflow.core.registry`), of
-    ground-truth kinds (:data:`vprflow.data.ground_truth.KINDS`) and of published vocabularies
-    (:data:`vprflow.aggregation.vocabularies.PUBLISHED`) as enums, and each method
-    section of :data:`METHOD_DEFAULT_SECTIONS` as a top-level key, a method key and a
-    dataset ``defaults`` key (each a reference to the section's definition)."""
+    segmenters, aggregators, search indexes and re-rankers (:mod:`vprflow.core.registry`),
+    of ground-truth kinds (:data:`vprflow.data.ground_truth.KINDS`) and of published
+    vocabularies (:data:`vprflow.aggregation.vocabularies.PUBLISHED`) as enums, every
+    other enum from the constant its ``x-enum`` names (:func:`enum_values`), each
+    re-ranker option's default and the kinds that read it from the registry's
+    :class:`~vprflow.core.registry.Reranker` entries, and each method section of
+    :data:`METHOD_DEFAULT_SECTIONS` as a top-level key, a method key and a dataset
+    ``defaults`` key (each a reference to the section's definition)."""
     from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
     from vprflow.data.ground_truth import KINDS
 
     schema = yaml.safe_load(Path(path).read_text())
+    _fill_enums(schema, "#")
     definitions = schema["definitions"]
     for names, definition, key in (
         (BACKBONES, definitions["backbone"], "backbone"),
@@ -293,6 +311,7 @@ def load_schema(path: str | Path) -> dict:
         (PUBLISHED_VOCABULARIES, definitions["vocabulary"], "name"),
     ):
         definition["properties"][key]["enum"] = list(names)
+    _reranker_options(definitions["reranker"]["properties"])
     method = definitions["method"]["properties"]
     dataset_defaults = definitions["dataset"]["properties"]["defaults"]["properties"]
     top: dict = {}
@@ -309,6 +328,86 @@ def load_schema(path: str | Path) -> dict:
             "description": f"this dataset's `{section}` defaults",
         }
     return schema
+
+
+def enum_values(reference: str | list[str]) -> list:
+    """The values an ``x-enum`` names: ``"module:CONSTANT"`` (a module of
+    :data:`ENUM_MODULES`; a tuple or list gives its items, a dict its keys, a string
+    itself), or a list of such references, their values joined in order."""
+    references = [reference] if isinstance(reference, str) else list(reference)
+    values: list = []
+    for ref in references:
+        module, _, name = str(ref).partition(":")
+        if module not in ENUM_MODULES or not name:
+            raise ValueError(
+                f"x-enum {ref!r} is not 'module:CONSTANT' of a module in ENUM_MODULES "
+                f"{list(ENUM_MODULES)}"
+            )
+        constant = getattr(importlib.import_module(module), name, None)
+        if isinstance(constant, str):
+            values.append(constant)
+        elif isinstance(constant, (tuple, list, dict)) and constant:
+            values.extend(constant)
+        else:
+            raise ValueError(
+                f"x-enum {ref!r} names {type(constant).__name__} {constant!r}, not a string, "
+                "or a non-empty tuple, list or dict"
+            )
+    if len(set(values)) != len(values):
+        raise ValueError(f"x-enum {reference!r} gives a value twice: {values}")
+    return values
+
+
+def _fill_enums(part, where: str) -> None:
+    """Set the ``enum`` of every schema object with an ``x-enum`` (``where``: its place
+    in the schema, for an error)."""
+    if isinstance(part, list):
+        for index, item in enumerate(part):
+            _fill_enums(item, f"{where}/{index}")
+        return
+    if not isinstance(part, dict):
+        return
+    if "x-enum" in part:
+        if "enum" in part:
+            raise ValueError(f"schema {where}: both an enum and an x-enum; keep the x-enum")
+        try:
+            part["enum"] = enum_values(part["x-enum"])
+        except ValueError as error:
+            raise ValueError(f"schema {where}: {error}") from None
+    for key, value in part.items():
+        _fill_enums(value, f"{where}/{key}")
+
+
+def _reranker_options(properties: dict) -> None:
+    """Each re-ranker option's schema ``default`` and ``x-kinds`` (the kinds that read
+    it), from the registry's entries, which state them once: the schema file gives
+    neither. Every option is filled into every entry, whatever its kind, as the schema
+    always did, so an option two kinds share must have one default."""
+    defaults: dict = {}
+    kinds: dict[str, list[str]] = {}
+    for reranker in RERANKERS.values():
+        for name, value in reranker.defaults.items():
+            if name in defaults and defaults[name] != value:
+                raise ValueError(
+                    f"re-ranker option {name!r}: default {value!r} of {reranker.name!r} "
+                    f"differs from {defaults[name]!r} of {kinds[name]}"
+                )
+            defaults[name] = value
+            kinds.setdefault(name, []).append(reranker.name)
+    for name, value in defaults.items():
+        prop = properties.get(name)
+        if prop is None:
+            raise ValueError(
+                f"re-ranker option {name!r} ({', '.join(kinds[name])}) has no property "
+                "in the schema's reranker definition"
+            )
+        stated = sorted({"default", "x-kinds"} & set(prop))
+        if stated:
+            raise ValueError(
+                f"schema reranker.{name} states {stated}: the registry's RERANKERS does"
+            )
+        prop["default"] = value
+        prop["x-kinds"] = kinds[name]
 
 
 def _method_section_keys(definitions: dict) -> dict:
@@ -372,184 +471,3 @@ def _resolve(part: dict, root: dict) -> dict:
             target = target[name]
         part = {**target, **{k: v for k, v in part.items() if k != "$ref"}}
     return part
-
-
-# ------------------------------------------------------------------ config/README.md
-
-_README_HEAD = """# Configuration
-
-`config/config.yaml` is the configuration the workflow reads (pass another with
-`--configfile`). It is validated against `workflow/schemas/config.schema.yaml`: an
-unknown key is an error that names it, and so is a key that the entry's kind does not
-read (a ground truth's `kind`, a backbone's `backbone`, a segmenter's `segmenter`, a
-re-ranker's `kind`, a vocabulary's `source`): the error lists the kind's keys. Every
-`default` below is filled in before anything is hashed, so a store's key and attributes
-record what ran. Names of datasets, methods, backbones, segmenters and re-rankers are
-plain names (letters, digits, `_`, `.`, `-`, starting with a letter or digit): they
-become file and folder names under `results/` and `logs/`.
-
-A method's settings are, later winning: the top-level sections
-({sections}),
-then the dataset's `defaults`, then the method's own. Backbone and segmenter entries
-also get their kind's defaults, and a method's `retrieval.params` its index's, from
-`src/vprflow/core/registry.py` (listed below by kind and by index). A default followed by a
-condition in brackets applies only then. What the methods compute is in
-`docs/methods.md`.
-
-This file is generated from the schema's descriptions and config/config.yaml by
-`python scripts/write_config_readme.py`; `tests/test_registry.py` checks it is current.
-"""
-
-
-def _allowed(prop: dict) -> str:
-    if "enum" in prop:
-        return " / ".join(f"`{v}`" for v in prop["enum"])
-    if "const" in prop:
-        return f"`{prop['const']}`"
-    if "oneOf" in prop:
-        return " or ".join(_allowed(p) for p in prop["oneOf"])
-    if "$ref" in prop:
-        name = prop["$ref"].rsplit("/", 1)[-1]
-        return _REF_TEXT.get(name, f"see `{name}`")
-    kind = prop.get("type", "")
-    if kind == "array":
-        return f"list of {_allowed(prop.get('items', {}))}"
-    if kind == "object" and isinstance(prop.get("additionalProperties"), dict):
-        return f"name -> {_allowed(prop['additionalProperties'])}"
-    bounds = [f"{op} {prop[key]}" for key, op in _BOUNDS if key in prop]
-    kind = " or ".join(kind) if isinstance(kind, list) else kind
-    return ", ".join([kind, *bounds]) if kind else ""
-
-
-_REF_TEXT = {"size": "[width, height]", "name": "plain name"}
-_BOUNDS = (("minimum", ">="), ("exclusiveMinimum", ">"), ("maximum", "<="))
-
-
-def _table(title: str, definition: dict, kinds: dict | None = None) -> list[str]:
-    """A section's table; ``kinds``: the registry's kinds whose defaults its entries get."""
-    required = set(definition.get("required", []))
-    defaults = _conditional_defaults(definition)
-    for kind in (kinds or {}).values():
-        for name, value in kind.defaults.items():
-            defaults.setdefault(name, {}).setdefault(json.dumps(value), []).append(kind.name)
-    lines = [f"## `{title}`", ""]
-    if definition.get("description"):
-        lines += [definition["description"], ""]
-    lines += ["| key | allowed | default | meaning |", "|---|---|---|---|"]
-    for name, prop in definition.get("properties", {}).items():
-        default = "required" if name in required else ""
-        if "default" in prop:
-            default = f"`{json.dumps(prop['default'])}`"
-        elif name in defaults:
-            default = ", ".join(
-                f"`{value}` ({', '.join(where)})" for value, where in defaults[name].items()
-            )
-        meaning = prop.get("description", "").replace("|", "\\|")
-        lines.append(f"| `{name}` | {_allowed(prop)} | {default} | {meaning} |")
-    return [*lines, ""]
-
-
-def _conditional_defaults(definition: dict) -> dict[str, dict[str, list[str]]]:
-    """Key -> default -> the conditions under which it applies, from the definition's
-    ``allOf`` of ``if``/``then`` (e.g. ``kind utm``)."""
-    found: dict[str, dict[str, list[str]]] = {}
-    for part in definition.get("allOf", []):
-        condition = part.get("if", {}).get("properties", {})
-        when = " and ".join(f"{k} {v['const']}" for k, v in condition.items() if "const" in v)
-        for name, prop in part.get("then", {}).get("properties", {}).items():
-            if "default" in prop:
-                found.setdefault(name, {}).setdefault(json.dumps(prop["default"]), []).append(when)
-    return found
-
-
-def _search_index_table() -> list[str]:
-    lines = [
-        "## `retrieval.params` by index",
-        "",
-        "Each index's parameters and their defaults (`src/vprflow/core/registry.py`), filled into "
-        "a method's `retrieval.params` before hashing; `null` = chosen by `vprflow.search` "
-        "(`nlist`, `m`: from the data; `margin`: by `candidate_dtype`). An approximate "
-        "index's table also reports an exact search's recall.",
-        "",
-        "| index | exact | parameters (default) |",
-        "|---|---|---|",
-    ]
-    for index in SEARCH_INDEXES.values():
-        params = ", ".join(f"`{k}` (`{json.dumps(v)}`)" for k, v in index.defaults.items())
-        exact = "yes" if index.exact else "no"
-        lines.append(f"| `{index.name}` | {exact} | {params or 'none'} |")
-    return [*lines, ""]
-
-
-def config_readme(schema: dict, shipped: dict | None = None) -> str:
-    """``config/README.md``: what the shipped config (``shipped``, config/config.yaml as
-    read) defines, then every key of the schema, its allowed values, default (the
-    schema's, its kind's from the registry) and meaning (the schema's ``description``s),
-    and each search index's parameter defaults."""
-    sections = ", ".join(f"`{name}`" for name in METHOD_DEFAULT_SECTIONS)
-    lines = [_README_HEAD.replace("{sections}", sections)]
-    if shipped is not None:
-        lines += _shipped_tables(shipped)
-    lines += _table("top level", schema)
-    kinds = {"backbone": BACKBONES, "segmenter": SEGMENTERS}
-    for name, definition in schema["definitions"].items():
-        if "properties" not in definition:
-            continue
-        lines += _table(name, definition, kinds.get(name))
-        for sub, prop in definition["properties"].items():
-            if "properties" in prop:
-                lines += _table(f"{name}.{sub}", prop)
-        if name == "retrieval":
-            lines += _search_index_table()
-    return "\n".join(lines).rstrip() + "\n"
-
-
-# What a shipped entry is, in a table cell: the keys that tell entries apart.
-_SHIPPED_KEYS = {
-    "backbones": ("backbone", "model", "layer", "facet", "file"),
-    "segmenters": ("segmenter", "model", "n_segments", "file"),
-    "rerankers": ("kind", "features"),
-}
-
-
-def _flow(value) -> str:
-    """``value`` as one line of YAML, as a config would write it."""
-    return yaml.safe_dump(value, default_flow_style=True, width=10**6).strip()
-
-
-def _shipped_tables(shipped: dict) -> list[str]:
-    """The entries config/config.yaml defines (backbones, segmenters, re-rankers,
-    methods, datasets) and its ``data_root``, one table row each."""
-
-    def cell(entry: dict, keys) -> str:
-        return ", ".join(f"{k}: `{entry[k]}`" for k in keys if entry.get(k) is not None)
-
-    lines = [
-        "## What `config/config.yaml` ships",
-        "",
-        f"`data_root` is `{shipped['data_root']}` (relative to the directory Snakemake runs "
-        "in; `--config data_root=...` points elsewhere). `device` is "
-        f"`{shipped.get('device', 'auto')}`; `targets`: "
-        f"{', '.join(f'`{t}`' for t in shipped.get('targets', [])) or 'none'}.",
-        "",
-    ]
-    for section, keys in _SHIPPED_KEYS.items():
-        lines += [f"`{section}`:", "", "| name | what |", "|---|---|"]
-        lines += [f"| `{n}` | {cell(e, keys)} |" for n, e in shipped.get(section, {}).items()]
-        lines.append("")
-    lines += ["`methods` (an aggregator, and what the method overrides):", ""]
-    lines += ["| name | aggregator | overrides |", "|---|---|---|"]
-    for name, method in shipped["methods"].items():
-        overrides = {k: v for k, v in method.items() if k != "aggregator"}
-        text = ", ".join(f"`{_flow({k: v})}`" for k, v in overrides.items()) or "-"
-        lines.append(f"| `{name}` | `{method['aggregator']}` | {text} |")
-    lines += ["", "`datasets` (the papers' datasets are presets: docs/datasets.md):", ""]
-    lines += ["| name | methods | re-ranked |", "|---|---|---|"]
-    for name, dataset in shipped.get("datasets", {}).items():
-        methods = ", ".join(f"`{m}`" for m in dataset.get("methods", []))
-        rerank = "; ".join(
-            f"`{m}` by {', '.join(f'`{r}`' for r in rs)}"
-            for m, rs in (dataset.get("rerank") or {}).items()
-        )
-        lines.append(f"| `{name}` | {methods} | {rerank or '-'} |")
-    return [*lines, ""]
