@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import copy
+import dataclasses
 import json
 from pathlib import Path
 
 import pytest
 import yaml
+from script_helpers import load_script
 
 from vprflow.core import registry
 from vprflow.planning.config import (
@@ -21,6 +23,8 @@ from vprflow.planning.plan import FORMAT_VERSIONS, build_plan
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA_PATH = REPO / "workflow" / "schemas" / "config.schema.yaml"
 SCHEMA = load_schema(SCHEMA_PATH)
+
+config_readme = load_script("write_config_readme").config_readme
 
 
 def test_a_component_name_outside_the_registry_is_refused_listing_the_registrys():
@@ -78,8 +82,6 @@ def test_exact_knn_takes_its_keyword_defaults_from_the_registry_entry():
 
 
 def test_config_readme_states_the_kind_and_search_index_defaults_from_the_registry():
-    from vprflow.planning.config import config_readme
-
     readme = config_readme(SCHEMA)
     for index in registry.SEARCH_INDEXES.values():
         for name, value in index.defaults.items():
@@ -104,10 +106,105 @@ def test_model_kinds_that_read_weights_name_a_default_model_and_a_loader():
             if kind.weights == "model":
                 assert kind.defaults.get("model"), kind.name
                 assert kind.uses_gpu, kind.name
-            if kind.loader is not None:
-                assert callable(registry.resolve(kind.loader)), kind.name
-            else:
+            if kind.loader is None:
                 assert kind.weights == "file", kind.name
+
+
+def _registry_strings(value):
+    """Every string inside a registry entry (its fields, at any depth)."""
+    if isinstance(value, str):
+        yield value
+    elif isinstance(value, dict):
+        for item in (*value.keys(), *value.values()):
+            yield from _registry_strings(item)
+    elif isinstance(value, (list, tuple)):
+        for item in value:
+            yield from _registry_strings(item)
+    elif dataclasses.is_dataclass(value):
+        for item in dataclasses.fields(value):
+            yield from _registry_strings(getattr(value, item.name))
+
+
+def test_references_lists_every_lazy_reference_of_the_registry_and_each_resolves():
+    # The registry's "module:name" strings are imports in disguise (those modules import
+    # the registry back): references() must list each one, and each must resolve, or a
+    # renamed loader would fail only when a workflow first runs it.
+    listed = registry.references()
+    entries = [
+        *registry.BACKBONES.values(),
+        *registry.SEGMENTERS.values(),
+        *registry.AGGREGATORS.values(),
+        *registry.SEARCH_INDEXES.values(),
+        *registry.RERANKERS.values(),
+    ]
+    found = {s for entry in entries for s in _registry_strings(entry) if s.startswith("vprflow.")}
+    assert found == {reference for _, reference in listed}
+    assert len({where for where, _ in listed}) == len(listed)
+    for where, reference in listed:
+        module, _, name = reference.partition(":")
+        assert name, where
+        target = registry.resolve(reference)
+        assert callable(target), (where, reference)
+        assert target.__module__ == module, (where, reference)
+
+
+def test_one_loader_serves_the_vit_kinds_and_one_the_sam_kinds_each_kind_named_once():
+    from vprflow.models.sam.adapters import SAM_KINDS, load_sam
+    from vprflow.models.vit import VIT_FAMILIES, load_vit
+
+    vits = {n for n, k in registry.BACKBONES.items() if isinstance(k.spec, registry.VitFamily)}
+    sams = {n for n, k in registry.SEGMENTERS.items() if isinstance(k.spec, registry.SamKind)}
+    assert vits == set(VIT_FAMILIES) == {"dinov2", "dinov3", "dino"}
+    assert sams == set(SAM_KINDS) == {"sam", "sam_hq", "sam2"}
+    assert {registry.resolve(registry.BACKBONES[n].loader) for n in vits} == {load_vit}
+    assert {registry.resolve(registry.SEGMENTERS[n].loader) for n in sams} == {load_sam}
+    for name in sams:
+        spec = registry.SEGMENTERS[name].spec
+        assert SAM_KINDS[name] == (spec.model_class, registry.resolve(spec.adapter)), name
+        # The options its adapter takes are config keys the kind fills in.
+        assert set(spec.adapter_options) <= set(registry.SEGMENTERS[name].defaults), name
+
+
+def test_every_reranker_names_a_score_function_taking_exactly_its_settings():
+    import inspect
+
+    from vprflow.evaluation.precision_recall import SCORE_KINDS
+
+    for reranker in registry.RERANKERS.values():
+        function = registry.resolve(reranker.scores)
+        keywords = {
+            name
+            for name, p in inspect.signature(function).parameters.items()
+            if p.kind is inspect.Parameter.KEYWORD_ONLY
+        }
+        assert keywords == set(reranker.defaults) | set(reranker.fixed), reranker.name
+        assert not set(reranker.defaults) & set(reranker.fixed), reranker.name
+        assert reranker.score in SCORE_KINDS, reranker.name
+
+
+def test_the_schema_takes_each_reranker_options_default_and_kinds_from_the_registry():
+    raw = yaml.safe_load(SCHEMA_PATH.read_text())["definitions"]["reranker"]["properties"]
+    loaded = SCHEMA["definitions"]["reranker"]["properties"]
+    for reranker in registry.RERANKERS.values():
+        for name, value in reranker.defaults.items():
+            assert "default" not in raw[name] and "x-kinds" not in raw[name], name
+            assert loaded[name]["default"] == value, (reranker.name, name)
+            assert reranker.name in loaded[name]["x-kinds"], (reranker.name, name)
+    config = toy_config(aggregator="gem")
+    config["rerankers"] = {"r": {"kind": "ransac", "features": "daisy"}}
+    filled = validate_config(config, SCHEMA_PATH)["rerankers"]["r"]
+    assert {k: filled[k] for k in registry.RERANKERS["ransac"].options} == (
+        registry.RERANKERS["ransac"].defaults
+    )
+
+
+def test_a_schema_that_restates_a_reranker_default_is_refused_naming_it(tmp_path):
+    raw = yaml.safe_load(SCHEMA_PATH.read_text())
+    raw["definitions"]["reranker"]["properties"]["threshold"]["default"] = 1.5
+    path = tmp_path / "schema.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    with pytest.raises(ValueError, match=r"reranker\.threshold states \['default'\]"):
+        load_schema(path)
 
 
 def test_every_aggregator_needs_only_planned_stages_and_has_a_function():
@@ -170,8 +267,6 @@ def _properties(schema: dict):
 
 
 def test_every_config_key_is_described_and_config_readme_is_current():
-    from vprflow.planning.config import config_readme
-
     undescribed = [name for name, prop in _properties(SCHEMA) if "description" not in prop]
     assert undescribed == []
     readme = (REPO / "config" / "README.md").read_text()
