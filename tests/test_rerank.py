@@ -446,6 +446,8 @@ def test_a_reranked_rows_recall_beyond_its_top_k_is_its_retrievals(tmp_path):
     assert after.shape == before.shape == (6, 6)
     np.testing.assert_array_equal(np.sort(after[:, :2], axis=1), np.sort(before[:, :2], axis=1))
     np.testing.assert_array_equal(after[:, 2:], before[:, 2:])
+    # The stored score kind is the registry entry's (what the table and figures read).
+    assert reranked.attrs["score"] == registry.RERANKERS["mnn"].score
     recall, recall_reranked = retrieval.attrs["recall"], reranked.attrs["recall"]
     assert recall["4"] > recall["2"]  # the case is one a truncated ranking would get wrong
     for n in ("2", "4", "6"):

@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
+from vprflow.core.registry import reranker
 from vprflow.stages.base import Job
 from vprflow.stages.dataset import Dataset
 from vprflow.stages.recall import timed_retrieve
@@ -86,7 +87,7 @@ def rerank_stage(job: Job) -> None:
     seconds = time.perf_counter() - started
     with stores.atomic_store(job.out, {"stage": "rerank", "record": record}) as group:
         group.attrs.update(
-            score="matches",
+            score=reranker(params["kind"]).score,
             ms_per_query=1000 * seconds / max(dataset.n_query, 1),
             # The retrieval's own cost, for the re-ranked row's search_ms_per_query.
             search_ms_per_query=search_ms,
