@@ -31,8 +31,8 @@ HAND_TYPED = {
     "list paths name, or all",
     "#/definitions/vocabulary/properties/source": "the vocabulary stage and the plan branch on it",
     "#/definitions/vocabulary/properties/fit_on": "the dataset's image roles",
-    "#/definitions/segvlad/properties/mask_to_patch": "a flag of the segvlad functions",
-    "#/definitions/segvlad/properties/small_graph": "segvlad.segment_adjacency's branch",
+    "#/definitions/segvlad/properties/mask_to_patch": "the descriptors stage makes it "
+    "segvlad's crop_aligned flag",
     "#/properties/device": "resolve_device takes more (cuda:N, mps) than a config offers",
 }
 

@@ -15,6 +15,10 @@ import numpy as np
 from vprflow.aggregation.vlad import vlad_per_region
 from vprflow.core.arrays import center_offset
 
+# How images with 3 or fewer segments are linked (segment_adjacency); the config
+# schema's segvlad.small_graph lists these.
+SMALL_GRAPHS = ("published", "complete")
+
 
 def _source_index(n_out: int, n_in: int) -> np.ndarray:
     """Nearest-neighbour upsampling map (torch ``interpolate(mode='nearest')``)."""
@@ -128,7 +132,7 @@ def segment_adjacency(centroids: np.ndarray, small_graph: str = "published") -> 
         elif small_graph == "complete":
             adjacency[:] = True
         else:
-            raise ValueError(f"unknown small_graph {small_graph!r} (published or complete)")
+            raise ValueError(f"unknown small_graph {small_graph!r}; expected one of {SMALL_GRAPHS}")
         return adjacency
     points = np.nan_to_num(np.asarray(centroids, dtype=np.float64), nan=-1.0)
     from scipy.spatial import Delaunay, QhullError

@@ -38,6 +38,7 @@ ENUM_MODULES = (
     "vprflow.search.voting",
     "vprflow.aggregation.vlad",
     "vprflow.aggregation.pca",
+    "vprflow.aggregation.segvlad",
     "vprflow.aggregation.snsm",
     "vprflow.evaluation.recall",
     "vprflow.evaluation.rerank",
