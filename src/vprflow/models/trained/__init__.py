@@ -1,0 +1,1 @@
+"""Trained VPR models (NetVLAD, SALAD, BoQ, MegaLoc) in plain torch, with checkpoint loaders."""

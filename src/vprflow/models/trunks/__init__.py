@@ -1,0 +1,1 @@
+"""Convolutional trunks in plain torch, in torchvision's state-dict layouts."""
