@@ -6,10 +6,8 @@ function computes a descriptor, which loader builds a model), the GPU request, t
 weight fingerprints and the schema's enums all read this module;
 ``tests/test_registry.py`` checks that ``workflow/schemas/config.schema.yaml`` agrees.
 
-Adding an aggregator: its per-image function (``vprflow.stages.descriptors``), one
-:data:`AGGREGATORS` entry, its schema section and its test. Adding a backbone or
-segmenter: its loader, one :data:`BACKBONES` / :data:`SEGMENTERS` entry and the schema
-properties of its parameters.
+What adding each kind of component touches: docs/ARCHITECTURE.md, "What adding a
+component touches".
 
 Only data and lazy ``"module:function"`` references live here, so that planning a
 workflow never imports torch. Those strings are ties an import graph does not show (the
