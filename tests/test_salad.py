@@ -153,3 +153,17 @@ def test_lightning_state_dict_is_unwrapped(saved, tmp_path):
     model = load_salad(str(path), tiny_config(), **SIZES)
     with torch.no_grad():
         np.testing.assert_array_equal(model(_images()).numpy(), source(_images()).numpy())
+
+
+def test_training_loss_keys_are_ignored_others_are_not(saved, tmp_path):
+    source, _ = saved
+    state = _checkpoint(source)
+    state["loss_fn.distance.scale"] = torch.ones(1)
+    torch.save(state, tmp_path / "loss.ckpt")
+    model = load_salad(str(tmp_path / "loss.ckpt"), tiny_config(), **SIZES)
+    with torch.no_grad():
+        np.testing.assert_array_equal(model(_images()).numpy(), source(_images()).numpy())
+    state["head.extra"] = torch.ones(1)
+    torch.save(state, tmp_path / "extra.ckpt")
+    with pytest.raises(CheckpointError, match=r"head\.extra"):
+        load_salad(str(tmp_path / "extra.ckpt"), tiny_config(), **SIZES)

@@ -15,9 +15,10 @@ Architecture (``megaloc_model.MegaLoc``, plain torch here):
    ``256 + 64 * 256 = 16640``-d, L2-normalised;
 4. ``Linear(16640, 8448)`` then L2 normalisation: ``[B, 8448]``.
 
-Input: RGB in [0, 1] normalised with ImageNet's mean / std (MegaLoc evaluates through
-VPR-methods-evaluation, which applies that normalisation); 322 x 322 is the size vprflow
-feeds it by default, like SALAD (MegaLoc itself accepts any size, see step 1).
+Input: RGB in [0, 1] normalised with ImageNet's mean / std at the images' own size
+(:data:`INPUT_SIZE` is ``None``): MegaLoc's evaluation code, gmberton/VPR-methods-evaluation,
+resizes nothing by default (``--image_size None``) and MegaLoc's ``forward`` rounds each
+side to a multiple of 14 itself (step 1).
 
 Checkpoint: ``model.safetensors`` of huggingface.co/gberton/MegaLoc (keys
 ``backbone.<torch-hub DINOv2 name>`` without ``mask_token``, ``aggregator.agg.*`` in
@@ -42,7 +43,8 @@ from vprflow.models.trained.salad import (
     read_state_dict,
 )
 
-INPUT_SIZE = (322, 322)
+# None: the images' own size, rounded to multiples of 14 by the model (step 1).
+INPUT_SIZE = None
 MEGALOC_URL = "https://huggingface.co/gberton/MegaLoc/resolve/main/model.safetensors"
 MEGALOC_FILE = "model.safetensors"
 MEGALOC_DIM = 8448

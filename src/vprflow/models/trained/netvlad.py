@@ -26,8 +26,8 @@ Checkpoints (``torch.load(weights_only=True)``; a dict whose ``state_dict`` hold
 (``nn.DataParallel``) is ignored. The variants (:data:`VARIANTS`):
 
 - ``patchnetvlad-pitts30k-4096`` (default): Patch-NetVLAD's ``pitts_WPCA4096.pth.tar``,
-  4096-d whitened: the descriptor the NetVLAD paper reports and Patch-NetVLAD's tables
-  compare against;
+  4096-d whitened: the descriptor the NetVLAD paper reports, Patch-NetVLAD's tables
+  compare against and gmberton/VPR-methods-evaluation defaults to;
 - ``patchnetvlad-pitts30k-32768``: the same file without the whitening (32768-d);
 - ``patchnetvlad-pitts30k-512`` / ``-128``: ``pitts_WPCA512`` / ``pitts_WPCA128``;
 - ``nanne-pitts30k``: Nanne/pytorch-NetVlad's ``vgg16_netvlad_checkpoint``

@@ -24,7 +24,9 @@ normalised with ImageNet's mean / std; any size that is a multiple of 14 runs.
 Checkpoint: ``dino_salad.ckpt`` (github.com/serizba/salad/releases/download/v1.0.0),
 a plain state dict read with ``torch.load(weights_only=True)``: ``backbone.model.<name>``
 in the torch-hub DINOv2 layout (:mod:`vprflow.models.checkpoints`) and ``aggregator.*``
-(``token_features.{0,2}``, ``cluster_features.{0,3}``, ``score.{0,3}``, ``dust_bin``).
+(``token_features.{0,2}``, ``cluster_features.{0,3}``, ``score.{0,3}``, ``dust_bin``);
+keys under ``loss_fn.`` / ``miner.`` (the training module's loss, no descriptor
+weights) are ignored, any other key is an error.
 
 This module also holds the DINOv2 pieces that MegaLoc and BoQ-DINOv2 share:
 :func:`dinov2_config`, :class:`DinoV2Tokens`, :func:`dinov2_hub_state_dict` (the inverse
@@ -187,10 +189,12 @@ def load_backbone_and_head(
     backbone_prefixes: tuple[str, ...],
     head_prefix: str,
     hint: str,
+    ignored_prefixes: tuple[str, ...] = (),
 ) -> None:
     """Load the torch-hub-named DINOv2 under one of ``backbone_prefixes`` into
     ``backbone`` and the ``head_prefix`` keys into ``head``; every weight of both must
-    be present with its shape, and no other key may be in ``state``."""
+    be present with its shape, and no other key may be in ``state`` (but those under
+    ``ignored_prefixes``)."""
     try:
         hub, prefix = backbone_state_dict(state, path)
     except CheckpointError as error:
@@ -205,7 +209,7 @@ def load_backbone_and_head(
     head_state = {k[len(head_prefix) :]: v for k, v in state.items() if k.startswith(head_prefix)}
     own_head = head.state_dict()
     unexpected = [prefix + n for n in unplaced] + [n for n in mapped if n not in own_backbone]
-    unexpected += [k for k in state if not k.startswith((prefix, head_prefix))]
+    unexpected += [k for k in state if not k.startswith((prefix, head_prefix, *ignored_prefixes))]
     unexpected += [head_prefix + k for k in head_state if k not in own_head]
     # Missing weights are named as the file would name them (torch-hub names); the mask
     # token only serves masked-image pretraining, and MegaLoc's file has none.
@@ -342,5 +346,8 @@ def load_salad(path: str, config=None, *, num_clusters: int = 64, cluster_dim: i
         backbone_prefixes=("backbone.model.",),
         head_prefix="aggregator.",
         hint=f"expected {SALAD_FILE} from {SALAD_URL}",
+        # SALAD's Lightning module also holds its training loss and miner, which carry
+        # no weights of the descriptor.
+        ignored_prefixes=("loss_fn.", "miner."),
     )
     return model.eval()
