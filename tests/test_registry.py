@@ -165,6 +165,77 @@ def test_one_loader_serves_the_vit_kinds_and_one_the_sam_kinds_each_kind_named_o
         assert set(spec.adapter_options) <= set(registry.SEGMENTERS[name].defaults), name
 
 
+def test_each_trained_kind_states_what_its_model_module_states():
+    """A trained kind's registry entry restates, torch-free, what the plan needs of its
+    model module (its published checkpoints' files and URLs, its input size, its map's
+    stride): each must be the module's, and the loader must take each variant's options."""
+    import inspect
+
+    import torch
+
+    from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad
+    from vprflow.models.trained.backbone import load_trained
+
+    modules = {
+        "netvlad": (netvlad, {v: (s.filename, s.url) for v, s in netvlad.VARIANTS.items()}),
+        "salad": (salad, {"dino_salad": (salad.SALAD_FILE, salad.SALAD_URL)}),
+        "boq_dinov2": (
+            boq_dinov2,
+            {"dinov2_12288": (boq_dinov2.BOQ_DINOV2_FILE, boq_dinov2.BOQ_DINOV2_URL)},
+        ),
+        "megaloc": (megaloc, {"megaloc": (megaloc.MEGALOC_FILE, megaloc.MEGALOC_URL)}),
+    }
+    assert set(registry.TRAINED_KINDS) == set(modules)
+    for name, (module, published) in modules.items():
+        kind = registry.BACKBONES[name]
+        spec = kind.spec
+        assert registry.resolve(kind.loader) is load_trained, name
+        assert {v: (p.file, p.url) for v, p in spec.variants.items()} == published, name
+        if module.INPUT_SIZE is None:  # the images' own size: the schema's `dataset`
+            assert spec.input_size is None and "resolution" not in kind.defaults, name
+        else:
+            assert tuple(reversed(spec.input_size)) == module.INPUT_SIZE, name
+            assert kind.defaults["resolution"] == list(spec.input_size), name
+        assert kind.defaults["variant"] == spec.default_variant, name
+        loader = inspect.signature(registry.resolve(spec.loader)).parameters
+        for variant in spec.variants.values():
+            assert set(variant.loader_options) <= set(loader), name
+    assert registry.BACKBONES["netvlad"].defaults["variant"] == netvlad.DEFAULT_VARIANT
+    # The maps' strides: VGG16 conv5_3 halves four times, DINOv2-B/14's patches are 14.
+    trunk = netvlad.NetVLADModel(4, None).encoder
+    assert trunk(torch.zeros(1, 3, 64, 48)).shape[-2:] == (64 // 16, 48 // 16)
+    assert registry.BACKBONES["netvlad"].spec.patch_size == 16
+    assert salad.VITB14["patch_size"] == 14
+    for name in ("salad", "boq_dinov2", "megaloc"):
+        assert registry.BACKBONES[name].spec.patch_size == 14, name
+
+
+def test_schema_x_kinds_may_name_the_registrys_trained_kinds():
+    # The trained kinds' keys name registry.TRAINED_KINDS instead of listing them, so a
+    # new trained model is one registry entry; loaded, they list every trained kind.
+    raw = yaml.safe_load(SCHEMA_PATH.read_text())["definitions"]["backbone"]["properties"]
+    loaded = SCHEMA["definitions"]["backbone"]["properties"]
+    for key in ("checkpoint", "variant", "output"):
+        assert "vprflow.core.registry:TRAINED_KINDS" in raw[key]["x-kinds"], key
+        assert set(registry.TRAINED_KINDS) <= set(loaded[key]["x-kinds"]), key
+    assert "dinov2" in loaded["checkpoint"]["x-kinds"]
+    assert loaded["output"]["enum"] == list(registry.TRAINED_OUTPUTS)
+
+
+def test_a_kind_default_of_a_key_every_kind_reads_wins_over_the_schemas():
+    """A trained model's `resolution` defaults to its published input size, not the
+    schema's `dataset`; written, the entry's own value stays."""
+    config = toy_config(aggregator="model", features="own")
+    config["backbones"]["own"] = {"backbone": "netvlad"}
+    config["backbones"]["given"] = {"backbone": "netvlad", "resolution": "dataset"}
+    filled = validate_config(config, SCHEMA_PATH)["backbones"]
+    assert filled["own"]["resolution"] == [640, 480]
+    assert filled["given"]["resolution"] == "dataset"
+    assert filled["own"]["output"] == "descriptor"
+    assert filled["own"]["variant"] == "patchnetvlad-pitts30k-4096"
+    assert filled["daisy"]["resolution"] == "dataset"
+
+
 def test_every_reranker_names_a_score_function_taking_exactly_its_settings():
     import inspect
 
@@ -211,6 +282,7 @@ def test_every_aggregator_needs_only_planned_stages_and_has_a_function():
     for agg in registry.AGGREGATORS.values():
         assert set(agg.needs) <= set(FORMAT_VERSIONS) - {"images", "dataset", "features", "recall"}
         assert agg.output in ("global", "segments")
+        assert agg.reads in ("features", "descriptor"), agg.name
         assert callable(registry.resolve(agg.image_descriptor)), agg.name
 
 
@@ -253,6 +325,13 @@ def test_the_plan_builds_exactly_the_stages_an_aggregator_needs(name, tmp_path):
     make_dataset(tmp_path / "toy", n_places=3)
     config = toy_config(tmp_path, resolution=[64, 48], methods=["m"])
     config["methods"] = {"m": {"aggregator": name, "features": "daisy"}}
+    if registry.AGGREGATORS[name].reads == "descriptor":  # a trained model's (planned only)
+        (tmp_path / "weights.ckpt").write_bytes(b"weights")
+        config["backbones"]["own"] = {
+            "backbone": "salad",
+            "checkpoint": str(tmp_path / "weights.ckpt"),
+        }
+        config["methods"]["m"]["features"] = "own"
     plan = build_plan(validate_config(config, SCHEMA_PATH))
     (descriptors,) = plan.stages["descriptors"].values()
     assert set(descriptors.inputs) == {"images", "features", *registry.AGGREGATORS[name].needs}

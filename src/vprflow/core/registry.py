@@ -33,11 +33,15 @@ class ModelKind:
     ``defaults`` are filled into every config entry of this kind before hashing, so a
     key records what ran. ``weights`` says what identifies the model's output beyond
     its parameters: ``"model"`` (hub id, or a local directory hashed by content),
-    ``"file"`` (the imported file, hashed) or ``"none"`` (weight-free). ``model_files``:
+    ``"file"`` (the imported file, hashed), ``"checkpoint"`` (a trained model's
+    ``checkpoint`` file, hashed by the plan, which names the expected file and where to
+    get it when the entry has none or it is missing) or ``"none"`` (weight-free).
+    ``model_files``:
     files of a local model directory besides ``config.json`` and the weights that change
     the output (hashed into the key when present). ``spec``: what the kind's loader
-    needs beyond the config entry (a :class:`VitFamily`, a :class:`SamKind`), so one
-    loader serves several kinds and each kind is named only here.
+    needs beyond the config entry (a :class:`VitFamily`, a :class:`SamKind`, a
+    :class:`TrainedModel`), so one loader serves several kinds and each kind is named
+    only here.
     """
 
     name: str
@@ -47,7 +51,7 @@ class ModelKind:
     weights: str = "none"
     uses_gpu: bool = False
     model_files: tuple[str, ...] = ()
-    spec: VitFamily | SamKind | None = None
+    spec: VitFamily | SamKind | TrainedModel | None = None
 
     def load(self, params: dict, device: str = "auto"):
         if self.loader is None:
@@ -87,6 +91,52 @@ class SamKind:
     adapter_options: tuple[str, ...] = ()
 
 
+@dataclass(frozen=True)
+class TrainedVariant:
+    """One published checkpoint of a trained model: its file name, where to get it, the
+    repository that publishes it, and the keyword arguments its ``load_<model>`` takes
+    for it (NetVLAD: ``variant``)."""
+
+    file: str
+    url: str
+    repository: str
+    loader_options: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class TrainedModel:
+    """A trained VPR model (issue 32) as a backbone kind, wrapped into the backbone
+    interface by :func:`vprflow.models.trained.backbone.load_trained`.
+
+    ``loader``: ``"module:function"`` with signature ``(checkpoint path, **variant
+    loader_options) -> nn.Module`` whose ``forward`` takes ImageNet-normalised
+    ``[B, 3, H, W]`` and returns the L2-normalised descriptor ``[B, D]``, and whose
+    ``feature_map`` returns the dense map its head reads ``[B, C, h, w]`` (``dense``
+    says which), with ``mean`` / ``std`` attributes. ``variants``: the published
+    checkpoints by name (the first is the default). ``input_size``: the published input
+    ``(width, height)``, the default of the entry's ``resolution`` (the model modules'
+    ``INPUT_SIZE`` is ``(height, width)``; test_registry compares them); ``None``: the
+    published evaluation feeds the images at their own size (the dataset's). ``patch_size``:
+    the stride of ``feature_map``. ``crop``: centre-crop an input to whole patches
+    first, as vprflow's ViT backbones do (DINOv2 needs multiples of 14; MegaLoc resizes
+    to them itself, so False). ``resize``: the published reader's resize (a
+    :data:`vprflow.data.images.RESIZE_METHODS` name), what ``resize: method`` means
+    under the ``model`` aggregator.
+    """
+
+    loader: str
+    variants: dict[str, TrainedVariant]
+    input_size: tuple[int, int] | None
+    patch_size: int
+    dense: str
+    crop: bool = True
+    resize: str = "antialias"
+
+    @property
+    def default_variant(self) -> str:
+        return next(iter(self.variants))
+
+
 # The ViT backbones' choices: which projection is read, how position embeddings are
 # interpolated (vprflow.models.vit; here so that the schema lists them without torch).
 FACETS = ("query", "key", "value", "token")
@@ -114,6 +164,118 @@ _SAM_GENERATOR = {
     "mask_threshold": 0.0,
     "dtype": "float32",
 }
+
+# What a trained kind's features store holds: the model's own descriptor (one 1 x 1 x D
+# grid per image, for the `model` aggregator) or the dense map its head reads (for
+# AnyLoc-VLAD, SegVLAD, SNSM, pooling and re-ranking).
+TRAINED_OUTPUTS = ("descriptor", "features")
+
+_TRAINED = "vprflow.models.trained"
+_PATCH_NETVLAD = "https://huggingface.co/TobiasRobotics/Patch-NetVLAD/resolve/main/"
+
+
+def _netvlad(name: str, file: str) -> tuple[str, TrainedVariant]:
+    return name, TrainedVariant(
+        file, _PATCH_NETVLAD + file, "QVPR/Patch-NetVLAD", {"variant": name}
+    )
+
+
+# The trained VPR models (docs/methods.md, "Trained models"); each module's own
+# constants (URL, file, input size) are compared with these by tests/test_registry.py.
+_TRAINED_MODELS: dict[str, TrainedModel] = {
+    # VGG16 conv5_3 + NetVLAD (+ whitening), Pittsburgh 30k; Patch-NetVLAD reads images
+    # with PIL and resizes them to 640 x 480 with torchvision's Resize (antialiased).
+    "netvlad": TrainedModel(
+        f"{_TRAINED}.netvlad:load_netvlad",
+        dict(
+            [
+                _netvlad("patchnetvlad-pitts30k-4096", "pitts_WPCA4096.pth.tar"),
+                _netvlad("patchnetvlad-pitts30k-32768", "pitts_WPCA4096.pth.tar"),
+                _netvlad("patchnetvlad-pitts30k-512", "pitts_WPCA512.pth.tar"),
+                _netvlad("patchnetvlad-pitts30k-128", "pitts_WPCA128.pth.tar"),
+                (
+                    "nanne-pitts30k",
+                    TrainedVariant(
+                        "checkpoint.pth.tar",
+                        "https://drive.google.com/open?id=17luTjZFCX639guSVy00OUtzfTQo4AMF2",
+                        "Nanne/pytorch-NetVlad",
+                        {"variant": "nanne-pitts30k"},
+                    ),
+                ),
+            ]
+        ),
+        (640, 480),
+        16,
+        "VGG16 conv5_3, 512-d, stride 16 (before its ReLU)",
+        crop=False,
+    ),
+    # DINOv2-B/14 + optimal-transport aggregation; evaluated at 322 x 322 (PIL bilinear).
+    "salad": TrainedModel(
+        f"{_TRAINED}.salad:load_salad",
+        {
+            "dino_salad": TrainedVariant(
+                "dino_salad.ckpt",
+                "https://github.com/serizba/salad/releases/download/v1.0.0/dino_salad.ckpt",
+                "serizba/salad",
+            )
+        },
+        (322, 322),
+        14,
+        "DINOv2-B/14 patch tokens after the final LayerNorm, 768-d",
+    ),
+    # DINOv2-B/14 (no final norm) + Bag-of-Queries; BoQ resizes bicubically (antialiased),
+    # which vprflow's resize methods lack: bilinear antialiased here.
+    "boq_dinov2": TrainedModel(
+        f"{_TRAINED}.boq_dinov2:load_boq_dinov2",
+        {
+            "dinov2_12288": TrainedVariant(
+                "dinov2_12288.pth",
+                "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/"
+                "dinov2_12288.pth",
+                "amaralibey/Bag-of-Queries",
+            )
+        },
+        (322, 322),
+        14,
+        "DINOv2-B/14 last-block patch tokens (no final LayerNorm), 768-d",
+    ),
+    # DINOv2-B/14 + SALAD-style aggregation + linear projection, at the images' own size
+    # (VPR-methods-evaluation resizes nothing by default; MegaLoc rounds each side to a
+    # multiple of 14 itself, so no crop).
+    "megaloc": TrainedModel(
+        f"{_TRAINED}.megaloc:load_megaloc",
+        {
+            "megaloc": TrainedVariant(
+                "model.safetensors",
+                "https://huggingface.co/gberton/MegaLoc/resolve/main/model.safetensors",
+                "gmberton/MegaLoc",
+            )
+        },
+        None,
+        14,
+        "DINOv2-B/14 patch tokens after the final LayerNorm, 768-d",
+        crop=False,
+    ),
+}
+
+
+def _trained(name: str, spec: TrainedModel) -> ModelKind:
+    """A trained model's backbone kind: one loader serves them all."""
+    return ModelKind(
+        name,
+        "backbone",
+        f"{_TRAINED}.backbone:load_trained",
+        {
+            "checkpoint": None,
+            "variant": spec.default_variant,
+            "output": TRAINED_OUTPUTS[0],
+            **({"resolution": list(spec.input_size)} if spec.input_size else {}),
+        },
+        weights="checkpoint",
+        uses_gpu=True,
+        spec=spec,
+    )
+
 
 BACKBONES: dict[str, ModelKind] = {
     kind.name: kind
@@ -162,8 +324,13 @@ BACKBONES: dict[str, ModelKind] = {
             spec=VitFamily({"vit": True}, pooler=False),
         ),
         ModelKind("import", "backbone", None, {"patch_size": 14}, weights="file"),
+        *(_trained(name, spec) for name, spec in _TRAINED_MODELS.items()),
     )
 }
+
+# The trained models' backbone kinds, in registry order (the schema's x-kinds of the
+# keys they read name this constant).
+TRAINED_KINDS = tuple(n for n, k in BACKBONES.items() if isinstance(k.spec, TrainedModel))
 
 _SAM_ADAPTERS = "vprflow.models.sam.adapters"
 _SAM_LOADER = f"{_SAM_ADAPTERS}:load_sam"
@@ -273,7 +440,11 @@ class Aggregator:
     reader turns images as their EXIF Orientation tag says (a
     :data:`vprflow.data.images.EXIF_ORIENTATIONS` name), the default of a dataset's
     ``exif_orientation: method``: ``cv2.imread`` (SegVLAD, AnyLoc) applies it, SNSM's
-    ``PIL.Image.open(...).convert('RGB')`` ignores it.
+    ``PIL.Image.open(...).convert('RGB')`` ignores it. ``reads``: what its features
+    store must hold, ``"features"`` (a dense patch grid, every backbone kind's; a trained
+    kind's under ``output: features``) or ``"descriptor"`` (a trained model's own
+    descriptor, ``output: descriptor``); the plan refuses any other pairing, and for
+    ``"descriptor"`` ``resize: method`` is the trained kind's published reader.
     """
 
     name: str
@@ -286,6 +457,7 @@ class Aggregator:
     resize: str = "linear"
     exif_orientation: str = "apply"
     pca_fit: Callable[[dict, dict], dict] | None = None
+    reads: str = "features"
 
     def pca_descriptor_options(self, method: dict, options: dict) -> dict:
         """The descriptor options of the vectors a PCA is fitted on (the PCA stage
@@ -385,6 +557,19 @@ AGGREGATORS: dict[str, Aggregator] = {
             exif_orientation="ignore",
         ),
         *(_pooling(name) for name in ("gem", "average", "max")),
+        # A trained model's own descriptor (issue 32): the 1 x 1 grid its backbone entry
+        # stores under `output: descriptor`. Every published reader (Patch-NetVLAD, SALAD,
+        # BoQ, VPR-methods-evaluation) opens images with PIL, ignoring EXIF orientation.
+        Aggregator(
+            "model",
+            (),
+            "global",
+            lambda m: {},
+            lambda m: {},
+            f"{_DESCRIPTORS}:model_descriptor",
+            exif_orientation="ignore",
+            reads="descriptor",
+        ),
     )
 }
 
@@ -584,6 +769,8 @@ def references() -> list[tuple[str, str]]:
                 found.append((f"{role} {kind.name}: loader", kind.loader))
             if isinstance(kind.spec, SamKind):
                 found.append((f"{role} {kind.name}: adapter", kind.spec.adapter))
+            if isinstance(kind.spec, TrainedModel):
+                found.append((f"{role} {kind.name}: model", kind.spec.loader))
     found += [(f"aggregator {a.name}", a.image_descriptor) for a in AGGREGATORS.values()]
     found += [(f"search index {i.name}", i.knn) for i in SEARCH_INDEXES.values()]
     found += [(f"re-ranker {r.name}", r.scores) for r in RERANKERS.values()]

@@ -3,8 +3,9 @@
 The schema is the one place that states a setting's default: :func:`validate_config`
 fills every ``default`` it declares, at any depth (through ``$ref`` definitions, the
 entries of ``datasets``, ``backbones`` and ``segmenters``, and the ``then`` of an
-``if``/``then`` the instance meets, for defaults of one ground-truth kind), then each
-backbone and segmenter entry's kind defaults from :mod:`vprflow.core.registry`. Objects the
+``if``/``then`` the instance meets, for defaults of one ground-truth kind), after each
+backbone and segmenter entry's kind defaults from :mod:`vprflow.core.registry` (so a
+kind's default of a key every kind reads wins over the schema's). Objects the
 schema marks ``x-partial`` (a method's overrides, a dataset's ``defaults``) stay as
 written: they are merged over the filled top-level sections
 (:func:`vprflow.planning.plan.resolve_method`), and the plan fills the search index's parameter
@@ -99,6 +100,12 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     if unread:
         raise ConfigError("invalid configuration:\n" + "\n".join(f"  {u}" for u in unread[:10]))
     config = copy.deepcopy(config)
+    for entries, stage in (("backbones", "features"), ("segmenters", "segments")):
+        for entry in config[entries].values():
+            # Kind-specific defaults (a DINOv2 layer, SAM thresholds, a trained model's
+            # input size) from the registry, before the schema's: a kind's default of a
+            # key every kind reads (a trained model's `resolution`) wins over the schema's.
+            entry.update(with_defaults(stage, entry))
     fill_defaults(config, schema)
     for name, dataset in config["datasets"].items():
         if name in presets():
@@ -112,10 +119,6 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
             f"config key 'targets' names datasets {shorten(unknown)} that are not "
             f"configured; configured: {shorten(sorted(config['datasets']))}"
         )
-    for entries, stage in (("backbones", "features"), ("segmenters", "segments")):
-        for entry in config[entries].values():
-            # Kind-specific defaults (a DINOv2 layer, SAM thresholds) from the registry.
-            entry.update(with_defaults(stage, entry))
     return config
 
 
@@ -291,7 +294,8 @@ def load_schema(path: str | Path) -> dict:
     segmenters, aggregators, search indexes and re-rankers (:mod:`vprflow.core.registry`),
     of ground-truth kinds (:data:`vprflow.data.ground_truth.KINDS`) and of published
     vocabularies (:data:`vprflow.aggregation.vocabularies.PUBLISHED`) as enums, every
-    other enum from the constant its ``x-enum`` names (:func:`enum_values`), each
+    other enum from the constant its ``x-enum`` names (:func:`enum_values`), the kinds
+    an ``x-kinds`` item ``"module:CONSTANT"`` names (the trained models'), each
     re-ranker option's default and the kinds that read it from the registry's
     :class:`~vprflow.core.registry.Reranker` entries, and each method section of
     :data:`METHOD_DEFAULT_SECTIONS` as a top-level key, a method key and a dataset
@@ -360,14 +364,26 @@ def enum_values(reference: str | list[str]) -> list:
 
 
 def _fill_enums(part, where: str) -> None:
-    """Set the ``enum`` of every schema object with an ``x-enum`` (``where``: its place
-    in the schema, for an error)."""
+    """Set the ``enum`` of every schema object with an ``x-enum``, and expand each
+    ``"module:CONSTANT"`` item of an ``x-kinds`` into the kinds it names (``where``: its
+    place in the schema, for an error)."""
     if isinstance(part, list):
         for index, item in enumerate(part):
             _fill_enums(item, f"{where}/{index}")
         return
     if not isinstance(part, dict):
         return
+    if isinstance(part.get("x-kinds"), list) and any(":" in str(k) for k in part["x-kinds"]):
+        # A kind list the registry holds (the trained models' kinds) is named, not typed,
+        # so that adding a trained model is one registry entry.
+        try:
+            part["x-kinds"] = [
+                kind
+                for item in part["x-kinds"]
+                for kind in (enum_values(item) if ":" in str(item) else [item])
+            ]
+        except ValueError as error:
+            raise ValueError(f"schema {where}: x-kinds: {error}") from None
     if "x-enum" in part:
         if "enum" in part:
             raise ValueError(f"schema {where}: both an enum and an x-enum; keep the x-enum")

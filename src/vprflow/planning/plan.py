@@ -40,7 +40,9 @@ if TYPE_CHECKING:
 from vprflow.core.registry import (
     RERANKERS,
     SEARCH_INDEXES,
+    TRAINED_KINDS,
     Aggregator,
+    TrainedModel,
     aggregator,
     model_kind,
     prefixed,
@@ -407,21 +409,37 @@ def _plan_method(
     return runs
 
 
-def _plan_features(m: _Method, name: str | None = None) -> tuple[_StoreRef, dict]:
-    """The features store of backbone entry ``name`` (default: the method's)."""
+def _plan_features(
+    m: _Method, name: str | None = None, reranker: str | None = None
+) -> tuple[_StoreRef, dict]:
+    """The features store of backbone entry ``name`` (default: the method's), which
+    must hold what its reader takes: the method's aggregator, or re-ranker ``reranker``
+    (dense features)."""
     name = name or m.settings["features"]
     backbone = m.entry("backbones", name)
+    kind = model_kind("features", backbone)
+    _check_output(m, name, backbone, reranker)
     if backbone["resize"] == "method":
         # The published pipeline's reader: one backbone entry serves SegVLAD (OpenCV)
-        # and SNSM (PIL) faithfully, as two features stores.
-        backbone = {**backbone, "resize": m.aggregator.resize}
+        # and SNSM (PIL) faithfully, as two features stores; a trained model's own
+        # descriptor, its own pipeline's.
+        resize = m.aggregator.resize
+        if isinstance(kind.spec, TrainedModel) and backbone["output"] == "descriptor":
+            resize = kind.spec.resize
+        backbone = {**backbone, "resize": resize}
+    if isinstance(kind.spec, TrainedModel):
+        weights = _trained_weights(m, name, backbone, kind.spec)
+    else:
+        weights = source_fingerprint("features", backbone, m.memo, f"backbones.{name}")
     params = {
         **_hashed(backbone),
-        **source_fingerprint("features", backbone, m.memo, f"backbones.{name}"),
+        **weights,
         "resolution": _resolution(m.dataset, backbone),
         "exif_orientation": _exif_orientation(m),
     }
     patch = backbone.get("patch_size")
+    if isinstance(kind.spec, TrainedModel):
+        patch = kind.spec.patch_size if backbone["output"] == "features" else None
     if patch and params["resolution"] != "native" and min(params["resolution"]) < patch:
         where = (
             f"datasets.{m.dataset_name}.resolution"
@@ -435,6 +453,64 @@ def _plan_features(m: _Method, name: str | None = None) -> tuple[_StoreRef, dict
     run_params = m.model_run_params("features", backbone)
     store = m.add("features", params, {"images": m.images_store}, run_params)
     return store, {"features": name, **_prefixed("features", backbone)}
+
+
+def _output(backbone: dict) -> str:
+    """What a backbone entry's features store holds: ``"descriptor"`` (a trained
+    model's own, 1 x 1 x D per image) or ``"features"`` (a dense patch grid)."""
+    return backbone.get("output", "features")
+
+
+def _check_output(m: _Method, name: str, backbone: dict, reranker: str | None) -> None:
+    """Refuse a backbone entry whose store is not what its reader takes: the ``model``
+    aggregator over dense features, or a dense aggregator (or a re-ranker) over a
+    trained model's descriptor (``Aggregator.reads``)."""
+    reads = "features" if reranker else m.aggregator.reads
+    if _output(backbone) == reads:
+        return
+    kind = backbone["backbone"]
+    if reranker:
+        reader = f"re-ranker {reranker!r} (rerankers.{reranker}.features, on method {m.name!r})"
+    else:
+        reader = f"method {m.name!r} (aggregator {m.aggregator.name!r})"
+    if reads == "descriptor":
+        raise PlanError(
+            f"{reader} reads a trained model's own descriptor, but backbone entry {name!r} "
+            f"(backbone {kind!r}{', output: features' if 'output' in backbone else ''}) gives "
+            f"dense patch features; give the method a backbone entry of a trained kind "
+            f"({', '.join(TRAINED_KINDS)}) with output: descriptor, or another aggregator"
+        )
+    raise PlanError(
+        f"{reader} reads dense patch features, but backbone entry {name!r} (backbone "
+        f"{kind!r}, output: descriptor) gives one descriptor per image; set "
+        f"backbones.{name}.output: features (the map its head reads), or use aggregator "
+        "'model' for the model's own descriptor"
+    )
+
+
+def _trained_weights(m: _Method, name: str, backbone: dict, spec: TrainedModel) -> dict:
+    """What identifies a trained model's weights: its ``checkpoint`` file's SHA-256.
+    An unknown variant, or a checkpoint that is not given or does not exist, is named
+    here, at plan time, with the file the variant expects and where to get it."""
+    where = f"backbones.{name}"
+    variant = backbone["variant"]
+    if variant not in spec.variants:
+        raise PlanError(
+            f"config key {where}.variant = {variant!r}: backbone {backbone['backbone']!r} has "
+            f"variants {list(spec.variants)}"
+        )
+    published = spec.variants[variant]
+    hint = (
+        f"backbone {backbone['backbone']!r} (variant {variant!r}) expects {published.file} "
+        f"({published.repository}), from {published.url}"
+    )
+    path = backbone["checkpoint"]
+    if path is None:
+        raise PlanError(f"config key {where}.checkpoint is not set: {hint}")
+    try:
+        return {"checkpoint_sha256": memoised(path, m.memo, file_digest, f"{where}.checkpoint")}
+    except PlanError as error:
+        raise PlanError(f"{error}; {hint}") from None
 
 
 def _exif_orientation(m: _Method) -> str:
@@ -545,7 +621,7 @@ def _plan_rerank(
             f"under backbones: {sorted(m.config['backbones'])} (re-ranker {name!r}, which "
             f"datasets.{m.dataset_name}.rerank applies to method {m.name!r})"
         )
-    features, _ = _plan_features(m, entry["features"])
+    features, _ = _plan_features(m, entry["features"], reranker=name)
     params = {
         "kind": entry["kind"],
         "top_k": entry["top_k"],

@@ -209,3 +209,25 @@ def segment_gem_descriptors(options: dict, inputs: dict[str, str]):
         return l2_normalize(pooled).astype(np.float32)
 
     return ImageDescriptor(lambda index: (read_features(index), read_masks(index)), compute)
+
+
+def model_descriptor(options: dict, inputs: dict[str, str]):
+    """A trained model's own descriptor (docs/methods.md, "Trained models"): the 1 x 1
+    grid its backbone entry stores under ``output: descriptor``, ``[D]``, L2-normalised
+    again in float64 (the models normalise it; a float16 store rounds the norm)."""
+    features = stores.open_store(inputs["features"])
+    read_features = FeatureReader(features)
+    grid = tuple(features["features"].shape[1:3])
+    if grid != (1, 1):
+        # The plan pairs this aggregator with descriptor outputs only; a store made
+        # otherwise (an older plan, a hand-made store) is named, not averaged.
+        raise ValueError(
+            f"features store {inputs['features']} holds a {grid[0]} x {grid[1]} grid per "
+            "image, not a trained model's descriptor (1 x 1): aggregator 'model' reads a "
+            "trained backbone entry with output: descriptor"
+        )
+
+    def compute(grid: np.ndarray) -> np.ndarray:
+        return l2_normalize(grid.reshape(-1).astype(np.float64)).astype(np.float32)
+
+    return ImageDescriptor(lambda index: (read_features(index),), compute)

@@ -1,4 +1,5 @@
-"""The ``features`` rule: dense patch descriptors of every image."""
+"""The ``features`` rule: dense patch descriptors of every image (a trained model's
+own descriptor as a 1 x 1 grid under ``output: descriptor``)."""
 
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ def compute_features(job: Job) -> None:
     width, height = params["resolution"]
     store_dtype = np.dtype(params["store_dtype"])
     extract, patch_size = _feature_extractor(params, job.device, width, height, dataset)
-    attrs = {**stage_attrs("features", job.record, images), "sources": resolved_sources(params)}
+    attrs = {**stage_attrs("features", job.record, images), "sources": _sources(params)}
     with stores.atomic_store(job.out, attrs) as group:
         array = None
         batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
@@ -52,6 +53,17 @@ def compute_features(job: Job) -> None:
             stored = grids.astype(store_dtype)
             stores.check_finite(group, f"features of {dataset.paths[batch.start]}", stored)
             array[start_row : start_row + len(batch)] = stored
+
+
+def _sources(params: dict) -> dict[str, str]:
+    """The model directory or file the entry reads, and its ``checkpoint`` (a trained
+    model's weights, or DINOv2's replaced ones), as absolute paths, for the log and the
+    store's attributes."""
+    sources = resolved_sources(params)
+    if params.get("checkpoint"):
+        sources["checkpoint"] = str(Path(params["checkpoint"]).expanduser().resolve())
+        log.info("reads checkpoint %s", sources["checkpoint"])
+    return sources
 
 
 def _feature_extractor(params: dict, device: str, width: int, height: int, dataset):

@@ -1,0 +1,374 @@
+"""The trained VPR models as workflow components (issue 32): tiny random models saved in
+each published checkpoint layout (NetVLAD's Patch-NetVLAD ``state_dict``, SALAD's
+``dino_salad.ckpt``, BoQ-DINOv2's ``dinov2_12288.pth``, MegaLoc's ``model.safetensors``),
+loaded through the real loaders by the features stage, run through the descriptors,
+recall and re-rank stages with the rules' own runners, and their plans.
+
+The published loaders build the published sizes; the tests give them the tiny sizes the
+models' own tests use (their ``config`` / ``encoder`` / size arguments) by wrapping the
+loader the registry names, which the backbone adapter resolves when a job runs."""
+
+from __future__ import annotations
+
+import copy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from synthetic import make_dataset
+from trained_references import prefixed, randomise, tiny_config
+from workflow_helpers import toy_config
+
+from vprflow.core import registry, stores
+from vprflow.core.errors import PlanError
+from vprflow.data.images import read_image, resize_image
+from vprflow.models.checkpoints import CheckpointError
+from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import build_plan
+from vprflow.stages.dataset import Dataset
+from vprflow.stages.jobs import Job, run_job
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+# A float32 forward on the same pixels, in another process order: descriptors are unit
+# vectors of O(0.1) entries.
+FLOAT32_ATOL = 1e-5
+
+
+def _netvlad_encoder() -> torch.nn.Sequential:
+    # Stride 16, as VGG16 conv5_3: the adapter's patch size holds for the dense map.
+    return torch.nn.Sequential(torch.nn.Conv2d(3, 8, kernel_size=16, stride=16))
+
+
+# Per trained kind: the module, its loader's name, the tiny sizes its loader is given,
+# how to build the tiny model, the checkpoint's file name and its state dict.
+TINY = {
+    "netvlad": (
+        netvlad,
+        "load_netvlad",
+        lambda: {"encoder": _netvlad_encoder()},
+        lambda: netvlad.NetVLADModel(4, 6, encoder=_netvlad_encoder(), encoder_dim=8),
+        "pitts_WPCA4096.pth.tar",
+        lambda model: {"epoch": 3, "state_dict": model.state_dict()},
+    ),
+    "salad": (
+        salad,
+        "load_salad",
+        lambda: {"config": tiny_config(), "num_clusters": 4, "cluster_dim": 8},
+        lambda: salad.SALAD(tiny_config(), num_clusters=4, cluster_dim=8),
+        "dino_salad.ckpt",
+        lambda model: {
+            **prefixed(salad.dinov2_hub_state_dict(model.backbone), "backbone.model."),
+            **prefixed(model.aggregator.state_dict(), "aggregator."),
+        },
+    ),
+    "boq_dinov2": (
+        boq_dinov2,
+        "load_boq_dinov2",
+        lambda: {"config": tiny_config(), **BOQ_SIZES},
+        lambda: boq_dinov2.BoQDinoV2(tiny_config(), **BOQ_SIZES),
+        "dinov2_12288.pth",
+        lambda model: {
+            **prefixed(salad.dinov2_hub_state_dict(model.backbone), "backbone.dino."),
+            **prefixed(model.aggregator.state_dict(), "aggregator."),
+        },
+    ),
+    "megaloc": (
+        megaloc,
+        "load_megaloc",
+        lambda: {"config": tiny_config(), **MEGALOC_SIZES},
+        lambda: megaloc.MegaLoc(tiny_config(), **MEGALOC_SIZES),
+        "model.safetensors",
+        lambda model: {
+            **prefixed(
+                {
+                    k: v
+                    for k, v in salad.dinov2_hub_state_dict(model.backbone).items()
+                    if k != "mask_token"  # MegaLoc's file has none
+                },
+                "backbone.",
+            ),
+            **prefixed(model.aggregator.state_dict(), "aggregator."),
+        },
+    ),
+}
+BOQ_SIZES = {"proj_channels": 128, "num_queries": 4, "num_layers": 2, "row_dim": 3}
+MEGALOC_SIZES = {
+    "feat_dim": 24,
+    "num_clusters": 4,
+    "cluster_dim": 8,
+    "token_dim": 16,
+    "mlp_dim": 20,
+}
+
+
+def save_tiny(kind: str, folder: Path, seed: int = 1) -> tuple[torch.nn.Module, Path]:
+    """A tiny random ``kind`` model and its checkpoint in the published layout."""
+    _, _, _, build, file, state = TINY[kind]
+    model = randomise(build(), seed)
+    path = folder / kind / file
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if file.endswith(".safetensors"):
+        from safetensors.torch import save_file
+
+        save_file({k: v.contiguous() for k, v in state(model).items()}, str(path))
+    else:
+        torch.save(state(model), path)
+    return model.eval(), path
+
+
+@pytest.fixture
+def tiny_loaders(monkeypatch):
+    """The registry's loaders, given the tiny sizes (the real loaders read the files)."""
+    for module, name, sizes, *_ in TINY.values():
+        original = getattr(module, name)
+
+        def tiny(path, *args, _original=original, _sizes=sizes, **options):
+            return _original(path, *args, **options, **_sizes())
+
+        monkeypatch.setattr(module, name, tiny)
+
+
+def run_stage(plan, stage: str, key: str, data_root: Path, out: Path, done: dict) -> str:
+    """Run ``(stage, key)`` and its inputs, unsharded, through the rules' own runners."""
+    if (stage, key) not in done:
+        planned = plan.get(stage, key)
+        inputs = {
+            n: run_stage(plan, *ref, data_root, out, done) for n, ref in planned.inputs.items()
+        }
+        path = str(out / stage / f"{key}.zarr")
+        job = Job(
+            planned.record,
+            inputs,
+            path,
+            data_root=str(data_root),
+            run={"device": "cpu", "batch_size": 3},
+        )
+        run_job(job)
+        done[stage, key] = path
+    return done[stage, key]
+
+
+def trained_config(root: Path, checkpoints: dict[str, Path], methods: dict, **dataset) -> dict:
+    make_dataset(root / "data" / "toy", n_places=4, width=64, height=48)
+    config = toy_config(root / "data", resolution=[64, 48], methods=list(methods), **dataset)
+    for kind, path in checkpoints.items():
+        config["backbones"][kind] = {"backbone": kind, "checkpoint": str(path)}
+    config["methods"] = methods
+    config["vocabulary"].update(n_clusters=3, n_iter=5)
+    return config
+
+
+def model_pixels(path: str, width: int, height: int) -> np.ndarray:
+    """What the published readers give the model: PIL's pixels (EXIF ignored), resized
+    with antialiasing to the model's input size."""
+    return resize_image(read_image(path, "ignore"), width, height, "antialias")
+
+
+def imagenet(pixels: np.ndarray, model) -> torch.Tensor:
+    x = torch.from_numpy(pixels).permute(2, 0, 1)[None].float()
+    mean, std = torch.tensor(model.mean)[:, None, None], torch.tensor(model.std)[:, None, None]
+    return (x - mean) / std
+
+
+def test_every_trained_kind_is_a_global_method_whose_descriptor_is_the_models(
+    tmp_path, tiny_loaders
+):
+    """Each trained kind as a method with aggregator ``model``: the descriptors store
+    holds, per image, the model's own forward on the image the published reader gives it
+    (PIL pixels resized to the kind's published input size, ImageNet-normalised), and
+    recall (with precision-recall) and re-ranking run on it as on any global method."""
+    sources, checkpoints = {}, {}
+    for seed, kind in enumerate(TINY, start=1):
+        sources[kind], checkpoints[kind] = save_tiny(kind, tmp_path / "weights", seed)
+    methods = {f"{kind}_own": {"aggregator": "model", "features": kind} for kind in TINY}
+    config = trained_config(
+        tmp_path,
+        checkpoints,
+        methods,
+        rerank={"netvlad_own": ["mnn"]},
+        recall_at=[1, 2],
+    )
+    config["rerankers"] = {"mnn": {"kind": "mnn", "features": "daisy", "top_k": 3}}
+    plan = build_plan(validate_config(config, SCHEMA))
+    rows = {run.method: run for run in plan.runs["toy"]}
+    root = tmp_path / "data"
+    assert sorted(rows) == sorted([*methods, "netvlad_own+mnn"])
+    done: dict = {}
+    for kind, model in sources.items():
+        run = rows[f"{kind}_own"]
+        assert run.row_params["aggregator"] == "model"
+        assert run.row_params["features.backbone"] == kind
+        assert run.row_params["features.output"] == "descriptor"
+        # The published input size, or the images' own (MegaLoc): the dataset's.
+        width, height = registry.BACKBONES[kind].spec.input_size or (64, 48)
+        assert run.row_params["features.resolution"] == (
+            "dataset" if kind == "megaloc" else f"{width} {height}"
+        )
+        recall = plan.get("recall", run.recall_key)
+        recall_path = run_stage(
+            plan, "recall", run.recall_key, tmp_path / "data", tmp_path / "c", done
+        )
+        descriptors = stores.open_store(done["descriptors", recall.inputs["descriptors"][1]])
+        dataset = Dataset(done["images", plan.images_keys["toy"]])
+        stored = np.asarray(descriptors["descriptors"][...])
+        with torch.no_grad():
+            expected = np.concatenate(
+                [
+                    model(imagenet(model_pixels(root / p, width, height), model)).numpy()
+                    for p in dataset.paths
+                ]
+            )
+        assert stored.shape == (dataset.n_images, model.dim), kind
+        np.testing.assert_allclose(stored, expected, rtol=0, atol=FLOAT32_ATOL, err_msg=kind)
+        np.testing.assert_allclose(np.linalg.norm(stored, axis=1), 1.0, atol=1e-6)
+        result = stores.open_store(recall_path)
+        assert set(result.attrs["recall"]) == {"1", "2"}
+        assert result.attrs["precision_recall"] is not None
+        assert result.attrs["descriptor_dim"] == model.dim
+    reranked = rows["netvlad_own+mnn"]
+    run_stage(plan, "recall", reranked.recall_key, tmp_path / "data", tmp_path / "c", done)
+    assert any(stage == "rerank" for stage, _ in done)
+
+
+@pytest.mark.parametrize("kind", ["netvlad", "salad"])
+def test_output_features_is_the_map_the_head_reads_and_feeds_anyloc_vlad(
+    kind, tmp_path, tiny_loaders
+):
+    """``output: features`` stores the dense map the model's head reads (NetVLAD's
+    conv5_3 stand-in, SALAD's normed DINOv2 tokens), per-patch L2-normalised as every
+    backbone's, with the map's stride as patch size; AnyLoc-VLAD runs over it."""
+    model, checkpoint = save_tiny(kind, tmp_path / "weights")
+    config = trained_config(
+        tmp_path, {kind: checkpoint}, {"vlad": {"aggregator": "anyloc_vlad", "features": kind}}
+    )
+    config["backbones"][kind]["output"] = "features"
+    plan = build_plan(validate_config(config, SCHEMA))
+    (run,) = plan.runs["toy"]
+    done: dict = {}
+    run_stage(plan, "recall", run.recall_key, tmp_path / "data", tmp_path / "c", done)
+    (features_key,) = plan.stages["features"]
+    features = stores.open_store(done["features", features_key])
+    spec = registry.BACKBONES[kind].spec
+    width, height = spec.input_size
+    assert features.attrs["patch_size"] == spec.patch_size
+    dataset = Dataset(done["images", plan.images_keys["toy"]])
+    # AnyLoc's reader (OpenCV: linear, EXIF applied) for the dense features.
+    image = read_image(tmp_path / "data" / dataset.paths[0], "apply")
+    pixels = resize_image(image, width, height, "linear")
+    with torch.no_grad():
+        expected = model.feature_map(imagenet(pixels, model))[0].permute(1, 2, 0).numpy()
+    expected = expected / np.linalg.norm(expected, axis=-1, keepdims=True)
+    stored = np.asarray(features["features"][0])
+    assert stored.shape == (height // spec.patch_size, width // spec.patch_size, expected.shape[-1])
+    np.testing.assert_allclose(stored, expected, rtol=0, atol=FLOAT32_ATOL)
+    assert (tmp_path / "c" / "vocabulary").is_dir()
+
+
+def _plan(config: dict):
+    return build_plan(validate_config(config, SCHEMA))
+
+
+def _features_keys(config: dict) -> set[str]:
+    return set(_plan(config).stages["features"])
+
+
+def test_the_checkpoints_content_and_the_output_are_in_the_features_key(tmp_path):
+    checkpoint = tmp_path / "dino_salad.ckpt"
+    checkpoint.write_bytes(b"one")
+    config = trained_config(
+        tmp_path, {"salad": checkpoint}, {"own": {"aggregator": "model", "features": "salad"}}
+    )
+    before = _features_keys(config)
+    checkpoint.write_bytes(b"two")  # same path, other weights
+    after = _features_keys(config)
+    assert before != after
+    dense = copy.deepcopy(config)
+    dense["backbones"]["salad"]["output"] = "features"
+    dense["methods"] = {"own": {"aggregator": "gem", "features": "salad"}}
+    assert _features_keys(dense).isdisjoint(after)
+    # The published input size is the default resolution, and stated in the key.
+    (stage,) = _plan(config).stages["features"].values()
+    assert stage.record["params"]["resolution"] == [322, 322]
+    assert stage.record["params"]["checkpoint_sha256"]
+    assert stage.run_params["uses_gpu"]
+
+
+@pytest.mark.parametrize(
+    ("method", "output", "named"),
+    [
+        ({"aggregator": "model", "features": "daisy"}, None, r"backbone entry 'daisy'"),
+        ({"aggregator": "model", "features": "salad"}, "features", r"output: features"),
+        ({"aggregator": "anyloc_vlad", "features": "salad"}, None, r"backbones.salad.output"),
+        ({"aggregator": "segvlad", "features": "salad"}, None, r"aggregator 'model'"),
+    ],
+)
+def test_a_reader_that_cannot_read_the_backbones_output_is_refused(tmp_path, method, output, named):
+    checkpoint = tmp_path / "dino_salad.ckpt"
+    checkpoint.write_bytes(b"weights")
+    config = trained_config(tmp_path, {"salad": checkpoint}, {"m": method})
+    if output:
+        config["backbones"]["salad"]["output"] = output
+    with pytest.raises(PlanError, match=named) as error:
+        _plan(config)
+    assert "method 'm'" in str(error.value)
+
+
+def test_a_reranker_on_a_models_descriptor_is_refused(tmp_path):
+    checkpoint = tmp_path / "dino_salad.ckpt"
+    checkpoint.write_bytes(b"weights")
+    config = trained_config(
+        tmp_path,
+        {"salad": checkpoint},
+        {"own": {"aggregator": "model", "features": "salad"}},
+        rerank={"own": ["mnn"]},
+    )
+    config["rerankers"] = {"mnn": {"kind": "mnn", "features": "salad"}}
+    with pytest.raises(PlanError, match=r"re-ranker 'mnn'.*backbones.salad.output: features"):
+        _plan(config)
+
+
+@pytest.mark.parametrize("given", [None, "absent.ckpt"])
+def test_a_missing_checkpoint_is_named_at_plan_time_with_where_to_get_it(tmp_path, given):
+    config = trained_config(tmp_path, {}, {"own": {"aggregator": "model", "features": "nv"}})
+    config["backbones"]["nv"] = {"backbone": "netvlad", "variant": "patchnetvlad-pitts30k-512"}
+    if given:
+        config["backbones"]["nv"]["checkpoint"] = str(tmp_path / given)
+    with pytest.raises(PlanError) as error:
+        _plan(config)
+    message = str(error.value)
+    assert "backbones.nv.checkpoint" in message
+    assert "pitts_WPCA512.pth.tar" in message and "QVPR/Patch-NetVLAD" in message
+    assert netvlad.VARIANTS["patchnetvlad-pitts30k-512"].url in message
+    if given:
+        assert given in message
+
+
+def test_an_unknown_variant_is_refused_listing_the_kinds(tmp_path):
+    checkpoint = tmp_path / "c.pth"
+    checkpoint.write_bytes(b"weights")
+    config = trained_config(
+        tmp_path, {"netvlad": checkpoint}, {"own": {"aggregator": "model", "features": "netvlad"}}
+    )
+    config["backbones"]["netvlad"]["variant"] = "pitts250k"
+    with pytest.raises(PlanError, match=r"backbones.netvlad.variant = 'pitts250k'.*nanne-pitts30k"):
+        _plan(config)
+
+
+def test_the_adapter_names_the_expected_file_when_no_checkpoint_is_given():
+    from vprflow.models.trained.backbone import load_trained
+
+    with pytest.raises(CheckpointError, match=r"dino_salad.ckpt \(serizba/salad\), from https"):
+        load_trained({"backbone": "salad"}, "cpu")
+
+
+def test_a_models_own_loader_error_reaches_the_features_stage(tmp_path):
+    """A file of another layout is named by the model's loader, with its URL."""
+    from vprflow.models.trained.backbone import load_trained
+
+    wrong = tmp_path / "dino_salad.ckpt"
+    torch.save({"something": torch.zeros(1)}, wrong)
+    with pytest.raises(CheckpointError, match=salad.SALAD_URL):
+        load_trained({"backbone": "salad", "checkpoint": str(wrong)}, "cpu")
