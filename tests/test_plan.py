@@ -646,3 +646,80 @@ def test_the_stages_an_aggregator_may_need_are_planned_as_the_table_of_stages_sa
     monkeypatch.setitem(plan.STAGES, "pca", replace(plan.STAGES["pca"], needed=None))
     with pytest.raises(PlanError, match="aggregator 'segvlad' needs unknown stage 'pca'"):
         build_plan(config)
+
+
+def _with_trained(tmp_path, **entries) -> dict:
+    """The shipped config, validated, with backbone entries of trained kinds (name ->
+    entry, each given a checkpoint file in ``tmp_path``) and a method ``<name>_m`` per
+    entry on corridor: aggregator ``model`` for a descriptor, ``anyloc_vlad`` for dense
+    features."""
+    raw = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    for name, entry in entries.items():
+        path = tmp_path / f"{name}.ckpt"
+        path.write_bytes(name.encode())
+        raw["backbones"][name] = {"checkpoint": str(path), **entry}
+        dense = entry.get("output") == "features"
+        raw["methods"][f"{name}_m"] = {
+            "aggregator": "anyloc_vlad" if dense else "model",
+            "features": name,
+        }
+        raw["datasets"]["corridor"]["methods"].append(f"{name}_m")
+    return validate_config(raw, SCHEMA)
+
+
+def test_a_trained_models_descriptor_is_read_as_its_published_pipeline_reads(tmp_path):
+    """Under aggregator ``model`` the features stage reads as the model's evaluation
+    does (PIL: EXIF ignored, antialiased resize to the published input size; MegaLoc at
+    the images' own size); under ``output: features`` the map is read as its method's
+    pipeline reads (AnyLoc: OpenCV, EXIF applied)."""
+    filled = _with_trained(
+        tmp_path,
+        salad={"backbone": "salad"},
+        netvlad={"backbone": "netvlad"},
+        megaloc={"backbone": "megaloc"},
+        tokens={"backbone": "salad", "output": "features"},
+    )
+    plan = build_plan(filled)
+    params = {
+        name: plan.stages["features"][keys_of(filled, method=f"{name}_m")["features"]].record[
+            "params"
+        ]
+        for name in ("salad", "netvlad", "megaloc", "tokens")
+    }
+    read = {n: (p["resolution"], p["resize"], p["exif_orientation"]) for n, p in params.items()}
+    assert read == {
+        "salad": ([322, 322], "antialias", "ignore"),
+        "netvlad": ([640, 480], "antialias", "ignore"),
+        "megaloc": ([160, 120], "antialias", "ignore"),  # corridor's resolution
+        "tokens": ([322, 322], "linear", "apply"),
+    }
+    # A global method: its recall searches its descriptors, no segment search.
+    keys = keys_of(filled, method="salad_m")
+    assert set(keys) == {"images", "dataset", "features", "descriptors", "recall"}
+    descriptors = plan.get("descriptors", keys["descriptors"])
+    assert descriptors.record["params"] == {"aggregator": "model"}
+
+
+def test_a_trained_models_variant_and_checkpoint_reach_its_features_and_everything_after(
+    tmp_path,
+):
+    filled = _with_trained(tmp_path, netvlad={"backbone": "netvlad"})
+    other = copy.deepcopy(filled)
+    other["backbones"]["netvlad"]["variant"] = "patchnetvlad-pitts30k-512"
+    after = {"features", "descriptors", "recall"}
+    assert changed_stages(filled, other, method="netvlad_m") == after
+    before = keys_of(filled, method="netvlad_m")
+    (tmp_path / "netvlad.ckpt").write_bytes(b"retrained")  # same path, other weights
+    retrained = keys_of(filled, method="netvlad_m")
+    assert {stage for stage in before if before[stage] != retrained[stage]} == after
+
+
+def test_a_trained_method_is_reranked_on_the_rerankers_dense_features(tmp_path):
+    filled = _with_trained(tmp_path, salad={"backbone": "salad"})
+    filled["datasets"]["corridor"]["rerank"]["salad_m"] = ["mnn"]
+    plan = build_plan(filled)
+    run = next(r for r in plan.runs["corridor"] if r.method == "salad_m+mnn")
+    rerank = plan.get(*plan.get("recall", run.recall_key).inputs["rerank"])
+    features = plan.get(*rerank.inputs["features"])
+    assert features.record["params"]["backbone"] == "daisy"
+    assert run.row_params["aggregator"] == "model"
