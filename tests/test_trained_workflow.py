@@ -372,3 +372,33 @@ def test_a_models_own_loader_error_reaches_the_features_stage(tmp_path):
     torch.save({"something": torch.zeros(1)}, wrong)
     with pytest.raises(CheckpointError, match=salad.SALAD_URL):
         load_trained({"backbone": "salad", "checkpoint": str(wrong)}, "cpu")
+
+
+def test_the_example_config_adds_every_trained_model_and_names_missing_checkpoints(tmp_path):
+    """config/trained.yaml over config/config.yaml (as Snakemake merges two config
+    files): valid, one row per trained model, and without the checkpoints the plan names
+    the first missing file and where to get it."""
+    import yaml
+
+    from vprflow.planning.plan import deep_merge
+
+    base = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    extra = yaml.safe_load((REPO / "config" / "trained.yaml").read_text())
+    config = deep_merge(base, extra)
+    config["datasets"]["corridor"]["methods"] = extra["datasets"]["corridor"]["methods"]
+    config["data_root"] = str(tmp_path)
+    trained = {e["backbone"] for e in extra["backbones"].values()}
+    assert trained == set(registry.TRAINED_KINDS)
+    filled = validate_config(config, SCHEMA)
+    with pytest.raises(
+        PlanError, match=r"backbones\.netvlad\.checkpoint.*pitts_WPCA4096\.pth\.tar"
+    ):
+        build_plan(filled)
+    for entry in filled["backbones"].values():
+        if entry["backbone"] in trained:
+            path = tmp_path / entry["checkpoint"]
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(entry["checkpoint"].encode())
+            entry["checkpoint"] = str(path)
+    rows = [run.method for run in build_plan(filled).runs["corridor"]]
+    assert {"netvlad", "salad", "boq_dinov2", "megaloc", "salad+mnn"} <= set(rows)
