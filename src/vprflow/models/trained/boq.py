@@ -148,11 +148,12 @@ class BoQResNet(nn.Module):
         return self.aggregator(self.backbone(images))
 
 
-def load_boq_resnet50(path: str) -> BoQResNet:
+def load_boq_resnet50(path: str, **aggregator) -> BoQResNet:
     """BoQ-ResNet-50 with the weights of ``path`` (``resnet50_16384.pth`` layout, module
-    docstring). Raises :class:`~vprflow.models.checkpoints.CheckpointError` naming the
-    file, the key at fault and :data:`BOQ_RESNET50_URL`."""
+    docstring); ``aggregator`` replaces the published head sizes (tests). Raises
+    :class:`~vprflow.models.checkpoints.CheckpointError` naming the file, the key at
+    fault and :data:`BOQ_RESNET50_URL`."""
     name, hint = "BoQ-ResNet50", f"expected {BOQ_RESNET50_FILE} from {BOQ_RESNET50_URL}"
-    model = BoQResNet()
+    model = BoQResNet(**aggregator)
     load_matching(model, read_state(path, name, hint), path, name, hint)
     return model.eval()
