@@ -185,12 +185,42 @@ def test_each_trained_kind_states_what_its_model_module_states():
         ),
         "megaloc": (megaloc, {"megaloc": (megaloc.MEGALOC_FILE, megaloc.MEGALOC_URL)}),
     }
+    from vprflow.models.trained import boq, convap, cosplace, mixvpr
+    from vprflow.models.trunks.resnet import LAYER_STRIDES
+
+    def cosplace_files(name: str, dims: dict) -> dict:
+        urls = {f"{b}_{d}": cosplace._URLS[name].format(b, d) for b, ds in dims.items() for d in ds}
+        return {v: (url.rpartition("/")[2], url) for v, url in urls.items()}
+
+    modules.update(
+        mixvpr=(mixvpr, {"resnet50_4096": (mixvpr.MIXVPR_FILE, mixvpr.MIXVPR_URL)}),
+        convap=(
+            convap,
+            {f"resnet50_{convap.DEFAULT_DIM}": (convap.CONVAP_FILE, convap.CONVAP_URL)},
+        ),
+        boq_resnet50=(
+            boq,
+            {"resnet50_16384": (boq.BOQ_RESNET50_FILE, boq.BOQ_RESNET50_URL)},
+        ),
+        cosplace=(cosplace, cosplace_files("CosPlace", cosplace.COSPLACE_DIMS)),
+        eigenplaces=(cosplace, cosplace_files("EigenPlaces", cosplace.EIGENPLACES_DIMS)),
+    )
     assert set(registry.TRAINED_KINDS) == set(modules)
+    # The ResNet models' maps: the default layer of their feature_map, at its stride.
+    for name, model_class in (
+        ("mixvpr", mixvpr.MixVPR),
+        ("convap", convap.ConvAP),
+        ("boq_resnet50", boq.BoQResNet),
+        ("cosplace", cosplace.GeoLocalizationNet),
+        ("eigenplaces", cosplace.GeoLocalizationNet),
+    ):
+        layer = inspect.signature(model_class.feature_map).parameters["layer"].default
+        assert registry.BACKBONES[name].spec.patch_size == LAYER_STRIDES[layer], name
+    assert registry.BACKBONES["cosplace"].spec.default_variant == "ResNet50_2048"
     for name, (module, published) in modules.items():
         kind = registry.BACKBONES[name]
         spec = kind.spec
         assert registry.resolve(kind.loader) is load_trained, name
-        assert {v: (p.file, p.url) for v, p in spec.variants.items()} == published, name
         if module.INPUT_SIZE is None:  # the images' own size: the schema's `dataset`
             assert spec.input_size is None and "resolution" not in kind.defaults, name
         else:
@@ -200,6 +230,7 @@ def test_each_trained_kind_states_what_its_model_module_states():
         loader = inspect.signature(registry.resolve(spec.loader)).parameters
         for variant in spec.variants.values():
             assert set(variant.loader_options) <= set(loader), name
+        assert {v: (p.file, p.url) for v, p in spec.variants.items()} == published, name
     assert registry.BACKBONES["netvlad"].defaults["variant"] == netvlad.DEFAULT_VARIANT
     # The maps' strides: VGG16 conv5_3 halves four times, DINOv2-B/14's patches are 14.
     trunk = netvlad.NetVLADModel(4, None).encoder

@@ -402,3 +402,48 @@ def test_the_example_config_adds_every_trained_model_and_names_missing_checkpoin
             entry["checkpoint"] = str(path)
     rows = [run.method for run in build_plan(filled).runs["corridor"]]
     assert {"netvlad", "salad", "boq_dinov2", "megaloc", "salad+mnn"} <= set(rows)
+
+
+@pytest.mark.parametrize(
+    ("kind", "size"),
+    [
+        ("mixvpr", (320, 320)),  # its mixer's positions fix the input size
+        ("convap", (96, 64)),
+        ("boq_resnet50", (96, 64)),
+        ("cosplace", (96, 64)),
+        ("eigenplaces", (96, 64)),
+    ],
+)
+def test_the_resnet_models_through_the_adapter_are_their_forward_and_their_map(
+    kind, size, tmp_path
+):
+    """The ResNet-50 models at their published sizes (their loaders build no other),
+    default random weights saved as a plain state dict: the adapter's descriptor is the
+    model's forward on the ImageNet-normalised pixels, and its dense map has the
+    registry's stride."""
+    from vprflow.models.trained import boq, convap, cosplace, mixvpr
+    from vprflow.models.trained.backbone import load_trained
+
+    build = {
+        "mixvpr": mixvpr.MixVPR,
+        "convap": convap.ConvAP,
+        "boq_resnet50": boq.BoQResNet,
+        "cosplace": cosplace.GeoLocalizationNet,
+        "eigenplaces": cosplace.GeoLocalizationNet,
+    }[kind]
+    torch.manual_seed(0)
+    source = build().eval()
+    path = tmp_path / "weights.pth"
+    torch.save(source.state_dict(), path)
+    width, height = size
+    pixels = np.random.default_rng(0).random((2, height, width, 3), dtype=np.float32)
+    entry = {"backbone": kind, "checkpoint": str(path)}
+    got = load_trained(entry, "cpu").features(pixels)
+    x = torch.cat([imagenet(image, source) for image in pixels])
+    with torch.no_grad():
+        expected = source(x).numpy()
+    assert got.shape == (2, 1, 1, source.dim)
+    np.testing.assert_allclose(got[:, 0, 0], expected, rtol=0, atol=FLOAT32_ATOL)
+    dense = load_trained({**entry, "output": "features"}, "cpu").features(pixels)
+    stride = registry.BACKBONES[kind].spec.patch_size
+    assert dense.shape[1:3] == (-(-height // stride), -(-width // stride))

@@ -171,6 +171,16 @@ _SAM_GENERATOR = {
 TRAINED_OUTPUTS = ("descriptor", "features")
 
 _TRAINED = "vprflow.models.trained"
+# The published CosPlace and EigenPlaces models: ResNet backbone -> descriptor lengths
+# (vprflow.models.trained.cosplace's, restated torch-free; test_registry compares).
+_COSPLACE_DIMS = {
+    "ResNet18": (32, 64, 128, 256, 512),
+    **{b: (32, 64, 128, 256, 512, 1024, 2048) for b in ("ResNet50", "ResNet101", "ResNet152")},
+}
+_EIGENPLACES_DIMS = {
+    "ResNet18": (256, 512),
+    **{b: (128, 256, 512, 1024, 2048) for b in ("ResNet50", "ResNet101")},
+}
 _PATCH_NETVLAD = "https://huggingface.co/TobiasRobotics/Patch-NetVLAD/resolve/main/"
 
 
@@ -256,6 +266,80 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
         "DINOv2-B/14 patch tokens after the final LayerNorm, 768-d",
         crop=False,
     ),
+    # ResNet-50 cut after layer3 + feature mixing (4096-d), GSV-Cities; 320 x 320 (its
+    # mixer's 20 x 20 positions fix the input size).
+    "mixvpr": TrainedModel(
+        f"{_TRAINED}.mixvpr:load_mixvpr",
+        {
+            "resnet50_4096": TrainedVariant(
+                "resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt",
+                "https://drive.google.com/file/d/1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L/view",
+                "amaralibey/MixVPR",
+            )
+        },
+        (320, 320),
+        16,
+        "ResNet-50 layer3, 1024-d, stride 16",
+        crop=False,
+    ),
+    # ResNet-50 (to layer4) + Conv-AP (4096-d: 1024 channels x 2 x 2), GSV-Cities; the
+    # gsv-cities README documents only this file's name.
+    "convap": TrainedModel(
+        f"{_TRAINED}.convap:load_convap",
+        {
+            "resnet50_4096": TrainedVariant(
+                "resnet50_ConvAP_1024_2x2.ckpt",
+                "https://drive.google.com/drive/folders/1VYPw9uGD11NgiGFgfWueLt3noJYOIuhL",
+                "amaralibey/gsv-cities",
+                {"dim": 4096},
+            )
+        },
+        (320, 320),
+        32,
+        "ResNet-50 layer4, 2048-d, stride 32",
+        crop=False,
+    ),
+    # ResNet-50 cut after layer3 + Bag-of-Queries, 16384-d, 384 x 384.
+    "boq_resnet50": TrainedModel(
+        f"{_TRAINED}.boq:load_boq_resnet50",
+        {
+            "resnet50_16384": TrainedVariant(
+                "resnet50_16384.pth",
+                "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/"
+                "resnet50_16384.pth",
+                "amaralibey/Bag-of-Queries",
+            )
+        },
+        (384, 384),
+        16,
+        "ResNet-50 layer3, 1024-d, stride 16",
+        crop=False,
+    ),
+    # ResNet trunk + GeM + FC, at the images' own size (their evaluation resizes
+    # nothing); one variant per published backbone and length, ResNet50_2048 first.
+    **{
+        name.lower(): TrainedModel(
+            f"{_TRAINED}.cosplace:load_{name.lower()}",
+            {
+                f"{backbone}_{dim}": TrainedVariant(
+                    f"{backbone}_{dim}_{name.lower()}.pth",
+                    f"https://github.com/gmberton/{name}/releases/download/v1.0/"
+                    f"{backbone}_{dim}_{name.lower()}.pth",
+                    f"gmberton/{name}",
+                    {"backbone": backbone, "dim": dim},
+                )
+                for backbone, dim in sorted(
+                    ((b, d) for b, dims in published.items() for d in dims),
+                    key=lambda v: v != ("ResNet50", 2048),
+                )
+            },
+            None,
+            32,
+            "the ResNet's layer4 (ResNet-50: 2048-d), stride 32",
+            crop=False,
+        )
+        for name, published in (("CosPlace", _COSPLACE_DIMS), ("EigenPlaces", _EIGENPLACES_DIMS))
+    },
 }
 
 

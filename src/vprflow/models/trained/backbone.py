@@ -1,9 +1,11 @@
 """Any trained VPR model as a vprflow backbone (issue 32).
 
-The trained models (:mod:`vprflow.models.trained`: NetVLAD, SALAD, BoQ-DINOv2, MegaLoc)
-are plain torch modules whose ``forward`` takes ImageNet-normalised ``[B, 3, H, W]``
-and returns the model's L2-normalised descriptor ``[B, D]``, and whose ``feature_map``
-returns the dense map their head reads ``[B, C, h, w]``. :class:`TrainedBackbone` gives
+The trained models (:mod:`vprflow.models.trained`: NetVLAD, SALAD, BoQ-DINOv2, MegaLoc,
+MixVPR, Conv-AP, BoQ-ResNet50, CosPlace, EigenPlaces; the kinds of
+:data:`vprflow.core.registry.TRAINED_KINDS`) are plain torch modules whose ``forward``
+takes ImageNet-normalised ``[B, 3, H, W]`` and returns the model's L2-normalised
+descriptor ``[B, D]``, and whose ``feature_map`` returns the dense map their head reads
+``[B, C, h, w]``. :class:`TrainedBackbone` gives
 them the interface of :mod:`vprflow.models.backbones` (``patch_size``, ``features`` of
 ``[B, H, W, 3]`` float32 in [0, 1] -> ``[B, h, w, D]``), so that the features stage
 runs them like any other backbone:
@@ -88,7 +90,7 @@ class TrainedBackbone:
 
 def load_trained(params: dict, device: str = "auto") -> TrainedBackbone:
     """A :class:`TrainedBackbone` from a trained kind's backbone entry: ``backbone``
-    (netvlad, salad, boq_dinov2, megaloc), ``checkpoint`` (the published file),
+    (one of :data:`~vprflow.core.registry.TRAINED_KINDS`), ``checkpoint`` (the published file),
     ``variant``, ``output``, ``normalize``. A missing ``checkpoint`` raises
     :class:`CheckpointError` naming the model, the file its variant expects and where to
     get it (the plan refuses it earlier, with the same words; the model's loader names a
