@@ -14,8 +14,8 @@ agg_config={in_channels: 2048, out_channels: 1024, s1: 2, s2: 2})``, plain torch
 
 Published dimensions (gsv-cities README): 8192 (``out_channels`` 2048), 4096 (1024, the
 README's loading example, the default here), 2048 (512) and 512 (128). Any input size
-works; the models were trained at 320 x 320, and the README resizes to it (bicubic for
-the 4096-d model, bilinear for the 8192-d one), RGB normalised with ImageNet's mean / std.
+works; the models were trained at 320 x 320 (the README: the 4096-d model with bicubic
+resizing, the 8192-d one with bilinear), RGB normalised with ImageNet's mean / std.
 
 Checkpoint: e.g. ``resnet50_ConvAP_1024_2x2.ckpt`` (README's Google Drive folder), which
 the README loads with ``model.load_state_dict``: a plain state dict of

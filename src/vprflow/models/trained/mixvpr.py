@@ -19,8 +19,8 @@ The mixers fix ``n``, so the input size is fixed: 320 x 320 for the published mo
 mean / std.
 
 Checkpoint: ``resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt`` (README's Google Drive
-link; the 512-d and 128-d ones differ in ``channel_proj`` / ``row_proj`` sizes, which
-the loader reads from the file). The README loads it with ``model.load_state_dict``:
+link; the README's 512-d and 128-d releases load too, as the loader reads the head's
+sizes from the file). The README loads it with ``model.load_state_dict``:
 a plain state dict of ``backbone.model.<torchvision name>`` (no ``layer4`` / ``fc``)
 and ``aggregator.{mix.<i>.mix.{0,1,3}, channel_proj, row_proj}.*``; a Lightning
 checkpoint's ``"state_dict"`` holding the same keys is accepted too.
