@@ -49,6 +49,8 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 SEGMENTS_PER_IMAGE = 85
 VOTE_TOP = 50
 CHUNK = 8192
+# exact_knn before issue 33's chunked norms and fewer, larger re-scoring steps.
+OLD_EXACT = "d036158"
 
 
 def write_unit_vectors(path: Path, n: int, dim: int, seed: int) -> None:
@@ -66,6 +68,50 @@ def max_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
 
 
+def load_old_exact(folder: Path, ref: str):
+    """``exact_knn`` as it was at git revision ``ref`` (the baseline of issue 33's exact
+    search), loaded from ``git show`` into a module of its own; None without git or ref."""
+    import importlib.util
+
+    try:
+        text = subprocess.run(
+            ["git", "show", f"{ref}:src/vprflow/search/exact.py"],
+            cwd=SRC.parent,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    path = folder / "exact_old.py"
+    path.write_text(text)
+    spec = importlib.util.spec_from_file_location("vprflow_exact_old", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.exact_knn
+
+
+def bf16_floor(database: np.ndarray, queries: np.ndarray, args: argparse.Namespace):
+    """The bf16 products alone, blocked as exact_knn blocks them: the floor of the exact
+    search. Returns ``search(db, q)`` over the first ``len(db)``, ``len(q)`` rows; the bf16
+    copies are made here, outside the timing, and the products are dropped."""
+    import torch
+
+    db = torch.from_numpy(database).to(args.device_resolved, torch.bfloat16)
+    q = torch.from_numpy(queries).to(args.device_resolved, torch.bfloat16)
+
+    def search(rows_db: np.ndarray, rows_q: np.ndarray) -> tuple[None, None]:
+        for first in range(0, len(rows_db), args.block_database):
+            ref = db[first : min(first + args.block_database, len(rows_db))]
+            for start in range(0, len(rows_q), args.block_queries):
+                torch.mm(q[start : min(start + args.block_queries, len(rows_q))], ref.T)
+        if db.device.type == "cuda":
+            torch.cuda.synchronize()
+        return None, None
+
+    return search
+
+
 def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
     """Run one method in this (fresh) process and save its lists and measurements."""
     sys.path.insert(0, str(SRC))
@@ -78,20 +124,31 @@ def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
     options = {
         "device": args.device,
         "block_queries": args.block_queries,
+        "block_database": args.block_database,
         "candidate_dtype": "float32" if method == "exact_float32" else "bfloat16",
     }
+    knn = exact_knn
+    if method == "exact_old":
+        knn = load_old_exact(folder, args.old_exact)
 
     def search(db: np.ndarray, q: np.ndarray, stats: dict) -> tuple[np.ndarray, np.ndarray]:
         if method == "faiss_flat":
             return flat_knn(db, q, args.k)
+        if method == "bf16_floor":
+            return floor(db, q)
         if method != "exact_sharded":
-            return exact_knn(db, q, args.k, stats=stats, **options)
+            return knn(db, q, args.k, stats=stats, **options)
         parts = []
         for first in range(0, len(db), args.shard):
             d, i = exact_knn(db[first : first + args.shard], q, args.k, stats=stats, **options)
             parts.append((d, i + first))
         return merge_knn(parts, args.k)
 
+    if method == "bf16_floor":
+        from vprflow.core.devices import resolve_device
+
+        args.device_resolved = resolve_device(args.device)
+        floor = bf16_floor(database, queries, args)
     search(database[:2000], queries[:64], {})  # warm-up: thread pools, kernels, faiss init
     base = max_rss_mib()
     times, cpu = [], []
@@ -103,8 +160,9 @@ def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
         cpu.append(time.process_time() - start_cpu)
         if len(times) == 1:
             peak = max_rss_mib()  # repeats reuse the memory; the first shows what it takes
-    np.save(folder / f"{method}_distances.npy", distances)
-    np.save(folder / f"{method}_indices.npy", indices)
+    if distances is not None:
+        np.save(folder / f"{method}_distances.npy", distances)
+        np.save(folder / f"{method}_indices.npy", indices)
     report = {"seconds": min(times), "median": float(np.median(times)), "search_mib": peak - base}
     report["cpu_seconds"] = min(cpu)
     report["stats"] = stats
@@ -115,15 +173,17 @@ def run_method(method: str, folder: Path, args: argparse.Namespace) -> dict:
     command = [sys.executable, __file__, "--worker", method, "--data", str(folder)]
     command += ["--k", str(args.k), "--block-queries", str(args.block_queries)]
     command += ["--shard", str(args.shard or 0), "--device", args.device]
-    command += ["--repeat", str(args.repeat)]
+    command += ["--repeat", str(args.repeat), "--block-database", str(args.block_database)]
+    command += ["--old-exact", args.old_exact]
     process = subprocess.Popen(command)
     _, status, usage = os.wait4(process.pid, 0)
     if status != 0:
         raise SystemExit(f"{method} failed (status {status})")
     report = json.loads((folder / f"{method}.json").read_text())
     report["peak_mib"] = usage.ru_maxrss / 1024
-    report["indices"] = np.load(folder / f"{method}_indices.npy")
-    report["distances"] = np.load(folder / f"{method}_distances.npy")
+    if method != "bf16_floor":
+        report["indices"] = np.load(folder / f"{method}_indices.npy")
+        report["distances"] = np.load(folder / f"{method}_distances.npy")
     return report
 
 
@@ -147,6 +207,12 @@ def main() -> None:
     parser.add_argument("--k", type=int, default=50)
     parser.add_argument("--shard", type=int, default=0, help="also run per reference shard")
     parser.add_argument("--block-queries", type=int, default=4096)
+    parser.add_argument("--block-database", type=int, default=65536)
+    parser.add_argument(
+        "--old-exact",
+        default=OLD_EXACT,
+        help="git revision whose exact_knn is timed as 'exact_knn before' ('' to skip)",
+    )
     parser.add_argument("--device", default="auto", help="torch device of the exact path")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--repeat", type=int, default=3, help="timed runs per method (min shown)")
@@ -175,7 +241,9 @@ def main() -> None:
         folder = Path(tmp)
         write_unit_vectors(folder / "database.npy", args.ref_segments, args.dim, args.seed)
         write_unit_vectors(folder / "queries.npy", args.query_segments, args.dim, args.seed + 1)
-        methods = ["faiss_flat", "exact_bf16", "exact_float32"]
+        methods = ["faiss_flat", "bf16_floor", "exact_bf16", "exact_float32"]
+        if args.old_exact and load_old_exact(folder, args.old_exact) is not None:
+            methods.insert(2, "exact_old")
         if args.shard:
             methods.append("exact_sharded")
         reports = {method: run_method(method, folder, args) for method in methods}
@@ -193,33 +261,48 @@ def main() -> None:
         f"exact path on {args.device}), faiss {faiss.__version__} "
         f"({faiss.omp_get_max_threads()} threads)\n"
     )
-    header = f"{'method':<34}{'time s':>9}{'/ faiss':>9}{'cpu s':>9}{'/ faiss':>9}{'agree@k':>10}"
-    header += f"{'search MiB':>12}{'peak MiB':>10}  notes"
+    header = f"{'method':<34}{'time s':>9}{'/ faiss':>9}{'/ floor':>9}{'cpu s':>9}{'/ faiss':>9}"
+    header += f"{'agree@k':>10}{'search MiB':>12}{'peak MiB':>10}  notes"
     print(header)
     print("-" * len(header))
     names = {
         "faiss_flat": "faiss IndexFlatL2",
+        "bf16_floor": "bf16 products alone (floor)",
+        "exact_old": f"exact_knn bf16, before ({args.old_exact})",
         "exact_bf16": "exact_knn, bf16 candidates",
         "exact_float32": "exact_knn, float32 candidates",
         "exact_sharded": f"exact_knn bf16, shards of {args.shard:,}",
     }
+    floor = reports["bf16_floor"]
     for method, report in reports.items():
         seconds = report["seconds"]
-        agreement = topk_agreement(report["indices"], reference["indices"])
-        stats = report["stats"]
         notes = f"median {report['median']:.2f} s"
+        agreement = "-"
+        if "indices" in report:
+            agreement = f"{topk_agreement(report['indices'], reference['indices']):.5f}"
+        stats = report["stats"]
         if stats:
             per_row = stats["rescored"] / args.query_segments
             notes += f"; {per_row:.0f} re-scored/query, {stats['widened']} rows widened"
+        if method.startswith("exact") and method != "exact_old":
+            same_lists = np.mean(np.all(report["indices"] == reference["indices"], axis=1))
+            gap = np.abs(report["distances"] - reference["distances"]).max()
+            notes += f"; lists equal to faiss {same_lists:.2%}, max |d - faiss d| {gap:.1e}"
+        if method == "exact_bf16" and "exact_old" in reports:
+            old = reports["exact_old"]
+            same = np.array_equal(report["distances"], old["distances"]) and np.array_equal(
+                report["indices"], old["indices"]
+            )
+            notes += "; identical to before" if same else "; DIFFERS from before"
         cpu = report["cpu_seconds"]
         print(
             f"{names[method]:<34}{seconds:>9.2f}{seconds / reference['seconds']:>9.2f}"
-            f"{cpu:>9.2f}{cpu / reference['cpu_seconds']:>9.2f}"
-            f"{agreement:>10.5f}{report['search_mib']:>12.0f}{report['peak_mib']:>10.0f}  {notes}"
+            f"{seconds / floor['seconds']:>9.2f}{cpu:>9.2f}{cpu / reference['cpu_seconds']:>9.2f}"
+            f"{agreement:>10}{report['search_mib']:>12.0f}{report['peak_mib']:>10.0f}  {notes}"
         )
     same = float(np.mean(np.all(ranking == ranking_exact, axis=1)))
     print(
-        f"{'vote_ranking (faiss lists)':<34}{vote_seconds:>9.2f}{'':>59}  {n_query:,} x "
+        f"{'vote_ranking (faiss lists)':<34}{vote_seconds:>9.2f}{'':>68}  {n_query:,} x "
         f"{n_ref:,} images, top {VOTE_TOP}; {same:.2%} of rankings equal with exact bf16 lists"
     )
 

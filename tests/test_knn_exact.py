@@ -262,3 +262,102 @@ def test_second_step_rescores_only_rows_that_need_it():
     assert stats["widened"] == 0
     assert passes * (k + margin // 2) < stats["rescored"] < passes * (k + margin)
     check_against_float64(distances, indices, database, queries, k)
+
+
+def _whole_block_side(x, low):
+    """_side's values computed over the whole block at once (the unchunked formulas)."""
+    sq_norm = torch.linalg.vecdot(x, x)
+    scale = 1.0
+    if low == torch.float16:
+        scale = 2.0 ** -np.frexp(float(x.abs().max()))[1]
+    rounded = (x * scale).to(low)
+    hi = rounded.float() / scale
+    return scale, rounded, sq_norm, torch.linalg.vector_norm(hi, dim=1), (hi - x).norm(dim=1)
+
+
+@pytest.mark.parametrize("candidate_dtype", ["bfloat16", "float16"])
+@pytest.mark.parametrize("rows", [1, 7, 64, 65, 200])
+def test_side_by_chunks_equals_whole_block(monkeypatch, candidate_dtype, rows):
+    """Chunked residual norms: bit for bit the whole-block values, chunks of one row, a
+    ragged last chunk, exactly the block, and more than the block."""
+    rng = np.random.default_rng(59)
+    low = knn_exact.CANDIDATE_DTYPES[candidate_dtype]
+    data = unit_vectors(rng, 65, 48) * rng.uniform(0.01, 50, (65, 1)).astype(np.float32)
+    x = torch.from_numpy(data)
+    monkeypatch.setattr(knn_exact, "_side_elements", lambda device: rows * 48)
+    side = knn_exact._side(x, low)
+    scale, rounded, sq_norm, hi_norm, lo_norm = _whole_block_side(x, low)
+    assert side.scale == scale
+    assert torch.equal(side.low, rounded)
+    assert torch.equal(side.sq_norm, sq_norm)
+    assert torch.equal(side.norm, sq_norm.sqrt())
+    assert torch.equal(side.hi_norm, hi_norm)
+    assert torch.equal(side.lo_norm, lo_norm)
+
+
+@pytest.mark.parametrize(
+    ("budget_rows", "budget_cols"), [(1, 1), (1, 5), (3, 17), (4, 17), (50, 17)]
+)
+def test_rescore_by_chunks_equals_one_pass(monkeypatch, budget_rows, budget_cols):
+    """Chunked re-scoring (partial rows, columns split when a row's candidates exceed the
+    budget): bit for bit the float32 ((q - r) ** 2).sum() of one whole gather."""
+    rng = np.random.default_rng(61)
+    ref = torch.from_numpy(unit_vectors(rng, 90, 40))
+    query = torch.from_numpy(unit_vectors(rng, 10, 40))
+    cand = torch.sort(torch.from_numpy(rng.integers(0, 90, (10, 17))), dim=1).values
+    monkeypatch.setattr(
+        knn_exact, "_rescore_elements", lambda device: budget_rows * budget_cols * 40
+    )
+    expected = ((ref[cand] - query[:, None, :]) ** 2).sum(-1)
+    assert torch.equal(knn_exact._rescore(query, ref, cand), expected)
+
+
+@pytest.mark.parametrize(
+    ("n_db", "k", "block_database"),
+    [
+        (65, 10, 64),  # one row over a block: a one-row block
+        (129, 10, 64),  # one row over two blocks
+        (128, 10, 64),  # exactly two blocks
+        (100, 40, 16),  # k larger than a block: every block merged whole
+        (16, 40, 16),  # k larger than the whole database
+    ],
+)
+def test_block_boundaries_with_small_chunks(monkeypatch, n_db, k, block_database):
+    """Database sizes at and just over a block, k beyond a block, with chunks small enough
+    to be ragged in _side and _rescore: exact against float64, and the same bits as with
+    the default chunk sizes."""
+    rng = np.random.default_rng(n_db + k)
+    database, queries = unit_vectors(rng, n_db, 32), unit_vectors(rng, 23, 32)
+    options = dict(device="cpu", block_queries=10, block_database=block_database)
+    default = exact_knn(database, queries, k, **options)
+    monkeypatch.setattr(knn_exact, "_side_elements", lambda device: 5 * 32)
+    monkeypatch.setattr(knn_exact, "_rescore_elements", lambda device: 3 * 7 * 32)
+    distances, indices = exact_knn(database, queries, k, **options)
+    np.testing.assert_array_equal(distances, default[0])
+    np.testing.assert_array_equal(indices, default[1])
+    check_against_float64(distances, indices, database, queries, k)
+
+
+def test_ties_across_block_and_chunk_boundaries(monkeypatch):
+    """Exact duplicates straddling two database blocks and several _side / _rescore chunks:
+    equal distances, ties to the lowest index."""
+    monkeypatch.setattr(knn_exact, "_side_elements", lambda device: 3 * 24)
+    monkeypatch.setattr(knn_exact, "_rescore_elements", lambda device: 2 * 5 * 24)
+    rng = np.random.default_rng(67)
+    others = unit_vectors(rng, 120, 24)
+    target = unit_vectors(rng, 1, 24)
+    database = np.concatenate([others[:55], np.repeat(target, 20, axis=0), others[55:]])
+    queries = np.concatenate([target, unit_vectors(rng, 4, 24)])
+    for candidate_dtype in ("bfloat16", "float16", "float32"):
+        distances, indices = exact_knn(
+            database,
+            queries,
+            15,
+            device="cpu",
+            block_database=64,
+            candidate_dtype=candidate_dtype,
+            margin=2,
+        )
+        np.testing.assert_array_equal(distances[0], np.zeros(15, np.float32))
+        np.testing.assert_array_equal(indices[0], np.arange(55, 70))
+        check_against_float64(distances[1:], indices[1:], database, queries[1:], 15)
