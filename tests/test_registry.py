@@ -86,7 +86,10 @@ def test_config_readme_states_the_kind_and_search_index_defaults_from_the_regist
     for index in registry.SEARCH_INDEXES.values():
         for name, value in index.defaults.items():
             assert f"`{name}` (`{json.dumps(value)}`)" in readme, (index.name, name)
-    assert "| `layer` | integer | `31` (dinov2), `18` (dinov3), `-1` (dino) |" in readme
+    assert (
+        "| `layer` | integer | `31` (dinov2), `18` (dinov3), `-1` (dino), `3` (resnet50) |"
+        in readme
+    )
     assert "| `radius` | number, >= 0 | `25` (kind utm) |" in readme
 
 
@@ -186,6 +189,7 @@ def test_each_trained_kind_states_what_its_model_module_states():
         "megaloc": (megaloc, {"megaloc": (megaloc.MEGALOC_FILE, megaloc.MEGALOC_URL)}),
     }
     from vprflow.models.trained import boq, convap, cosplace, mixvpr
+    from vprflow.models.trunks import resnet
     from vprflow.models.trunks.resnet import LAYER_STRIDES
 
     def cosplace_files(name: str, dims: dict) -> dict:
@@ -204,6 +208,10 @@ def test_each_trained_kind_states_what_its_model_module_states():
         ),
         cosplace=(cosplace, cosplace_files("CosPlace", cosplace.COSPLACE_DIMS)),
         eigenplaces=(cosplace, cosplace_files("EigenPlaces", cosplace.EIGENPLACES_DIMS)),
+        resnet50=(
+            resnet,
+            {"imagenet1k_v1": ("resnet50-0676ba61.pth", resnet.TORCHVISION_RESNET_URLS[50])},
+        ),
     )
     assert set(registry.TRAINED_KINDS) == set(modules)
     # The ResNet models' maps: the default layer of their feature_map, at its stride.
@@ -217,11 +225,16 @@ def test_each_trained_kind_states_what_its_model_module_states():
         layer = inspect.signature(model_class.feature_map).parameters["layer"].default
         assert registry.BACKBONES[name].spec.patch_size == LAYER_STRIDES[layer], name
     assert registry.BACKBONES["cosplace"].spec.default_variant == "ResNet50_2048"
+    # The ImageNet ResNet-50 trunk: its layers' strides, layer3 by default (SNSM's).
+    trunk = registry.BACKBONES["resnet50"]
+    assert {f"layer{k}": v for k, v in trunk.spec.layer_strides.items()} == LAYER_STRIDES
+    assert trunk.defaults["layer"] == 3 and trunk.defaults["output"] == "features"
+    assert not trunk.spec.descriptor
     for name, (module, published) in modules.items():
         kind = registry.BACKBONES[name]
         spec = kind.spec
         assert registry.resolve(kind.loader) is load_trained, name
-        if module.INPUT_SIZE is None:  # the images' own size: the schema's `dataset`
+        if getattr(module, "INPUT_SIZE", None) is None:  # the images' own size: `dataset`
             assert spec.input_size is None and "resolution" not in kind.defaults, name
         else:
             assert tuple(reversed(spec.input_size)) == module.INPUT_SIZE, name

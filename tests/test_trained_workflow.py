@@ -447,3 +447,49 @@ def test_the_resnet_models_through_the_adapter_are_their_forward_and_their_map(
     dense = load_trained({**entry, "output": "features"}, "cpu").features(pixels)
     stride = registry.BACKBONES[kind].spec.patch_size
     assert dense.shape[1:3] == (-(-height // stride), -(-width // stride))
+
+
+def test_the_imagenet_resnet50_gives_the_map_of_its_layer(tmp_path):
+    """``resnet50`` (torchvision's layout) stores the map of ``layer`` (1-4, layer3 by
+    default as SNSM's baseline), per-patch L2-normalised, with that layer's stride."""
+    from vprflow.models.trained.backbone import load_trained
+    from vprflow.models.trunks.resnet import ResNet
+
+    torch.manual_seed(0)
+    source = ResNet(50, "layer4", classifier=True).eval()
+    path = tmp_path / "resnet50-0676ba61.pth"
+    torch.save(source.state_dict(), path)
+    pixels = np.random.default_rng(0).random((2, 64, 96, 3), dtype=np.float32)
+    imagenet_stats = netvlad.NetVLADModel(4, None, encoder=_netvlad_encoder(), encoder_dim=8)
+    x = torch.cat([imagenet(image, imagenet_stats) for image in pixels])
+    for layer, stride in ((3, 16), (1, 4)):
+        entry = {"backbone": "resnet50", "checkpoint": str(path)}
+        if layer != 3:
+            entry["layer"] = layer
+        backbone = load_trained(entry, "cpu")
+        with torch.no_grad():
+            expected = source.feature_map(x, f"layer{layer}").permute(0, 2, 3, 1).numpy()
+        expected = expected / np.linalg.norm(expected, axis=-1, keepdims=True)
+        assert backbone.patch_size == stride
+        np.testing.assert_allclose(backbone.features(pixels), expected, rtol=0, atol=FLOAT32_ATOL)
+
+
+def test_the_resnet50_trunk_plans_its_layer_and_refuses_a_descriptor(tmp_path):
+    checkpoint = tmp_path / "resnet50-0676ba61.pth"
+    checkpoint.write_bytes(b"weights")
+    config = trained_config(
+        tmp_path, {"resnet50": checkpoint}, {"m": {"aggregator": "snsm", "features": "resnet50"}}
+    )
+    layer3 = _features_keys(config)
+    layer2 = copy.deepcopy(config)
+    layer2["backbones"]["resnet50"]["layer"] = 2
+    assert _features_keys(layer2).isdisjoint(layer3)
+    wrong = copy.deepcopy(config)
+    wrong["backbones"]["resnet50"]["layer"] = 5
+    with pytest.raises(PlanError, match=r"backbones.resnet50.layer = 5.*\[1, 2, 3, 4\]"):
+        _plan(wrong)
+    own = copy.deepcopy(config)
+    own["backbones"]["resnet50"]["output"] = "descriptor"
+    own["methods"] = {"m": {"aggregator": "model", "features": "resnet50"}}
+    with pytest.raises(PlanError, match=r"backbones.resnet50.output = 'descriptor'.*no descriptor"):
+        _plan(own)

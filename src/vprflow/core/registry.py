@@ -121,7 +121,11 @@ class TrainedModel:
     first, as vprflow's ViT backbones do (DINOv2 needs multiples of 14; MegaLoc resizes
     to them itself, so False). ``resize``: the published reader's resize (a
     :data:`vprflow.data.images.RESIZE_METHODS` name), what ``resize: method`` means
-    under the ``model`` aggregator.
+    under the ``model`` aggregator. ``layer_strides``: for a trunk whose entry picks
+    the map with ``layer`` (ResNet-50: 1-4), each layer's stride (``patch_size`` is
+    the default layer's); its loader takes ``end="layer<k>"`` and its ``feature_map``
+    ``layer="layer<k>"``; ``None``: the model's own map. ``descriptor``: False for a
+    trunk with no descriptor of its own (``output: features`` only).
     """
 
     loader: str
@@ -131,6 +135,8 @@ class TrainedModel:
     dense: str
     crop: bool = True
     resize: str = "antialias"
+    layer_strides: dict[int, int] | None = None
+    descriptor: bool = True
 
     @property
     def default_variant(self) -> str:
@@ -340,6 +346,26 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
         )
         for name, published in (("CosPlace", _COSPLACE_DIMS), ("EigenPlaces", _EIGENPLACES_DIMS))
     },
+    # torchvision's ImageNet ResNet-50 as dense features only: the map of `layer` 1-4
+    # (SNSM's All-Backbones-VLAD baseline reads layer1-4, layer3 by default), at the
+    # dataset's resolution as SNSM reads it.
+    "resnet50": TrainedModel(
+        "vprflow.models.trunks.resnet:load_resnet",
+        {
+            "imagenet1k_v1": TrainedVariant(
+                "resnet50-0676ba61.pth",
+                "https://download.pytorch.org/models/resnet50-0676ba61.pth",
+                "pytorch/vision",
+                {"depth": 50},
+            )
+        },
+        None,
+        16,
+        "the ImageNet ResNet-50's `layer` map (layer1-4: 256-2048-d, stride 4-32)",
+        crop=False,
+        layer_strides={1: 4, 2: 8, 3: 16, 4: 32},
+        descriptor=False,
+    ),
 }
 
 
@@ -352,8 +378,15 @@ def _trained(name: str, spec: TrainedModel) -> ModelKind:
         {
             "checkpoint": None,
             "variant": spec.default_variant,
-            "output": TRAINED_OUTPUTS[0],
+            # A trunk has no descriptor of its own: its dense map.
+            "output": TRAINED_OUTPUTS[0] if spec.descriptor else "features",
             **({"resolution": list(spec.input_size)} if spec.input_size else {}),
+            # The default layer: the one whose stride is the spec's patch size.
+            **(
+                {"layer": next(k for k, v in spec.layer_strides.items() if v == spec.patch_size)}
+                if spec.layer_strides
+                else {}
+            ),
         },
         weights="checkpoint",
         uses_gpu=True,

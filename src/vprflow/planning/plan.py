@@ -439,7 +439,9 @@ def _plan_features(
     }
     patch = backbone.get("patch_size")
     if isinstance(kind.spec, TrainedModel):
-        patch = kind.spec.patch_size if backbone["output"] == "features" else None
+        strides = kind.spec.layer_strides
+        patch = strides[backbone["layer"]] if strides else kind.spec.patch_size
+        patch = patch if backbone["output"] == "features" else None
     if patch and params["resolution"] != "native" and min(params["resolution"]) < patch:
         where = (
             f"datasets.{m.dataset_name}.resolution"
@@ -498,6 +500,16 @@ def _trained_weights(m: _Method, name: str, backbone: dict, spec: TrainedModel) 
         raise PlanError(
             f"config key {where}.variant = {variant!r}: backbone {backbone['backbone']!r} has "
             f"variants {list(spec.variants)}"
+        )
+    if backbone["output"] == "descriptor" and not spec.descriptor:
+        raise PlanError(
+            f"config key {where}.output = 'descriptor': backbone {backbone['backbone']!r} is a "
+            f"trunk with no descriptor of its own; it gives output: features ({spec.dense})"
+        )
+    if spec.layer_strides and backbone["layer"] not in spec.layer_strides:
+        raise PlanError(
+            f"config key {where}.layer = {backbone['layer']!r}: backbone "
+            f"{backbone['backbone']!r} has layers {list(spec.layer_strides)}"
         )
     published = spec.variants[variant]
     hint = (

@@ -30,6 +30,7 @@ from vprflow.core.arrays import center_crop_box, l2_normalize
 from vprflow.core.devices import resolve_device
 from vprflow.core.registry import TRAINED_OUTPUTS, TrainedModel, model_kind, resolve, with_defaults
 from vprflow.models.checkpoints import CheckpointError
+from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD
 
 
 class TrainedBackbone:
@@ -40,7 +41,8 @@ class TrainedBackbone:
     stride of its ``feature_map``; ``crop``: centre-crop inputs to whole patches first
     (the DINOv2 models need multiples of 14; vprflow's ViT backbones crop the same way);
     ``normalize``: L2-normalise each stored vector (the descriptors already are, up to
-    rounding).
+    rounding); ``layer``: the map ``feature_map`` returns (``"layer<k>"``), for a trunk
+    that offers several (ResNet-50); ``None``: the model's own.
     """
 
     def __init__(
@@ -52,6 +54,7 @@ class TrainedBackbone:
         crop: bool,
         normalize: bool = True,
         device: str | torch.device = "auto",
+        layer: str | None = None,
     ):
         if output not in TRAINED_OUTPUTS:
             raise ValueError(f"unknown output {output!r}; expected one of {TRAINED_OUTPUTS}")
@@ -60,8 +63,11 @@ class TrainedBackbone:
         self.output, self.patch_size = output, patch_size
         self.crop, self.normalize = crop, normalize
         shape = (1, 3, 1, 1)
-        self.mean = torch.tensor(model.mean, dtype=torch.float32, device=self.device).view(shape)
-        self.std = torch.tensor(model.std, dtype=torch.float32, device=self.device).view(shape)
+        # A plain ImageNet trunk (resnet50) states no mean / std: ImageNet's.
+        mean, std = getattr(model, "mean", IMAGENET_MEAN), getattr(model, "std", IMAGENET_STD)
+        self.mean = torch.tensor(mean, dtype=torch.float32, device=self.device).view(shape)
+        self.std = torch.tensor(std, dtype=torch.float32, device=self.device).view(shape)
+        self.layer = layer
 
     def preprocess(self, batch: np.ndarray) -> torch.Tensor:
         """``[B, H, W, 3]`` float32 in [0, 1] -> the model's input: centre-cropped to
@@ -83,7 +89,8 @@ class TrainedBackbone:
         if self.output == "descriptor":
             grids = self.model(pixels)[:, None, None, :]
         else:
-            grids = self.model.feature_map(pixels).permute(0, 2, 3, 1)
+            extra = {} if self.layer is None else {"layer": self.layer}
+            grids = self.model.feature_map(pixels, **extra).permute(0, 2, 3, 1)
         grids = grids.float().cpu().numpy()
         return l2_normalize(grids) if self.normalize else grids
 
@@ -112,12 +119,20 @@ def load_trained(params: dict, device: str = "auto") -> TrainedBackbone:
             f"backbone {kind.name!r} (variant {variant!r}) needs `checkpoint`: "
             f"{published.file} ({published.repository}), from {published.url}"
         )
-    model = resolve(spec.loader)(str(params["checkpoint"]), **published.loader_options)
+    options, layer, patch_size = dict(published.loader_options), None, spec.patch_size
+    if spec.layer_strides:
+        # A trunk read at `layer`: built only up to it (load_resnet's `end`).
+        layer, patch_size = f"layer{params['layer']}", spec.layer_strides[params["layer"]]
+        options["end"] = layer
+    if params["output"] == "descriptor" and not spec.descriptor:
+        raise ValueError(f"backbone {kind.name!r} has no descriptor of its own; output: features")
+    model = resolve(spec.loader)(str(params["checkpoint"]), **options)
     return TrainedBackbone(
         model,
         params["output"],
-        spec.patch_size,
+        patch_size,
         crop=spec.crop,
         normalize=bool(params.get("normalize", True)),
         device=device,
+        layer=layer,
     )
