@@ -144,14 +144,14 @@ def _compare(name, source, reference, ours, images, layout, rows, reference_map,
         out = out[0] if isinstance(out, tuple) else out
         descriptor, _ = _max_diff(ours(images), out)
         feature, scale = _max_diff(ours.feature_map(images, layer), reference_map(images))
-    # How far apart two images' descriptors are: a difference of 0 above means
-    # something only if the descriptors are not all alike.
-    spread = float((out[0] - out[1]).abs().max())
+    # L2 distance between two images' unit descriptors (0 to 2): a difference of 0
+    # above means something only if the descriptors are not all alike.
+    spread = float((out[0] - out[1]).norm())
     rows.append(
         (
             name,
             source,
-            f"{descriptor:.2e} (images differ by {spread:.2f})",
+            f"{descriptor:.2e} (|d0 - d1| = {spread:.3f})",
             f"{feature:.2e} ({layer}, max {scale:.1f})",
             str(out.shape[1]),
             f"{images.shape[2]}x{images.shape[3]}",
