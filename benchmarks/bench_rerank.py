@@ -1,6 +1,6 @@
 """Re-ranking cost: milliseconds per query to score a query's top K candidates with each
-re-ranker (:func:`vprflow.evaluation.rerank.rerank_scores`, what the ``rerank`` stage calls
-per query),
+re-ranker, before (one float32 product per candidate) and after batching (one product per
+query, :func:`vprflow.evaluation.rerank._batched_pairs`), beside the floors of its products,
 at the patch grids of the shipped and published backbones.
 
     python benchmarks/bench_rerank.py              # K = 100, the cases below, CPU
@@ -10,11 +10,22 @@ at the patch grids of the shipped and published backbones.
 Inputs are random: each query is a ``[h * w, D]`` grid of unit vectors; half of its
 candidates are the same scene shifted by one patch with noise (so they share many
 mutual nearest neighbours, as a true match does, and RANSAC has a model to find), the
-other half unrelated vectors (a handful of chance mutual pairs). Columns: ``mutual`` is
-the mean number of mutual pairs per candidate (what RANSAC fits); ``ms/query`` the
-fastest of ``--repeat`` timings of K candidates, ``ms/candidate`` that over K. The
-database read is not included: the stage reads the reference features into memory once
-(up to 2 GiB), so per query it is an in-memory gather.
+other half unrelated vectors (chance mutual pairs). Every timing is the fastest of
+``--repeat`` runs, before and after interleaved in each (the machine is shared: the
+minimum is the least disturbed run).
+
+Columns: ``mutual`` the mean mutual pairs per candidate (what RANSAC fits); ``before`` the
+re-ranker's score function from ``--before`` (default: the last commit with the
+per-candidate loop), loaded from ``git show REV:src/vprflow/evaluation/rerank.py`` into a
+module here; ``after`` the package's, both called as ``rerank_scores`` calls them and
+checked equal; ``fp32`` / ``bf16`` the floors: the query's batched products alone (one
+``[P, D] x [D, k Q]`` GEMM per group of candidates, as the code groups them) in float32 and
+in bf16; ``x bf16`` = after / bf16 floor. For ``ransac``, ``match`` is the pairs alone
+(``_batched_pairs``) and ``fit`` the robust fits alone (``ransac_inliers`` over the
+stored pairs), with the fit's share of after. ``bf16 path`` times the certified bf16
+candidates (off by default, ``_BF16_CANDIDATES``) with the share of candidates they
+certified. The database read is not included: the stage reads the reference features
+into memory once (up to 2 GiB), so per query it is an in-memory gather.
 """
 
 from __future__ import annotations
@@ -22,13 +33,19 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import subprocess
 import sys
 import time
+import types
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "src"))
+
+# The commit before re-ranking was batched (issue 33): one float32 product per candidate.
+BEFORE = "00ebe21"
 
 # (name, grid h, grid w, descriptor dim, patch pixels)
 CASES = {
@@ -63,49 +80,138 @@ def inputs(h: int, w: int, dim: int, k: int, seed: int) -> tuple[np.ndarray, np.
     return query, candidates
 
 
+def load_before(rev: str) -> types.ModuleType:
+    """``src/vprflow/evaluation/rerank.py`` at ``rev`` as a module of its own."""
+    source = subprocess.run(
+        ["git", "show", f"{rev}:src/vprflow/evaluation/rerank.py"],
+        cwd=ROOT, capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    module = types.ModuleType("rerank_before")
+    exec(compile(source, f"{rev}:rerank.py", "exec"), module.__dict__)
+    return module
+
+
+def fastest(repeat: int, calls: dict, sync) -> dict:
+    """``{name: fastest seconds}`` of each call, the calls interleaved in every repeat."""
+    best = dict.fromkeys(calls, float("inf"))
+    for call in calls.values():  # warm-up: first-call kernel set-up is not re-ranking
+        call()
+    for _ in range(repeat):
+        for name, call in calls.items():
+            started = time.perf_counter()
+            call()
+            sync()
+            best[name] = min(best[name], time.perf_counter() - started)
+    return best
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--top-k", type=int, default=100, help="candidates per query")
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--device", default="cpu", help="cpu, cuda, ... (torch device)")
     parser.add_argument("--cases", default=",".join(CASES), help="comma-separated names")
+    parser.add_argument("--before", default=BEFORE, help="git revision of the old code")
     parser.add_argument("--smoke", action="store_true", help="tiny grid, K = 5, one repeat")
     args = parser.parse_args()
 
     import torch
 
-    from vprflow.evaluation.rerank import mutual_nearest_neighbours, rerank_scores
+    from vprflow.core.registry import reranker
+    from vprflow.evaluation import rerank as after
 
+    before = load_before(args.before)
     cases = SMOKE if args.smoke else {n: CASES[n] for n in args.cases.split(",")}
     top_k, repeat = (5, 1) if args.smoke else (args.top_k, args.repeat)
+    device = torch.device(args.device)
+
+    def sync() -> None:
+        if device.type == "cuda":
+            torch.cuda.synchronize()
+
     print(
         f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"torch {torch.__version__} ({torch.get_num_threads()} threads), device "
-        f"{args.device}, K = {top_k}, fastest of {repeat}"
+        f"{args.device}, K = {top_k}, fastest of {repeat}, before = {args.before}; "
+        "times in ms per query"
     )
-    print(f"{'case':16} {'patches':>8} {'dim':>5} {'reranker':>8} {'mutual':>7} "
-          f"{'ms/query':>9} {'ms/candidate':>13}")  # fmt: skip
-    print("-" * 72)
+    print(
+        "| case | patches | dim | reranker | mutual | before | after | speed-up | fp32 | "
+        "bf16 | x bf16 | match | fit (share) | bf16 path (certified) |"
+    )
+    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    failed = False
     for name, (h, w, dim, patch) in cases.items():
-        query, candidates = inputs(h, w, dim, top_k, seed=0)
-        mutual = np.mean(
-            [len(mutual_nearest_neighbours(query, c)[0]) for c in candidates[: min(top_k, 10)]]
-        )
+        query_np, candidates_np = inputs(h, w, dim, top_k, seed=0)
+        query = torch.from_numpy(query_np).to(device)
+        candidates = torch.from_numpy(candidates_np)
+        centres = after.patch_centres(h, w, patch)
+        n = h * w
+        group = max(1, after._PRODUCT_ELEMENTS // (n * n))
+        on_device = candidates.to(device)
+        pairs = after._batched_pairs(query, candidates, None, bf16=False)
+        mutual = np.mean([len(i) for i, _, _, _ in pairs])
+
+        def floor(dtype, on_device=on_device, query=query, group=group):
+            q = query.to(dtype)
+            flat = on_device.to(dtype).reshape(-1, on_device.shape[2])
+            step = group * on_device.shape[1]
+            sync()
+            started = time.perf_counter()
+            for start in range(0, flat.shape[0], step):
+                q @ flat[start : start + step].T
+            sync()
+            return time.perf_counter() - started
+
         for method in ("mnn", "ransac"):
-            rerank_scores(query, candidates[:1], (h, w), patch, method, device=args.device)
-            times = []
-            for _ in range(repeat):
-                started = time.perf_counter()
-                rerank_scores(query, candidates, (h, w), patch, method, device=args.device)
-                if args.device.startswith("cuda"):
-                    torch.cuda.synchronize()
-                times.append(time.perf_counter() - started)
-            ms = 1000 * min(times)
+            settings = reranker(method).settings({})
+            old_fn, new_fn = getattr(before, f"{method}_scores"), getattr(after, f"{method}_scores")
+
+            def run(fn, settings=settings, q=query, c=candidates, xy=centres, patch=patch):
+                return fn(q, c, xy, patch, **settings)
+
+            if not np.array_equal(run(old_fn), run(new_fn)):
+                print(f"# {name} {method}: scores differ from before", file=sys.stderr)
+                failed = True
+            fit_pairs = [(centres[i], centres[j]) for i, j, _, _ in pairs]
+            pixels = settings.get("threshold", 1.0) * patch
+            fit_options = {k: settings[k] for k in ("seed", "model", "max_iters", "confidence")
+                           if k in settings}  # fmt: skip
+
+            def bf16_path(method=method, run=run):
+                previous = after._BF16_CANDIDATES
+                after._BF16_CANDIDATES = True
+                try:
+                    run(getattr(after, f"{method}_scores"))
+                finally:
+                    after._BF16_CANDIDATES = previous
+
+            calls = {
+                "before": lambda run=run, old_fn=old_fn: run(old_fn),
+                "after": lambda run=run, new_fn=new_fn: run(new_fn),
+                "bf16 path": bf16_path,
+            }
+            if method == "ransac":
+                calls["match"] = lambda q=query, c=candidates: after._batched_pairs(q, c, None)
+                calls["fit"] = lambda fit_pairs=fit_pairs, pixels=pixels, o=fit_options: [
+                    after.ransac_inliers(a, b, pixels, **o) for a, b in fit_pairs
+                ]
+            ms = {k: 1000 * v for k, v in fastest(repeat, calls, sync).items()}
+            floor(torch.float32), floor(torch.bfloat16)  # warm-up
+            ms["fp32"] = 1000 * min(floor(torch.float32) for _ in range(repeat))
+            bf16_ok = device.type == "cuda" or after._fast_bf16(device)
+            ms["bf16"] = 1000 * min(floor(torch.bfloat16) for _ in range(repeat))
+            found = after._batched_pairs(query, candidates, None, bf16=True)
+            certified = sum(s is None for _, _, s, _ in found) if bf16_ok else 0
+            match = f"{ms['match']:.1f}" if "match" in ms else "-"
+            fit = f"{ms['fit']:.1f} ({100 * ms['fit'] / ms['after']:.0f}%)" if "fit" in ms else "-"
             print(
-                f"{name:16} {h * w:8d} {dim:5d} {method:>8} {mutual:7.1f} "
-                f"{ms:9.1f} {ms / top_k:13.3f}"
+                f"| {name} | {n} | {dim} | {method} | {mutual:.1f} | {ms['before']:.1f} | "
+                f"{ms['after']:.1f} | {ms['before'] / ms['after']:.1f}x | {ms['fp32']:.1f} | "
+                f"{ms['bf16']:.1f} | {ms['after'] / ms['bf16']:.2f} | {match} | {fit} | "
+                f"{ms['bf16 path']:.1f} ({100 * certified / top_k:.0f}%) |"
             )
-    return 0
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -19,6 +19,7 @@ from synthetic import make_dataset
 from workflow_helpers import REPO, toy_config
 
 from vprflow.core import registry, stores
+from vprflow.evaluation import rerank as rerank_module
 from vprflow.evaluation.rerank import (
     mnn_score,
     mutual_nearest_neighbours,
@@ -392,6 +393,198 @@ def test_rerank_scores_rejects_options_of_the_other_method_by_name():
         )
 
 
+# ------------------------------------------------------------ batched scores = per-candidate scores
+
+
+def per_candidate_scores(query, candidates, grid, patch, method, **options):
+    """The re-rankers as they were before batching: one float32 product per candidate
+    (:func:`mutual_nearest_neighbours`, itself checked against the float64 loop above),
+    then the count, the float64 sum of the kept float32 similarities, or the RANSAC fit."""
+    settings = registry.reranker(method).settings(options)
+    centres = patch_centres(*grid, patch)
+    scores = []
+    for candidate in candidates:
+        i, j, similarity = mutual_nearest_neighbours(query, candidate)
+        threshold = settings["min_similarity"]
+        kept = np.ones(len(i), bool) if threshold is None else similarity >= threshold
+        if method == "ransac":
+            fit = {key: settings[key] for key in ("seed", "model", "max_iters", "confidence")}
+            pixels = settings["threshold"] * patch
+            scores.append(ransac_inliers(centres[i[kept]], centres[j[kept]], pixels, **fit))
+        elif settings["weighting"] == "count":
+            scores.append(float(kept.sum()))
+        else:
+            scores.append(float(similarity[kept].astype(np.float64).sum()))
+    return np.array(scores, dtype=np.float64)
+
+
+def hard_candidates(
+    seed: int, k: int, h: int = 5, w: int = 6, dim: int = 12, duplicates: bool = True
+):
+    """A query ``[h*w, D]`` and ``k`` candidates mixing every hard case: near-copies of the
+    query (strong pairs), copies nudged by 1e-7 (near-ties within float32 rounding),
+    integer rows with duplicates (exact ties), a copy of the query itself and unrelated
+    rows; unit rows except the integer ones. ``duplicates``: the query's second half
+    repeats its first (ties on the query's side)."""
+    rng = np.random.default_rng(seed)
+    n = h * w
+    query = unit_rows(rng, n, dim)
+    if duplicates:  # ties on the query's side too
+        query[n // 2 :] = query[: n - n // 2]
+    out = []
+    for c in range(k):
+        kind = c % 5
+        if kind == 0:
+            out.append(query[rng.permutation(n)] + 0.05 * unit_rows(rng, n, dim))
+        elif kind == 1:
+            near = query[rng.permutation(n)].copy()
+            near[::2] = near[1::2][: len(near[::2])] + 1e-7 * rng.standard_normal((1, dim))
+            out.append(near)
+        elif kind == 2:
+            out.append(integer_rows_with_ties(rng, n, dim))
+        elif kind == 3:
+            out.append(query.copy())
+        else:
+            out.append(unit_rows(rng, n, dim))
+    return query, np.stack(out).reshape(k, n, dim).astype(np.float32) if out else np.zeros(
+        (0, n, dim), np.float32
+    )
+
+
+SETTINGS = [
+    ("mnn", {}),
+    ("mnn", {"weighting": "similarity"}),
+    ("mnn", {"min_similarity": 0.5}),
+    ("mnn", {"weighting": "similarity", "min_similarity": 0.9}),
+    ("ransac", {"threshold": 0.5}),
+    ("ransac", {"min_similarity": 0.5}),
+]
+
+
+@pytest.mark.parametrize(("method", "options"), SETTINGS)
+@pytest.mark.parametrize("seed", range(3))
+def test_batched_scores_equal_the_per_candidate_scores(method, options, seed):
+    if method == "ransac":
+        pytest.importorskip("cv2")
+    # K = 17 of 30-patch grids: more candidates than patches, ties of every kind.
+    query, candidates = hard_candidates(seed, 17)
+    expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **options)
+    np.testing.assert_array_equal(
+        rerank_scores(query, candidates, (5, 6), 14, method, **options), expected
+    )
+
+
+@pytest.mark.parametrize("k", [0, 1, 3])
+@pytest.mark.parametrize("method", ["mnn", "ransac"])
+def test_batched_scores_of_zero_one_and_few_candidates(method, k):
+    if method == "ransac":
+        pytest.importorskip("cv2")
+    query, candidates = hard_candidates(4, k)
+    scores = rerank_scores(query, candidates, (5, 6), 14, method)
+    assert scores.shape == (k,) and scores.dtype == np.float64
+    np.testing.assert_array_equal(
+        scores, per_candidate_scores(query, candidates, (5, 6), 14, method)
+    )
+
+
+def test_batched_pairs_equal_the_float64_double_loop_with_ties():
+    # Not the 1e-7 nudges (kind 1): float32 and float64 may order those either way.
+    query, candidates = hard_candidates(5, 10)
+    candidates = candidates[[c for c in range(10) if c % 5 != 1]]
+    for candidate, (i, j, similarity, kept) in zip(
+        candidates, rerank_module._batched_pairs(query, candidates, None), strict=True
+    ):
+        expected = direct_mnn(query, candidate)
+        assert list(zip(i.tolist(), j.tolist(), strict=True)) == [(a, b) for a, b, _ in expected]
+        np.testing.assert_allclose(similarity, [v for _, _, v in expected], rtol=0, atol=1e-6)
+        assert kept.all() and i.dtype == j.dtype == np.int64
+
+
+def test_the_batched_product_is_the_per_candidate_product_bit_for_bit():
+    # What makes the batched scores the per-candidate ones: the BLAS computes each element
+    # of the [P, K * Q] product as it does in a [P, Q] one.
+    rng = np.random.default_rng(6)
+    for patches, dim in ((30, 12), (300, 104), (256, 768)):
+        query = torch.from_numpy(unit_rows(rng, patches, dim))
+        candidates = torch.from_numpy(unit_rows(rng, 7 * patches, dim)).view(7, patches, dim)
+        batched, _ = rerank_module._product(query, candidates, torch.float32)
+        for c in range(7):
+            assert torch.equal(batched[:, c], query @ candidates[c].T)
+
+
+@pytest.mark.parametrize("method", ["mnn", "ransac"])
+def test_scores_are_the_same_over_several_products(monkeypatch, method):
+    if method == "ransac":
+        pytest.importorskip("cv2")
+    query, candidates = hard_candidates(7, 11)
+    whole = rerank_scores(query, candidates, (5, 6), 14, method)
+    # Two candidates a product: six products, the last with one candidate.
+    monkeypatch.setattr(rerank_module, "_PRODUCT_ELEMENTS", 2 * 30 * 30)
+    np.testing.assert_array_equal(rerank_scores(query, candidates, (5, 6), 14, method), whole)
+
+
+@pytest.mark.parametrize(("method", "options"), SETTINGS)
+def test_bf16_candidates_certify_only_what_float32_decides(monkeypatch, method, options):
+    if method == "ransac":
+        pytest.importorskip("cv2")
+    monkeypatch.setattr(rerank_module, "_fast_bf16", lambda device: True)
+    monkeypatch.setattr(rerank_module, "_BF16_CANDIDATES", True)
+    for duplicates in (True, False):
+        query, candidates = hard_candidates(8, 15, dim=32, duplicates=duplicates)
+        expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **options)
+        np.testing.assert_array_equal(
+            rerank_scores(query, candidates, (5, 6), 14, method, **options), expected
+        )
+    # Without duplicates the near-copies (and the copy) are certified from bf16 alone.
+    pairs = rerank_module._batched_pairs(query, candidates, options.get("min_similarity"))
+    assert sum(similarity is None for _, _, similarity, _ in pairs) >= 3
+
+
+@pytest.mark.parametrize("bf16", [False, True])
+@pytest.mark.parametrize(("method", "options"), SETTINGS)
+def test_certified_float32_products_where_bits_may_differ(monkeypatch, method, options, bf16):
+    """A device whose batched product may round differently (CUDA): float32 candidates
+    are certified against the bound, the rest recomputed per candidate, and the scores are
+    still the per-candidate ones (near-ties and duplicates included)."""
+    if method == "ransac":
+        pytest.importorskip("cv2")
+    monkeypatch.setattr(rerank_module, "_same_bits", lambda device: False)
+    monkeypatch.setattr(rerank_module, "_fast_bf16", lambda device: True)
+    monkeypatch.setattr(rerank_module, "_BF16_CANDIDATES", bf16)
+    for duplicates in (True, False):
+        query, candidates = hard_candidates(11, 15, dim=32, duplicates=duplicates)
+        expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **options)
+        np.testing.assert_array_equal(
+            rerank_scores(query, candidates, (5, 6), 14, method, **options), expected
+        )
+
+
+def test_bf16_certificate_accepts_clear_pairs_and_refuses_near_ties():
+    rng = np.random.default_rng(9)
+    query = torch.from_numpy(unit_rows(rng, 30, 64))
+    clear = query[torch.randperm(30, generator=torch.Generator().manual_seed(0))]
+    tied = query.clone()
+    tied[1] = tied[0] + 1e-4  # query row 0 has two candidate rows within the bound
+    similarity, error = rerank_module._product(query, torch.stack([clear, tied]), torch.bfloat16)
+    _, mutual, certain = rerank_module._certified(similarity, error, None)
+    assert certain.tolist() == [True, False]
+    assert mutual[:, 0].all()  # the permuted copy: every patch is its own mutual pair
+    # A pair whose similarity is within the bound of min_similarity is left undecided.
+    _, _, certain = rerank_module._certified(similarity[:, :1], error[:1], 1.0)
+    assert not certain[0]
+    _, _, certain = rerank_module._certified(similarity[:, :1], error[:1], 0.5)
+    assert certain[0]
+
+
+def test_non_finite_descriptors_score_as_the_per_candidate_path():
+    query, candidates = hard_candidates(10, 4)
+    candidates[2, 3, 0] = np.nan
+    np.testing.assert_array_equal(
+        rerank_scores(query, candidates, (5, 6), 14, "mnn"),
+        per_candidate_scores(query, candidates, (5, 6), 14, "mnn"),
+    )
+
+
 # ------------------------------------------------------------ a re-ranker shallower than the table
 
 
@@ -453,3 +646,29 @@ def test_a_reranked_rows_recall_beyond_its_top_k_is_its_retrievals(tmp_path):
     for n in ("2", "4", "6"):
         assert recall_reranked[n] == recall[n]
     assert recall_reranked["6"] == 1.0
+
+
+def test_a_reranker_deeper_than_the_references_reorders_them_all(tmp_path):
+    """top_k 10 over 6 references: every retrieved reference is re-ranked (the stage caps
+    K at the retrieval's depth) and the row is a permutation of the retrieval's."""
+    make_dataset(tmp_path / "data" / "toy", n_places=6, width=64, height=48)
+    config = toy_config(
+        tmp_path / "data", resolution=[64, 48], recall_at=[1, 6], methods=["anyloc_vlad"],
+        rerank={"anyloc_vlad": ["mnn"]},
+    )  # fmt: skip
+    config["rerankers"] = {"mnn": {"kind": "mnn", "features": "daisy", "top_k": 10}}
+    plan = build_plan(validate_config(config, SCHEMA))
+    done: dict = {}
+    runs = {run.method: run for run in plan.runs["toy"]}
+    before, after = (
+        np.asarray(
+            stores.open_store(
+                run_stage(
+                    plan, "recall", runs[m].recall_key, tmp_path / "data", tmp_path / "cache", done
+                )
+            )["ranking"][...]
+        )
+        for m in ("anyloc_vlad", "anyloc_vlad+mnn")
+    )
+    assert after.shape == before.shape == (6, 6)
+    np.testing.assert_array_equal(np.sort(after, axis=1), np.sort(before, axis=1))
