@@ -361,3 +361,27 @@ def test_ties_across_block_and_chunk_boundaries(monkeypatch):
         np.testing.assert_array_equal(distances[0], np.zeros(15, np.float32))
         np.testing.assert_array_equal(indices[0], np.arange(55, 70))
         check_against_float64(distances[1:], indices[1:], database, queries[1:], 15)
+
+
+@pytest.mark.parametrize("data", ["random", "clustered"])
+def test_later_blocks_take_fewer_candidates_and_stay_exact(data):
+    """Database blocks after the first start from the running k-th distances: nine rows in
+    ten need fewer than k + margin / 2 candidates there, the others take the rest; the
+    result stays exact and ties go to the lower index across blocks."""
+    rng = np.random.default_rng(71)
+    if data == "random":
+        database, queries = unit_vectors(rng, 1200, 48), unit_vectors(rng, 80, 48)
+    else:
+        centres = unit_vectors(rng, 4, 48)
+        database, queries = clustered(rng, 1200, 48, centres), clustered(rng, 80, 48, centres)
+    database[700:703] = database[100]  # duplicates of an item of the first block
+    queries[0] = database[100]
+    k, margin, block = 10, 16, 400
+    stats = {}
+    distances, indices = exact_knn(
+        database, queries, k, device="cpu", block_database=block, margin=margin, stats=stats
+    )
+    assert stats["rescored"] < len(queries) * (len(database) // block) * (k + margin // 2)
+    np.testing.assert_array_equal(indices[0, :4], [100, 700, 701, 702])
+    np.testing.assert_array_equal(distances[0, :4], np.zeros(4, np.float32))
+    check_against_float64(distances, indices, database, queries, k)
