@@ -10,11 +10,11 @@ warm-up batch and then, for each of ``--batch-sizes`` (ascending), ``--repeats``
 batches; the best time per image is kept.
 
 Columns: ``model``, ``variant``, ``input`` (H x W), ``dim`` (descriptor length),
-``B/img`` (descriptor bytes per image stored as float32: dim x 4), ``batch``, ``s/img``
-(best of repeats), ``base MiB`` (process RSS after imports, before the model), ``peak MiB``
-(the process's high-water RSS, ``ru_maxrss``, after that batch size; on a GPU
-``torch.cuda.max_memory_allocated`` instead, the column then says ``GPU``). The device is
-CUDA when torch sees one (``--device cpu`` forces the CPU).
+``B/img`` (descriptor bytes per image stored as float32: dim x 4), ``batch``,
+``ms/img`` (best of repeats, per image), ``base MiB`` (process RSS after imports, before
+the model), ``peak MiB`` (the process's high-water RSS, ``ru_maxrss``, after that batch
+size; on a GPU ``torch.cuda.max_memory_allocated`` instead, the column then says
+``GPU``). The device is CUDA when torch sees one (``--device cpu`` forces the CPU).
 
 Usage: python benchmarks/bench_trained.py [--repeats 3] [--batch-sizes 1,4] [--cases a,b]
            [--device auto|cpu|cuda]
@@ -176,7 +176,7 @@ def main() -> None:
         sys.exit(f"unknown cases {unknown}; expected some of {list(CASES)}")
     header = (
         f"{'model':<21} {'variant':<28} {'input':>8} {'dim':>6} {'B/img':>7} {'batch':>5}"
-        f" {'s/img':>8} {'base MiB':>9} {'peak MiB':>9}"
+        f" {'ms/img':>9} {'base MiB':>9} {'peak MiB':>9}"
     )
     print(f"batch sizes {batches}, best of {args.repeats} after a warm-up, random weights")
     print(header)
@@ -196,7 +196,7 @@ def main() -> None:
             peak = f"{row['peak_mib']:.0f}" + (" GPU" if row["memory"] == "GPU" else "")
             print(
                 f"{kind:<21} {variant:<28} {size[0]:>3}x{size[1]:<4} {row['dim']:>6}"
-                f" {4 * row['dim']:>7} {row['batch']:>5} {row['s_per_image']:>8.3f}"
+                f" {4 * row['dim']:>7} {row['batch']:>5} {1000 * row['s_per_image']:>9.2f}"
                 f" {row['base_mib']:>9.0f} {peak:>9}",
                 flush=True,
             )
