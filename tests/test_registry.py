@@ -461,3 +461,61 @@ def test_every_registry_default_is_a_key_its_kind_reads_and_x_kinds_name_real_ki
         then = part["then"]
         named = set(then.get("required", [])) | set(then.get("properties", {}))
         assert named <= set(truth_keys[kind]), kind
+
+
+def test_method_sections_are_derived_from_the_registry_in_their_old_order():
+    # The order reaches the resolved settings and the tables: deriving the list from the
+    # aggregators' `sections` must give the tuple it was written as.
+    from vprflow.planning import config
+
+    old = ("vocabulary", "vlad", "pca", "segvlad", "voting", "retrieval", "snsm", "pooling")
+    assert config.SECTION_ORDER == old
+    # The old tuple, then (after it) only sections of aggregators added since.
+    assert METHOD_DEFAULT_SECTIONS[: len(old)] == old
+    assert config.method_default_sections() == METHOD_DEFAULT_SECTIONS
+    own = [s for agg in registry.AGGREGATORS.values() for s in agg.sections]
+    assert set(METHOD_DEFAULT_SECTIONS) == set(own) | set(config.SHARED_SECTIONS)
+    added = tuple(s for s in dict.fromkeys(own) if s not in old)
+    assert METHOD_DEFAULT_SECTIONS[len(old) :] == added
+
+
+def test_a_new_aggregators_section_follows_the_others(monkeypatch):
+    from vprflow.planning import config
+
+    new = registry.Aggregator("new", (), "global", sections=("new_section",), compute="m:f")
+    monkeypatch.setitem(registry.AGGREGATORS, new.name, new)
+    assert config.method_default_sections() == (*METHOD_DEFAULT_SECTIONS, "new_section")
+
+
+def test_an_aggregator_left_without_options_and_columns_reads_its_sections():
+    method = {"vlad": {"a": 1, "b": 2}, "segvlad": {"order": 3}, "snsm": {"window": 5}}
+    both = registry.Aggregator("x", (), "global", sections=("segvlad", "vlad"), compute="m:f")
+    assert both.options(method) == {"order": 3, "a": 1, "b": 2}
+    assert both.columns(method) == {"segvlad.order": 3, "vlad.a": 1, "vlad.b": 2}
+    assert both.image_descriptor == "vprflow.stages.descriptors:grid_descriptor"
+    # What the entries' written-out lambdas were before `sections`.
+    for name, section in (("anyloc_vlad", "vlad"), ("snsm", "snsm")):
+        agg = registry.AGGREGATORS[name]
+        assert agg.options(method) == dict(method[section])
+        assert agg.columns(method) == registry.prefixed(section, method[section])
+    segvlad = registry.AGGREGATORS["segvlad"]
+    assert segvlad.columns(method) == {
+        **registry.prefixed("segvlad", method["segvlad"]),
+        **registry.prefixed("vlad", method["vlad"]),
+    }
+    model = registry.AGGREGATORS["model"]
+    assert (model.options(method), model.columns(method)) == ({}, {})
+    with pytest.raises(ValueError, match="compute"):
+        registry.Aggregator("y", (), "global", sections=("vlad",))
+    with pytest.raises(ValueError, match="compute"):
+        registry.Aggregator("z", (), "segments", compute="m:f")
+
+
+def test_references_lists_an_aggregators_compute_function(monkeypatch):
+    new = registry.Aggregator(
+        "mean", (), "global", compute="vprflow.aggregation.pooling:average_pool"
+    )
+    monkeypatch.setitem(registry.AGGREGATORS, new.name, new)
+    listed = dict(registry.references())
+    assert listed["aggregator mean"] == "vprflow.stages.descriptors:grid_descriptor"
+    assert listed["aggregator mean: compute"] == "vprflow.aggregation.pooling:average_pool"

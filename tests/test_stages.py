@@ -656,3 +656,26 @@ def test_the_dataset_stage_lists_images_as_planned(tmp_path):
         if root.name == "nested":
             expected = ["0001.jpg", "0002.jpg"]
         assert [n.removeprefix("query/") for n in names[3:]] == expected
+
+
+def test_an_aggregator_with_a_compute_function_needs_no_per_image_function(pipeline):
+    """The generic grid_descriptor runs an entry's ``compute`` over each image's patch
+    grid with the method's options: GeM of the channel-normalised tokens this way gives
+    the gem method's stored descriptors bit for bit."""
+    from vprflow.core.registry import Aggregator
+
+    path = stage_path(pipeline, "features", "gem")
+    stored = stores.open_store(stage_path(pipeline, "descriptors", "gem"))["descriptors"]
+    new = Aggregator("gem_again", (), "global", compute=f"{__name__}:_normalised_gem")
+    describe = new.descriptor_function(
+        {"aggregator": "gem_again", "p": 3.0, "normalization": "channel"}, {"features": path}
+    )
+    for index in (0, 2 * N_PLACES - 1):
+        np.testing.assert_array_equal(describe(index), stored[index])
+
+
+def _normalised_gem(grid: np.ndarray, p: float, normalization: str) -> np.ndarray:
+    from vprflow.aggregation.pooling import gem
+    from vprflow.aggregation.snsm import normalize_tokens
+
+    return gem(normalize_tokens(grid, normalization), p=p)

@@ -562,19 +562,53 @@ class Aggregator:
     kind's under ``output: features``) or ``"descriptor"`` (a trained model's own
     descriptor, ``output: descriptor``); the plan refuses any other pairing, and for
     ``"descriptor"`` ``resize: method`` is the trained kind's published reader.
+
+    ``sections``: the config sections of its own settings (each a schema definition);
+    :data:`vprflow.planning.config.METHOD_DEFAULT_SECTIONS` is derived from them, so a
+    new aggregator's section needs no list besides the schema. Left out, ``options`` is
+    their values merged and ``columns`` their values as ``<section>.<key>`` columns.
+    ``compute``: ``"module:function"`` of the plain math, ``(grid [h, w, D], **options)
+    -> [dim]``, which the generic :func:`vprflow.stages.descriptors.grid_descriptor`
+    runs per image (``image_descriptor`` left out; ``output="global"`` only); an
+    aggregator with a per-image function of its own (centres, masks) names that instead.
     """
 
     name: str
     needs: tuple[str, ...]
     output: str
-    options: Callable[[dict], dict]
-    columns: Callable[[dict], dict]
-    image_descriptor: str
+    options: Callable[[dict], dict] | None = None
+    columns: Callable[[dict], dict] | None = None
+    image_descriptor: str | None = None
     explanation: str | None = None
     resize: str = "linear"
     exif_orientation: str = "apply"
     pca_fit: Callable[[dict, dict], dict] | None = None
     reads: str = "features"
+    sections: tuple[str, ...] = ()
+    compute: str | None = None
+
+    def __post_init__(self):
+        # Left out, ``options`` and ``columns`` are the values of its sections, and
+        # ``image_descriptor`` the generic per-image function running ``compute``.
+        sections = self.sections
+
+        def options(method: dict) -> dict:
+            return {k: v for s in sections for k, v in method[s].items()}
+
+        def columns(method: dict) -> dict:
+            return {k: v for s in sections for k, v in prefixed(s, method[s]).items()}
+
+        if self.options is None:
+            object.__setattr__(self, "options", options)
+        if self.columns is None:
+            object.__setattr__(self, "columns", columns)
+        if self.image_descriptor is None:
+            if self.compute is None or self.output != "global":
+                raise ValueError(
+                    f"aggregator {self.name!r}: without an image_descriptor it needs a "
+                    "compute function and output 'global'"
+                )
+            object.__setattr__(self, "image_descriptor", f"{_DESCRIPTORS}:grid_descriptor")
 
     def pca_descriptor_options(self, method: dict, options: dict) -> dict:
         """The descriptor options of the vectors a PCA is fitted on (the PCA stage
@@ -586,7 +620,10 @@ class Aggregator:
         return {k: v for k, v in options.items() if k != "store_dtype"}
 
     def descriptor_function(self, options: dict, inputs: dict[str, str]):
-        return resolve(self.image_descriptor)(options, inputs)
+        function = resolve(self.image_descriptor)
+        if self.compute is not None:  # the generic per-image function runs it
+            return function(options, inputs, resolve(self.compute))
+        return function(options, inputs)
 
 
 def prefixed(section: str, values: dict) -> dict:
@@ -629,6 +666,7 @@ def _pooling(name: str) -> Aggregator:
         f"{_DESCRIPTORS}:pooled_descriptor",
         resize="antialias",
         exif_orientation="ignore",
+        sections=("pooling",),
     )
 
 
@@ -640,10 +678,10 @@ AGGREGATORS: dict[str, Aggregator] = {
             ("segments", "vocabulary", "pca"),
             "segments",
             _segvlad_options,
-            lambda m: {**prefixed("segvlad", m["segvlad"]), **prefixed("vlad", m["vlad"])},
-            f"{_DESCRIPTORS}:segvlad_descriptors",
+            image_descriptor=f"{_DESCRIPTORS}:segvlad_descriptors",
             explanation="segment_matches",
             pca_fit=_segvlad_pca_fit,
+            sections=("segvlad", "vlad"),
         ),
         Aggregator(
             "segment_gem",
@@ -653,25 +691,24 @@ AGGREGATORS: dict[str, Aggregator] = {
             lambda m: prefixed("pooling", {k: m["pooling"][k] for k in ("gem_p", "normalization")}),
             f"{_DESCRIPTORS}:segment_gem_descriptors",
             explanation="segment_matches",
+            sections=("pooling",),
         ),
         Aggregator(
             "anyloc_vlad",
             ("vocabulary",),
             "global",
-            lambda m: dict(m["vlad"]),
-            lambda m: prefixed("vlad", m["vlad"]),
-            f"{_DESCRIPTORS}:anyloc_vlad_descriptor",
+            image_descriptor=f"{_DESCRIPTORS}:anyloc_vlad_descriptor",
+            sections=("vlad",),
         ),
         Aggregator(
             "snsm",
             (),
             "global",
-            lambda m: dict(m["snsm"]),
-            lambda m: prefixed("snsm", m["snsm"]),
-            f"{_DESCRIPTORS}:snsm_descriptor",
+            image_descriptor=f"{_DESCRIPTORS}:snsm_descriptor",
             explanation="support_maps",
             resize="antialias",
             exif_orientation="ignore",
+            sections=("snsm",),
         ),
         *(_pooling(name) for name in ("gem", "average", "max")),
         # A trained model's own descriptor (issue 32): the 1 x 1 grid its backbone entry
@@ -681,9 +718,7 @@ AGGREGATORS: dict[str, Aggregator] = {
             "model",
             (),
             "global",
-            lambda m: {},
-            lambda m: {},
-            f"{_DESCRIPTORS}:model_descriptor",
+            image_descriptor=f"{_DESCRIPTORS}:model_descriptor",
             exif_orientation="ignore",
             reads="descriptor",
         ),
@@ -875,7 +910,8 @@ def resolve(reference: str):
 
 def references() -> list[tuple[str, str]]:
     """Every lazy reference of the registry, as ``(where, "module:name")``: each model
-    kind's loader and SAM adapter, each aggregator's descriptor function, each search
+    kind's loader and SAM adapter, each aggregator's descriptor function and compute
+    function, each search
     index's function and each re-ranker's score function. These modules import the
     registry; the registry names them only by string, so that planning never imports
     torch. This list is what makes those two-way ties visible."""
@@ -888,7 +924,10 @@ def references() -> list[tuple[str, str]]:
                 found.append((f"{role} {kind.name}: adapter", kind.spec.adapter))
             if isinstance(kind.spec, TrainedModel):
                 found.append((f"{role} {kind.name}: model", kind.spec.loader))
-    found += [(f"aggregator {a.name}", a.image_descriptor) for a in AGGREGATORS.values()]
+    for agg in AGGREGATORS.values():
+        found.append((f"aggregator {agg.name}", agg.image_descriptor))
+        if agg.compute is not None:
+            found.append((f"aggregator {agg.name}: compute", agg.compute))
     found += [(f"search index {i.name}", i.knn) for i in SEARCH_INDEXES.values()]
     found += [(f"re-ranker {r.name}", r.scores) for r in RERANKERS.values()]
     return found

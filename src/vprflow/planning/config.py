@@ -45,17 +45,29 @@ ENUM_MODULES = (
     "vprflow.evaluation.rerank",
 )
 
+# The sections of the stages that several aggregators share; an aggregator's own
+# settings are its registry entry's `sections`.
+SHARED_SECTIONS = ("vocabulary", "pca", "voting", "retrieval")
+# The order of the sections named before they were derived from the registry: it
+# reaches the resolved settings and the tables, so it stays; a section not in it (a new
+# aggregator's) follows them in registry order.
+SECTION_ORDER = ("vocabulary", "vlad", "pca", "segvlad", "voting", "retrieval", "snsm", "pooling")
+
+
+def method_default_sections() -> tuple[str, ...]:
+    """The shared sections and every aggregator's ``sections``, once each, in
+    :data:`SECTION_ORDER` then registry order."""
+    named = dict.fromkeys(
+        [*SHARED_SECTIONS, *(s for agg in AGGREGATORS.values() for s in agg.sections)]
+    )
+    return (
+        *(s for s in SECTION_ORDER if s in named),
+        *(s for s in named if s not in SECTION_ORDER),
+    )
+
+
 # Top-level sections that every method inherits (each may be omitted: its schema default is {}).
-METHOD_DEFAULT_SECTIONS = (
-    "vocabulary",
-    "vlad",
-    "pca",
-    "segvlad",
-    "voting",
-    "retrieval",
-    "snsm",
-    "pooling",
-)
+METHOD_DEFAULT_SECTIONS = method_default_sections()
 
 
 # A config as written holds a few thousand values; one that expands past this many (a

@@ -1,7 +1,9 @@
 """The ``descriptors`` rule: each method's descriptors of every image.
 
 What a method computes per image is its registry entry's ``image_descriptor``
-(:mod:`vprflow.core.registry`), one of the functions at the end of this module.
+(:mod:`vprflow.core.registry`), one of the functions at the end of this module: its
+own, or :func:`grid_descriptor`, which runs the entry's ``compute`` (plain math over
+the patch grid) for an aggregator that reads nothing but the features.
 """
 
 from __future__ import annotations
@@ -209,6 +211,19 @@ def segment_gem_descriptors(options: dict, inputs: dict[str, str]):
         return l2_normalize(pooled).astype(np.float32)
 
     return ImageDescriptor(lambda index: (read_features(index), read_masks(index)), compute)
+
+
+def grid_descriptor(options: dict, inputs: dict[str, str], compute: Callable[..., np.ndarray]):
+    """A global aggregator's ``compute`` function (its registry entry's
+    ``"module:function"``, resolved by :meth:`~vprflow.core.registry.Aggregator.
+    descriptor_function`) of the image's patch grid ``[h, w, D]``, the method's options
+    as keyword arguments, ``[dim]``: the per-image function of every aggregator that
+    reads nothing but the features."""
+    settings = {k: v for k, v in options.items() if k != "aggregator"}
+    read_features = FeatureReader(stores.open_store(inputs["features"]))
+    return ImageDescriptor(
+        lambda index: (read_features(index),), lambda grid: compute(grid, **settings)
+    )
 
 
 def model_descriptor(options: dict, inputs: dict[str, str]):
