@@ -1,7 +1,7 @@
-"""BoQ with DINOv2 (vprflow.models.trained.boq_dinov2): its attention and encoder layer
-against torch's ``MultiheadAttention`` / ``TransformerEncoderLayer`` holding the same
-state dict (the modules the original is built from), the aggregator against a float64
-composition of those, the backbone without its final norm against the float64 ViT, and
+"""BoQ with DINOv2 (vprflow.models.trained.boq_dinov2): the shared BoQ head at its sizes
+against a float64 composition of torch's ``MultiheadAttention`` /
+``TransformerEncoderLayer`` (the modules the original is built from), the backbone
+without its final norm against the float64 ViT, and
 the loader on random weights saved in the ``dinov2_12288.pth`` layout
 (``backbone.dino.<torch-hub DINOv2>``, ``aggregator.*``) with a tiny 2-block ViT."""
 
@@ -15,12 +15,11 @@ from torch.nn import functional as F
 from trained_references import prefixed, randomise, tiny_config, vit_reference
 
 from vprflow.models.checkpoints import CheckpointError
+from vprflow.models.trained.boq import BoQAggregator
 from vprflow.models.trained.boq_dinov2 import (
     BOQ_DINOV2_URL,
-    Attention,
-    BoQAggregator,
+    PROJ_CHANNELS,
     BoQDinoV2,
-    EncoderLayer,
     load_boq_dinov2,
 )
 from vprflow.models.trained.salad import dinov2_hub_state_dict
@@ -31,26 +30,6 @@ SIZES = {"proj_channels": 128, "num_queries": 4, "num_layers": 2, "row_dim": 3}
 
 def _generator(seed: int) -> torch.Generator:
     return torch.Generator().manual_seed(seed)
-
-
-def test_attention_equals_torch_multihead_attention():
-    ours = randomise(Attention(16, 4), seed=1).double()
-    theirs = nn.MultiheadAttention(16, 4, batch_first=True).double()
-    theirs.load_state_dict(ours.state_dict())  # same parameter names, strictly
-    query = torch.randn(2, 3, 16, generator=_generator(2), dtype=torch.float64)
-    memory = torch.randn(2, 5, 16, generator=_generator(3), dtype=torch.float64)
-    with torch.no_grad():
-        expected = theirs(query, memory, memory, need_weights=False)[0]
-        np.testing.assert_allclose(ours(query, memory), expected, rtol=0, atol=1e-12)
-
-
-def test_encoder_layer_equals_torch_transformer_encoder_layer():
-    ours = randomise(EncoderLayer(16, 2), seed=4).double()
-    theirs = nn.TransformerEncoderLayer(16, 2, 64, dropout=0.0, batch_first=True).double()
-    theirs.load_state_dict(ours.state_dict())
-    x = torch.randn(2, 6, 16, generator=_generator(5), dtype=torch.float64)
-    with torch.no_grad():
-        np.testing.assert_allclose(ours(x), theirs.eval()(x), rtol=0, atol=1e-12)
 
 
 def boq_reference(aggregator: BoQAggregator, x: torch.Tensor) -> torch.Tensor:
@@ -105,7 +84,7 @@ def test_aggregator_matches_float64_reference():
 
 
 def test_published_sizes():
-    aggregator = BoQAggregator(768)
+    aggregator = BoQAggregator(768, proj_channels=PROJ_CHANNELS)
     assert aggregator.dim == 12288
     shapes = {k: tuple(v.shape) for k, v in aggregator.state_dict().items()}
     assert shapes["proj_c.weight"] == (384, 768, 3, 3)
@@ -113,7 +92,7 @@ def test_published_sizes():
     assert shapes["boqs.0.encoder.linear1.weight"] == (1536, 384)
     assert shapes["boqs.0.cross_attn.in_proj_weight"] == (1152, 384)
     assert shapes["fc.weight"] == (32, 128)
-    assert aggregator.boqs[0].cross_attn.heads == 6
+    assert aggregator.boqs[0].cross_attn.num_heads == 6
     assert len(aggregator.boqs) == 2
 
 

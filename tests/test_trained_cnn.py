@@ -20,8 +20,8 @@ from torch.nn import functional as F
 from vprflow.models.checkpoints import CheckpointError
 from vprflow.models.trained.boq import (
     BOQ_RESNET50_URL,
+    BoQAggregator,
     BoQResNet,
-    BoQResNetAggregator,
     load_boq_resnet50,
 )
 from vprflow.models.trained.convap import CONVAP_URL, ConvAP, ConvAPAggregator, load_convap
@@ -417,7 +417,7 @@ def boq_reference(
 
 def test_boq_aggregator_equals_formula():
     head = _randomise(
-        BoQResNetAggregator(8, proj_channels=128, num_queries=4, num_layers=2, row_dim=3), seed=6
+        BoQAggregator(8, proj_channels=128, num_queries=4, num_layers=2, row_dim=3), seed=6
     )
     x = torch.randn(2, 8, 5, 6, generator=torch.Generator().manual_seed(2))
     with torch.no_grad():

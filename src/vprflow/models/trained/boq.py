@@ -83,9 +83,10 @@ class QueryBlock(nn.Module):
         return tokens, self.norm_out(out)
 
 
-class BoQResNetAggregator(nn.Module):
+class BoQAggregator(nn.Module):
     """``[B, in_channels, h, w]`` -> ``[B, proj_channels * row_dim]`` (module docstring,
-    step 2); ``proj_channels / 64`` heads."""
+    step 2); ``proj_channels / 64`` heads. Both BoQ variants' head: ResNet-50's with
+    these defaults, DINOv2's with ``in_channels=768, proj_channels=384``."""
 
     def __init__(
         self,
@@ -126,7 +127,7 @@ class _Net(nn.Module):
 
 
 class BoQResNet(nn.Module):
-    """ResNet-50 ``layer3`` + :class:`BoQResNetAggregator`.
+    """ResNet-50 ``layer3`` + :class:`BoQAggregator`.
 
     ``forward``: ImageNet-normalised ``[B, 3, H, W]`` -> L2-normalised ``[B, 16384]``;
     ``feature_map``: the same input -> ``layer3`` ``[B, 1024, H/16, W/16]`` (what the
@@ -137,7 +138,7 @@ class BoQResNet(nn.Module):
         super().__init__()
         self.backbone = _Net(depth)
         channels = resnet_channels(depth, "layer3")
-        self.aggregator = BoQResNetAggregator(channels, **aggregator)
+        self.aggregator = BoQAggregator(channels, **aggregator)
         self.dim = self.aggregator.dim
         self.input_size, self.mean, self.std = INPUT_SIZE, MEAN, STD
 
