@@ -62,17 +62,47 @@ def cycled_config(
     or ``methods``; written to ``workdir/config.yaml``. ``settings`` are further
     top-level keys."""
     make_set(data / "corridor", workdir / "data" / "cycled", n_images)
+    changes = {"path": "cycled"} | ({"methods": methods} if methods else {})
+    return one_dataset_config(workdir, workdir / "data", "cycled", changes, **settings)
+
+
+def one_dataset_config(
+    workdir: Path, data_root: Path, name: str, changes: dict, **settings
+) -> tuple[dict, Path]:
+    """The shipped config with one dataset, ``name``: its corridor entry (methods,
+    re-rankers, resolution, defaults) with ``changes`` put over it, under ``data_root``;
+    the only target. ``settings`` are further top-level keys. Written to
+    ``workdir/config.yaml``."""
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
-    corridor = config["datasets"]["corridor"]
-    config["data_root"] = str(workdir / "data")
-    config["datasets"] = {
-        "cycled": {**corridor, "path": "cycled", "methods": methods or corridor["methods"]}
-    }
-    config["targets"] = ["cycled"]
+    config["data_root"] = str(data_root)
+    config["datasets"] = {name: {**config["datasets"]["corridor"], **changes}}
+    config["targets"] = [name]
     config.update(settings)
+    workdir.mkdir(parents=True, exist_ok=True)
     config_path = workdir / "config.yaml"
     config_path.write_text(yaml.safe_dump(config))
     return config, config_path
+
+
+def snakemake_command(workdir: Path, config_path: Path, cores: int, *targets: str) -> list[str]:
+    """The workflow's Snakemake run in ``workdir`` on ``config_path``."""
+    return [
+        sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "workflow" / "Snakefile"),
+        "--directory", str(workdir), "--configfile", str(config_path),
+        "--cores", str(cores), *targets,
+    ]  # fmt: skip
+
+
+def benchmark_rows(workdir: Path) -> dict[str, list[tuple[float, float]]]:
+    """Per stage, each job's ``(seconds, max RSS MiB)`` from Snakemake's ``benchmark:``
+    files (``logs/<stage>/<key>/<part>.benchmark.tsv``)."""
+    stats: dict[str, list[tuple[float, float]]] = {}
+    for path in sorted((workdir / "logs").rglob("*.benchmark.tsv")):
+        stage = path.relative_to(workdir / "logs").parts[0]
+        with open(path) as f:
+            row = next(csv.DictReader(f, delimiter="\t"))
+        stats.setdefault(stage, []).append((float(row["s"]), float(row["max_rss"])))
+    return stats
 
 
 def data_folder(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Path:
@@ -107,21 +137,12 @@ def run(args: argparse.Namespace, data: Path) -> None:
         shard_size=args.shard,
         search_shard_size=args.shard,
     )
-    command = [
-        sys.executable, "-m", "snakemake", "--snakefile", str(REPO / "workflow" / "Snakefile"),
-        "--directory", str(args.workdir), "--configfile", str(config_path),
-        "--cores", str(args.cores), "results/recall_cycled.csv",
-    ]  # fmt: skip
+    command = snakemake_command(args.workdir, config_path, args.cores, "results/recall_cycled.csv")
     start = time.perf_counter()
     run_snakemake(command)
     wall = time.perf_counter() - start
 
-    stats: dict[str, list[tuple[float, float]]] = {}
-    for path in (args.workdir / "logs").rglob("*.benchmark.tsv"):
-        stage = path.relative_to(args.workdir / "logs").parts[0]
-        with open(path) as f:
-            row = next(csv.DictReader(f, delimiter="\t"))
-        stats.setdefault(stage, []).append((float(row["s"]), float(row["max_rss"])))
+    stats = benchmark_rows(args.workdir)
     print(f"{args.images} images (shard {args.shard}, {args.cores} cores): {wall:.0f} s wall")
     header = f"{'stage':<12} {'jobs':>5} {'seconds':>9} {'s/image':>9} {'peak MiB':>9}"
     print(header)
