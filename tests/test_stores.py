@@ -115,6 +115,116 @@ def test_ragged_writer_casts_to_its_dtype(tmp_path):
     np.testing.assert_array_equal(_ragged_rows(store, "ids", 1), [7])
 
 
+def _chunked_rows(dtype, chunk_rows: int = 4) -> np.ndarray:
+    """Rows ``[7 chunks and 2 rows, 3]`` whose chunks zarr must tell apart: chunk 1 all
+    zero (zarr stores no file for it), chunk 2 zero but for its last row, chunk 3 -0.0
+    where the dtype has it (not zarr's fill value: stored), and a last, partial chunk of
+    zeros (not stored)."""
+    rng = np.random.default_rng(7)
+    rows = (rng.standard_normal((7 * chunk_rows + 2, 3)) * 50).astype(dtype)
+    rows[rows == 0] = 1  # only the chunks below hold zeros
+    rows[chunk_rows : 2 * chunk_rows] = 0
+    rows[2 * chunk_rows : 3 * chunk_rows - 1] = 0
+    if np.dtype(dtype).kind == "f":
+        rows[3 * chunk_rows : 4 * chunk_rows] = -0.0
+    rows[7 * chunk_rows :] = 0
+    return rows
+
+
+def _files(array_dir: Path) -> dict[str, bytes]:
+    """An array directory's chunk files, by path, and its zarr.json without attributes
+    (atomic_store adds the chunk count)."""
+    import json
+
+    found = {}
+    for path in sorted(array_dir.rglob("*")):
+        if path.is_file():
+            data = path.read_bytes()
+            if path.name == "zarr.json":
+                metadata = json.loads(data)
+                metadata.pop("attributes", None)
+                data = json.dumps(metadata, sort_keys=True).encode()
+            found[str(path.relative_to(array_dir))] = data
+    return found
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float16, np.int64, np.uint8, bool])
+@pytest.mark.parametrize("write_chunks", [1, 3, 100])
+def test_row_writer_stores_the_chunk_files_of_zarr_append(
+    tmp_path, monkeypatch, dtype, write_chunks
+):
+    """RowWriter (several chunks a write, zarr's empty-chunk comparison skipped where
+    no chunk can be empty) leaves the files that zarr's own Array.append of each chunk
+    leaves, the way RowWriter wrote before; plain zarr reads the same bits back."""
+    import zarr
+
+    chunk_rows = 4
+    rows = _chunked_rows(dtype, chunk_rows)
+    row_bytes = rows.dtype.itemsize * rows.shape[1]
+    monkeypatch.setattr(stores, "WRITE_BYTES", write_chunks * chunk_rows * row_bytes)
+    decided = []
+    real = stores._no_chunk_left_empty
+    monkeypatch.setattr(
+        stores, "_no_chunk_left_empty", lambda *a: decided.append(real(*a)) or decided[-1]
+    )
+    out = tmp_path / "new.zarr"
+    with atomic_store(out) as group:
+        writer = stores.RowWriter(group, "rows", (3,), dtype, chunk_rows)
+        for first in range(0, len(rows), 3):  # appends that straddle chunks
+            writer.append(rows[first : first + 3])
+        writer.close()
+    reference = zarr.open_group(str(tmp_path / "append.zarr"), mode="w").create_array(
+        "rows", shape=(0, 3), chunks=(chunk_rows, 3), dtype=dtype, compressors=stores.COMPRESSORS
+    )
+    for first in range(0, len(rows), chunk_rows):
+        reference.append(rows[first : first + chunk_rows])
+
+    new, old = _files(out / "rows"), _files(tmp_path / "append.zarr" / "rows")
+    assert new.keys() == old.keys()
+    # Chunk 1 and the last chunk are zeros: no file, in either.
+    assert [name for name in new if name.startswith("c")] == [
+        f"c/{i}/0" for i in (0, 2, 3, 4, 5, 6)
+    ]
+    for name in new:
+        assert new[name] == old[name], name
+    # zarr's comparison was skipped for a write without an empty chunk, and not where a
+    # chunk was empty (one write of them all holds chunk 1).
+    assert decided == [False] if write_chunks == 100 else (True in decided and False in decided)
+    stored = zarr.open_group(str(out), mode="r")["rows"][...]
+    assert stored.dtype == rows.dtype
+    assert stored.tobytes() == rows.tobytes()  # bits: -0.0 stays -0.0
+
+
+@pytest.mark.parametrize(
+    "dtype, block, empty",
+    [
+        (np.float32, np.zeros((4, 3)), True),
+        (np.float32, np.full((4, 3), -0.0), False),  # zarr compares floats' bits
+        (np.float32, np.r_[np.zeros((3, 3)), [[0, 0, 1e-45]]], False),  # a subnormal
+        (np.float64, np.r_[np.zeros((3, 3)), [[0, 0, 5e-324]]], False),
+        (np.int64, np.r_[np.zeros((3, 3)), [[0, -1, 0]]], False),
+        (np.int64, np.zeros((4, 3)), True),
+        (bool, np.zeros((4, 3)), True),
+        (bool, np.eye(4, 3), False),
+        (np.complex64, np.full((4, 3), -0.0 + 0j), True),  # zarr: -0.0 == 0 for complex
+        (np.complex64, np.ones((4, 3)), False),
+    ],
+)
+def test_the_empty_chunk_shortcut_agrees_with_zarrs_comparison(tmp_path, dtype, block, empty):
+    """_no_chunk_left_empty answers True only where zarr's own comparison (NDBuffer.all_equal
+    with the fill value) finds the chunk not empty; complex arrays always go to zarr."""
+    import zarr
+    from zarr.core.buffer.cpu import NDBuffer
+
+    block = np.asarray(block).astype(dtype)
+    array = zarr.open_group(str(tmp_path / "g.zarr"), mode="w").create_array(
+        "x", shape=(4, 3), chunks=(4, 3), dtype=dtype, compressors=stores.COMPRESSORS
+    )
+    assert NDBuffer.from_numpy_array(block).all_equal(array.fill_value) is empty
+    shortcut = stores._no_chunk_left_empty(array, 0, block)
+    assert shortcut is (not empty and block.dtype.kind != "c")
+
+
 @pytest.mark.parametrize("shape", [(3, 5, 7), (1, 1, 1), (4, 13, 3), (2, 9, 8), (0, 3, 5)])
 def test_pack_unpack_masks_round_trip(shape):
     masks = np.random.default_rng(sum(shape)).random(shape) < 0.4

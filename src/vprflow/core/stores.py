@@ -437,10 +437,63 @@ def rows_per_chunk(row_bytes: int) -> int:
     return max(1, (1 << 22) // max(row_bytes, 1))
 
 
+# RowWriter hands zarr whole chunks of about this many bytes per write (at least one
+# chunk). zarr encodes the chunks of one write concurrently (zstd on its thread pool) and
+# rewrites the array's zarr.json once per write: one chunk a write left compression on a
+# single thread and cost a metadata write per 4 MiB chunk (8% of a descriptors write,
+# benchmarks/README.md). What is stored is the same: the chunks do not change.
+WRITE_BYTES = 16 << 20
+
+
+def _no_chunk_left_empty(array: zarr.Array, start: int, rows: np.ndarray) -> bool:
+    """Whether writing ``rows`` at row ``start`` gives every chunk it touches a row with a
+    nonzero byte, so that no chunk can equal a fill value of zero bytes.
+
+    zarr does not store a chunk equal to the fill value (``write_empty_chunks=False``)
+    and finds out with a comparison over the whole chunk (``NDBuffer.all_equal``, a
+    void-dtype ``array_equal``): a fifth of a descriptors write, on the event loop that
+    also runs every chunk's checksum. When this is True that comparison can only answer
+    "not empty", so :func:`store_rows` skips it and the chunk files are the same. For
+    booleans and integers zarr compares values and for floats bit patterns (-0.0 is not
+    empty), both of which are the bytes; other dtypes (complex: -0.0 equals 0) and
+    arrays chunked along other axes answer False, and zarr's own comparison runs.
+    """
+    dtype = array.dtype
+    if (
+        rows.size == 0
+        or not isinstance(dtype, np.dtype)
+        or dtype.kind not in "biuf"
+        or np.asarray(array.fill_value, dtype=dtype).tobytes() != bytes(dtype.itemsize)
+        or tuple(array.chunks[1:]) != tuple(array.shape[1:])
+    ):
+        return False
+    chunk_rows = array.chunks[0]
+    flat = np.ascontiguousarray(rows).reshape(len(rows), -1).view(np.uint8)
+    stop = start + len(rows)
+    for first in range(start - start % chunk_rows, stop, chunk_rows):
+        block = flat[max(first, start) - start : min(first + chunk_rows, stop) - start]
+        # The first row nearly always decides; a zero row costs a scan of its chunk.
+        if not (block[0].any() or block.any()):
+            return False
+    return True
+
+
+def store_rows(array: zarr.Array, rows: np.ndarray) -> None:
+    """Append ``rows`` to ``array`` along its first axis: ``array.append(rows)``, with the
+    same chunk files, without zarr's empty-chunk comparison where
+    :func:`_no_chunk_left_empty` shows it cannot find one."""
+    start = array.shape[0]
+    array.resize((start + len(rows), *array.shape[1:]))
+    if _no_chunk_left_empty(array, start, rows):
+        # A runtime setting, not stored: zarr.json is the same either way.
+        array = array.with_config({"write_empty_chunks": True})
+    array[start:] = rows
+
+
 class RowWriter:
     """Append rows ``[n, *row_shape]`` to ``group[name]``, buffered and written in whole
     chunks, so appending one image at a time does not recompress a chunk per image
-    (nor a partly filled chunk once per flush).
+    (nor a partly filled chunk once per flush); about :data:`WRITE_BYTES` a write.
 
     Each write (compression, mostly) runs on a background thread while the caller
     computes the next rows; one write at a time, in order. :meth:`close` waits for
@@ -458,6 +511,8 @@ class RowWriter:
         self.group = group
         self.name = name
         self.chunk_rows = chunk_rows
+        row_bytes = np.dtype(dtype).itemsize * int(np.prod(row_shape))
+        self.write_rows = chunk_rows * max(1, WRITE_BYTES // max(chunk_rows * row_bytes, 1))
         self.buffer: list[np.ndarray] = []
         self.buffered = 0
         self.written = 0
@@ -470,7 +525,7 @@ class RowWriter:
         check_finite(self.group, what or self.name, rows, first_row=self.written + self.buffered)
         self.buffer.append(rows)
         self.buffered += len(rows)
-        if self.buffered >= self.chunk_rows:
+        if self.buffered >= self.write_rows:
             self._flush(whole_chunks=True)
 
     def _flush(self, whole_chunks: bool = False) -> None:
@@ -481,7 +536,7 @@ class RowWriter:
             return
         rows = np.concatenate(self.buffer, axis=0)  # a copy: the caller may reuse its arrays
         self._wait()
-        self._pending = self._executor.submit(self.array.append, rows[:count], axis=0)
+        self._pending = self._executor.submit(store_rows, self.array, rows[:count])
         _PENDING_WRITES.add(self._pending)
         self.written += count
         self.buffered -= count
