@@ -75,9 +75,24 @@ def datasets_doc() -> str:
         "the presets use by default. The numbers were transcribed from the papers' tables",
         '(named with each); check them against the paper before you cite them. "none',
         'found" means neither the AnyLoc nor the Revisit Anything paper reports the',
-        "dataset and the SNSM paper's tables could not be read here. `native` size: every",
-        "image as stored (its size, the first image's, must be every image's). Each",
-        "preset's section names the code its layout and rule were read from.",
+        "dataset, no trained model's README reports it at vprflow's variant and split, and",
+        "the SNSM paper's tables could not be read here.",
+        "",
+        "The trained models' rows (MixVPR, Conv-AP, BoQ, SALAD: docs/methods.md \u00a711)",
+        "are their authors' README tables (`repository @ commit: README.md`), at the",
+        "variant config/trained.yaml loads, listed only where the README's split is the",
+        "preset's (the Nordland rows are VPR-Bench's 2,760 queries, not the downloader's",
+        "27,592, and stay out). Each row's `vprflow row` is the method whose row of",
+        "`results/recall_<preset>.csv` reproduces it at the preset's settings (`-`: none",
+        "in vprflow, such as SegVLAD-FineT's fine-tuned checkpoint or the (M) vocabulary).",
+        "A preset runs the training-free ones already; with `trained_baselines: true` in",
+        "the config, which config/trained.yaml sets, it also runs the trained ones its",
+        "rows name, after its own methods, so one run rebuilds the table:",
+        "`snakemake --cores 2 --configfile config/config.yaml config/trained.yaml",
+        "results/recall_pitts30k.csv` (the checkpoints where config/trained.yaml says).",
+        "",
+        "`native` size: every image as stored (its size, the first image's, must be every",
+        "image's). Each preset's section names the code its layout and rule were read from.",
         "",
         "| preset | dataset | positives | queries counted | size | vocabulary |"
         " published R@1 / R@5 |",
@@ -114,9 +129,14 @@ def datasets_doc() -> str:
         for other in preset.other_layouts:
             lines += ["", f"In {other['name']}: {other['convert']}"]
         if preset.published:
-            lines += ["", "| method | paper | R@1 | R@5 |", "|---|---|---|---|"]
             lines += [
-                f"| {p['method']} | {p['paper']} | {p['recall@1']} | {p['recall@5']} |"
+                "",
+                "| method | paper | R@1 | R@5 | vprflow row |",
+                "|---|---|---|---|---|",
+            ]
+            lines += [
+                f"| {p['method']} | {p['paper']} | {p['recall@1']} | {p['recall@5']} | "
+                + (f"`{p['row']}` |" if "row" in p else "- |")
                 for p in preset.published
             ]
     return "\n".join(lines) + "\n"

@@ -109,6 +109,14 @@ def test_the_shipped_configs_and_every_preset_read_every_key_they_set(raw):
     validate_config(yaml.safe_load((REPO / ".test/config/config.yaml").read_text()), SCHEMA_PATH)
 
 
+def test_trained_baselines_is_a_boolean_false_by_default_and_refused_otherwise(raw):
+    assert validate_config(copy.deepcopy(raw), SCHEMA_PATH)["trained_baselines"] is False
+    # A string that reads as true is no boolean: refused by name before it adds methods.
+    raw["trained_baselines"] = "yes"
+    message = refused(raw)
+    assert "config key 'trained_baselines'" in message and "boolean" in message
+
+
 def test_each_kinds_keys_come_from_the_schemas_x_kinds():
     schema = load_schema(SCHEMA_PATH)
     truth = schema["definitions"]["dataset"]["properties"]["ground_truth"]

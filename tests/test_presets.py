@@ -16,7 +16,14 @@ from workflow_helpers import repo_config, snakemake, write_config
 from vprflow.core.errors import ConfigError, DatasetError, PlanError
 from vprflow.data.datasets import list_dataset
 from vprflow.data.ground_truth import ground_truth
-from vprflow.data.presets import merge_entry, presets, unknown_dataset
+from vprflow.data.presets import (
+    _check_published_row,
+    is_trained_method,
+    merge_entry,
+    presets,
+    undefined_rows,
+    unknown_dataset,
+)
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 
@@ -382,3 +389,112 @@ def test_every_presets_table_comes_from_its_data_alone(tmp_path):
         assert [r["method"] for r in rows] == expected, name
         assert rows[0]["protocol"] == f"preset {name}"
         assert 0 <= float(rows[0]["recall@1"]) <= 1
+
+
+def trained_config(data_root: Path, **changes) -> dict:
+    """config/trained.yaml over config/config.yaml, as Snakemake merges the two files
+    (mappings key by key, a list replaced)."""
+    import yaml
+
+    from vprflow.planning.plan import deep_merge
+
+    extra = yaml.safe_load((REPO / "config" / "trained.yaml").read_text())
+    config = deep_merge(config_with(data_root), extra)
+    config.update(changes)
+    return config
+
+
+def test_every_published_row_names_a_method_the_shipped_configs_define(tmp_path):
+    config = trained_config(tmp_path)
+    assert undefined_rows(set(config["methods"])) == []
+    rows = [row for preset in presets().values() for row in preset.published]
+    assert {r["row"] for r in rows if "row" in r} >= {"anyloc_vlad", "segvlad", "mixvpr"}
+    # The SegVLAD-FineT rows need the authors' fine-tuned checkpoint: no row.
+    assert all("row" not in r for r in rows if "FineT" in r["method"])
+    # A method no config defines is named with its preset and row.
+    messages = undefined_rows(set(config["methods"]) - {"mixvpr"})
+    assert messages and all("'mixvpr'" in m for m in messages)
+    assert any("'pitts30k'" in m and "'MixVPR (ResNet50, 4096)'" in m for m in messages)
+
+
+def test_a_training_free_row_is_a_method_its_preset_runs_and_a_trained_row_one_it_appends(
+    tmp_path,
+):
+    """A row's method appears in the preset's table: the training-free ones are in its
+    own methods, the others are trained methods that `trained_baselines` appends."""
+    config = trained_config(tmp_path)
+    for name, preset in presets().items():
+        for row in preset.published:
+            if "row" in row and row["row"] not in preset.dataset["methods"]:
+                assert is_trained_method(row["row"], config), (name, row)
+    assert not is_trained_method("segvlad", config)
+    assert is_trained_method("salad_tokens_vlad", config)  # anyloc_vlad on SALAD's tokens
+
+
+def test_a_malformed_published_row_is_named_with_its_preset():
+    with pytest.raises(ValueError, match=r"presets\.yaml: pitts30k: .*unknown \['rows'\]"):
+        _check_published_row(
+            "pitts30k",
+            {"method": "m", "paper": "p", "recall@1": 1, "recall@5": 2, "rows": "mixvpr"},
+        )
+    with pytest.raises(ValueError, match="pitts30k.*row must be a method name"):
+        _check_published_row(
+            "pitts30k", {"method": "m", "paper": "p", "recall@1": 1, "recall@5": 2, "row": 3}
+        )
+
+
+def test_trained_baselines_appends_the_trained_rows_methods_to_each_preset_only(tmp_path):
+    for name in ("pitts30k", "msls_val", "st_lucia"):
+        (tmp_path / name).mkdir()
+    config = trained_config(tmp_path)
+    datasets = validate_config(config, SCHEMA)["datasets"]
+    # In the published rows' order, after the preset's own methods.
+    assert datasets["pitts30k"]["methods"] == [
+        "anyloc_vlad", "segvlad", "mixvpr", "convap", "boq_resnet50", "boq_dinov2"
+    ]  # fmt: skip
+    assert datasets["msls_val"]["methods"] == [
+        "anyloc_vlad", "segvlad", "mixvpr", "convap", "salad", "boq_resnet50", "boq_dinov2"
+    ]  # fmt: skip
+    assert datasets["st_lucia"]["protocol"] == "preset st_lucia"  # methods are no protocol
+    # A non-preset dataset keeps its methods (config/trained.yaml's list for corridor).
+    assert datasets["corridor"]["methods"] == config["datasets"]["corridor"]["methods"]
+    # A method the entry lists already is not listed twice; the entry's own order stays.
+    config["datasets"]["pitts30k"] = {"methods": ["boq_dinov2", "anyloc_vlad"]}
+    methods = validate_config(config, SCHEMA)["datasets"]["pitts30k"]["methods"]
+    assert methods == ["boq_dinov2", "anyloc_vlad", "mixvpr", "convap", "boq_resnet50"]
+    # false (the default): the preset's methods alone, as without the key.
+    config = trained_config(tmp_path, trained_baselines=False)
+    off = validate_config(config, SCHEMA)["datasets"]
+    del config["trained_baselines"]
+    assert validate_config(config, SCHEMA)["datasets"] == off
+    assert off["pitts30k"]["methods"] == presets()["pitts30k"].dataset["methods"]
+
+
+def test_trained_baselines_without_the_trained_methods_names_config_trained_yaml(tmp_path):
+    config = config_with(tmp_path, targets=["pitts30k"], trained_baselines=True)
+    with pytest.raises(ConfigError) as error:
+        validate_config(config, SCHEMA)
+    message = str(error.value)
+    assert "pitts30k" in message and "'mixvpr'" in message and "config/trained.yaml" in message
+    # A preset whose rows name no trained method joins as before.
+    config = config_with(tmp_path, targets=["baidu_mall"], trained_baselines=True)
+    baidu = validate_config(config, SCHEMA)["datasets"]["baidu_mall"]
+    assert baidu["methods"] == presets()["baidu_mall"].dataset["methods"]
+
+
+def test_trained_baselines_plans_a_trained_row_on_a_preset(tmp_path):
+    """The appended methods plan on the preset as on any dataset: one row each, on the
+    preset's ground truth, with no vocabulary (the model's own descriptor)."""
+    data = tmp_path / "data"
+    MINIATURES["pitts30k"](data / "pitts30k", np.random.default_rng(0))
+    config = trained_config(data, targets=["pitts30k"])
+    filled = validate_config(config, SCHEMA)
+    for entry in filled["backbones"].values():
+        if entry.get("checkpoint"):
+            path = tmp_path / entry["checkpoint"]
+            path.parent.mkdir(parents=True, exist_ok=True)
+            path.write_bytes(entry["checkpoint"].encode())
+            entry["checkpoint"] = str(path)
+    plan = build_plan(filled)
+    rows = [run.method for run in plan.runs["pitts30k"]]
+    assert {"mixvpr", "convap", "boq_resnet50", "boq_dinov2"} <= set(rows)

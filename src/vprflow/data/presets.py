@@ -15,6 +15,10 @@ A config entry of a preset's name changes only the keys it gives (``merge_entry`
 settings tied to the preset's published features follow the features it chooses
 (``follow_features``); ``preset: false`` keeps a full entry apart. Where the folder
 exists in another layout, ``layout_hint`` says which and how to convert it.
+
+Each published row may name the vprflow method that reproduces it (``row``); with the
+config's ``trained_baselines: true`` a preset also runs the trained methods its rows
+name (``with_trained_baselines``), so that one run rebuilds the paper's table.
 """
 
 from __future__ import annotations
@@ -52,15 +56,24 @@ class Preset:
     layout: str  # the folder tree the entry reads, as published
     protocol: str  # positives, queries counted, image size, vocabulary: in words
     code: str  # the published code the entry follows (repository, commit, files)
-    published: tuple[dict, ...]  # recall the papers report: method, paper, R@1, R@5
+    # Recall the papers report: method, paper, R@1, R@5 and, where vprflow has the
+    # method that reproduces it, ``row`` (that method's name in the recall table).
+    published: tuple[dict, ...]
     # The same data in another published layout: name, reference, query, convert.
     other_layouts: tuple[dict, ...] = ()
+
+
+# A published row's keys; ``row`` is optional.
+PUBLISHED_KEYS = ("method", "paper", "recall@1", "recall@5")
 
 
 @cache
 def presets() -> dict[str, Preset]:
     """Every preset, by name, in the file's order."""
     raw = yaml.safe_load(PRESETS_FILE.read_text())
+    for name, entry in raw.items():
+        for row in entry.get("published") or ():
+            _check_published_row(name, row)
     return {
         name: Preset(
             name=name,
@@ -77,6 +90,79 @@ def presets() -> dict[str, Preset]:
         )
         for name, entry in raw.items()
     }
+
+
+def _check_published_row(name: str, row: dict) -> None:
+    """A published row has the four keys, numbers for recall and, if any, a method name
+    as ``row``: a typo would otherwise reach docs/datasets.md, or drop a trained row."""
+    where = f"{PRESETS_FILE}: {name}: published row {row!r}"
+    missing = [key for key in PUBLISHED_KEYS if key not in row]
+    unknown = sorted(set(row) - {*PUBLISHED_KEYS, "row"})
+    if missing or unknown:
+        raise ValueError(
+            f"{where}: missing {missing}, unknown {unknown} (keys: "
+            f"{', '.join(PUBLISHED_KEYS)}, optional row)"
+        )
+    if not all(isinstance(row[k], (int, float)) for k in ("recall@1", "recall@5")):
+        raise ValueError(f"{where}: recall@1 and recall@5 must be numbers")
+    if "row" in row and not isinstance(row["row"], str):
+        raise ValueError(f"{where}: row must be a method name, not {row['row']!r}")
+
+
+def undefined_rows(methods) -> list[str]:
+    """Every published row whose ``row`` names no method of ``methods`` (the method names
+    of config/config.yaml and config/trained.yaml: tests/test_presets.py), each naming
+    the preset, the row and the method."""
+    return [
+        f"preset {name!r}: published row {row['method']!r} ({row['paper']}) names method "
+        f"{row['row']!r}, which neither config/config.yaml nor config/trained.yaml defines"
+        for name, preset in presets().items()
+        for row in preset.published
+        if "row" in row and row["row"] not in methods
+    ]
+
+
+def is_trained_method(method: str, config: dict) -> bool:
+    """Whether ``method`` of ``config`` runs a trained VPR model: the aggregator
+    ``model`` (a model's own descriptor), or its own ``features`` a trained kind's
+    backbone entry (config/trained.yaml's salad_tokens_vlad). A method the config lacks
+    counts when it bears a trained kind's name, as config/trained.yaml names them."""
+    from vprflow.core.registry import TRAINED_KINDS
+
+    settings = (config.get("methods") or {}).get(method)
+    if not isinstance(settings, dict):
+        return method in TRAINED_KINDS
+    backbone = (config.get("backbones") or {}).get(settings.get("features")) or {}
+    return settings.get("aggregator") == "model" or backbone.get("backbone") in TRAINED_KINDS
+
+
+def with_trained_baselines(name: str, dataset: dict, config: dict) -> dict:
+    """The preset ``name``'s config entry ``dataset`` with the trained methods its
+    published rows name appended to ``methods`` (in the rows' order, skipping those it
+    runs already), when the config sets ``trained_baselines: true``; else unchanged. A
+    trained row the config does not define is an error naming config/trained.yaml."""
+    # `is True`: this runs before the schema checks the key's type, which then refuses
+    # anything but a boolean.
+    if config.get("trained_baselines") is not True:
+        return dataset
+    methods = list(dataset.get("methods") or ())
+    defined = config.get("methods") or {}
+    for row in presets()[name].published:
+        method = row.get("row")
+        if method is None or method in methods or not is_trained_method(method, config):
+            continue
+        if method not in defined:
+            from vprflow.core.errors import ConfigError
+
+            raise ConfigError(
+                f"config key 'trained_baselines': datasets.{name} (preset {name!r}) runs "
+                f"the trained method {method!r} of its published row {row['method']!r}, "
+                "which this config does not define: add config/trained.yaml (snakemake "
+                "--configfile config/config.yaml config/trained.yaml), which defines it, "
+                "or set trained_baselines: false"
+            )
+        methods.append(method)
+    return {**dataset, "methods": methods}
 
 
 def merge_entry(base: dict, override: dict) -> dict:
@@ -100,7 +186,9 @@ def merge_entry(base: dict, override: dict) -> dict:
 def with_presets(config: dict) -> dict:
     """``config["datasets"]`` completed with the presets it uses: those it names (its
     entry of the same name merged over the preset) and those whose folder exists under
-    ``data_root``. Other presets stay out, so a missing one costs nothing.
+    ``data_root``. Other presets stay out, so a missing one costs nothing. With
+    ``trained_baselines: true`` each runs the trained methods its published rows name
+    (:func:`with_trained_baselines`).
 
     An entry with ``preset: false`` is used as it is. A full entry (every required key)
     that bears a preset's name is merged with it all the same, and the log and the
@@ -125,7 +213,7 @@ def with_presets(config: dict) -> dict:
             if entry.get("preset") is False:
                 continue  # the user's own dataset; protocol() says so
             base, notes = follow_features(name, preset.dataset, entry, config)
-            datasets[name] = merge_entry(base, entry)
+            datasets[name] = with_trained_baselines(name, merge_entry(base, entry), config)
             if entry.get("preset") is None and all(key in entry for key in REQUIRED):
                 datasets[name]["preset"] = True  # read (and removed) by protocol()
                 taken = sorted(k for k in preset.dataset if k not in entry)
@@ -143,6 +231,7 @@ def with_presets(config: dict) -> dict:
             and not undefined_components(preset.dataset, config)
         ):
             datasets[name], notes = follow_features(name, preset.dataset, {}, config)
+            datasets[name] = with_trained_baselines(name, datasets[name], config)
             _say(notes)
             _check_method_features(name, datasets[name], preset.dataset, config)
     return datasets
