@@ -1,3 +1,6 @@
+from vprflow.evaluation.published_rows import PUBLISHED_CSV
+
+
 rule recall:
     input:
         unpack(stage_inputs("recall")),
@@ -58,10 +61,26 @@ rule predictions:
         "../scripts/predictions.py"
 
 
+# A preset's published recall beside this run's rows (docs/datasets.md): not a
+# default target, asked for by name (`snakemake results/published_pitts30k.csv`).
+rule published:
+    input:
+        RECALL_CSV,
+    output:
+        PUBLISHED_CSV,
+    log:
+        "logs/published/{dataset}.log",
+    conda:
+        "../envs/vprflow.yaml"
+    script:
+        "../scripts/published_rows.py"
+
+
 # Writing small CSV files is not worth a cluster job.
 localrules:
     report,
     predictions,
+    published,
 
 
 # A failed run must not leave a results table that looks current (e.g. one method of
