@@ -1,7 +1,10 @@
-"""Per-image time of the descriptors stage against the arithmetic it does, per method.
+"""Per-image time of the descriptors stage against the arithmetic it does, per method,
+beside the stage as it was before its reads were overlapped; and each stage job's
+start-up.
 
     python benchmarks/bench_descriptors.py --data ../shared/data [--images 256]
         [--threads 2] [--repeats 3] [--workdir /tmp/vprflow-bench-descriptors]
+        [--before 2cc3dee]
     python benchmarks/bench_descriptors.py --smoke   # 8 images, anyloc_vlad and segvlad
 
 ``--data`` defaults to ``$VPRFLOW_DATA`` (a smoke run without either is skipped, status
@@ -13,17 +16,26 @@ bench_workflow.py) with Snakemake, once per work directory. Then, per method of 
 corridor config, in one process and under the rule's thread budget (``run_stage``):
 
 - stage: the descriptors stage's job (``vprflow.stages.jobs.run_job``) over all images
-  (store reads, PCA, writes, zarr);
+  (store reads, PCA, writes, zarr), each run into a new store (removed untimed);
+- before: the same job through ``src/vprflow/stages/descriptors.py`` of ``--before``
+  (``git show``; default: the commit before the reader thread, whose stage read each
+  64 MiB block of features on its main thread before computing it), the two runs
+  interleaved in every repeat so that both see the same machine load;
 - arithmetic: the method's per-image ``compute`` (and PCA transform) on every image's
   inputs read beforehand (float32 features, unpacked masks), one image at a time, with
   one BLAS thread or the rule's threads, whichever is faster;
 - read: reading every image's inputs through the stage's readers alone;
 - job: a fresh Python process running the rule's script (``workflow/scripts/
-  descriptors.py``: imports, stage, store), as Snakemake's benchmark file would time it,
+  stage.py``: imports, stage, store), as Snakemake's benchmark file would time it,
   less Snakemake's own script preamble.
 
 Each is the best of ``--repeats`` runs, in ms per image; "ratio" = stage / arithmetic,
 "job ratio" = job / arithmetic.
+
+Start-up (second table): per stage of ``plan.STAGES``, a fresh Python process that
+imports what the stage's job imports before it runs (the rule's script's modules and
+the stage's runner module): its wall time, the imports' share of it, and whether torch
+or faiss came with them; the first row is ``python -c pass``, the floor.
 """
 
 from __future__ import annotations
@@ -36,6 +48,7 @@ import subprocess
 import sys
 import tempfile
 import time
+import types
 from pathlib import Path
 
 from threadpoolctl import threadpool_limits
@@ -45,8 +58,47 @@ from bench_workflow import REPO, cycled_config, data_folder, run_snakemake  # no
 
 from vprflow.core import stores  # noqa: E402
 from vprflow.planning.config import validate_config  # noqa: E402
-from vprflow.planning.plan import build_plan  # noqa: E402
+from vprflow.planning.plan import STAGES, build_plan  # noqa: E402
 from vprflow.stages.runner import run_stage  # noqa: E402
+
+# The last commit whose descriptors stage read its inputs on the main thread, 64 MiB of
+# features before any image of them was computed (issue 33 item 3).
+BEFORE = "2cc3dee"
+
+
+def load_before(rev: str) -> types.ModuleType:
+    """``src/vprflow/stages/descriptors.py`` at ``rev`` as a module of its own (it
+    imports the rest of the package as it is now)."""
+    source = subprocess.run(
+        ["git", "show", f"{rev}:src/vprflow/stages/descriptors.py"],
+        cwd=REPO, capture_output=True, text=True, check=True,
+    ).stdout  # fmt: skip
+    module = types.ModuleType("descriptors_before")
+    sys.modules[module.__name__] = module  # dataclasses look their module up
+    exec(compile(source, f"{rev}:descriptors.py", "exec"), module.__dict__)
+    module.aggregator = _with_functions_of(module)
+    return module
+
+
+def _with_functions_of(module: types.ModuleType):
+    """``registry.aggregator`` whose entries run ``module``'s per-image functions (the
+    readers as they were then), not those the registry's ``"module:function"`` names."""
+    from vprflow.core.registry import aggregator, resolve
+
+    class Entry:
+        def __init__(self, name: str):
+            self.entry = aggregator(name)
+
+        def __getattr__(self, name: str):
+            return getattr(self.entry, name)
+
+        def descriptor_function(self, options: dict, inputs: dict):
+            function = getattr(module, self.entry.image_descriptor.split(":")[1])
+            if self.entry.compute is not None:
+                return function(options, inputs, resolve(self.entry.compute))
+            return function(options, inputs)
+
+    return Entry
 
 
 def prepare(data: Path, workdir: Path, n_images: int, methods: list[str] | None = None):
@@ -77,6 +129,16 @@ def best_of(function, repeats: int) -> float:
     return min(times)
 
 
+def interleaved(calls: dict, repeats: int) -> dict:
+    """``{name: fastest seconds}``, the calls taking turns in every repeat; a call
+    returns the seconds it timed (its untimed cleanup outside them)."""
+    best = dict.fromkeys(calls, float("inf"))
+    for _ in range(repeats):
+        for name, call in calls.items():
+            best[name] = min(best[name], call())
+    return best
+
+
 def method_name(stage) -> str:
     params = stage.record["params"]
     name = params["aggregator"]
@@ -101,8 +163,10 @@ runpy.run_path(script, init_globals={"snakemake": snakemake})
 """
 
 
-def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ...]:
-    """(stage, arithmetic, read, job) seconds per image of one descriptors stage."""
+def measure(
+    stage, workdir: Path, repeats: int, threads: int, before: types.ModuleType
+) -> tuple[float, ...]:
+    """(stage, before, arithmetic, read, job) seconds per image of one descriptors stage."""
     from vprflow.core.registry import aggregator
     from vprflow.stages.dataset import Dataset
     from vprflow.stages.features import FeatureReader
@@ -112,10 +176,23 @@ def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ..
 
     inputs = {name: str(workdir / path) for name, path in stage.input_paths().items()}
     n = Dataset(inputs["images"]).n_images
-    out = Path(tempfile.mkdtemp(dir=workdir)) / "descriptors.zarr"
-    stage_s = best_of(
-        lambda: run_job(Job(stage.record, inputs, str(out), threads=threads)), repeats
+    scratch = Path(tempfile.mkdtemp(dir=workdir))
+    out = scratch / "descriptors.zarr"
+
+    def timed(run) -> float:
+        """One job into a new store: ``out`` exists from the second run on, and a job
+        finding its own store there discards its copy (``replace_store``), a cost no
+        workflow job has."""
+        shutil.rmtree(out, ignore_errors=True)
+        start = time.perf_counter()
+        run(Job(stage.record, inputs, str(out), threads=threads))
+        return time.perf_counter() - start
+
+    best = interleaved(
+        {"stage": lambda: timed(run_job), "before": lambda: timed(before.compute_descriptors)},
+        repeats,
     )
+    stage_s, before_s = best["stage"], best["before"]
 
     # The same per-image arithmetic on every image's inputs read beforehand.
     params = stage.record["params"]
@@ -146,9 +223,51 @@ def measure(stage, workdir: Path, repeats: int, threads: int) -> tuple[float, ..
     read_s = best_of(read, repeats)
     script = str(REPO / "workflow" / "scripts" / "stage.py")
     job = json.dumps([script, inputs, stage.record, str(out), n, threads])
-    job_s = best_of(lambda: subprocess.run([sys.executable, "-c", JOB, job], check=True), repeats)
-    shutil.rmtree(out.parent)
-    return stage_s / n, arithmetic_s / n, read_s / n, job_s / n
+
+    def fresh_job() -> float:
+        shutil.rmtree(out, ignore_errors=True)
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-c", JOB, job], check=True)
+        return time.perf_counter() - start
+
+    job_s = min(fresh_job() for _ in range(repeats))
+    shutil.rmtree(scratch)
+    return stage_s / n, before_s / n, arithmetic_s / n, read_s / n, job_s / n
+
+
+# A stage job's imports, as the rule's script makes them, timed in a fresh process.
+STARTUP = """
+import sys, time
+start = time.perf_counter()
+import vprflow.stages.jobs, vprflow.stages.runner, {module}
+imports = time.perf_counter() - start
+print(imports, "torch" in sys.modules, "faiss" in sys.modules)
+"""
+
+
+def startup(repeats: int) -> list[tuple]:
+    """``(stage, process s, imports s, torch, faiss)`` per stage of ``plan.STAGES``, each
+    the fastest of ``repeats`` fresh processes; first ``python -c pass``."""
+
+    def process(code: str) -> tuple[float, str]:
+        best, out = float("inf"), ""
+        for _ in range(repeats):
+            start = time.perf_counter()
+            result = subprocess.run(
+                [sys.executable, "-c", code], check=True, capture_output=True, text=True
+            )
+            seconds = time.perf_counter() - start
+            if seconds < best:
+                best, out = seconds, result.stdout
+        return best, out
+
+    rows = [("(python -c pass)", process("pass")[0], 0.0, False, False)]
+    for name, entry in STAGES.items():
+        module = entry.runner.split(":")[0]
+        seconds, out = process(STARTUP.format(module=module))
+        imports, torch, faiss = out.split()
+        rows.append((name, seconds, float(imports), torch == "True", faiss == "True"))
+    return rows
 
 
 def run(
@@ -156,27 +275,43 @@ def run(
 ) -> None:
     plan = prepare(data, workdir, args.images, config_methods)
     stages = sorted(plan.stages["descriptors"].values(), key=method_name)
+    before = load_before(args.before)
     rows = []
 
     def run_all():
         for stage in stages:
             name = method_name(stage)
             if not args.methods or name in args.methods:
-                rows.append((name, *measure(stage, workdir, args.repeats, args.threads)))
+                rows.append((name, *measure(stage, workdir, args.repeats, args.threads, before)))
 
     run_stage(os.devnull, run_all, args.threads)
-    print(f"{args.images} corridor images, {args.threads} threads, best of {args.repeats}")
+    load = os.getloadavg()[0]
+    print(
+        f"{args.images} corridor images, {args.threads} threads, best of {args.repeats}, "
+        f"before = {args.before}, load average {load:.1f}"
+    )
     header = (
-        f"{'method':<24} {'arith ms':>9} {'stage ms':>9} {'ratio':>6} {'read ms':>8} "
-        f"{'job ms':>8} {'job ratio':>9}"
+        f"{'method':<24} {'arith ms':>9} {'stage ms':>9} {'ratio':>6} {'before ms':>10} "
+        f"{'ratio':>6} {'read ms':>8} {'job ms':>8} {'job ratio':>9}"
     )
     print(header)
     print("-" * len(header))
-    for name, stage_s, arithmetic_s, read_s, job_s in rows:
+    for name, stage_s, before_s, arithmetic_s, read_s, job_s in rows:
         print(
             f"{name:<24} {arithmetic_s * 1e3:>9.2f} {stage_s * 1e3:>9.2f} "
-            f"{stage_s / arithmetic_s:>6.2f} {read_s * 1e3:>8.2f} {job_s * 1e3:>8.2f} "
+            f"{stage_s / arithmetic_s:>6.2f} {before_s * 1e3:>10.2f} "
+            f"{before_s / arithmetic_s:>6.2f} {read_s * 1e3:>8.2f} {job_s * 1e3:>8.2f} "
             f"{job_s / arithmetic_s:>9.2f}"
+        )
+    print()
+    print(f"Start-up of a stage's job: fresh processes, fastest of {args.repeats}")
+    header = f"{'stage':<18} {'process ms':>10} {'imports ms':>10} {'torch':>6} {'faiss':>6}"
+    print(header)
+    print("-" * len(header))
+    for name, seconds, imports, torch, faiss in startup(args.repeats):
+        print(
+            f"{name:<18} {seconds * 1e3:>10.0f} {imports * 1e3:>10.0f} "
+            f"{'yes' if torch else 'no':>6} {'yes' if faiss else 'no':>6}"
         )
 
 
@@ -188,6 +323,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/vprflow-bench-descriptors"))
     parser.add_argument("--methods", nargs="*", help="only these (e.g. 'segvlad order 3 + pca')")
+    parser.add_argument("--before", default=BEFORE, help="git revision of the stage compared")
     parser.add_argument(
         "--smoke",
         action="store_true",
