@@ -7,13 +7,9 @@ import csv
 
 import pytest
 
+from vprflow.core.paths import PUBLISHED_CSV
 from vprflow.data.presets import presets
-from vprflow.evaluation.published_rows import (
-    COLUMNS,
-    PUBLISHED_CSV,
-    published_rows,
-    write_published_table,
-)
+from vprflow.evaluation.published_rows import COLUMNS, published_rows, write_published_table
 
 
 def recall_csv(path, rows: list[dict[str, str]]) -> str:

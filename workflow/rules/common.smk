@@ -15,6 +15,7 @@ from vprflow.core.paths import (
     KAPTURE_PAIRS,
     PAIRS,
     PREDICTIONS_CSV,
+    PUBLISHED_CSV,
     RECALL_CSV,
     RECALL_PLOT,
     NAME_PATTERN,
@@ -27,7 +28,7 @@ from vprflow.core.paths import (
     store_pattern,
 )
 from vprflow.planning.plan import build_plan, method_stores
-from vprflow.data.presets import unknown_dataset
+from vprflow.data.presets import presets, unknown_dataset
 from vprflow.planning.reports import (
     FIGURES,
     clear_superseded,
@@ -192,6 +193,18 @@ def prediction_inputs(wildcards):
             store_path("recall", run.recall_key) for run in PLAN.runs[wildcards.dataset]
         ],
     }
+
+
+def published_input(wildcards):
+    """The recall table beside which a preset's published rows go; a dataset that is no
+    preset fails here, before its table is built."""
+    if wildcards.dataset not in presets():
+        raise PlanError(
+            f"results/published_{wildcards.dataset}.csv: dataset {wildcards.dataset!r} "
+            f"is not a vprflow preset, so it has no published rows (docs/datasets.md "
+            f"lists the presets)"
+        )
+    return RECALL_CSV.format(dataset=wildcards.dataset)
 
 
 def report_inputs(wildcards):

@@ -1,6 +1,3 @@
-from vprflow.evaluation.published_rows import PUBLISHED_CSV
-
-
 rule recall:
     input:
         unpack(stage_inputs("recall")),
@@ -65,7 +62,7 @@ rule predictions:
 # default target, asked for by name (`snakemake results/published_pitts30k.csv`).
 rule published:
     input:
-        RECALL_CSV,
+        published_input,
     output:
         PUBLISHED_CSV,
     log:

@@ -14,6 +14,8 @@ CACHE = "results/cache"
 # Per-dataset tables written by the report rule.
 RECALL_CSV = "results/recall_{dataset}.csv"
 PREDICTIONS_CSV = "results/predictions_{dataset}.csv"
+# A preset's published recall beside the run's (the `published` rule).
+PUBLISHED_CSV = "results/published_{dataset}.csv"
 # Figures of the report (not stages: no key, a changed figure setting reruns only them).
 RECALL_PLOT = "results/plots/recall_{dataset}.png"
 RECALL_TABLE = "results/tables/recall_{dataset}.html"

@@ -15,9 +15,6 @@ from collections.abc import Sequence
 
 from vprflow.core.files import write_text_atomic
 
-# Where the table lives. Kept here, beside the only code that writes it, until
-# core/paths.py (where every other table's path is decided) takes it over.
-PUBLISHED_CSV = "results/published_{dataset}.csv"
 COLUMNS = (
     "method",
     "paper",
