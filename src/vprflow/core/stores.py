@@ -437,26 +437,29 @@ def rows_per_chunk(row_bytes: int) -> int:
     return max(1, (1 << 22) // max(row_bytes, 1))
 
 
-# RowWriter hands zarr whole chunks of about this many bytes per write (at least one
-# chunk). zarr encodes the chunks of one write concurrently (zstd on its thread pool) and
-# rewrites the array's zarr.json once per write: one chunk a write left compression on a
-# single thread and cost a metadata write per 4 MiB chunk (8% of a descriptors write,
-# benchmarks/README.md). What is stored is the same: the chunks do not change.
+# RowWriter stores whole chunks of about this many bytes at a time (at least one chunk),
+# each chunk a zarr write of its own, up to CHUNK_THREADS at once: zarr then compresses
+# them concurrently (zstd on its thread pool) and rewrites the array's zarr.json once per
+# WRITE_BYTES instead of once per chunk. One zarr write of several chunks would do as
+# well but copies each chunk into a new buffer first (zarr merges a value that is not
+# exactly one chunk into a fresh one). What is stored is the same: the chunks do not change.
 WRITE_BYTES = 16 << 20
+CHUNK_THREADS = 4
+_CHUNK_WRITERS = ThreadPoolExecutor(max_workers=CHUNK_THREADS, thread_name_prefix="vprflow-chunk")
 
 
-def _no_chunk_left_empty(array: zarr.Array, start: int, rows: np.ndarray) -> bool:
-    """Whether writing ``rows`` at row ``start`` gives every chunk it touches a row with a
-    nonzero byte, so that no chunk can equal a fill value of zero bytes.
+def _cannot_be_empty(array: zarr.Array, rows: np.ndarray) -> bool:
+    """Whether ``rows``, all that is written to one chunk of ``array`` (chunked along its
+    first axis only), has a nonzero byte, and so cannot leave the chunk equal to a fill
+    value of zero bytes.
 
     zarr does not store a chunk equal to the fill value (``write_empty_chunks=False``)
     and finds out with a comparison over the whole chunk (``NDBuffer.all_equal``, a
-    void-dtype ``array_equal``): a fifth of a descriptors write, on the event loop that
-    also runs every chunk's checksum. When this is True that comparison can only answer
-    "not empty", so :func:`store_rows` skips it and the chunk files are the same. For
-    booleans and integers zarr compares values and for floats bit patterns (-0.0 is not
-    empty), both of which are the bytes; other dtypes (complex: -0.0 equals 0) and
-    arrays chunked along other axes answer False, and zarr's own comparison runs.
+    void-dtype ``array_equal``): a fifth of a descriptors write's CPU. When this is True
+    that comparison can only answer "not empty", so :func:`store_rows` skips it and the
+    chunk file is the same. For booleans and integers zarr compares values and for
+    floats bit patterns (-0.0 is not empty), both of which are the bytes; other dtypes
+    (complex: -0.0 equals 0) answer False, and zarr's own comparison runs.
     """
     dtype = array.dtype
     if (
@@ -464,30 +467,46 @@ def _no_chunk_left_empty(array: zarr.Array, start: int, rows: np.ndarray) -> boo
         or not isinstance(dtype, np.dtype)
         or dtype.kind not in "biuf"
         or np.asarray(array.fill_value, dtype=dtype).tobytes() != bytes(dtype.itemsize)
-        or tuple(array.chunks[1:]) != tuple(array.shape[1:])
     ):
         return False
-    chunk_rows = array.chunks[0]
     flat = np.ascontiguousarray(rows).reshape(len(rows), -1).view(np.uint8)
-    stop = start + len(rows)
-    for first in range(start - start % chunk_rows, stop, chunk_rows):
-        block = flat[max(first, start) - start : min(first + chunk_rows, stop) - start]
-        # The first row nearly always decides; a zero row costs a scan of its chunk.
-        if not (block[0].any() or block.any()):
-            return False
-    return True
+    # The first row nearly always decides; a zero row costs a scan of the rest.
+    return bool(flat[0].any() or flat.any())
 
 
 def store_rows(array: zarr.Array, rows: np.ndarray) -> None:
-    """Append ``rows`` to ``array`` along its first axis: ``array.append(rows)``, with the
-    same chunk files, without zarr's empty-chunk comparison where
-    :func:`_no_chunk_left_empty` shows it cannot find one."""
-    start = array.shape[0]
-    array.resize((start + len(rows), *array.shape[1:]))
-    if _no_chunk_left_empty(array, start, rows):
-        # A runtime setting, not stored: zarr.json is the same either way.
-        array = array.with_config({"write_empty_chunks": True})
-    array[start:] = rows
+    """Append ``rows`` to ``array`` (chunked along its first axis only) as
+    ``array.append(rows)`` would, with the same chunk files: one zarr write per chunk,
+    several at once, each without zarr's empty-chunk comparison where
+    :func:`_cannot_be_empty` shows it cannot find one."""
+    if tuple(array.chunks[1:]) != tuple(array.shape[1:]):
+        raise ValueError(
+            f"store_rows: array {array.store_path} has chunks {array.chunks} for shape "
+            f"{array.shape}: it writes arrays chunked along their first axis only"
+        )
+    if len(rows) == 0:
+        return
+    start, step = array.shape[0], array.chunks[0]
+    stop = start + len(rows)
+    array.resize((stop, *array.shape[1:]))
+    # A runtime setting, not stored: zarr.json is the same either way.
+    skipping = array.with_config({"write_empty_chunks": True})
+
+    def store(first: int) -> None:
+        last = min(first - first % step + step, stop)
+        part = rows[first - start : last - start]
+        (skipping if _cannot_be_empty(array, part) else array)[first:last] = part
+
+    firsts = [start, *range(start - start % step + step, stop, step)]
+    if len(firsts) == 1:
+        store(start)
+        return
+    writes = [_CHUNK_WRITERS.submit(store, first) for first in firsts]
+    # All finish before a failure is raised: a failing stage then deletes its temporary
+    # store with no chunk write still under way (atomic_store).
+    wait(writes)
+    for write in writes:
+        write.result()
 
 
 class RowWriter:
