@@ -42,6 +42,8 @@ import math
 import os
 import re
 import shutil
+import signal
+import subprocess
 import sys
 import tempfile
 import threading
@@ -234,14 +236,17 @@ _JOBID = re.compile(r"^\s+jobid: (\d+)$")
 _FINISHED = re.compile(r"^Finished jobid: (\d+) \(Rule: (\w+)\)$")
 
 
-def log_jobs(workdir: Path) -> dict[str, list[float]]:
-    """Per rule, each job's seconds from the newest Snakemake log (start and finish
-    stamps, 1 s resolution): the time of rules without a ``benchmark:`` file."""
+def log_jobs(workdir: Path) -> tuple[dict[str, list[float]], dict[str, int], float]:
+    """From the newest Snakemake log: per rule, each finished job's seconds (start and
+    finish stamps, 1 s resolution: the time of rules without a ``benchmark:`` file); per
+    rule, the jobs planned (its "Job stats"); the seconds from first to last stamp."""
     log = max((workdir / ".snakemake" / "log").glob("*.snakemake.log"))
-    stamp, rule, started, jobs = None, None, {}, {}
-    for line in log.read_text().splitlines():
+    stamp, rule, started, jobs, stamps = None, None, {}, {}, []
+    lines = log.read_text().splitlines()
+    for line in lines:
         if m := _STAMP.match(line):
             stamp = datetime.strptime(m.group(1), "%a %b %d %H:%M:%S %Y")
+            stamps.append(stamp)
         elif m := _RULE.match(line):
             rule = m.group(1)
         elif (m := _JOBID.match(line)) and rule:
@@ -249,21 +254,33 @@ def log_jobs(workdir: Path) -> dict[str, list[float]]:
         elif m := _FINISHED.match(line):
             seconds = (stamp - started.pop(m.group(1))).total_seconds()
             jobs.setdefault(m.group(2), []).append(seconds)
-    return jobs
+    stats = lines.index("Job stats:")
+    planned = {}
+    for line in lines[stats + 3 :]:
+        name, count = line.split()
+        if name == "total":
+            break
+        planned[name] = int(count)
+    return jobs, planned, (stamps[-1] - stamps[0]).total_seconds()
 
 
 def store_bytes(folder: Path) -> int:
     return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
 
 
-def segment_store(workdir: Path, method: str) -> dict:
+def segment_store(workdir: Path, method: str) -> dict | None:
     """The descriptors store of ``method`` (from ``results/cache/index.tsv``): bytes,
     images, segments, dimension."""
     import zarr
 
     with open(workdir / "results" / "cache" / "index.tsv") as f:
         for row in csv.DictReader(f, delimiter="\t"):
-            if row["stage"] == "descriptors" and method in row["methods"].split(","):
+            store = workdir / row["store"]
+            if (
+                row["stage"] == "descriptors"
+                and method in row["methods"].split(",")
+                and (store / "zarr.json").is_file()
+            ):
                 group = zarr.open_group(workdir / row["store"], mode="r")
                 rows, dim = group["descriptors"].shape
                 return {
@@ -273,7 +290,7 @@ def segment_store(workdir: Path, method: str) -> dict:
                     "dim": dim,
                     "itemsize": group["descriptors"].dtype.itemsize,
                 }
-    sys.exit(f"{workdir}/results/cache/index.tsv: no descriptors store of method {method!r}")
+    return None  # not yet written: a run stopped before its descriptors
 
 
 class LoadSampler:
@@ -298,11 +315,18 @@ class LoadSampler:
 
 
 def run_size(args: argparse.Namespace, data: Path, n_images: int) -> dict:
-    """Generate, run and measure one size; the summary is also ``summary.json``."""
+    """Generate, run and measure one size; the summary is also ``summary.json``.
+
+    With ``--stop-after``, Snakemake (its process group) is stopped after that many
+    seconds and the summary counts the jobs that finished, marked partial."""
     workdir = args.workdir / f"n{n_images}"
     summary_path = workdir / "summary.json"
     if args.reuse and summary_path.is_file():
         return json.loads(summary_path.read_text())
+    if args.summarise:
+        # What only the run itself saw (generation time, load) is kept from a summary.
+        old = json.loads(summary_path.read_text()) if summary_path.is_file() else {}
+        return summarise(workdir, n_images, args.cores, old.get("generate_s"), old.get("load"))
     shutil.rmtree(workdir, ignore_errors=True)
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     size = tuple(config["datasets"]["corridor"]["resolution"])
@@ -312,15 +336,52 @@ def run_size(args: argparse.Namespace, data: Path, n_images: int) -> dict:
     config_path = city_config(workdir, city, args.methods)
     command = snakemake_command(workdir, config_path, args.cores, "results/recall_city.csv")
     with LoadSampler() as load:
-        start = time.perf_counter()
-        run_snakemake(command)
-        wall = time.perf_counter() - start
+        if args.stop_after:
+            run_until(command, args.stop_after, workdir / "snakemake.out")
+        else:
+            run_snakemake(command)
+    return summarise(workdir, n_images, args.cores, generate, load.samples)
+
+
+def load_summary(load: list[float] | dict | None) -> dict | None:
+    """Mean and max of load samples (a summary's already summarised load as it is)."""
+    if not load or isinstance(load, dict):
+        return load or None
+    return {"mean": float(np.mean(load)), "max": float(max(load))}
+
+
+def run_until(command: list[str], seconds: float, output: Path) -> None:
+    """Run Snakemake in its own process group; stop the group after ``seconds``."""
+    with open(output, "w") as out:
+        process = subprocess.Popen(command, stdout=out, stderr=out, start_new_session=True)
+        try:
+            status = process.wait(timeout=seconds)
+        except subprocess.TimeoutExpired:
+            os.killpg(process.pid, signal.SIGTERM)
+            process.wait()
+            return
+    if status:
+        print(output.read_text()[-4000:], file=sys.stderr)
+        sys.exit(f"snakemake failed (status {status}); its output: {output}")
+
+
+def summarise(
+    workdir: Path,
+    n_images: int,
+    cores: int,
+    generate: float | None = None,
+    load: list[float] | dict | None = None,
+) -> dict:
+    """The summary of a run in ``workdir`` from its logs, benchmark files and stores; a
+    run without its recall table (stopped early) counts its finished jobs, as partial."""
     measured = benchmark_rows(workdir)
+    finished, planned, wall = log_jobs(workdir)
     stages = {}
-    for rule, seconds in log_jobs(workdir).items():
-        rows = measured.get(rule)
+    for rule, count in planned.items():
+        seconds, rows = finished.get(rule, []), measured.get(rule)
         stages[rule] = {
             "jobs": len(seconds),
+            "planned": count,
             "seconds": sum(s for s, _ in rows) if rows else sum(seconds),
             "peak_mib": max(m for _, m in rows) if rows else None,
             "timed_by": "benchmark" if rows else "log",
@@ -328,46 +389,53 @@ def run_size(args: argparse.Namespace, data: Path, n_images: int) -> dict:
     cache = workdir / "results" / "cache"
     for stage, entry in stages.items():
         entry["store_bytes"] = store_bytes(cache / stage) if (cache / stage).is_dir() else None
-    with open(workdir / "results" / "recall_city.csv") as f:
-        recall = {row["method"]: float(row["recall@1"]) for row in csv.DictReader(f)}
+    table = workdir / "results" / "recall_city.csv"
+    recall = {}
+    if table.is_file():
+        with open(table) as f:
+            recall = {row["method"]: float(row["recall@1"]) for row in csv.DictReader(f)}
     summary = {
         "images": n_images,
         "references": round(n_images * PITTS_REFERENCES / PITTS_IMAGES),
+        "partial": not table.is_file(),
         "generate_s": generate,
         "wall_s": wall,
-        "cores": args.cores,
-        "load": {"mean": float(np.mean(load.samples)), "max": float(max(load.samples))},
+        "cores": cores,
+        "load": load_summary(load),
         "stages": stages,
         "segvlad": segment_store(workdir, "segvlad"),
         "recall@1": recall,
     }
-    tmp = summary_path.with_suffix(".tmp")
+    path = workdir / "summary.json"
+    tmp = path.with_suffix(".tmp")
     tmp.write_text(json.dumps(summary, indent=1))
-    os.replace(tmp, summary_path)
+    os.replace(tmp, path)
     return summary
 
 
 def print_size(s: dict) -> None:
     total = sum(e["seconds"] for e in s["stages"].values())
+    made = f", images generated in {s['generate_s']:.0f} s" if s["generate_s"] else ""
+    load = s["load"]
+    load = f", load average mean {load['mean']:.1f} max {load['max']:.1f}" if load else ""
+    partial = " PARTIAL (stopped early: finished jobs only)" if s["partial"] else ""
     print(
         f"\n{s['images']} images ({s['references']} references), {s['cores']} cores: "
-        f"{s['wall_s']:.0f} s wall, {total:.0f} job-seconds, images generated in "
-        f"{s['generate_s']:.0f} s, load average mean {s['load']['mean']:.1f} "
-        f"max {s['load']['max']:.1f}"
+        f"{s['wall_s']:.0f} s wall, {total:.0f} job-seconds{made}{load}{partial}"
     )
     header = (
-        f"{'stage':<12} {'jobs':>5} {'seconds':>9} {'share':>7} {'peak MiB':>9} {'store MB':>9}"
+        f"{'stage':<12} {'jobs':>7} {'seconds':>9} {'share':>7} {'peak MiB':>9} {'store MB':>9}"
     )
     print(header)
     print("-" * len(header))
     for stage, e in sorted(s["stages"].items(), key=lambda item: -item[1]["seconds"]):
+        jobs = f"{e['jobs']}" if e["jobs"] == e["planned"] else f"{e['jobs']}/{e['planned']}"
         peak = f"{e['peak_mib']:.0f}" if e["peak_mib"] is not None else "-"
         store = f"{e['store_bytes'] / 1e6:.2f}" if e["store_bytes"] is not None else "-"
         share = 100 * e["seconds"] / total
-        print(
-            f"{stage:<12} {e['jobs']:>5} {e['seconds']:>9.1f} {share:>6.1f}% {peak:>9} {store:>9}"
-        )
-    print("recall@1: " + ", ".join(f"{m} {r:.3f}" for m, r in s["recall@1"].items()))
+        print(f"{stage:<12} {jobs:>7} {e['seconds']:>9.1f} {share:>6.1f}% {peak:>9} {store:>9}")
+    if s["recall@1"]:
+        print("recall@1: " + ", ".join(f"{m} {r:.3f}" for m, r in s["recall@1"].items()))
 
 
 def exponent(a: float | None, b: float | None, n_a: int, n_b: int) -> str:
@@ -388,7 +456,11 @@ def print_growth(summaries: list[dict]) -> None:
     for stage in stages:
         cells = []
         for a, b in pairs:
-            ea, eb = a["stages"].get(stage, {}), b["stages"].get(stage, {})
+            # A stage a stopped run did not finish has no size to grow from.
+            ea, eb = (
+                e if e.get("jobs") == e.get("planned") else {}
+                for e in (a["stages"].get(stage, {}), b["stages"].get(stage, {}))
+            )
             n_a, n_b = a["images"], b["images"]
             cells.append(f"{exponent(ea.get('seconds'), eb.get('seconds'), n_a, n_b):>18}")
             cells.append(f"{exponent(ea.get('store_bytes'), eb.get('store_bytes'), n_a, n_b):>19}")
@@ -411,6 +483,8 @@ def print_segments(summaries: list[dict]) -> None:
     print("-" * len(header))
     for s in summaries:
         g = s["segvlad"]
+        if g is None:
+            continue
         scaled = g["bytes"] / g["images"] * PITTS_IMAGES * PAPER_DIM / g["dim"]
         print(
             f"{g['images']:>7} {g['segments']:>9} {g['segments'] / g['images']:>9.1f} "
@@ -428,6 +502,12 @@ def main() -> None:
     parser.add_argument("--cache", type=Path, default=Path("/tmp/vprflow-city-data"))
     parser.add_argument("--methods", nargs="+", help="of the config (default: corridor's)")
     parser.add_argument("--reuse", action="store_true", help="reuse a size's summary.json")
+    parser.add_argument(
+        "--stop-after", type=float, help="stop each size's Snakemake after SECONDS (partial)"
+    )
+    parser.add_argument(
+        "--summarise", action="store_true", help="summarise existing work folders, run nothing"
+    )
     parser.add_argument(
         "--smoke", action="store_true", help=f"{SMOKE_IMAGES} images, segvlad only, temporary"
     )
