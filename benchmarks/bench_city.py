@@ -382,8 +382,9 @@ def summarise(
         stages[rule] = {
             "jobs": len(seconds),
             "planned": count,
-            "seconds": sum(s for s, _ in rows) if rows else sum(seconds),
-            "peak_mib": max(m for _, m in rows) if rows else None,
+            "seconds": sum(job.seconds for job in rows) if rows else sum(seconds),
+            "cpu_s": sum(job.cpu for job in rows) if rows else None,
+            "peak_mib": max(job.max_rss for job in rows) if rows else None,
             "timed_by": "benchmark" if rows else "log",
         }
     cache = workdir / "results" / "cache"
@@ -414,26 +415,36 @@ def summarise(
 
 
 def print_size(s: dict) -> None:
+    """One size's table. Shares are of all jobs' wall seconds and of all CPU seconds
+    (stages timed from the log have no CPU time): under other load, CPU is the steadier."""
     total = sum(e["seconds"] for e in s["stages"].values())
+    cpu_total = sum(e.get("cpu_s") or 0.0 for e in s["stages"].values())
     made = f", images generated in {s['generate_s']:.0f} s" if s["generate_s"] else ""
     load = s["load"]
     load = f", load average mean {load['mean']:.1f} max {load['max']:.1f}" if load else ""
     partial = " PARTIAL (stopped early: finished jobs only)" if s["partial"] else ""
     print(
         f"\n{s['images']} images ({s['references']} references), {s['cores']} cores: "
-        f"{s['wall_s']:.0f} s wall, {total:.0f} job-seconds{made}{load}{partial}"
+        f"{s['wall_s']:.0f} s wall, {total:.0f} job-seconds, {cpu_total:.0f} CPU seconds"
+        f"{made}{load}{partial}"
     )
     header = (
-        f"{'stage':<12} {'jobs':>7} {'seconds':>9} {'share':>7} {'peak MiB':>9} {'store MB':>9}"
+        f"{'stage':<12} {'jobs':>7} {'seconds':>9} {'share':>7} {'CPU s':>8} {'CPU share':>9} "
+        f"{'peak MiB':>9} {'store MB':>9}"
     )
     print(header)
     print("-" * len(header))
     for stage, e in sorted(s["stages"].items(), key=lambda item: -item[1]["seconds"]):
         jobs = f"{e['jobs']}" if e["jobs"] == e["planned"] else f"{e['jobs']}/{e['planned']}"
+        cpu = e.get("cpu_s")
+        cpu_cells = f"{cpu:>8.1f} {100 * cpu / cpu_total:>8.1f}%" if cpu else f"{'-':>8} {'-':>9}"
         peak = f"{e['peak_mib']:.0f}" if e["peak_mib"] is not None else "-"
         store = f"{e['store_bytes'] / 1e6:.2f}" if e["store_bytes"] is not None else "-"
         share = 100 * e["seconds"] / total
-        print(f"{stage:<12} {jobs:>7} {e['seconds']:>9.1f} {share:>6.1f}% {peak:>9} {store:>9}")
+        print(
+            f"{stage:<12} {jobs:>7} {e['seconds']:>9.1f} {share:>6.1f}% {cpu_cells} "
+            f"{peak:>9} {store:>9}"
+        )
     if s["recall@1"]:
         print("recall@1: " + ", ".join(f"{m} {r:.3f}" for m, r in s["recall@1"].items()))
 
@@ -445,11 +456,14 @@ def exponent(a: float | None, b: float | None, n_a: int, n_b: int) -> str:
 
 
 def print_growth(summaries: list[dict]) -> None:
-    """Growth exponents of time and store bytes between consecutive sizes."""
+    """Growth exponents of wall time, CPU time and store bytes between consecutive sizes."""
     pairs = list(itertools.pairwise(summaries))
-    names = [f"{a['images']}->{b['images']}" for a, b in pairs]
-    print("\ngrowth exponent (slope of log value against log images)")
-    header = f"{'stage':<12} " + " ".join(f"{'time ' + n:>18} {'store ' + n:>19}" for n in names)
+    print("\ngrowth exponent (slope of log value against log images; - : not measured)")
+    header = f"{'stage':<12} " + " ".join(
+        f"{what + ' ' + str(a['images']) + '->' + str(b['images']):>20}"
+        for a, b in pairs
+        for what in ("time", "CPU", "store")
+    )
     print(header)
     print("-" * len(header))
     stages = sorted({stage for s in summaries for stage in s["stages"]})
@@ -461,9 +475,9 @@ def print_growth(summaries: list[dict]) -> None:
                 e if e.get("jobs") == e.get("planned") else {}
                 for e in (a["stages"].get(stage, {}), b["stages"].get(stage, {}))
             )
-            n_a, n_b = a["images"], b["images"]
-            cells.append(f"{exponent(ea.get('seconds'), eb.get('seconds'), n_a, n_b):>18}")
-            cells.append(f"{exponent(ea.get('store_bytes'), eb.get('store_bytes'), n_a, n_b):>19}")
+            for field in ("seconds", "cpu_s", "store_bytes"):
+                value = exponent(ea.get(field), eb.get(field), a["images"], b["images"])
+                cells.append(f"{value:>20}")
         print(f"{stage:<12} " + " ".join(cells))
 
 

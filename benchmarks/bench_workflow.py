@@ -26,6 +26,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import yaml
@@ -93,15 +94,24 @@ def snakemake_command(workdir: Path, config_path: Path, cores: int, *targets: st
     ]  # fmt: skip
 
 
-def benchmark_rows(workdir: Path) -> dict[str, list[tuple[float, float]]]:
-    """Per stage, each job's ``(seconds, max RSS MiB)`` from Snakemake's ``benchmark:``
-    files (``logs/<stage>/<key>/<part>.benchmark.tsv``)."""
-    stats: dict[str, list[tuple[float, float]]] = {}
+class Job(NamedTuple):
+    """One job's line of its Snakemake ``benchmark:`` file."""
+
+    seconds: float  # wall time
+    max_rss: float  # MiB
+    cpu: float  # CPU seconds (user + system) of the job's processes: less sensitive to load
+
+
+def benchmark_rows(workdir: Path) -> dict[str, list[Job]]:
+    """Per stage, each job's :class:`Job` from Snakemake's ``benchmark:`` files
+    (``logs/<stage>/<key>/<part>.benchmark.tsv``)."""
+    stats: dict[str, list[Job]] = {}
     for path in sorted((workdir / "logs").rglob("*.benchmark.tsv")):
         stage = path.relative_to(workdir / "logs").parts[0]
         with open(path) as f:
             row = next(csv.DictReader(f, delimiter="\t"))
-        stats.setdefault(stage, []).append((float(row["s"]), float(row["max_rss"])))
+        job = Job(float(row["s"]), float(row["max_rss"]), float(row["cpu_time"]))
+        stats.setdefault(stage, []).append(job)
     return stats
 
 
@@ -148,8 +158,8 @@ def run(args: argparse.Namespace, data: Path) -> None:
     print(header)
     print("-" * len(header))
     for stage, rows in sorted(stats.items()):
-        total = sum(s for s, _ in rows)
-        peak = max(m for _, m in rows)
+        total = sum(job.seconds for job in rows)
+        peak = max(job.max_rss for job in rows)
         print(f"{stage:<12} {len(rows):>5} {total:>9.1f} {total / args.images:>9.4f} {peak:>9.0f}")
 
 
