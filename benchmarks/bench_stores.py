@@ -35,6 +35,11 @@ files' writes, vprflow's ``check_finite`` and ``atomic_store``'s own steps; "the
 is the write's process CPU less these (numpy buffering, zarr's event loop, threads).
 Each piece is also given as a share of the same path's write without checksum. Beside
 them, google-crc32c and ``np.append`` alone over the chunk files' bytes.
+
+``after: zstd, again`` repeats the anchor's write under another name: the difference
+between two runs of the same work in the same run (in wall, CPU and each piece) is the
+noise floor the other differences stand on. ``spread`` is the slowest round's wall over
+the fastest's.
 """
 
 from __future__ import annotations
@@ -173,11 +178,11 @@ class Pieces:
 
 
 def interleaved_best_of(cases: dict, repeats: int, pieces: Pieces | None = None) -> dict:
-    """``{name: (wall s, CPU s, pieces of the fastest-CPU round)}``, wall and CPU each the
-    best of ``repeats``, the cases taking turns in every round (on a shared machine a
-    slow spell then costs every case alike). CPU time is this process's, zarr's codec
-    threads included: the work done, whatever else the machine runs."""
-    best = {name: (float("inf"), float("inf"), {}) for name in cases}
+    """``{name: (wall s, CPU s, pieces of the fastest-CPU round, slowest wall s)}``, wall and
+    CPU each the best of ``repeats``, the cases taking turns in every round (on a shared
+    machine a slow spell then costs every case alike). CPU time is this process's, zarr's
+    codec threads included: the work done, whatever else the machine runs."""
+    best = {name: (float("inf"), float("inf"), {}, 0.0) for name in cases}
     for _ in range(repeats):
         for name, function in cases.items():
             if pieces:
@@ -186,11 +191,12 @@ def interleaved_best_of(cases: dict, repeats: int, pieces: Pieces | None = None)
             function()
             wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
             taken = pieces.take() if pieces else {}
-            old_wall, old_cpu, old_pieces = best[name]
+            old_wall, old_cpu, old_pieces, slowest = best[name]
             best[name] = (
                 min(old_wall, wall),
                 min(old_cpu, cpu),
                 taken if cpu < old_cpu else old_pieces,
+                max(slowest, wall),
             )
     return best
 
@@ -228,18 +234,20 @@ def alone(chunks: list[bytes]) -> tuple[float, float]:
 
 
 def table(title: str, results: dict, anchors: dict, mb: float) -> None:
-    """One row per case; ``vs anchor``: wall and CPU against the case's anchor."""
+    """One row per case; ``vs anchor``: wall and CPU against the case's anchor; ``spread``:
+    the slowest round's wall over the fastest's, the same code's run-to-run variation."""
     print(
-        f"\n{title:<36} {'wall s':>7} {'MB/s':>6} {'vs anchor':>9} {'CPU s':>6} {'vs anchor':>9}"
-        f"  anchor"
+        f"\n{title:<36} {'wall s':>7} {'spread':>7} {'MB/s':>6} {'vs anchor':>9} {'CPU s':>6} "
+        f"{'vs anchor':>9}  anchor"
     )
-    print("-" * 92)
-    for name, (wall, cpu, _) in results.items():
+    print("-" * 100)
+    for name, (wall, cpu, _, slowest) in results.items():
         anchor = anchors[name]
-        wall0, cpu0, _ = results[anchor]
+        wall0, cpu0 = results[anchor][:2]
         print(
-            f"{name:<36} {wall:>7.2f} {mb / wall:>6.0f} {wall / wall0 - 1:>+9.1%} "
-            f"{cpu:>6.2f} {cpu / cpu0 - 1:>+9.1%}  {anchor if anchor != name else '(itself)'}"
+            f"{name:<36} {wall:>7.2f} {slowest / wall - 1:>+7.0%} {mb / wall:>6.0f} "
+            f"{wall / wall0 - 1:>+9.1%} {cpu:>6.2f} {cpu / cpu0 - 1:>+9.1%}  "
+            f"{anchor if anchor != name else '(itself)'}"
         )
 
 
@@ -268,7 +276,7 @@ def breakdown(results: dict, anchors: dict) -> None:
     print("-" * len(header))
     rows = {}
     for name in names:
-        _, cpu, pieces = results[name]
+        _, cpu, pieces, _ = results[name]
         got = {key: pieces.get(key, (0.0, 0)) for key, _ in PIECES}
         codec, arithmetic = pieces.get("crc codec", (0.0, 0)), got["crc arithmetic"]
         got["crc copy"] = (codec[0] - arithmetic[0], codec[1])
@@ -320,6 +328,14 @@ def main() -> None:
                     write, module, stored[name], checksum, n_rows, args.dim, args.seed
                 )
                 anchors[name] = f"{label}: zstd"
+        # The same write again, under another name: how far two runs of identical work
+        # differ in this run, the floor under every other difference in the table.
+        again = "after: zstd, again"
+        stored[again] = workdir / "after-zstd-again.zarr"
+        writes[again] = functools.partial(
+            write, stores, stored[again], False, n_rows, args.dim, args.seed
+        )
+        anchors[again] = "after: zstd"
         load = os.getloadavg()
         write_s = interleaved_best_of(writes, args.repeats, pieces)
         load = (load, os.getloadavg())
