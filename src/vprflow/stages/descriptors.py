@@ -110,12 +110,13 @@ def in_order(pool: Executor, function: Callable, items: Iterable, workers: int) 
 # ``[dim]``, or ``[S, dim]`` for segment aggregators.
 
 
-# Bytes of features per store read. The first block is read before any image is
-# computed; each later one is read while the previous ones are computed. 64 MiB held
-# all 256 of a benchmark's corridor images (125 KB DAISY grids), so the whole read came
-# before the first image's arithmetic; 8 MiB (64 of them, 4 of a ViT-G grid) is one
-# store read of a few hundred chunks, large enough that zarr's per-read cost is small.
-READ_BLOCK_BYTES = 8 << 20
+# Bytes of features per store read: the reader thread reads the next block while the
+# pool computes this one (the first block is read before any image is computed). The
+# reads are CPU, not waiting (zarr's per-chunk Python work on files in the page
+# cache), so they overlap the arithmetic only where a core is free: on 2 loaded cores
+# (load 6) 8 MiB blocks (64 corridor images) cost 5-10% more CPU than 64 MiB ones and
+# gained nothing (benchmarks/README.md). 64 MiB: 537 corridor images, 32 of a ViT-G grid.
+READ_BLOCK_BYTES = 64 << 20
 
 
 @dataclass(frozen=True)
