@@ -426,68 +426,6 @@ def test_descriptors_are_the_same_bits_with_more_threads(pipeline, tmp_path, met
         np.testing.assert_array_equal(np.asarray(threaded[name]), np.asarray(array), err_msg=name)
 
 
-def store_files(path: str) -> dict[str, bytes]:
-    """Every file of a store but the group's attributes (they name the image range), by
-    relative path: the arrays' metadata and chunk files as they are on disk."""
-    root = Path(path)
-    return {
-        str(f.relative_to(root)): f.read_bytes()
-        for f in sorted(root.rglob("*"))
-        if f.is_file() and f.relative_to(root) != Path("zarr.json")
-    }
-
-
-@pytest.mark.parametrize("method", ["segvlad", "anyloc_vlad", "segment_gem"])
-def test_overlapped_reads_store_what_a_plain_loop_stores(pipeline, tmp_path, monkeypatch, method):
-    """The reader thread reading blocks of 5 images ahead (12 images: three blocks, the
-    last ragged) while three threads compute stores the arrays of a plain loop (each
-    image read then computed, in order, on this thread), bit for bit; and the same files
-    (metadata, chunks, codecs) as one block read whole before any arithmetic, the
-    stage's order before the reads were overlapped."""
-    from threadpoolctl import threadpool_limits
-
-    from vprflow.core.registry import aggregator
-    from vprflow.stages import descriptors
-
-    plan, runner, _, _ = pipeline
-    (stage,) = [
-        s for s in plan.stages["descriptors"].values() if s.record["params"]["aggregator"] == method
-    ]
-    inputs = {name: runner.path(*ref) for name, ref in stage.inputs.items()}
-    params = stage.record["params"]
-    n_images = 2 * N_PLACES
-    grid = stores.open_store(inputs["features"])["features"].shape[1:]
-    image_bytes = 4 * int(np.prod(grid))  # the reader's float32 grid
-
-    monkeypatch.setattr(descriptors, "READ_BLOCK_BYTES", 5 * image_bytes)
-    assert aggregator(method).descriptor_function(params, inputs).block == 5
-    overlapped = str(tmp_path / "overlapped.zarr")
-    compute_descriptors(Job(stage.record, inputs, overlapped, threads=3))
-
-    monkeypatch.setattr(descriptors, "READ_BLOCK_BYTES", n_images * image_bytes)
-    whole = str(tmp_path / "whole.zarr")
-    compute_descriptors(Job(stage.record, inputs, whole, threads=1))
-
-    # The plain loop: read, compute, project, one image after another.
-    describe = aggregator(method).descriptor_function(params, inputs)
-    pca = read_pca(inputs["pca"]) if "pca" in inputs else None
-    with threadpool_limits(limits=1):
-        rows = [np.atleast_2d(describe(i)) for i in range(n_images)]
-        rows = [r if pca is None else pca.transform(r) for r in rows]
-    expected = np.concatenate(rows).astype(np.float32)
-
-    group = stores.open_store(overlapped)
-    stored = np.asarray(group["descriptors"][...])
-    assert stored.dtype == np.float32 and stored.shape == expected.shape
-    np.testing.assert_array_equal(stored.view(np.uint32), expected.view(np.uint32))
-    if "descriptors_offsets" in group:
-        counts = [len(r) for r in rows]
-        np.testing.assert_array_equal(group["descriptors_offsets"][...], np.cumsum([0, *counts]))
-    files = store_files(overlapped)
-    assert files == store_files(whole)
-    assert any(name.startswith("descriptors/c/") for name in files)  # chunks were compared
-
-
 @pytest.mark.parametrize(
     ("index", "options"),
     [("exact_fast", {"block_database": 40}), ("ivf_flat", {"nlist": 4, "nprobe": 4})],

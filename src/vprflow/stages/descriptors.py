@@ -41,12 +41,6 @@ def compute_descriptors(job: Job) -> None:
     on a busy machine, the pool's threads waiting for each other), while whole images
     keep every thread busy. The stored values are the same for any ``threads``
     (OpenBLAS rounds a product differently with a different number of its threads).
-
-    Store I/O runs beside the arithmetic: a reader thread reads the inputs of the next
-    blocks of images (``describe.block`` images, one store read each) while the pool
-    computes the current ones, and the writer compresses finished rows on its own
-    thread (:class:`~vprflow.core.stores.RowWriter`). Rows are appended in image order,
-    so the store is the one a plain loop over the images writes, bit for bit.
     """
     inputs, params, threads = job.inputs, job.params, job.threads
     agg = aggregator(params["aggregator"])
@@ -65,20 +59,14 @@ def compute_descriptors(job: Job) -> None:
         rows = rows if by_segment else rows[None]
         return rows if pca is None else pca.transform(rows)
 
-    def read_block(block: range) -> list[tuple]:
-        return [describe.read(i) for i in block]
-
-    blocks = [images[i : i + describe.block] for i in range(0, len(images), describe.block)]
     with (
         stores.atomic_store(job.out, attrs) as group,
         threadpool_limits(limits=1),
-        ThreadPoolExecutor(threads, thread_name_prefix="descriptors") as pool,
-        # One reader thread: the readers cache blocks and are read in image order. Up to
-        # two blocks are read ahead of the one being computed (in_order's bound).
-        ThreadPoolExecutor(1, thread_name_prefix="read") as reader,
+        ThreadPoolExecutor(threads) as pool,
     ):
-        read = (item for block in in_order(reader, read_block, blocks, 1) for item in block)
-        computed = in_order(pool, rows_of, read, threads)
+        # Store reads stay on this thread, in image order (the readers cache blocks).
+        reads = (describe.read(i) for i in images)
+        computed = in_order(pool, rows_of, reads, threads)
         progress = tqdm(computed, total=len(images), desc=agg.name, unit="image")
         writer = None
         for i, rows in zip(images, progress, strict=True):
@@ -110,34 +98,17 @@ def in_order(pool: Executor, function: Callable, items: Iterable, workers: int) 
 # ``[dim]``, or ``[S, dim]`` for segment aggregators.
 
 
-# Bytes of features per store read: the reader thread reads the next block while the
-# pool computes this one (the first block is read before any image is computed). The
-# reads are CPU, not waiting (zarr's per-chunk Python work on files in the page
-# cache), so they overlap the arithmetic only where a core is free: on 2 loaded cores
-# (load 6) 8 MiB blocks (64 corridor images) cost 5-10% more CPU than 64 MiB ones and
-# gained nothing (benchmarks/README.md). 64 MiB: 537 corridor images, 32 of a ViT-G grid.
-READ_BLOCK_BYTES = 64 << 20
-
-
 @dataclass(frozen=True)
 class ImageDescriptor:
     """One image's descriptor in two steps: ``read(index)`` -> a tuple of its inputs
     (store reads: one thread, images in order), ``compute(*inputs)`` -> descriptor
-    (arithmetic only: safe on several images at once). Calling it does both. ``block``:
-    the images one store read of the features brings (the reader reads ahead by
-    blocks)."""
+    (arithmetic only: safe on several images at once). Calling it does both."""
 
     read: Callable[[int], tuple]
     compute: Callable[..., np.ndarray]
-    block: int = 1
 
     def __call__(self, index: int) -> np.ndarray:
         return self.compute(*self.read(index))
-
-
-def features_reader(features) -> FeatureReader:
-    """The reader of a features store (opened), ``READ_BLOCK_BYTES`` per store read."""
-    return FeatureReader(features, READ_BLOCK_BYTES)
 
 
 def vlad_input(grid: np.ndarray, options: dict) -> np.ndarray:
@@ -152,7 +123,7 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
     from vprflow.aggregation.segvlad import image_segvlad
 
     features = stores.open_store(inputs["features"])
-    read_features = features_reader(features)
+    read_features = FeatureReader(features)
     read_masks = MaskReader(stores.open_store(inputs["segments"]))
     centres = read_centres(inputs["vocabulary"])
     height, width = features.attrs["image_size"]
@@ -170,36 +141,32 @@ def segvlad_descriptors(options: dict, inputs: dict[str, str]):
             small_graph=options["small_graph"],
         )
 
-    return ImageDescriptor(
-        lambda index: (read_features(index), read_masks(index)), compute, read_features.block
-    )
+    return ImageDescriptor(lambda index: (read_features(index), read_masks(index)), compute)
 
 
 def anyloc_vlad_descriptor(options: dict, inputs: dict[str, str]):
     """AnyLoc VLAD of the whole patch grid (docs/methods.md §4), ``[K * D]``."""
     from vprflow.aggregation.vlad import vlad
 
-    read_features = features_reader(stores.open_store(inputs["features"]))
+    read_features = FeatureReader(stores.open_store(inputs["features"]))
     centres = read_centres(inputs["vocabulary"])
 
     def compute(grid: np.ndarray) -> np.ndarray:
         grid = vlad_input(grid, options)
         return vlad(grid.reshape(-1, grid.shape[-1]), centres)
 
-    return ImageDescriptor(lambda index: (read_features(index),), compute, read_features.block)
+    return ImageDescriptor(lambda index: (read_features(index),), compute)
 
 
 def snsm_descriptor(options: dict, inputs: dict[str, str]):
     """SNSM support-map descriptor (docs/methods.md §6)."""
     from vprflow.aggregation.snsm import snsm_descriptor as snsm
 
-    read_features = features_reader(stores.open_store(inputs["features"]))
+    read_features = FeatureReader(stores.open_store(inputs["features"]))
     keys = ("upscale", "window", "neighbourhood", "similarity", "normalization")
     settings = {k: options[k] for k in keys}
     return ImageDescriptor(
-        lambda index: (read_features(index),),
-        lambda grid: snsm(grid, **settings),
-        read_features.block,
+        lambda index: (read_features(index),), lambda grid: snsm(grid, **settings)
     )
 
 
@@ -209,7 +176,7 @@ def pooled_descriptor(options: dict, inputs: dict[str, str]):
     from vprflow.aggregation import pooling
     from vprflow.aggregation.snsm import normalize_tokens
 
-    read_features = features_reader(stores.open_store(inputs["features"]))
+    read_features = FeatureReader(stores.open_store(inputs["features"]))
     pool = {
         "gem": lambda tokens: pooling.gem(tokens, p=options["p"]),
         "average": pooling.average_pool,
@@ -218,7 +185,6 @@ def pooled_descriptor(options: dict, inputs: dict[str, str]):
     return ImageDescriptor(
         lambda index: (read_features(index),),
         lambda grid: pool(normalize_tokens(grid, options["normalization"])),
-        read_features.block,
     )
 
 
@@ -232,7 +198,7 @@ def segment_gem_descriptors(options: dict, inputs: dict[str, str]):
     from vprflow.aggregation.snsm import normalize_tokens
 
     features = stores.open_store(inputs["features"])
-    read_features = features_reader(features)
+    read_features = FeatureReader(features)
     read_masks = MaskReader(stores.open_store(inputs["segments"]))
     height, width = features.attrs["image_size"]
     patch_size = int(features.attrs["patch_size"])
@@ -244,9 +210,7 @@ def segment_gem_descriptors(options: dict, inputs: dict[str, str]):
         pooled = segment_gem(tokens, membership, options["p"]).astype(np.float64)
         return l2_normalize(pooled).astype(np.float32)
 
-    return ImageDescriptor(
-        lambda index: (read_features(index), read_masks(index)), compute, read_features.block
-    )
+    return ImageDescriptor(lambda index: (read_features(index), read_masks(index)), compute)
 
 
 def grid_descriptor(options: dict, inputs: dict[str, str], compute: Callable[..., np.ndarray]):
@@ -256,11 +220,9 @@ def grid_descriptor(options: dict, inputs: dict[str, str], compute: Callable[...
     as keyword arguments, ``[dim]``: the per-image function of every aggregator that
     reads nothing but the features."""
     settings = {k: v for k, v in options.items() if k != "aggregator"}
-    read_features = features_reader(stores.open_store(inputs["features"]))
+    read_features = FeatureReader(stores.open_store(inputs["features"]))
     return ImageDescriptor(
-        lambda index: (read_features(index),),
-        lambda grid: compute(grid, **settings),
-        read_features.block,
+        lambda index: (read_features(index),), lambda grid: compute(grid, **settings)
     )
 
 
@@ -269,7 +231,7 @@ def model_descriptor(options: dict, inputs: dict[str, str]):
     grid its backbone entry stores under ``output: descriptor``, ``[D]``, L2-normalised
     again in float64 (the models normalise it; a float16 store rounds the norm)."""
     features = stores.open_store(inputs["features"])
-    read_features = features_reader(features)
+    read_features = FeatureReader(features)
     grid = tuple(features["features"].shape[1:3])
     if grid != (1, 1):
         # The plan pairs this aggregator with descriptor outputs only; a store made
@@ -283,4 +245,4 @@ def model_descriptor(options: dict, inputs: dict[str, str]):
     def compute(grid: np.ndarray) -> np.ndarray:
         return l2_normalize(grid.reshape(-1).astype(np.float64)).astype(np.float32)
 
-    return ImageDescriptor(lambda index: (read_features(index),), compute, read_features.block)
+    return ImageDescriptor(lambda index: (read_features(index),), compute)
