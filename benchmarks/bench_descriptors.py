@@ -17,9 +17,9 @@ corridor config, in one process and under the rule's thread budget (``run_stage`
 
 - stage: the descriptors stage's job (``vprflow.stages.jobs.run_job``) over all images
   (store reads, PCA, writes, zarr), each run into a new store (removed untimed);
-- before: the same job through ``src/vprflow/stages/descriptors.py`` of ``--before``
-  (``git show``; default: the commit before the reader thread, whose stage read each
-  64 MiB block of features on its main thread before computing it), the two runs
+- before: the same job through ``src/vprflow/stages/descriptors.py`` and
+  ``src/vprflow/core/stores.py`` of ``--before`` (``git show``; default: the commit
+  before issue 33 item 3's store writes, one chunk a zarr write), the two runs
   interleaved in every repeat so that both see the same machine load;
 - arithmetic: the method's per-image ``compute`` (and PCA transform) on every image's
   inputs read beforehand (float32 features, unpacked masks), one image at a time, with
@@ -61,22 +61,30 @@ from vprflow.planning.config import validate_config  # noqa: E402
 from vprflow.planning.plan import STAGES, build_plan  # noqa: E402
 from vprflow.stages.runner import run_stage  # noqa: E402
 
-# The last commit whose descriptors stage read its inputs on the main thread, 64 MiB of
-# features before any image of them was computed (issue 33 item 3).
+# The commit this benchmark's comparison starts from (issue 33 item 3): before the
+# stores wrote several chunks a zarr write (RowWriter, then store_rows).
 BEFORE = "2cc3dee"
 
 
 def load_before(rev: str) -> types.ModuleType:
-    """``src/vprflow/stages/descriptors.py`` at ``rev`` as a module of its own (it
-    imports the rest of the package as it is now)."""
-    source = subprocess.run(
-        ["git", "show", f"{rev}:src/vprflow/stages/descriptors.py"],
-        cwd=REPO, capture_output=True, text=True, check=True,
-    ).stdout  # fmt: skip
-    module = types.ModuleType("descriptors_before")
-    sys.modules[module.__name__] = module  # dataclasses look their module up
-    exec(compile(source, f"{rev}:descriptors.py", "exec"), module.__dict__)
+    """``src/vprflow/stages/descriptors.py`` at ``rev`` as a module of its own, its
+    ``stores`` being ``src/vprflow/core/stores.py`` at ``rev`` (the write path: atomic
+    stores, RowWriter); the rest of the package is imported as it is now."""
+    stores_before = load_module(rev, "src/vprflow/core/stores.py", "stores_before")
+    module = load_module(rev, "src/vprflow/stages/descriptors.py", "descriptors_before")
+    module.stores = stores_before
     module.aggregator = _with_functions_of(module)
+    return module
+
+
+def load_module(rev: str, path: str, name: str) -> types.ModuleType:
+    """The file ``path`` at ``rev`` (``git show``) executed as module ``name``."""
+    source = subprocess.run(
+        ["git", "show", f"{rev}:{path}"], cwd=REPO, capture_output=True, text=True, check=True
+    ).stdout
+    module = types.ModuleType(name)
+    sys.modules[name] = module  # dataclasses look their module up
+    exec(compile(source, f"{rev}:{path}", "exec"), module.__dict__)
     return module
 
 
