@@ -440,9 +440,9 @@ def rows_per_chunk(row_bytes: int) -> int:
 # RowWriter stores whole chunks of about this many bytes at a time (at least one chunk),
 # each chunk a zarr write of its own, up to CHUNK_THREADS at once: zarr then compresses
 # them concurrently (zstd on its thread pool) and rewrites the array's zarr.json once per
-# WRITE_BYTES instead of once per chunk. One zarr write of several chunks would do as
-# well but copies each chunk into a new buffer first (zarr merges a value that is not
-# exactly one chunk into a fresh one). What is stored is the same: the chunks do not change.
+# WRITE_BYTES instead of once per chunk. Not one zarr write of several chunks: zarr
+# copies a value that is not exactly one chunk into a fresh buffer per chunk (61-136 ms
+# of CPU per 512 MB). What is stored is the same: the chunks do not change.
 WRITE_BYTES = 16 << 20
 CHUNK_THREADS = 4
 _CHUNK_WRITERS = ThreadPoolExecutor(max_workers=CHUNK_THREADS, thread_name_prefix="vprflow-chunk")
@@ -455,11 +455,12 @@ def _cannot_be_empty(array: zarr.Array, rows: np.ndarray) -> bool:
 
     zarr does not store a chunk equal to the fill value (``write_empty_chunks=False``)
     and finds out with a comparison over the whole chunk (``NDBuffer.all_equal``, a
-    void-dtype ``array_equal``): a fifth of a descriptors write's CPU. When this is True
-    that comparison can only answer "not empty", so :func:`store_rows` skips it and the
-    chunk file is the same. For booleans and integers zarr compares values and for
-    floats bit patterns (-0.0 is not empty), both of which are the bytes; other dtypes
-    (complex: -0.0 equals 0) answer False, and zarr's own comparison runs.
+    void-dtype ``array_equal``): 23% of a descriptors write's CPU (benchmarks/README.md,
+    "Stores: the checksums' cost"). When this is True that comparison can only answer
+    "not empty", so :func:`store_rows` skips it and the chunk file is the same. For
+    booleans and integers zarr compares values and for floats bit patterns (-0.0 is not
+    empty), both of which are the bytes; other dtypes (complex: -0.0 equals 0) answer
+    False, and zarr's own comparison runs.
     """
     dtype = array.dtype
     if (
