@@ -246,6 +246,32 @@ def test_store_rows_raises_a_failed_chunk_only_after_the_others_finished(tmp_pat
     assert sorted(finished) == [1, 2, 3]
 
 
+def _store_rows_in(path: str) -> None:
+    import zarr
+
+    array = zarr.open_group(path, mode="w").create_array(
+        "x", shape=(0, 256), chunks=(4, 256), dtype=np.float32, compressors=stores.COMPRESSORS
+    )
+    stores.store_rows(array, np.ones((16, 256), np.float32))  # 4 chunks: the thread pool
+    assert array.shape == (16, 256)
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork only")
+def test_store_rows_works_in_a_process_forked_after_it_was_used(tmp_path):
+    """A forked child inherits the chunk writers' pool without its threads; it gets a
+    pool of its own instead of waiting forever."""
+    _store_rows_in(str(tmp_path / "parent.zarr"))
+    child = multiprocessing.get_context("fork").Process(
+        target=_store_rows_in, args=(str(tmp_path / "child.zarr"),)
+    )
+    child.start()
+    child.join(60)
+    hung = child.is_alive()
+    if hung:
+        child.kill()
+    assert not hung and child.exitcode == 0
+
+
 @pytest.mark.parametrize(
     "dtype, block, empty",
     [

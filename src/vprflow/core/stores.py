@@ -445,7 +445,16 @@ def rows_per_chunk(row_bytes: int) -> int:
 # of CPU per 512 MB). What is stored is the same: the chunks do not change.
 WRITE_BYTES = 16 << 20
 CHUNK_THREADS = 4
-_CHUNK_WRITERS = ThreadPoolExecutor(max_workers=CHUNK_THREADS, thread_name_prefix="vprflow-chunk")
+
+
+def _new_chunk_writers() -> None:
+    global _CHUNK_WRITERS
+    _CHUNK_WRITERS = ThreadPoolExecutor(CHUNK_THREADS, thread_name_prefix="vprflow-chunk")
+
+
+_new_chunk_writers()
+# A forked child has the pool but none of its threads, and would wait forever on it.
+os.register_at_fork(after_in_child=_new_chunk_writers)
 
 
 def _cannot_be_empty(array: zarr.Array, rows: np.ndarray) -> bool:
