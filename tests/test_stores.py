@@ -17,6 +17,7 @@ import pytest
 from vprflow.core import stores
 from vprflow.core.stores import (
     COMPRESSOR,
+    COMPRESSORS,
     RaggedWriter,
     StoreCorruptError,
     array_items,
@@ -490,6 +491,249 @@ def _ragged_rows(group, name: str, index: int) -> np.ndarray:
     """Rows of image ``index`` of a ragged array, read directly from its offsets."""
     start, stop = (int(v) for v in group[f"{name}_offsets"][index : index + 2])
     return np.asarray(group[name][start:stop])
+
+
+# ------------------------------------------------------------------ reading whole rows
+
+# (shape, chunks): chunks along axis 0 only (1-D, 2-D, 3-D, a partial last chunk, one
+# chunk) and along other axes too (partial chunks on every axis).
+ROW_LAYOUTS = [
+    ((10,), (4,)),
+    ((12, 3), (4, 3)),
+    ((10, 3), (4, 3)),
+    ((7, 2, 3), (3, 2, 3)),
+    ((5, 6), (8, 6)),
+    ((10, 5), (4, 3)),
+    ((9, 4, 5), (2, 3, 2)),
+]
+# Whole rows: the row reader's. Python ints only (a numpy integer goes to zarr).
+ROW_SELECTIONS = [
+    ...,
+    (),
+    slice(None),
+    slice(2, 7),
+    slice(3, 4),
+    slice(-3, None),
+    slice(5, 5),
+    slice(8, 2),
+    slice(0, 100),
+    0,
+    -1,
+    4,
+    (slice(1, 6), ...),
+    (slice(1, 6), slice(None)),
+    (Ellipsis,),
+]
+# Not whole rows, or not as zarr's row reader would answer: zarr reads them.
+OTHER_SELECTIONS = [
+    slice(None, None, 2),
+    slice(1, 9, 3),
+    np.int64(2),
+    [0, 3, 1],
+    (slice(None), 1),
+    (..., 0),
+    (2, slice(0, 1)),
+]
+
+
+def _row_store(path, dtype, shape, chunks, zero_chunk=False, **create):
+    """A finished store holding one random array ``x``; with ``zero_chunk`` its second
+    chunk along axis 0 is all zeros, which zarr does not store (the fill value)."""
+    rng = np.random.default_rng(len(shape) * 100 + chunks[0])
+    data = (rng.standard_normal(shape) * 40).astype(dtype)
+    if zero_chunk:
+        data[chunks[0] : 2 * chunks[0]] = 0
+    create.setdefault("compressors", stores.COMPRESSORS)
+    with atomic_store(path) as group:
+        group.create_array("x", shape=shape, chunks=chunks, dtype=dtype, **create)[...] = data
+    return data
+
+
+def _forbid_zarr_reads(monkeypatch):
+    """From here on zarr's own reads fail: what is read was read by the row reader."""
+    import zarr
+
+    def refuse(self, selection):
+        raise AssertionError(f"zarr read {selection!r}: the row reader was not taken")
+
+    monkeypatch.setattr(zarr.Array, "__getitem__", refuse)
+
+
+def _same(got, expected):
+    assert type(got) is type(expected)
+    assert got.dtype == expected.dtype and got.shape == expected.shape
+    assert np.array_equal(got, expected)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float16, np.int64, np.bool_, np.uint8])
+@pytest.mark.parametrize("shape, chunks", ROW_LAYOUTS)
+@pytest.mark.parametrize("zero_chunk", [False, True])
+def test_whole_rows_are_read_from_the_chunk_files_with_zarrs_values(
+    tmp_path, monkeypatch, dtype, shape, chunks, zero_chunk
+):
+    import zarr
+
+    out = tmp_path / "rows.zarr"
+    data = _row_store(out, dtype, shape, chunks, zero_chunk=zero_chunk)
+    if zero_chunk and shape[0] > chunks[0]:
+        assert not (out / "x" / "c" / "1").exists()  # zarr left the chunk out
+    plain = zarr.open_group(str(out), mode="r")["x"]
+    selections = [s for s in ROW_SELECTIONS if not isinstance(s, tuple) or len(s) <= len(shape)]
+    expected = {i: plain[s] for i, s in enumerate(selections)}
+    array = open_store(out)["x"]
+    _forbid_zarr_reads(monkeypatch)
+    for i, selection in enumerate(selections):
+        got = array[selection]
+        _same(got, expected[i])
+        assert np.array_equal(got, data[selection]), selection  # the values written
+    _same(np.asarray(array), np.asarray(expected[0]))
+
+
+@pytest.mark.parametrize("shape, chunks", [((10, 3), (4, 3)), ((9, 4, 5), (2, 3, 2))])
+def test_other_selections_are_zarrs(tmp_path, monkeypatch, shape, chunks):
+    import zarr
+
+    out = tmp_path / "rows.zarr"
+    data = _row_store(out, np.float32, shape, chunks)
+    plain = zarr.open_group(str(out), mode="r")["x"]
+    array = open_store(out)["x"]
+    assert array._rows is not None
+
+    def refuse(*args):
+        raise AssertionError("the row reader read a selection it does not take")
+
+    monkeypatch.setattr(stores._RowReader, "read", refuse)
+    for selection in OTHER_SELECTIONS:
+        _same(array[selection], plain[selection])
+        assert np.array_equal(array[selection], data[selection])
+    with pytest.raises(IndexError):  # mistakes are zarr's to name
+        array[10]
+    with pytest.raises(IndexError):
+        array[:, :, :, :]
+
+
+@pytest.mark.parametrize(
+    "other",
+    ["gzip", "transpose", "big-endian", "v2-keys", "sharded", "zstd-only"],
+)
+def test_arrays_with_other_codecs_or_layouts_are_read_by_zarr(tmp_path, other):
+    import zarr.codecs
+
+    crc = zarr.codecs.Crc32cCodec()
+    create = {
+        "gzip": {"compressors": (zarr.codecs.GzipCodec(), crc)},
+        "transpose": {"filters": (zarr.codecs.TransposeCodec(order=(1, 0)),)},
+        "big-endian": {"serializer": zarr.codecs.BytesCodec(endian="big")},
+        "v2-keys": {"chunk_key_encoding": {"name": "v2", "separator": "."}},
+        "sharded": {"shards": (8, 3)},
+        # A plain zarr array: opened by zarr.open_group, not open_store, so not checked.
+        "zstd-only": {"compressors": (stores.COMPRESSOR,)},
+    }[other]
+    out = tmp_path / "other.zarr"
+    data = (np.random.default_rng(1).standard_normal((16, 3)) * 40).astype(np.float32)
+    if other == "zstd-only":
+        zarr.open_group(str(out), mode="w").create_array("x", data=data, chunks=(4, 3), **create)
+        array = stores.CheckedArray(zarr.open_group(str(out), mode="r")["x"], out, "x")
+    else:
+        data = _row_store(out, np.float32, (16, 3), (4, 3), **create)
+        array = open_store(out)["x"]
+    assert array._rows is None
+    _same(array[2:9], data[2:9])
+    _same(np.asarray(array), data)
+
+
+@pytest.mark.parametrize(
+    "create",
+    [
+        {"chunk_key_encoding": {"name": "default", "separator": "."}},
+        {"compressors": (stores.COMPRESSOR.__class__(level=5, checksum=True), COMPRESSORS[-1])},
+    ],
+    ids=["dot-separated-keys", "zstd-level-5-with-its-checksum"],
+)
+def test_vprflows_codecs_with_other_settings_are_still_read_from_the_files(
+    tmp_path, monkeypatch, create
+):
+    out = tmp_path / "rows.zarr"
+    data = _row_store(out, np.float32, (10, 3), (4, 3), **create)
+    array = open_store(out)["x"]
+    _forbid_zarr_reads(monkeypatch)
+    _same(array[1:9], data[1:9])
+
+
+def _damage(path, how):
+    data = path.read_bytes()
+    if how == "flipped first byte":
+        path.write_bytes(bytes([data[0] ^ 0xFF]) + data[1:])
+    elif how == "flipped middle byte":
+        middle = len(data) // 2
+        path.write_bytes(data[:middle] + bytes([data[middle] ^ 0xFF]) + data[middle + 1 :])
+    elif how == "flipped checksum byte":
+        path.write_bytes(data[:-1] + bytes([data[-1] ^ 0xFF]))
+    elif how == "truncated":
+        path.write_bytes(data[: len(data) - 7])
+    elif how == "two bytes":
+        path.write_bytes(data[:2])
+    elif how == "empty":
+        path.write_bytes(b"")
+
+
+@pytest.mark.parametrize(
+    "how",
+    [
+        "flipped first byte",
+        "flipped middle byte",
+        "flipped checksum byte",
+        "truncated",
+        "two bytes",
+        "empty",
+    ],
+)
+def test_a_damaged_chunk_file_read_as_rows_is_an_error_naming_it(tmp_path, monkeypatch, how):
+    out = tmp_path / "d.zarr"
+    rows = _sample_store(out)
+    _damage(out / "descriptors" / "c" / "1" / "0", how)
+    array = open_store(out)["descriptors"]
+    _forbid_zarr_reads(monkeypatch)
+    np.testing.assert_array_equal(array[:4], rows[:4])  # the other chunks still read
+    np.testing.assert_array_equal(array[8:], rows[8:])
+    for selection in [..., slice(2, 6), 5]:
+        with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "descriptors")) as raised:
+            array[selection]
+        assert "chunk file descriptors/c/1/0 " in str(raised.value)
+        assert ("checksum" if how != "two bytes" and how != "empty" else "bytes") in str(
+            raised.value
+        )
+
+
+@pytest.mark.parametrize("rows", [3, 5])
+def test_a_chunk_of_the_wrong_size_with_a_good_checksum_is_an_error_naming_it(
+    tmp_path, monkeypatch, rows
+):
+    import google_crc32c
+    import numcodecs.zstd
+
+    out = tmp_path / "d.zarr"
+    _sample_store(out)
+    # What a 4-row chunk of another array, or a bug, would leave: a valid file, other size.
+    frame = numcodecs.zstd.compress(np.ones((rows, 8), np.float32).tobytes(), 1)
+    crc = np.uint32(google_crc32c.value(frame)).tobytes()  # little-endian, as zarr's
+    (out / "descriptors" / "c" / "1" / "0").write_bytes(frame + crc)
+    array = open_store(out)["descriptors"]
+    _forbid_zarr_reads(monkeypatch)
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "descriptors")) as raised:
+        array[...]
+    assert f"chunk file descriptors/c/1/0 decompresses to {rows * 32} bytes, not 128" in str(
+        raised.value
+    )
+
+
+def test_zstd_frame_content_size_is_read_for_every_header_width():
+    import numcodecs.zstd
+
+    for size in [0, 1, 255, 256, 300, 65535 + 256, 65536 + 256, 1 << 20]:
+        frame = numcodecs.zstd.compress(bytes(size), 1)
+        assert stores._content_size(frame) == size, size
+    assert stores._content_size(b"not a zstd frame") is None
 
 
 # ------------------------------------------------------------------ concurrent writers
