@@ -10,17 +10,22 @@ from __future__ import annotations
 
 import itertools
 import math
+import subprocess
+import sys
+import textwrap
 
 import numpy as np
 import pytest
 from scipy.spatial import Delaunay
 
+from vprflow.aggregation import segvlad
 from vprflow.aggregation.segvlad import (
     image_segvlad,
     mask_patch_membership,
     neighbourhood,
     segment_adjacency,
     segment_centroids,
+    segment_regions,
 )
 from vprflow.aggregation.vlad import vlad_per_region
 
@@ -385,3 +390,95 @@ def test_image_without_masks_has_no_descriptors(crop_aligned):
     for order in (0, 3):
         out = image_segvlad(features, masks, centres, (28, 35), 7, order, crop_aligned)
         assert out.shape == (0, 18)
+
+
+# ------------------------------------------------------------ order 0 skips the graph
+
+
+@pytest.mark.parametrize("small_graph", ["published", "complete"])
+@pytest.mark.parametrize("crop_aligned", [False, True])
+@pytest.mark.parametrize("n_masks", [0, 1, 2, 3, 4, 12, 30])
+def test_order_0_without_the_graph_is_the_graph_paths_bits(n_masks, crop_aligned, small_graph):
+    """Order 0 skips the graph (A^0 = I); the descriptors are exactly those of the graph
+    path it replaced: centroids, adjacency (the small-graph quirk included, where a
+    segment may lack its self loop), its 0th power, then (A^0 M) > 0."""
+    rng = np.random.default_rng(500 + n_masks + 7 * crop_aligned)
+    patch, image_size, grid = 5, (33, 42), (6, 8)
+    centres = rng.standard_normal((4, 10)).astype(np.float32)
+    features = clear_features(rng, grid[0] * grid[1], centres).reshape(*grid, 10)
+    masks = blob_masks(rng, n_masks, 16, 21) if n_masks else np.zeros((0, 16, 21), bool)
+    if n_masks >= 12:
+        masks[5] = False  # an empty mask: a NaN centroid on the graph path
+    out = image_segvlad(features, masks, centres, image_size, patch, 0, crop_aligned, small_graph)
+
+    membership = mask_patch_membership(masks, image_size, grid, patch, crop_aligned)
+    adjacency = segment_adjacency(segment_centroids(masks), small_graph)
+    graph_regions = (neighbourhood(adjacency, 0).astype(np.float32) @ membership) > 0
+    forced = vlad_per_region(features.reshape(-1, 10), graph_regions, centres)
+    assert out.dtype == forced.dtype and out.shape == forced.shape == (n_masks, 40)
+    np.testing.assert_array_equal(out, forced)  # bit for bit
+
+    # The regions against the float64 formula: the 0th matrix power, whatever A holds.
+    regions = segment_regions(masks, membership, 0, small_graph)
+    power = np.linalg.matrix_power(adjacency.astype(np.float64), 0)
+    np.testing.assert_array_equal(regions, (power @ membership.astype(np.float64)) > 0)
+    np.testing.assert_array_equal(regions, graph_regions)
+
+
+def test_order_0_never_builds_the_graph(monkeypatch):
+    def no_graph(*args, **kwargs):
+        raise AssertionError("order 0 built the segment graph")
+
+    monkeypatch.setattr(segvlad, "segment_adjacency", no_graph)
+    monkeypatch.setattr(segvlad, "segment_centroids", no_graph)
+    rng = np.random.default_rng(3)
+    centres = rng.standard_normal((4, 10)).astype(np.float32)
+    features = clear_features(rng, 48, centres).reshape(6, 8, 10)
+    masks = blob_masks(rng, 12, 16, 21)
+    assert image_segvlad(features, masks, centres, (33, 42), 5, 0).shape == (12, 40)
+    with pytest.raises(AssertionError, match="built the segment graph"):
+        image_segvlad(features, masks, centres, (33, 42), 5, 1)
+
+
+@pytest.mark.parametrize("order", [0, 2])
+@pytest.mark.parametrize("n_masks", [2, 12])
+def test_unknown_small_graph_fails_at_any_order_and_size(order, n_masks):
+    rng = np.random.default_rng(order + n_masks)
+    masks = blob_masks(rng, n_masks, 16, 21)
+    features = np.ones((6, 8, 10), np.float32)
+    centres = np.eye(4, 10, dtype=np.float32)
+    with pytest.raises(ValueError, match="unknown small_graph 'nonsense'"):
+        image_segvlad(features, masks, centres, (33, 42), 5, order, small_graph="nonsense")
+
+
+# A descriptors job's imports, then one image at ORDER; prints whether scipy got loaded.
+JOB_IMPORTS = textwrap.dedent(
+    """
+    import sys
+    import numpy as np
+    import vprflow.stages.jobs, vprflow.stages.runner, vprflow.stages.descriptors
+    from vprflow.aggregation.segvlad import image_segvlad
+
+    rng = np.random.default_rng(0)
+    masks = np.zeros((12, 16, 21), bool)
+    for s in range(12):
+        y, x = rng.integers(0, 12), rng.integers(0, 17)
+        masks[s, y : y + 4, x : x + 4] = True
+    features = rng.standard_normal((6, 8, 10)).astype(np.float32)
+    centres = rng.standard_normal((4, 10)).astype(np.float32)
+    assert image_segvlad(features, masks, centres, (33, 42), 5, ORDER).shape == (12, 40)
+    print("scipy" in sys.modules)
+    """
+)
+
+
+@pytest.mark.parametrize(("order", "loads_scipy"), [(0, False), (1, True)])
+def test_order_0_job_does_not_import_scipy(order, loads_scipy):
+    """scipy (120-330 ms to import) is only for the graph, which order 0 does not build;
+    order 1 shows that the check would see it."""
+    code = JOB_IMPORTS.replace("ORDER", str(order))
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, check=False, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split()[-1] == str(loads_scipy)

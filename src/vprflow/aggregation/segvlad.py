@@ -4,6 +4,8 @@ Per image: masks ``[S, Hm, Wm]`` at segmentation resolution, patch descriptors
 ``[N = h * w, D]`` on the feature grid, VLAD centres ``[K, D]``. Steps
 (docs/methods.md §5): masks -> patch membership ``M [S, N]``; centroid Delaunay graph ``A
 [S, S]``; neighbourhood ``(A^k M) > 0``; VLAD of each neighbourhood -> ``[S, K * D]``.
+At order 0 (``A^0 = I``) the graph is not built, and scipy, which only the Delaunay
+triangulation needs, is not imported.
 """
 
 from __future__ import annotations
@@ -114,6 +116,14 @@ def segment_centroids(masks: np.ndarray) -> np.ndarray:
     return np.stack([cx, cy], axis=1)
 
 
+def check_small_graph(small_graph: str) -> None:
+    """Raise unless ``small_graph`` is one of :data:`SMALL_GRAPHS`: checked for every
+    image, whatever its number of segments and the order, so that a wrong name fails
+    on the first image rather than on the first with 3 or fewer segments."""
+    if small_graph not in SMALL_GRAPHS:
+        raise ValueError(f"unknown small_graph {small_graph!r}; expected one of {SMALL_GRAPHS}")
+
+
 def segment_adjacency(centroids: np.ndarray, small_graph: str = "published") -> np.ndarray:
     """Delaunay graph of segment centroids with self loops: bool ``[S, S]``.
 
@@ -123,18 +133,19 @@ def segment_adjacency(centroids: np.ndarray, small_graph: str = "published") -> 
     otherwise degenerate centroids fall back to linking consecutive centroids in
     sorted order along their line (the 1-D Delaunay graph).
     """
+    check_small_graph(small_graph)
     n = len(centroids)
     adjacency = np.eye(n, dtype=bool)
     if n <= 3:
         if small_graph == "published":
             adjacency[:] = False
             adjacency[:, : min(n, 2)] = True
-        elif small_graph == "complete":
+        else:  # "complete"
             adjacency[:] = True
-        else:
-            raise ValueError(f"unknown small_graph {small_graph!r}; expected one of {SMALL_GRAPHS}")
         return adjacency
     points = np.nan_to_num(np.asarray(centroids, dtype=np.float64), nan=-1.0)
+    # Imported here, the only place that needs it: scipy costs a job 120-330 ms to import
+    # (benchmarks/README.md, "Descriptors"), and order 0 never builds the graph.
     from scipy.spatial import Delaunay, QhullError
 
     try:
@@ -174,6 +185,24 @@ def image_segvlad(
     -> ``[S, K * D]``."""
     h, w, d = features.shape
     membership = mask_patch_membership(masks, image_size, (h, w), patch_size, crop_aligned)
-    adjacency = segment_adjacency(segment_centroids(masks), small_graph)
-    regions = (neighbourhood(adjacency, order).astype(np.float32) @ membership) > 0
+    regions = segment_regions(masks, membership, order, small_graph)
     return vlad_per_region(features.reshape(h * w, d), regions, centres)
+
+
+def segment_regions(
+    masks: np.ndarray, membership: np.ndarray, order: int, small_graph: str = "published"
+) -> np.ndarray:
+    """The patches each segment's descriptor aggregates, ``(A^order M) > 0``: bool
+    ``[S, N]`` from ``masks [S, Hm, Wm]`` (for the graph ``A``) and their membership
+    ``M [S, N]``.
+
+    At order 0 this is ``M`` itself, returned as it is: ``A^0`` is the identity whatever
+    ``A`` holds (the published small-graph quirk, which may leave a segment without its
+    self loop, included), and ``I M`` in float32 is ``M`` exactly. So the graph is not
+    built there: no centroids, no Delaunay triangulation per image, no scipy import.
+    """
+    check_small_graph(small_graph)
+    if order == 0:
+        return membership
+    adjacency = segment_adjacency(segment_centroids(masks), small_graph)
+    return (neighbourhood(adjacency, order).astype(np.float32) @ membership) > 0
