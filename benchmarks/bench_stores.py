@@ -16,8 +16,9 @@ an array without the checksum). The four stores must read back equal and hold th
 chunk files (the checksummed ones byte for byte), or the script fails. Then reads each
 whole array back, through plain ``zarr.open_group`` and, for the checksummed store,
 through ``stores.open_store`` (which also reads every array's metadata and lists its
-chunk files before the read). Reads are from the page cache (the store was just
-written), so they measure decoding, not the disk.
+chunk files before the read), both with its row reader (the chunk files decoded without
+zarr, ``stores._RowReader``) and through zarr (``.raw``). Reads are from the page cache
+(the store was just written), so they measure decoding, not the disk.
 
 Rows are VLAD-like: 32 blocks of ``dim / 32`` values, about half of them zero (clusters
 a segment does not touch), L2-normalised, so they compress about as SegVLAD's do.
@@ -362,6 +363,10 @@ def main() -> None:
         reads = {
             "zstd, zarr.open_group": raw(plain),
             "zstd + crc32c, zarr.open_group": raw(checked),
+            # The checked store's array read through zarr, as before the row reader.
+            "zstd + crc32c, open_store, zarr": lambda: stores.open_store(checked)[
+                "descriptors"
+            ].raw[...],
             "zstd + crc32c, stores.open_store": lambda: stores.open_store(checked)["descriptors"][
                 ...
             ],

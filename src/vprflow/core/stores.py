@@ -476,9 +476,11 @@ class _RowReader:
             others = [
                 range(-(-s // c)) for s, c in zip(self.shape[1:], self.chunks[1:], strict=True)
             ]
-            # One chunk after another on this thread: decoding two at once on a pool took
-            # as long on 2 loaded cores (222 DAISY feature chunks of 125 KB: 54 ms on the
-            # caller's thread, 54 / 60 / 52 ms on 1 / 2 / 3 pool threads, the same CPU).
+            # One chunk after another on this thread. A pool paid 10-20% on larger
+            # chunks only (2 shared cores, best of 7, the same CPU): 222 DAISY feature
+            # chunks of 125 KB, what anyloc_vlad's stage reads, 35 ms here, 39 / 38 ms
+            # on 2 / 3 threads; 100 of 326 KB 40-43 vs 34-38 ms; 64 of 4 MiB 333 vs
+            # 305 / 270 ms (benchmarks/README.md, "Descriptors").
             for first in range(start // step, -(-stop // step)):
                 for rest in itertools.product(*others):
                     self._chunk((first, *rest), out, start)
