@@ -383,8 +383,8 @@ class CheckedArray:
 
 def _row_selection(selection, shape: tuple[int, ...]) -> tuple[int, int, bool] | None:
     """``(start, stop, squeeze)`` if ``selection`` takes whole rows along axis 0: ``...``,
-    ``()``, a slice of step 1, or an ``int`` in range, alone or followed by ``...`` or
-    full slices (``squeeze``: an integer, whose axis 0 the result drops); else None,
+    ``()``, an ``int`` in range (``squeeze``: the result drops axis 0), or a slice of step
+    1, alone or followed by ``...`` or full slices; else None,
     and zarr reads it (steps, fancy indexing, selections inside rows, and every
     selection mistake, which zarr names)."""
     length = shape[0]
@@ -396,6 +396,8 @@ def _row_selection(selection, shape: tuple[int, ...]) -> tuple[int, int, bool] |
             return None
         if selection and selection[0] is Ellipsis and parts:
             return None  # "..., x" selects along the last axes
+        if parts and not isinstance(parts[0], slice):
+            return None  # zarr answers "(i, ...)" on 1-D with a scalar, "i" with a 0-d array
         selection = parts[0] if parts else Ellipsis
     if selection is Ellipsis:
         return 0, length, False
