@@ -81,11 +81,16 @@ def inputs(h: int, w: int, dim: int, k: int, seed: int) -> tuple[np.ndarray, np.
 
 
 def load_before(rev: str) -> types.ModuleType:
-    """``src/vprflow/evaluation/rerank.py`` at ``rev`` as a module of its own."""
-    source = subprocess.run(
-        ["git", "show", f"{rev}:src/vprflow/evaluation/rerank.py"],
-        cwd=ROOT, capture_output=True, text=True, check=True,
-    ).stdout  # fmt: skip
+    """``src/vprflow/evaluation/rerank.py`` at ``rev`` as a module of its own; ``rev`` may
+    also name a saved copy of that file (for a machine the checkout reaches without git,
+    such as a lent GPU: ``git show REV:src/vprflow/evaluation/rerank.py > FILE``)."""
+    if Path(rev).is_file():
+        source = Path(rev).read_text()
+    else:
+        source = subprocess.run(
+            ["git", "show", f"{rev}:src/vprflow/evaluation/rerank.py"],
+            cwd=ROOT, capture_output=True, text=True, check=True,
+        ).stdout  # fmt: skip
     module = types.ModuleType("rerank_before")
     exec(compile(source, f"{rev}:rerank.py", "exec"), module.__dict__)
     return module
@@ -111,7 +116,7 @@ def main() -> int:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--device", default="cpu", help="cpu, cuda, ... (torch device)")
     parser.add_argument("--cases", default=",".join(CASES), help="comma-separated names")
-    parser.add_argument("--before", default=BEFORE, help="git revision of the old code")
+    parser.add_argument("--before", default=BEFORE, help="old code: git revision or rerank.py")
     parser.add_argument("--smoke", action="store_true", help="tiny grid, K = 5, one repeat")
     args = parser.parse_args()
 
