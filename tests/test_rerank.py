@@ -21,10 +21,15 @@ from workflow_helpers import REPO, toy_config
 from vprflow.core import registry, stores
 from vprflow.evaluation import rerank as rerank_module
 from vprflow.evaluation.rerank import (
+    candidate_pairs,
+    mnn_pair_scores,
     mnn_score,
+    mnn_scores,
     mutual_nearest_neighbours,
     patch_centres,
     ransac_inliers,
+    ransac_pair_scores,
+    ransac_scores,
     rerank,
     rerank_scores,
 )
@@ -285,9 +290,8 @@ def test_rerank_scores_runs_each_kinds_score_function_with_its_settings():
     centres = patch_centres(6, 8, 14)
     for name, reranker in registry.RERANKERS.items():
         settings = {**reranker.defaults, **reranker.fixed}
-        direct = registry.resolve(reranker.scores)(
-            torch.as_tensor(query), torch.as_tensor(candidates), centres, 14, **settings
-        )
+        pairs = candidate_pairs(torch.as_tensor(query), torch.as_tensor(candidates))
+        direct = registry.resolve(reranker.scores)(pairs, centres, 14, **settings)
         np.testing.assert_array_equal(
             rerank_scores(query, candidates, (6, 8), 14, name), direct, err_msg=name
         )
@@ -498,6 +502,94 @@ def test_batched_pairs_equal_the_float64_double_loop_with_ties():
         assert list(zip(i.tolist(), j.tolist(), strict=True)) == [(a, b) for a, b, _ in expected]
         np.testing.assert_allclose(similarity, [v for _, _, v in expected], rtol=0, atol=1e-6)
         assert kept.all() and i.dtype == j.dtype == np.int64
+
+
+# ------------------------------------------------------------ pairs once, scored by each re-ranker
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_candidate_pairs_are_each_candidates_mutual_nearest_neighbours(seed):
+    """What the matches stage stores: every candidate's pairs and float32 similarities
+    exactly as the per-candidate product gives them (ties, near-ties, copies), with no
+    threshold applied."""
+    query, candidates = hard_candidates(seed, 17)
+    pairs = candidate_pairs(query, candidates)
+    assert len(pairs) == len(candidates)
+    for candidate, (i, j, similarity) in zip(candidates, pairs, strict=True):
+        expected = mutual_nearest_neighbours(query, candidate)
+        for got, want in zip((i, j, similarity), expected, strict=True):
+            assert got.dtype == want.dtype
+            np.testing.assert_array_equal(got, want)
+
+
+def test_candidate_pairs_off_the_cpu_take_each_candidates_own_product(monkeypatch):
+    # A device whose batched product may round differently: no certificate (it proves
+    # pairs, not their values), the per-candidate products; the same pairs on the CPU.
+    monkeypatch.setattr(rerank_module, "_same_bits", lambda device: False)
+    monkeypatch.setattr(rerank_module, "_fast_bf16", lambda device: True)
+    monkeypatch.setattr(rerank_module, "_BF16_CANDIDATES", True)
+    query, candidates = hard_candidates(12, 9, dim=32)
+    for candidate, pairs in zip(candidates, candidate_pairs(query, candidates), strict=True):
+        for got, want in zip(pairs, mutual_nearest_neighbours(query, candidate), strict=True):
+            np.testing.assert_array_equal(got, want)
+
+
+@pytest.mark.parametrize(("method", "options"), SETTINGS)
+@pytest.mark.parametrize("seed", range(3))
+def test_scores_from_stored_pairs_equal_the_scores_from_features(method, options, seed):
+    """The pair scorers over candidate_pairs (as the matches store holds them: int32
+    patch indices) give mnn_scores' and ransac_scores' scores and the per-candidate ones,
+    bit for bit, whatever min_similarity keeps (ties and a threshold on a pair's value
+    included)."""
+    if method == "ransac":
+        pytest.importorskip("cv2")
+    query, candidates = hard_candidates(seed, 17)
+    settings = registry.reranker(method).settings(options)
+    centres = patch_centres(5, 6, 14)
+    pairs = candidate_pairs(query, candidates)
+    if "min_similarity" in options:  # a pair exactly at the threshold is kept
+        exact = next(s for _, _, s in pairs if len(s))
+        settings["min_similarity"] = float(exact[0])
+    stored = [(i.astype(np.int32), j.astype(np.int32), s.copy()) for i, j, s in pairs]
+    scorer, from_features = {
+        "mnn": (mnn_pair_scores, mnn_scores),
+        "ransac": (ransac_pair_scores, ransac_scores),
+    }[method]
+    expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **settings)
+    q, c = torch.as_tensor(query), torch.as_tensor(candidates)
+    np.testing.assert_array_equal(from_features(q, c, centres, 14, **settings), expected)
+    np.testing.assert_array_equal(scorer(stored, centres, 14, **settings), expected)
+    np.testing.assert_array_equal(scorer(pairs, centres, 14, **settings), expected)
+    options = {k: v for k, v in settings.items() if k in registry.reranker(method).options}
+    np.testing.assert_array_equal(
+        rerank_scores(query, candidates, (5, 6), 14, method, **options), expected
+    )
+
+
+def test_a_similarity_sum_from_pairs_adds_the_float32_values_in_query_patch_order():
+    # float64 sums of values that cancel differently in another order: the pairs' order
+    # (increasing query patch) is mnn_score's.
+    values = np.array([1e8, 1.0, -1e8, 1.0], dtype=np.float32)
+    pairs = [(np.arange(4), np.arange(4), values)]
+    (score,) = mnn_pair_scores(pairs, None, 14, weighting="similarity", min_similarity=None)
+    assert score == float(values.astype(np.float64).sum())
+    (count,) = mnn_pair_scores(pairs, None, 14, weighting="count", min_similarity=1.0)
+    assert count == 3
+
+
+def test_pair_scorers_refuse_bad_pairs_and_options_by_name():
+    with pytest.raises(ValueError, match=r"pairs\[0\] must be .*float32"):
+        mnn_pair_scores(
+            [(np.arange(2), np.arange(2), np.ones(2))], None, 14, weighting="count",
+            min_similarity=None,
+        )  # fmt: skip
+    with pytest.raises(ValueError, match="weighting"):
+        mnn_pair_scores([], None, 14, weighting="sum", min_similarity=None)
+    with pytest.raises(ValueError, match="threshold"):
+        ransac_pair_scores(
+            [], None, 14, min_similarity=None, threshold=0, seed=0, model="homography",
+            max_iters=10, confidence=0.9,
+        )  # fmt: skip
 
 
 def test_the_batched_product_is_the_per_candidate_product_bit_for_bit():

@@ -833,10 +833,13 @@ def _check_search_params(index: SearchIndex, params: dict, what: str) -> None:
 class Reranker:
     """A ``rerankers.<name>.kind``: how it scores a query's candidates.
 
-    ``scores`` is ``"module:function"`` with signature ``(query [P, D], candidates
-    [K, Q, D], centres [P, 2], patch, **settings) -> scores [K] float64`` (higher is
-    better; :func:`vprflow.evaluation.rerank.rerank_scores` checks the inputs and calls
-    it). ``defaults``: the entry's keys that shape its scores, with their defaults
+    ``scores`` is ``"module:function"`` with signature ``(pairs, centres [P, 2], patch,
+    **settings) -> scores [K] float64`` (higher is better), ``pairs`` one ``(i [M], j
+    [M], similarity [M] float32)`` per candidate: its mutual nearest neighbour patch
+    pairs with the query, as :func:`vprflow.evaluation.rerank.candidate_pairs` finds them
+    and the ``matches`` stage stores them (the ``rerank`` stage and
+    :func:`vprflow.evaluation.rerank.rerank_scores` call it; an empty ``pairs`` checks
+    the settings alone). ``defaults``: the entry's keys that shape its scores, with their defaults
     (``load_schema`` writes them into the schema, so the config's defaults are these);
     the rest of the entry, ``features`` and ``top_k``, reach the key through the plan.
     ``fixed``: the function's further settings, which the config leaves at these values
@@ -875,14 +878,14 @@ RERANKERS: dict[str, Reranker] = {
         # EffoVPR's zero-shot score: the count of mutual pairs at least T2 similar.
         Reranker(
             "mnn",
-            f"{_RERANK}:mnn_scores",
+            f"{_RERANK}:mnn_pair_scores",
             {"weighting": "count", "min_similarity": None},
         ),
         # Patch-NetVLAD's RANSAC score; threshold in patches (1.5, as published). The
         # estimator's budget stays fixed: the config never set it.
         Reranker(
             "ransac",
-            f"{_RERANK}:ransac_scores",
+            f"{_RERANK}:ransac_pair_scores",
             {"min_similarity": None, "threshold": 1.5, "seed": 0},
             fixed={"model": "homography", "max_iters": 2000, "confidence": 0.999},
         ),

@@ -4,17 +4,23 @@ between dense patch features.
 vprflow stores, per image, a ``[H_p, W_p]`` grid of patch descriptors ``[D]`` (L2-normalised
 by default), read here flattened row-major: ``[P, D]`` with ``P = H_p * W_p``. Each
 candidate reference gets a score (higher is better) and :func:`rerank` re-orders the
-candidates by it. Two scores, named by ``method`` (the ``kind`` of a ``rerankers`` entry,
-one :data:`vprflow.core.registry.RERANKERS` entry each: its score function, options,
-defaults and score kind):
+candidates by it. Both scores read the candidate's mutual nearest neighbour patch pairs
+(:func:`candidate_pairs`), found once per (retrieval, features, ``top_k``) by the
+``matches`` stage and scored by each re-ranker in its ``rerank`` stage. Two scores, named
+by ``method`` (the ``kind`` of a ``rerankers`` entry, one
+:data:`vprflow.core.registry.RERANKERS` entry each: its score function over the pairs,
+options, defaults and score kind):
 
 ``"mnn"``
-    :func:`mnn_scores` (:func:`mnn_score` per candidate): how many patch pairs are mutual
-    nearest neighbours (or the sum of their similarities).
+    :func:`mnn_pair_scores` (:func:`mnn_score` per candidate): how many patch pairs are
+    mutual nearest neighbours (or the sum of their similarities).
 ``"ransac"``
-    :func:`ransac_scores` (:func:`ransac_inliers` per candidate): how many of those
+    :func:`ransac_pair_scores` (:func:`ransac_inliers` per candidate): how many of those
     mutual pairs, placed at their patch centres (:func:`patch_centres`), are inliers of
     one robustly fitted homography.
+
+:func:`rerank_scores` does both steps for one query; :func:`mnn_scores` and
+:func:`ransac_scores` take the features too (the same scores, bit for bit).
 
 Published variants and how each function reproduces them
 --------------------------------------------------------
@@ -76,6 +82,9 @@ bound (:func:`_product`, :func:`_certified`) or recomputed per candidate. bf16 p
 are implemented with the same certificate (``_BF16_CANDIDATES``) but off: their bound (about
 0.008 on unit rows) certified at most a quarter of the benchmark's candidates, so they cost
 more than they save. ``benchmarks/bench_rerank.py`` times before, after and both floors.
+:func:`candidate_pairs` (the ``matches`` stage's) needs every pair's float32 similarity
+whatever ``min_similarity`` later keeps, so off the CPU it takes the per-candidate
+products, not the certificate (which proves pairs, not their values).
 
 Nothing here keeps state between calls; the RANSAC sampler is seeded per call. torch is
 imported where it is used: the config schema lists :data:`WEIGHTINGS` from here, and
@@ -602,38 +611,42 @@ def _batched_pairs(query, candidates, min_similarity, bf16: bool | None = None) 
     return found
 
 
-def rerank_scores(
-    query_features,
-    candidates_features,
-    grid: tuple[int, int],
-    patch: int,
-    method: str,
-    **options,
-) -> np.ndarray:
-    """Score ``[K]`` float64 of each candidate for the query (higher is better).
+def candidate_pairs(query, candidates) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Each candidate's mutual nearest neighbour pairs with ``query``, exactly as
+    :func:`mutual_nearest_neighbours` finds them one candidate at a time, on any device:
+    ``[(i [M] int64, j [M] int64, similarity [M] float32)]`` per candidate of
+    ``candidates`` ``[K, Q, D]``, ``i`` increasing.
 
-    ``query_features`` ``[P, D]`` and ``candidates_features`` ``[K, Q, D]``: patch
-    descriptors flattened row-major from a ``grid = (h, w)`` of ``patch``-pixel patches,
-    so ``P = Q = h * w``; float32 numpy arrays or torch tensors.
-
-    ``method`` names a :data:`vprflow.core.registry.RERANKERS` entry, whose score function
-    (:func:`mnn_scores`, :func:`ransac_scores`) gets ``options`` (the keys of a
-    ``rerankers`` entry, and the entry's fixed settings) over the entry's defaults; an
-    option the method does not take is a ``TypeError`` naming it.
-
-    ``device`` (``None``: where ``query_features`` is, the CPU for numpy): where the
-    similarity matrices are computed. The candidates are moved there together and scored
-    in groups of one product each (:func:`_batched_pairs`), so device memory holds the
-    candidates and one ``[P, k Q]`` product of about 64 MiB (:data:`_PRODUCT_ELEMENTS`).
+    What the ``matches`` stage stores, and what the re-rankers' pair scorers
+    (:func:`mnn_pair_scores`, :func:`ransac_pair_scores`) read: no threshold is applied
+    (``min_similarity`` and ``weighting`` act when scoring), and the similarities are
+    always the per-candidate float32 product's, so the pairs depend on the features
+    alone. :func:`_batched_pairs` without bf16: on CPUs its batched product (the same
+    bits); elsewhere each candidate's own product.
     """
+    return [(i, j, s) for i, j, s, _ in _batched_pairs(query, candidates, None, bf16=False)]
+
+
+def _with_kept(pairs, min_similarity) -> list:
+    """``pairs`` (:func:`candidate_pairs`' tuples) with the mask of those kept by
+    ``min_similarity``, as :func:`_batched_pairs` gives them."""
+    found = []
+    for k, (i, j, similarity) in enumerate(pairs):
+        similarity = np.asarray(similarity)
+        if similarity.dtype != np.float32 or not len(i) == len(j) == len(similarity):
+            raise ValueError(
+                f"pairs[{k}] must be (i [M], j [M], similarity [M] float32), got lengths "
+                f"{len(i)}, {len(j)}, {len(similarity)} and similarity dtype {similarity.dtype}"
+            )
+        found.append((i, j, similarity, _kept(similarity, min_similarity)))
+    return found
+
+
+def _checked_inputs(query_features, candidates_features, grid, patch, device):
+    """``(query [P, D], candidates [K, Q, D], centres [P, 2])`` of :func:`rerank_scores`'
+    arguments, checked; ``query`` on ``device``."""
     import torch
 
-    try:
-        entry = reranker(method)
-    except ValueError as error:
-        raise ValueError(f"method: {error}") from None
-    device = options.pop("device", None)
-    settings = entry.settings(options)
     query = _as_matrix(query_features, "query_features", device)
     candidates = torch.as_tensor(candidates_features)
     if candidates.ndim != 3:
@@ -659,29 +672,116 @@ def rerank_scores(
             f"candidates_features has descriptors of dimension {candidates.shape[2]}, "
             f"query_features {query.shape[1]}"
         )
-    return resolve(entry.scores)(query, candidates, centres, patch, **settings)
+    return query, candidates, centres
+
+
+def rerank_scores(
+    query_features,
+    candidates_features,
+    grid: tuple[int, int],
+    patch: int,
+    method: str,
+    **options,
+) -> np.ndarray:
+    """Score ``[K]`` float64 of each candidate for the query (higher is better).
+
+    ``query_features`` ``[P, D]`` and ``candidates_features`` ``[K, Q, D]``: patch
+    descriptors flattened row-major from a ``grid = (h, w)`` of ``patch``-pixel patches,
+    so ``P = Q = h * w``; float32 numpy arrays or torch tensors.
+
+    ``method`` names a :data:`vprflow.core.registry.RERANKERS` entry, whose pair scorer
+    (:func:`mnn_pair_scores`, :func:`ransac_pair_scores`) gets ``options`` (the keys of a
+    ``rerankers`` entry, and the entry's fixed settings) over the entry's defaults; an
+    option the method does not take is a ``TypeError`` naming it. The pairs are
+    :func:`candidate_pairs`': what the ``matches`` and ``rerank`` stages compute in two
+    steps, here in one.
+
+    ``device`` (``None``: where ``query_features`` is, the CPU for numpy): where the
+    similarity matrices are computed. The candidates are moved there together and matched
+    in groups of one product each (:func:`_batched_pairs`), so device memory holds the
+    candidates and one ``[P, k Q]`` product of about 64 MiB (:data:`_PRODUCT_ELEMENTS`).
+    """
+    try:
+        entry = reranker(method)
+    except ValueError as error:
+        raise ValueError(f"method: {error}") from None
+    device = options.pop("device", None)
+    settings = entry.settings(options)
+    query, candidates, centres = _checked_inputs(
+        query_features, candidates_features, grid, patch, device
+    )
+    score = resolve(entry.scores)
+    # No pairs first: a bad option fails by name before the (costlier) matching.
+    score([], centres, patch, **settings)
+    return score(candidate_pairs(query, candidates), centres, patch, **settings)
+
+
+def _mnn(found: list, weighting: str) -> np.ndarray:
+    scores = np.zeros(len(found), dtype=np.float64)
+    for k, (_, _, similarity, kept) in enumerate(found):
+        if weighting == "count":
+            scores[k] = float(np.count_nonzero(kept))
+        else:
+            # As mnn_score: the kept float32 values (in increasing i), widened, summed by numpy.
+            scores[k] = float(similarity[kept].astype(np.float64).sum())
+    return scores
+
+
+def mnn_pair_scores(
+    pairs, centres: np.ndarray, patch: int, *, weighting: str, min_similarity
+) -> np.ndarray:
+    """The ``"mnn"`` re-ranker's score function: :func:`mnn_score` of each candidate from
+    its mutual pairs ``pairs`` (:func:`candidate_pairs`' list, or a ``matches`` store's),
+    float64 ``[K]`` (``centres`` and ``patch`` unused)."""
+    _check_weighting(weighting)
+    _check_min_similarity(min_similarity)
+    return _mnn(_with_kept(pairs, min_similarity), weighting)
 
 
 def mnn_scores(
     query, candidates, centres: np.ndarray, patch: int, *, weighting: str, min_similarity
 ) -> np.ndarray:
-    """The ``"mnn"`` re-ranker: :func:`mnn_score` of each candidate ``[K, Q, D]`` for
-    ``query`` ``[P, D]`` (checked by :func:`rerank_scores`; ``centres`` and ``patch``
-    unused), float64 ``[K]``, from :func:`_batched_pairs` (one product per query)."""
+    """:func:`mnn_pair_scores` of each candidate ``[K, Q, D]`` for ``query`` ``[P, D]``
+    (``centres`` and ``patch`` unused), float64 ``[K]``, its pairs from
+    :func:`_batched_pairs` (one product per query; a count may take bf16 products where
+    they are on)."""
     _check_weighting(weighting)
     _check_min_similarity(min_similarity)
     # "similarity" sums the float32 values themselves: bf16 candidates would not give them.
     bf16 = None if weighting == "count" else False
-    scores = np.zeros(candidates.shape[0], dtype=np.float64)
-    for k, (_, _, similarity, kept) in enumerate(
-        _batched_pairs(query, candidates, min_similarity, bf16)
-    ):
-        if weighting == "count":
-            scores[k] = float(np.count_nonzero(kept))
-        else:
-            # As mnn_score: the kept float32 values, widened, summed by numpy.
-            scores[k] = float(similarity[kept].astype(np.float64).sum())
+    return _mnn(_batched_pairs(query, candidates, min_similarity, bf16), weighting)
+
+
+def _ransac(found: list, centres: np.ndarray, pixels: float, ransac: dict) -> np.ndarray:
+    scores = np.zeros(len(found), dtype=np.float64)
+    for k, (i, j, _, kept) in enumerate(found):
+        scores[k] = ransac_inliers(centres[i[kept]], centres[j[kept]], pixels, **ransac)
     return scores
+
+
+def ransac_pair_scores(
+    pairs,
+    centres: np.ndarray,
+    patch: int,
+    *,
+    min_similarity,
+    threshold: float,
+    seed: int,
+    model: str,
+    max_iters: int,
+    confidence: float,
+) -> np.ndarray:
+    """The ``"ransac"`` re-ranker's score function: :func:`ransac_inliers` over each
+    candidate's mutual pairs ``pairs`` (:func:`candidate_pairs`' list, or a ``matches``
+    store's) kept by ``min_similarity``, placed at their ``centres``
+    (:func:`patch_centres`); ``threshold`` is in patches (``threshold * patch`` pixels).
+    Float64 ``[K]``."""
+    _check_min_similarity(min_similarity)
+    ransac = {"model": model, "seed": seed, "max_iters": max_iters, "confidence": confidence}
+    # Checked once here so a bad option fails even when no candidate reaches the fit.
+    _check_ransac_options(threshold, **ransac)
+    found = _with_kept(pairs, min_similarity)
+    return _ransac(found, centres, float(threshold) * patch, ransac)
 
 
 def ransac_scores(
@@ -697,19 +797,13 @@ def ransac_scores(
     max_iters: int,
     confidence: float,
 ) -> np.ndarray:
-    """The ``"ransac"`` re-ranker: :func:`ransac_inliers` over each candidate's mutual
-    nearest neighbour pairs with ``query`` kept by ``min_similarity`` (from
-    :func:`_batched_pairs`), placed at their ``centres`` (:func:`patch_centres`);
-    ``threshold`` is in patches (``threshold * patch`` pixels). Float64 ``[K]``."""
+    """:func:`ransac_pair_scores` of each candidate ``[K, Q, D]`` for ``query``
+    ``[P, D]``, its pairs from :func:`_batched_pairs`. Float64 ``[K]``."""
     _check_min_similarity(min_similarity)
     ransac = {"model": model, "seed": seed, "max_iters": max_iters, "confidence": confidence}
-    # Checked once here so a bad option fails even when no candidate reaches the fit.
     _check_ransac_options(threshold, **ransac)
-    pixels = float(threshold) * patch
-    scores = np.zeros(candidates.shape[0], dtype=np.float64)
-    for k, (i, j, _, kept) in enumerate(_batched_pairs(query, candidates, min_similarity)):
-        scores[k] = ransac_inliers(centres[i[kept]], centres[j[kept]], pixels, **ransac)
-    return scores
+    found = _batched_pairs(query, candidates, min_similarity)
+    return _ransac(found, centres, float(threshold) * patch, ransac)
 
 
 def rerank(ranking_row: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
