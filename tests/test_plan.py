@@ -67,7 +67,9 @@ def test_shipped_methods_share_features_segments_vocabulary_and_pca(config):
         "pca": 2,  # one per neighbourhood order with PCA (segvlad_o0 and segvlad)
         "descriptors": 5,
         "search": 4,  # the four SegVLAD methods' segment lists
-        # anyloc_vlad and segvlad re-ranked by mnn and ransac on the methods' own features
+        # anyloc_vlad and segvlad re-ranked by mnn and ransac on the methods' own features:
+        # one matches store per method, scored by each re-ranker
+        "matches": 2,
         "rerank": 4,
         "recall": 9,
     }
@@ -537,17 +539,18 @@ def test_native_resolution_plans_the_images_own_size_and_the_stage_refuses_anoth
 def test_a_reranker_setting_changes_only_its_rerank_and_the_reranked_recall(config):
     changed = copy.deepcopy(config)
     changed["rerankers"]["mnn"]["min_similarity"] = 0.5
+    # A scoring option: the pairs (the matches store) are kept.
     assert changed_stages(config, changed, method="segvlad+mnn") == {"rerank", "recall"}
     assert changed_stages(config, changed, method="segvlad+ransac") == set()
     assert changed_stages(config, changed, method="segvlad") == set()
     # Another backbone's features: only the re-ranker's features and what follows change.
     changed["rerankers"]["mnn"]["features"] = "dino_vitb8"
     stages = changed_stages(config, changed, method="segvlad+mnn")
-    assert stages == {"rerank", "recall"}
+    assert stages == {"matches", "rerank", "recall"}  # (keys_of: one key per stage name)
     plan = build_plan(changed)
     run = next(r for r in plan.runs["corridor"] if r.method == "segvlad+mnn")
     rerank = plan.get(*plan.get("recall", run.recall_key).inputs["rerank"])
-    features = plan.get(*rerank.inputs["features"])
+    features = plan.get(*plan.get(*rerank.inputs["matches"]).inputs["features"])
     assert features.record["params"]["backbone"] == "dino"
 
 
@@ -568,7 +571,9 @@ def test_a_preset_reranks_only_the_methods_a_config_keeps_and_a_typo_is_named():
     ):
         run = next(r for r in plan.runs[dataset] if r.method == method)
         rerank = plan.get(*plan.get("recall", run.recall_key).inputs["rerank"])
-        assert rerank.run_params["uses_gpu"] is gpu, method
+        matches = plan.get(*rerank.inputs["matches"])
+        assert matches.run_params["uses_gpu"] is gpu, method
+        assert rerank.run_params["uses_gpu"] is False, method  # scoring is CPU work
     config["datasets"]["corridor"]["rerank"] = {"segvald": ["mnn"]}
     with pytest.raises(PlanError, match=r"datasets\.corridor\.rerank names \['segvald'\]"):
         build_plan(config)
@@ -607,7 +612,42 @@ def test_the_rerank_stage_retrieves_as_deep_as_the_recall_reads(config):
     run = next(r for r in plan.runs["corridor"] if r.method == "anyloc_vlad+mnn")
     recall = plan.get("recall", run.recall_key)
     rerank = plan.get("rerank", recall.inputs["rerank"][1])
-    assert rerank.record["params"]["depth"] == recall.record["params"]["top_k"] == 20
+    matches = plan.get(*rerank.inputs["matches"])
+    assert matches.record["params"]["depth"] == recall.record["params"]["top_k"] == 20
+
+
+def test_the_rerankers_of_a_method_on_the_same_features_and_top_k_share_one_matches_store():
+    """Shipped corridor: anyloc_vlad and segvlad each re-ranked by mnn and ransac on
+    DAISY, top 100: one matches store per method, holding what decides the candidates
+    and their pairs (not the re-ranker's kind or options); each rerank reads only it."""
+    config = validate_config(yaml.safe_load((REPO / "config" / "config.yaml").read_text()), SCHEMA)
+    plan = build_plan(config)
+    runs = {r.method: r for r in plan.runs["corridor"]}
+    for method in ("anyloc_vlad", "segvlad"):
+        reranks = [
+            plan.get(*plan.get("recall", runs[f"{method}+{r}"].recall_key).inputs["rerank"])
+            for r in ("mnn", "ransac")
+        ]
+        assert [r.record["params"]["kind"] for r in reranks] == ["mnn", "ransac"]
+        assert all(set(r.inputs) == {"matches"} for r in reranks)
+        assert reranks[0].inputs["matches"] == reranks[1].inputs["matches"], method
+        matches = plan.get(*reranks[0].inputs["matches"])
+        recall = plan.get("recall", runs[method].recall_key)
+        assert set(matches.record["params"]) == (
+            {"top_k", "depth", "vote_ranking"} if method == "segvlad" else {"top_k", "depth"}
+        )
+        assert matches.record["params"]["top_k"] == 100
+        retrieval = {k: v for k, v in recall.inputs.items() if k not in ("dataset", "exact_search")}
+        assert {k: v for k, v in matches.inputs.items() if k not in ("images", "features")} == (
+            retrieval
+        )
+    # Another top_k for ransac alone: its own matches store, mnn's kept.
+    config["rerankers"]["ransac"]["top_k"] = 50
+    before, after = (
+        {k for k, s in p.stages["matches"].items() if s.dataset == "corridor"}
+        for p in (plan, build_plan(config))
+    )
+    assert len(before) == 2 and len(after) == 4 and before < after
 
 
 def test_a_config_with_its_keys_in_another_order_gives_records_of_the_same_repr(config):
@@ -720,6 +760,6 @@ def test_a_trained_method_is_reranked_on_the_rerankers_dense_features(tmp_path):
     plan = build_plan(filled)
     run = next(r for r in plan.runs["corridor"] if r.method == "salad_m+mnn")
     rerank = plan.get(*plan.get("recall", run.recall_key).inputs["rerank"])
-    features = plan.get(*rerank.inputs["features"])
+    features = plan.get(*plan.get(*rerank.inputs["matches"]).inputs["features"])
     assert features.record["params"]["backbone"] == "daisy"
     assert run.row_params["aggregator"] == "model"

@@ -26,10 +26,12 @@ EVERYTHING = (
     "pca",
     "descriptors",
     "search",
+    "matches",
     "rerank",
     "recall",
 )
 FROM_FEATURES = EVERYTHING[2:]
+FROM_SEARCH = EVERYTHING[EVERYTHING.index("search") :]
 TRUTH = ("dataset", "recall")
 
 # setting -> the stages a change of it reruns (the design; docs/usage.md shows the same).
@@ -41,7 +43,7 @@ EXPECTED = {
     "ground_truth.drop_out_of_range": TRUTH,
     "denominator": ("recall",),
     "recall_at (within the top 20)": ("recall",),
-    "recall_at (past 20)": ("rerank", "recall"),  # the re-ranking is as deep as recall
+    "recall_at (past 20)": ("matches", "rerank", "recall"),  # the re-ranking is as deep as recall
     "paired": EVERYTHING,  # the queries' order
     "exif_orientation": EVERYTHING,
     "recursive": EVERYTHING,
@@ -51,12 +53,14 @@ EXPECTED = {
     "source": (),
     "data_root": (),
     "backbones.daisy.radius": ("features", *EVERYTHING[4:]),  # not segments
-    "segmenters.slic.n_segments": ("segments", "pca", "descriptors", "search", "rerank", "recall"),
-    "vocabulary.n_clusters": ("vocabulary", "pca", "descriptors", "search", "rerank", "recall"),
-    "defaults.pca.dim": ("pca", "descriptors", "search", "rerank", "recall"),
-    "voting.top_segments": ("search", "rerank", "recall"),
-    "rerankers.ransac.top_k": ("rerank", "recall"),
-    "rerank": ("features", "rerank", "recall"),  # mnn_dinov2's features are new
+    "segmenters.slic.n_segments": ("segments", "pca", "descriptors", *FROM_SEARCH),
+    "vocabulary.n_clusters": ("vocabulary", "pca", "descriptors", *FROM_SEARCH),
+    "defaults.pca.dim": ("pca", "descriptors", *FROM_SEARCH),
+    "voting.top_segments": FROM_SEARCH,
+    # ransac's own pairs now (mnn keeps the top 100's); a scoring option keeps the pairs.
+    "rerankers.ransac.top_k": ("matches", "rerank", "recall"),
+    "rerankers.ransac.threshold": ("rerank", "recall"),
+    "rerank": ("features", "matches", "rerank", "recall"),  # mnn_dinov2's features are new
     "device": (),
 }
 

@@ -12,7 +12,7 @@ import pytest
 from synthetic import make_dataset
 from workflow_helpers import toy_config
 
-from vprflow.core import stores
+from vprflow.core import registry, stores
 from vprflow.core.errors import DatasetError
 from vprflow.data.images import read_image, resize_image
 from vprflow.planning.config import validate_config
@@ -266,6 +266,48 @@ def test_reranked_rows_sort_the_retrieval_top_k_by_directly_counted_mutual_match
         np.testing.assert_array_equal(reranked["ranking"][q, :4], retrieved[q][order])
         np.testing.assert_array_equal(reranked["scores"][q, :4], np.array(counts)[order])
     assert reranked.attrs["score"] == "matches"
+
+
+def test_the_matches_store_holds_each_candidates_mutual_pairs_and_rerank_scores_them(pipeline):
+    """segvlad+ransac (top 100 of 6 references, min_similarity 0.5): the matches store's
+    candidates are the retrieval's, each candidate's pairs all those of
+    mutual_nearest_neighbours on the features store (min_similarity acts when scoring),
+    and the rerank store's scores those of ransac_scores on the features."""
+    from vprflow.evaluation.rerank import mutual_nearest_neighbours, patch_centres, ransac_scores
+    from vprflow.stages.matches import Matches
+
+    plan, runner, _, _ = pipeline
+    run = {r.method: r for r in plan.runs["toy"]}["segvlad+ransac"]
+    rerank = plan.get(*plan.get("recall", run.recall_key).inputs["rerank"])
+    matches = Matches(runner.path(*rerank.inputs["matches"]))
+    reranked = rerank_store(pipeline, "segvlad+ransac")
+    features = stores.open_store(stage_path(pipeline, "features", "segvlad"))
+    patches = np.asarray(features["features"][...], dtype=np.float32)
+    patches = patches.reshape(len(patches), -1, patches.shape[-1])
+    assert matches.grid == tuple(features.attrs["grid"]) and matches.top_k == N_PLACES
+    np.testing.assert_array_equal(matches.retrieval_ranking, reranked["retrieval_ranking"][...])
+    settings = registry.reranker("ransac").settings(rerank.record["params"]["options"])
+    assert settings["min_similarity"] == 0.5
+    centres = patch_centres(*matches.grid, matches.patch)
+    for q in range(N_PLACES):
+        candidates = matches.candidates(q)
+        np.testing.assert_array_equal(candidates, matches.retrieval_ranking[q, :N_PLACES])
+        pairs = matches.pairs(q)
+        assert len(pairs) == len(candidates)
+        for r, stored in zip(candidates, pairs, strict=True):
+            direct = mutual_nearest_neighbours(patches[N_PLACES + q], patches[r])
+            for got, want in zip(stored, direct, strict=True):
+                np.testing.assert_array_equal(got, want)
+        scores = ransac_scores(
+            patches[N_PLACES + q], patches[candidates], centres, matches.patch, **settings
+        )
+        row = np.asarray(reranked["ranking"][q])
+        order = np.argsort(-scores, kind="stable")
+        np.testing.assert_array_equal(row[: len(candidates)], candidates[order])
+        np.testing.assert_array_equal(reranked["scores"][q, : len(candidates)], scores[order])
+    cost = reranked.attrs["ms_per_query"] - matches.group.attrs["ms_per_query"]
+    assert cost > 0  # the scoring's own time, beside the matching's
+    assert reranked.attrs["search_ms_per_query"] == matches.group.attrs["search_ms_per_query"]
 
 
 def test_reranked_recall_reads_the_reranked_ranking_and_states_its_cost(pipeline):

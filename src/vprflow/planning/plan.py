@@ -620,7 +620,9 @@ def _plan_rerank(
     m: _Method, retrieval: dict[str, _StoreRef], recall_params: dict, name: str
 ) -> tuple[_StoreRef, dict]:
     """The ``rerank`` stage of re-ranker entry ``name`` over the method's ``retrieval``
-    stores (without an exact twin), and the re-ranked row's extra CSV columns."""
+    stores (without an exact twin), and the re-ranked row's extra CSV columns. Its
+    ``matches`` store (:func:`_plan_matches`) is every re-ranker's of the method with the
+    same features and ``top_k``; the ``rerank`` stage itself only scores them."""
     if name not in m.config["rerankers"]:
         raise PlanError(
             f"datasets.{m.dataset_name}.rerank: {m.name!r} names re-ranker {name!r}, which "
@@ -633,14 +635,29 @@ def _plan_rerank(
             f"under backbones: {sorted(m.config['backbones'])} (re-ranker {name!r}, which "
             f"datasets.{m.dataset_name}.rerank applies to method {m.name!r})"
         )
-    features, _ = _plan_features(m, entry["features"], reranker=name)
+    matches = _plan_matches(m, retrieval, recall_params, entry, name)
     params = {
         "kind": entry["kind"],
+        "options": {k: entry[k] for k in RERANKERS[entry["kind"]].options},
+    }
+    # Scoring stored pairs (counts, sums, RANSAC fits) is CPU work.
+    store = m.add("rerank", params, {"matches": matches}, {**m.execution, "uses_gpu": False})
+    return store, {"reranker": name, **_prefixed("rerank", entry)}
+
+
+def _plan_matches(
+    m: _Method, retrieval: dict[str, _StoreRef], recall_params: dict, entry: dict, name: str
+) -> _StoreRef:
+    """The ``matches`` stage of re-ranker entry ``entry`` (named ``name``): exactly what
+    decides the candidates and their patch pairs (the retrieval, the features, ``top_k``,
+    the depth), not the re-ranker's kind or options, so two re-rankers of one method on
+    the same features and ``top_k`` share it."""
+    features, _ = _plan_features(m, entry["features"], reranker=name)
+    params = {
         "top_k": entry["top_k"],
         # As deep as the recall's ranking: the rest of the retrieval follows the
         # re-ranked top K, so Recall@N beyond top_k is the retrieval's, not truncated.
         "depth": recall_params["top_k"],
-        "options": {k: entry[k] for k in RERANKERS[entry["kind"]].options},
     }
     if "vote_ranking" in recall_params:
         params["vote_ranking"] = recall_params["vote_ranking"]
@@ -649,8 +666,7 @@ def _plan_rerank(
     backbone = m.entry("backbones", entry["features"])
     run_params = {**m.execution, "uses_gpu": model_kind("features", backbone).uses_gpu}
     inputs = {**retrieval, "images": m.images_store, "features": features}
-    store = m.add("rerank", params, inputs, run_params)
-    return store, {"reranker": name, **_prefixed("rerank", entry)}
+    return m.add("matches", params, inputs, run_params)
 
 
 def _plan_search(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict]:
@@ -780,8 +796,12 @@ STAGES: dict[str, StageSpec] = {
         shards="references",
         combine="vprflow.stages.search:merge_search",
     ),
-    # 2: the top K re-ordered, then the rest of the retrieval (to `depth`)
-    "rerank": StageSpec(2, "vprflow.stages.rerank:rerank_stage"),
+    # Each re-ranked candidate's mutual nearest neighbour patch pairs, shared by the
+    # re-rankers of a method on the same features and top_k (issue 33)
+    "matches": StageSpec(1, "vprflow.stages.matches:compute_matches"),
+    # 2: the top K re-ordered, then the rest of the retrieval (to `depth`); 3: scores
+    # from a matches store's pairs (the retrieval and the matching moved there)
+    "rerank": StageSpec(3, "vprflow.stages.rerank:rerank_stage"),
     # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
     # summary and cost per query, re-ranked lists; 6: n_queries_without_positive
     "recall": StageSpec(6, "vprflow.stages.recall:evaluate"),

@@ -26,7 +26,16 @@ from vprflow.planning.plan import STAGES, build_plan
 N_IMAGES = 4
 # The stages whose outputs come from a model or a fit (hours of GPU time on DINOv2-G and
 # SAM-H): no ground-truth setting may rerun one.
-MODEL_STAGES = ("features", "segments", "vocabulary", "pca", "descriptors", "search", "rerank")
+MODEL_STAGES = (
+    "features",
+    "segments",
+    "vocabulary",
+    "pca",
+    "descriptors",
+    "search",
+    "matches",
+    "rerank",
+)
 
 
 def _write_image(path: Path, seed: int) -> None:
@@ -182,6 +191,13 @@ CHANGES: tuple[Change, ...] = (
         "rerankers.ransac.top_k",
         "100 -> 50",
         _set("rerankers", "ransac", "top_k", value=50),
+        top=True,
+    ),
+    # Scoring alone: the pairs (the matches store) are shared with the other re-rankers.
+    Change(
+        "rerankers.ransac.threshold",
+        "1.5 -> 2.0",
+        _set("rerankers", "ransac", "threshold", value=2.0),
         top=True,
     ),
     Change(

@@ -1,0 +1,173 @@
+"""The ``matches`` rule: each query's re-ranking candidates (its retrieval's top K) and
+every candidate's mutual nearest neighbour patch pairs with it
+(:func:`vprflow.evaluation.rerank.candidate_pairs`), once for all the re-rankers of a
+method on the same features and ``top_k``; each ``rerank`` stage scores them.
+
+The retrieval is the method's own (:func:`vprflow.stages.recall.retrieve`, the ranking
+its recall row is computed from, as deep as ``depth``, the recall's, or ``top_k`` if
+deeper); the patch features are the re-ranker's (any backbone entry, so they may differ
+from the method's). The pairs carry no threshold: ``min_similarity`` and the weighting
+act when scoring, so they do not depend on any re-ranker's options.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+from tqdm import tqdm
+
+from vprflow.core import stores
+from vprflow.stages.base import Job
+from vprflow.stages.dataset import Dataset
+from vprflow.stages.recall import timed_retrieve
+
+log = logging.getLogger("vprflow")
+
+# Reference features up to this size are read into memory once; larger sets are read
+# per candidate (a query's K candidates are scattered over the database).
+_IN_MEMORY_BYTES = 2 << 30
+
+# The pairs' arrays, one row a pair, in (query, candidate, increasing query patch) order.
+PAIR_ARRAYS = {"query_patch": np.int32, "candidate_patch": np.int32, "similarity": np.float32}
+
+
+def compute_matches(job: Job) -> None:
+    """Store ``retrieval_ranking [Nq, D]`` int64 (reference indices, -1 = none; ``D =
+    max(depth, top_k)`` capped at the references), whose first ``K`` columns (attribute
+    ``top_k``: ``top_k`` capped at ``D``) are the candidates, and their pairs as ragged flat
+    arrays: candidate ``k`` of query ``q`` (``c = q K + k``) has pairs ``offsets[c] :
+    offsets[c + 1]`` (``offsets [Nq K + 1]`` int64; none for a ``-1`` candidate) of
+    ``query_patch``, ``candidate_patch`` (int32 row-major patch indices) and
+    ``similarity`` (float32, as :func:`vprflow.evaluation.rerank.mutual_nearest_neighbours`
+    gives it), ordered by increasing query patch. Attributes: the features' ``grid`` and
+    ``patch_size``, ``top_k``, ``depth``, ``ms_per_query`` (the matching) and
+    ``search_ms_per_query`` (the retrieval)."""
+    import torch
+
+    from vprflow.core.devices import resolve_device
+    from vprflow.evaluation.rerank import candidate_pairs
+
+    inputs, params = job.inputs, job.params
+    dataset = Dataset(inputs["images"])
+    n_ref, n_query = dataset.n_reference, dataset.n_query
+    (retrieved, _, _), search_ms = timed_retrieve(
+        dataset,
+        inputs["descriptors"],
+        max(params["top_k"], params["depth"]),
+        inputs.get("search"),
+        params.get("vote_ranking"),
+    )
+    features = stores.open_store(inputs["features"])
+    array = features["features"]
+    grid = [int(v) for v in features.attrs["grid"]]
+    patch = int(features.attrs["patch_size"])
+    per_image = 4 * int(np.prod(array.shape[1:]))
+    references = (
+        np.asarray(array[:n_ref], dtype=np.float32)
+        if per_image * n_ref <= _IN_MEMORY_BYTES
+        else None
+    )
+    device = resolve_device(job.device)
+    top_k = min(params["top_k"], retrieved.shape[1])
+    counts = np.zeros((n_query, top_k), dtype=np.int64)
+    with stores.atomic_store(job.out, {"stage": "matches", "record": job.record}) as group:
+        chunk = stores.rows_per_chunk(4)
+        writers = {
+            name: stores.RowWriter(group, name, (), dtype, chunk)
+            for name, dtype in PAIR_ARRAYS.items()
+        }
+        started = time.perf_counter()
+        for q in tqdm(range(n_query), desc="matches", unit="query"):
+            # A retrieval's -1 padding trails its row: the candidates are the head's present.
+            present = np.flatnonzero(retrieved[q, :top_k] >= 0)
+            if not len(present):
+                continue
+            candidates = retrieved[q, present]
+            query = np.asarray(array[n_ref + q], dtype=np.float32)
+            if references is not None:
+                stack = references[candidates]
+            else:
+                stack = np.stack([np.asarray(array[int(r)], dtype=np.float32) for r in candidates])
+            found = candidate_pairs(
+                torch.as_tensor(query.reshape(-1, query.shape[-1])).to(device),
+                stack.reshape(len(candidates), -1, stack.shape[-1]),
+            )
+            counts[q, present] = [len(i) for i, _, _ in found]
+            for column, name in enumerate(PAIR_ARRAYS):
+                writers[name].append(
+                    np.concatenate([pairs[column] for pairs in found]),
+                    f"{name} of query {q}",
+                )
+        for writer in writers.values():
+            writer.close()
+        seconds = time.perf_counter() - started
+        offsets = np.concatenate([[0], np.cumsum(counts.ravel())]).astype(np.int64)
+        stores.write_array(group, "offsets", offsets)
+        stores.write_array(group, "retrieval_ranking", retrieved.astype(np.int64))
+        group.attrs.update(
+            grid=grid,
+            patch_size=patch,
+            top_k=int(top_k),
+            depth=int(retrieved.shape[1]),
+            ms_per_query=1000 * seconds / max(n_query, 1),
+            # The retrieval's own cost, for the re-ranked row's search_ms_per_query.
+            search_ms_per_query=search_ms,
+        )
+    log.info(
+        "matched the top %d (of %d retrieved) of %d queries: %d pairs, %.1f ms a query",
+        top_k,
+        retrieved.shape[1],
+        n_query,
+        int(offsets[-1]),
+        1000 * seconds / max(n_query, 1),
+    )
+
+
+class Matches:
+    """A ``matches`` store read query by query: :meth:`pairs` gives one query's
+    candidates' pairs as :func:`vprflow.evaluation.rerank.candidate_pairs` does, reading
+    the pairs about 64 MiB at a time (queries are read in order)."""
+
+    def __init__(self, path: str):
+        self.group = stores.open_store(path)
+        attrs = self.group.attrs
+        self.grid = tuple(int(v) for v in attrs["grid"])
+        self.patch = int(attrs["patch_size"])
+        self.top_k = int(attrs["top_k"])
+        self.retrieval_ranking = np.asarray(self.group["retrieval_ranking"][...])
+        self.offsets = np.asarray(self.group["offsets"][...])
+        n_query = len(self.retrieval_ranking)
+        if len(self.offsets) != n_query * self.top_k + 1:
+            raise stores.StoreCorruptError(
+                path,
+                f"offsets has {len(self.offsets)} entries, not {n_query} queries x "
+                f"{self.top_k} candidates + 1",
+            )
+        self._arrays = {name: self.group[name] for name in PAIR_ARRAYS}
+        self._block = (64 << 20) // sum(np.dtype(d).itemsize for d in PAIR_ARRAYS.values())
+        self._start, self._rows = 0, {name: np.zeros(0, d) for name, d in PAIR_ARRAYS.items()}
+
+    def candidates(self, q: int) -> np.ndarray:
+        """Query ``q``'s candidates ``[k]`` (reference indices; the top ``top_k`` present)."""
+        head = self.retrieval_ranking[q, : self.top_k]
+        return head[head >= 0]
+
+    def pairs(self, q: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """``[(query_patch [M] int32, candidate_patch [M] int32, similarity [M] float32)]``,
+        one per candidate of :meth:`candidates`."""
+        k = len(self.candidates(q))
+        bounds = self.offsets[q * self.top_k : q * self.top_k + k + 1]
+        low, high = int(bounds[0]), int(bounds[-1])
+        stop = self._start + len(self._rows["similarity"])
+        if not (self._start <= low and high <= stop):
+            # This query's pairs and those after it, about 64 MiB.
+            stop = max(high, min(low + self._block, int(self.offsets[-1])))
+            self._start = low
+            self._rows = {n: np.asarray(a[low:stop]) for n, a in self._arrays.items()}
+        rows = [self._rows[name] for name in PAIR_ARRAYS]
+        return [
+            tuple(r[a - self._start : b - self._start] for r in rows)
+            for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+        ]
