@@ -305,6 +305,13 @@ def test_the_matches_store_holds_each_candidates_mutual_pairs_and_rerank_scores_
         order = np.argsort(-scores, kind="stable")
         np.testing.assert_array_equal(row[: len(candidates)], candidates[order])
         np.testing.assert_array_equal(reranked["scores"][q, : len(candidates)], scores[order])
+    # Read a few pairs a block (each query's at least): the same pairs, in any order.
+    small = Matches(runner.path(*rerank.inputs["matches"]))
+    small._block = 5
+    for q in [*range(N_PLACES), 0, N_PLACES - 1, 1]:
+        for got, want in zip(small.pairs(q), matches.pairs(q), strict=True):
+            for a, b in zip(got, want, strict=True):
+                np.testing.assert_array_equal(a, b)
     cost = reranked.attrs["ms_per_query"] - matches.group.attrs["ms_per_query"]
     assert cost > 0  # the scoring's own time, beside the matching's
     assert reranked.attrs["search_ms_per_query"] == matches.group.attrs["search_ms_per_query"]

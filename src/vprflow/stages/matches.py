@@ -157,9 +157,8 @@ class Matches:
     def pairs(self, q: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
         """``[(query_patch [M] int32, candidate_patch [M] int32, similarity [M] float32)]``,
         one per candidate of :meth:`candidates`."""
-        k = len(self.candidates(q))
-        bounds = self.offsets[q * self.top_k : q * self.top_k + k + 1]
-        low, high = int(bounds[0]), int(bounds[-1])
+        first = q * self.top_k
+        low, high = int(self.offsets[first]), int(self.offsets[first + self.top_k])
         stop = self._start + len(self._rows["similarity"])
         if not (self._start <= low and high <= stop):
             # This query's pairs and those after it, about 64 MiB.
@@ -167,7 +166,11 @@ class Matches:
             self._start = low
             self._rows = {n: np.asarray(a[low:stop]) for n, a in self._arrays.items()}
         rows = [self._rows[name] for name in PAIR_ARRAYS]
+        slots = first + np.flatnonzero(self.retrieval_ranking[q, : self.top_k] >= 0)
         return [
-            tuple(r[a - self._start : b - self._start] for r in rows)
-            for a, b in zip(bounds[:-1], bounds[1:], strict=True)
+            tuple(
+                r[int(self.offsets[c]) - self._start : int(self.offsets[c + 1]) - self._start]
+                for r in rows
+            )
+            for c in slots
         ]
