@@ -184,7 +184,8 @@ def test_stages_are_shared_and_self_describing(toy_run):
     counts = {s.name: len(list(s.glob("*.zarr"))) for s in cache.iterdir() if s.is_dir()}
     # Six methods share one features and segments store, five one vocabulary; PCA is
     # fitted once per SegVLAD neighbourhood order that uses it (orders 0 and 3), as
-    # published, and once for segment_gem. Each re-ranked row adds a rerank and a recall.
+    # published, and once for segment_gem. Each re-ranked row adds a rerank and a recall;
+    # the re-rankers of one method on the same features share one matches store.
     assert counts == {
         "images": 1,
         "dataset": 1,
@@ -194,6 +195,7 @@ def test_stages_are_shared_and_self_describing(toy_run):
         "pca": 3,
         "descriptors": 6,
         "search": 5,  # one segment search per per-segment method
+        "matches": 2,
         "rerank": 3,
         "recall": 9,
     }
@@ -213,6 +215,7 @@ def test_changing_order_rebuilds_pca_descriptors_and_recall_only(toy_run):
         "pca",
         "descriptors",
         "search",
+        "matches",
         "rerank",
         "recall",
         "report",
@@ -222,6 +225,7 @@ def test_changing_order_rebuilds_pca_descriptors_and_recall_only(toy_run):
     assert scheduled_stages(workdir, path, TARGET) == {
         "descriptors",
         "search",
+        "matches",
         "rerank",
         "recall",
         "report",
@@ -238,6 +242,7 @@ def test_changing_segmenter_rebuilds_segments_pca_descriptors_not_features(toy_r
         "pca",
         "descriptors",
         "search",
+        "matches",
         "rerank",
         "recall",
         "report",

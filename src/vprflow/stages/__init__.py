@@ -13,6 +13,6 @@ Sharded stages (features, segments, descriptors over all images, references firs
 segment search over the reference images) run one job per ``start``/``stop`` range;
 :mod:`.gather` concatenates the shards, :func:`.search.merge_search` merges search
 shards. Reading order, as the data flows: dataset (the ``images`` and ``dataset``
-stages), features, segments, vocabulary, pca, descriptors, search, rerank, recall, then
-the outputs that are no stages: report, figures, export.
+stages), features, segments, vocabulary, pca, descriptors, search, matches, rerank,
+recall, then the outputs that are no stages: report, figures, export.
 """
