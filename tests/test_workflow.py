@@ -16,6 +16,8 @@ import pytest
 import zarr
 from synthetic import make_dataset
 from workflow_helpers import (
+    REPO,
+    SNAKEFILE,
     expected_rows,
     scheduled_outputs,
     scheduled_stages,
@@ -247,6 +249,23 @@ def test_changing_segmenter_rebuilds_segments_pca_descriptors_not_features(toy_r
         "recall",
         "report",
     }
+
+
+def test_a_fresh_checkout_of_the_workflow_reruns_nothing(toy_run, tmp_path):
+    """Its scripts are newer than every store (a clone, a worktree, an upgrade that
+    rewrites stage.py): the keys decide, so nothing reruns; Snakemake's code trigger,
+    which the workflow profile leaves out, would rerun every stage."""
+    workdir, config = toy_run
+    path = write_config(workdir, config, "fresh_checkout.yaml")
+    checkout = tmp_path / "checkout" / "workflow"
+    shutil.copytree(REPO / "workflow", checkout, copy_function=shutil.copy)  # new mtimes
+    command = [str(checkout / "Snakefile") if Path(a) == SNAKEFILE else a
+               for a in snakemake_command(workdir, path, "-n", TARGET)]  # fmt: skip
+    for triggers, expected in (([], "Nothing to be done"), (["code", "mtime"], "rule images")):
+        extra = ["--rerun-triggers", *triggers] if triggers else []
+        result = subprocess.run(command + extra, capture_output=True, text=True, cwd=workdir)
+        assert result.returncode == 0, result.stderr[-3000:]
+        assert expected in result.stdout + result.stderr, triggers
 
 
 def test_changing_a_reranker_reruns_only_its_reranks_and_their_recall(toy_run):
