@@ -12,24 +12,18 @@ from workflow_helpers import REPO, toy_config
 
 from vprflow.planning import reruns
 from vprflow.planning.config import validate_config
-from vprflow.planning.plan import FORMAT_VERSIONS, NOT_DATASET_STAGE, TRUTH_SETTINGS, build_plan
+from vprflow.planning.plan import (
+    FORMAT_VERSIONS,
+    NOT_DATASET_STAGE,
+    STAGES,
+    TRUTH_SETTINGS,
+    build_plan,
+)
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 SHIPPED = REPO / "config" / "config.yaml"
 
-EVERYTHING = (
-    "images",
-    "dataset",
-    "features",
-    "segments",
-    "vocabulary",
-    "pca",
-    "descriptors",
-    "search",
-    "matches",
-    "rerank",
-    "recall",
-)
+EVERYTHING = tuple(STAGES)  # in the order data flows: images, dataset, features, ...
 FROM_FEATURES = EVERYTHING[2:]
 FROM_SEARCH = EVERYTHING[EVERYTHING.index("search") :]
 TRUTH = ("dataset", "recall")
@@ -79,7 +73,7 @@ def test_no_ground_truth_or_denominator_change_reruns_a_model_stage(table):
     truth_rows = [s for s in table if s.startswith("ground_truth") or s == "denominator"]
     assert len(truth_rows) == 6
     for setting in truth_rows:
-        assert not set(table[setting]) & set(reruns.MODEL_STAGES), setting
+        assert not set(table[setting]) & set(reruns.FITTED_STAGES), setting
 
 
 def test_the_rerun_table_in_usage_md_is_the_one_the_plan_computes():
@@ -90,7 +84,7 @@ def test_the_rerun_table_in_usage_md_is_the_one_the_plan_computes():
 
 def model_keys(config: dict) -> dict[str, set[str]]:
     plan = build_plan(validate_config(copy.deepcopy(config), SCHEMA))
-    return {stage: set(plan.stages.get(stage, {})) for stage in reruns.MODEL_STAGES}
+    return {stage: set(plan.stages.get(stage, {})) for stage in reruns.FITTED_STAGES}
 
 
 @pytest.mark.parametrize(

@@ -24,18 +24,10 @@ from vprflow.planning.plan import STAGES, build_plan
 
 # The toy's images: references and queries of the same names, so `paired` may pair them.
 N_IMAGES = 4
-# The stages whose outputs come from a model or a fit (hours of GPU time on DINOv2-G and
-# SAM-H): no ground-truth setting may rerun one.
-MODEL_STAGES = (
-    "features",
-    "segments",
-    "vocabulary",
-    "pca",
-    "descriptors",
-    "search",
-    "matches",
-    "rerank",
-)
+# The stages whose outputs come from a model, a fit or a search over them (hours of GPU
+# time on DINOv2-G and SAM-H): every stage but the dataset's two stores and recall, so a
+# new stage is one unless it says otherwise. No ground-truth setting may rerun one.
+FITTED_STAGES = tuple(s for s in STAGES if s not in ("images", "dataset", "recall"))
 
 
 def _write_image(path: Path, seed: int) -> None:
