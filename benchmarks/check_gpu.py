@@ -2,6 +2,7 @@
 
     python benchmarks/check_gpu.py                 # A, B and C at the city's size
     python benchmarks/check_gpu.py AB              # the checks alone
+    python benchmarks/check_gpu.py D               # the matches stage's pairs, timed
     python benchmarks/check_gpu.py C 316000 215400 3328   # references, queries, dim
 
 A: re-ranking on CUDA: the batched scores (certified float32 products; and with bf16
@@ -10,6 +11,8 @@ A: re-ranking on CUDA: the batched scores (certified float32 products; and with 
    candidates it certified; and how many candidates score the same on the CPU.
 B: ``exact_knn`` on CUDA against float64 brute force (the tests' check), several blocks
    each way, bf16 and float32 candidates, random and clustered data; and against the CPU.
+D: the ``matches`` stage's pairs (``candidate_pairs``: per-candidate products on CUDA)
+   against the certified batched ``mnn_scores``, and the scoring of the stored pairs.
 C: ``exact_knn`` on CUDA at the segment search of a Pittsburgh-30k-size run
    (``bench_city.py``'s 31.6 SLIC segments an image: 316,000 reference x 215,400 query
    segments of SegVLAD's 3,328-d without PCA) beside its bf16 floor.
@@ -147,6 +150,42 @@ if "B" in part:
                 f"distances max diff {np.abs(d - dc).max():.2e}",
                 flush=True,
             )
+
+if "D" in part:
+    print("\n## D: the matches stage's pairs on CUDA (K = 100, ms a query, fastest of 5)")
+    print("| case | mnn_scores (certified) | candidate_pairs | + mnn scoring | + ransac scoring | "
+          "pairs == per-candidate |")  # fmt: skip
+    print("|---|---:|---:|---:|---:|---|")
+
+    def best(call, n=5):
+        call()
+        torch.cuda.synchronize()
+        times = []
+        for _ in range(n):
+            started = time.perf_counter()
+            call()
+            torch.cuda.synchronize()
+            times.append(time.perf_counter() - started)
+        return 1000 * min(times)
+
+    for name, (h, w, dim, patch) in CASES.items():
+        qn, cn = inputs(h, w, dim, 100, seed=0)
+        q, c = torch.from_numpy(qn).to(dev), torch.from_numpy(cn)
+        centres = rr.patch_centres(h, w, patch)
+        mnn, ransac = reranker("mnn").settings({}), reranker("ransac").settings({})
+        pairs = rr.candidate_pairs(q, c)
+        alone = [rr.mutual_nearest_neighbours(q, c[k]) for k in range(len(c))]
+        same = len(pairs) == len(alone) and all(
+            all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+            for a, b in zip(pairs, alone, strict=True)
+        )
+        ms = (
+            best(lambda: rr.mnn_scores(q, c, centres, patch, **mnn)),  # noqa: B023
+            best(lambda: rr.candidate_pairs(q, c)),  # noqa: B023
+            best(lambda: rr.mnn_pair_scores(pairs, centres, patch, **mnn)),  # noqa: B023
+            best(lambda: rr.ransac_pair_scores(pairs, centres, patch, **ransac), 2),  # noqa: B023
+        )
+        print(f"| {name} | " + " | ".join(f"{m:.1f}" for m in ms) + f" | {same} |", flush=True)
 
 if "C" in part:
     n_ref, n_q, dim, k = int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), 50
