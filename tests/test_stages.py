@@ -317,6 +317,21 @@ def test_the_matches_store_holds_each_candidates_mutual_pairs_and_rerank_scores_
     assert reranked.attrs["search_ms_per_query"] == matches.group.attrs["search_ms_per_query"]
 
 
+def test_reranking_on_one_thread_stores_what_two_threads_store(pipeline, tmp_path):
+    """The rerank stage scores queries on job.threads threads (the pipeline runs 2):
+    one thread stores the same ranking and scores."""
+    plan, runner, _, _ = pipeline
+    for method in ("anyloc_vlad+mnn", "segvlad+ransac"):
+        run = {r.method: r for r in plan.runs["toy"]}[method]
+        stage = plan.get(*plan.get("recall", run.recall_key).inputs["rerank"])
+        inputs = {name: runner.path(*ref) for name, ref in stage.inputs.items()}
+        out = str(tmp_path / f"{stage.key}.zarr")
+        run_job(Job(stage.record, inputs, out, run={"device": "cpu"}, threads=1))
+        one, two = stores.open_store(out), rerank_store(pipeline, method)
+        for name in ("ranking", "scores", "retrieval_ranking"):
+            np.testing.assert_array_equal(one[name][...], two[name][...])
+
+
 def test_reranked_recall_reads_the_reranked_ranking_and_states_its_cost(pipeline):
     plan, runner, _, _ = pipeline
     truth = Dataset(stage_path(pipeline, "dataset")).truth()

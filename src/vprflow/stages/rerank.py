@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import logging
 import time
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 from tqdm import tqdm
@@ -46,14 +47,28 @@ def rerank_stage(job: Job) -> None:
     score([], centres, matches.patch, **settings)  # a bad option fails even with no candidate
     ranking = np.full_like(retrieved, -1)
     scores = np.zeros(retrieved.shape)  # padding (rank -1) scores 0, as in voting
+
+    def scored(pairs: list) -> np.ndarray | None:
+        return score(pairs, centres, matches.patch, **settings) if pairs else None
+
     started = time.perf_counter()
-    for q in tqdm(range(n_query), desc=f"rerank ({params['kind']})", unit="query"):
-        pairs = matches.pairs(q)
-        if not pairs:
-            ranking[q] = retrieved[q]
-            continue
-        found = score(pairs, centres, matches.patch, **settings)
-        ranking[q], scores[q] = rerank(retrieved[q], found)
+    # Queries are scored on job.threads threads, a block at a time: RANSAC's fit is
+    # OpenCV's, one core a fit, and releases the GIL; each score depends on its own
+    # pairs and seed alone, so the threads change no result. The store is read in order.
+    block = 64 * job.threads
+    with (
+        ThreadPoolExecutor(job.threads) as pool,
+        tqdm(total=n_query, desc=f"rerank ({params['kind']})", unit="query") as bar,
+    ):
+        for first in range(0, n_query, block):
+            queries = range(first, min(first + block, n_query))
+            found = pool.map(scored, [matches.pairs(q) for q in queries])
+            for q, query_scores in zip(queries, found, strict=True):
+                if query_scores is None:
+                    ranking[q] = retrieved[q]
+                else:
+                    ranking[q], scores[q] = rerank(retrieved[q], query_scores)
+            bar.update(len(queries))
     ms = 1000 * (time.perf_counter() - started) / max(n_query, 1)
     attrs = matches.group.attrs
     with stores.atomic_store(job.out, {"stage": "rerank", "record": job.record}) as group:
