@@ -752,6 +752,15 @@ def mnn_scores(
     return _mnn(_batched_pairs(query, candidates, min_similarity, bf16), weighting)
 
 
+def _ransac_options(min_similarity, threshold, model, seed, max_iters, confidence) -> dict:
+    """The estimator's options for :func:`ransac_inliers`, after checking every ransac
+    setting: before any fit, so a bad one fails even when no candidate reaches it."""
+    _check_min_similarity(min_similarity)
+    ransac = {"model": model, "seed": seed, "max_iters": max_iters, "confidence": confidence}
+    _check_ransac_options(threshold, **ransac)
+    return ransac
+
+
 def _ransac(found: list, centres: np.ndarray, pixels: float, ransac: dict) -> np.ndarray:
     scores = np.zeros(len(found), dtype=np.float64)
     for k, (i, j, _, kept) in enumerate(found):
@@ -776,10 +785,7 @@ def ransac_pair_scores(
     store's) kept by ``min_similarity``, placed at their ``centres``
     (:func:`patch_centres`); ``threshold`` is in patches (``threshold * patch`` pixels).
     Float64 ``[K]``."""
-    _check_min_similarity(min_similarity)
-    ransac = {"model": model, "seed": seed, "max_iters": max_iters, "confidence": confidence}
-    # Checked once here so a bad option fails even when no candidate reaches the fit.
-    _check_ransac_options(threshold, **ransac)
+    ransac = _ransac_options(min_similarity, threshold, model, seed, max_iters, confidence)
     found = _with_kept(pairs, min_similarity)
     return _ransac(found, centres, float(threshold) * patch, ransac)
 
@@ -799,9 +805,7 @@ def ransac_scores(
 ) -> np.ndarray:
     """:func:`ransac_pair_scores` of each candidate ``[K, Q, D]`` for ``query``
     ``[P, D]``, its pairs from :func:`_batched_pairs`. Float64 ``[K]``."""
-    _check_min_similarity(min_similarity)
-    ransac = {"model": model, "seed": seed, "max_iters": max_iters, "confidence": confidence}
-    _check_ransac_options(threshold, **ransac)
+    ransac = _ransac_options(min_similarity, threshold, model, seed, max_iters, confidence)
     found = _batched_pairs(query, candidates, min_similarity)
     return _ransac(found, centres, float(threshold) * patch, ransac)
 
