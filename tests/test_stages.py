@@ -134,6 +134,8 @@ def test_sharded_daisy_features_equal_the_backbone_on_each_image(pipeline):
     group = stores.open_store(stage_path(pipeline, "features"))
     assert group["features"].shape == (2 * N_PLACES, 6, 8, 104)
     assert group.attrs["shards"] == 2
+    # Gathered with the shards' codecs: float features are stored with the checksum alone.
+    assert group["features"].raw.compressors == stores.CHECKSUM_ONLY
     backbone = DaisyBackbone(patch_size=8, radius=12)
     dataset = Dataset(stage_path(pipeline, "dataset"), str(root / "data"))
     for index in (0, N_PLACES + 1):  # one image of each shard

@@ -365,14 +365,17 @@ def test_ragged_reader_returns_each_image_in_any_order(tmp_path, block_bytes):
 # ------------------------------------------------------------------ corrupted stores
 
 
-def _sample_store(path):
+def _sample_store(path, compressors=stores.COMPRESSORS):
     """A store like a stage's: ragged float rows in 4 chunks, strings, integers."""
     rows = np.random.default_rng(0).standard_normal((14, 8)).astype(np.float32)
     with atomic_store(path, attrs={"stage": "descriptors"}) as group:
-        writer = RaggedWriter(group, "descriptors", (8,), np.float32, chunk_rows=4)
-        for block in np.split(rows, [3, 7, 12]):
-            writer.append(block)
-        writer.close()
+        if compressors is stores.COMPRESSORS:
+            writer = RaggedWriter(group, "descriptors", (8,), np.float32, chunk_rows=4)
+            for block in np.split(rows, [3, 7, 12]):
+                writer.append(block)
+            writer.close()
+        else:
+            group.create_array("descriptors", data=rows, chunks=(4, 8), compressors=compressors)
         write_array(group, "names", np.array(["ref/a.jpg", "ref/b.jpg", "query/c.jpg"]))
     return rows
 
@@ -567,16 +570,21 @@ def _same(got, expected):
     assert np.array_equal(got, expected)
 
 
+# The codec chains stages write: compressed, and the checksum alone (features).
+CODECS = {"zstd+crc32c": stores.COMPRESSORS, "crc32c": stores.CHECKSUM_ONLY}
+
+
+@pytest.mark.parametrize("codecs", CODECS)
 @pytest.mark.parametrize("dtype", [np.float32, np.float16, np.int64, np.bool_, np.uint8])
 @pytest.mark.parametrize("shape, chunks", ROW_LAYOUTS)
 @pytest.mark.parametrize("zero_chunk", [False, True])
 def test_whole_rows_are_read_from_the_chunk_files_with_zarrs_values(
-    tmp_path, monkeypatch, dtype, shape, chunks, zero_chunk
+    tmp_path, monkeypatch, dtype, shape, chunks, zero_chunk, codecs
 ):
     import zarr
 
     out = tmp_path / "rows.zarr"
-    data = _row_store(out, dtype, shape, chunks, zero_chunk=zero_chunk)
+    data = _row_store(out, dtype, shape, chunks, zero_chunk=zero_chunk, compressors=CODECS[codecs])
     if zero_chunk and shape[0] > chunks[0]:
         assert not (out / "x" / "c" / "1").exists()  # zarr left the chunk out
     plain = zarr.open_group(str(out), mode="r")["x"]
@@ -694,9 +702,12 @@ def _damage(path, how):
         "empty",
     ],
 )
-def test_a_damaged_chunk_file_read_as_rows_is_an_error_naming_it(tmp_path, monkeypatch, how):
+@pytest.mark.parametrize("codecs", CODECS)
+def test_a_damaged_chunk_file_read_as_rows_is_an_error_naming_it(
+    tmp_path, monkeypatch, how, codecs
+):
     out = tmp_path / "d.zarr"
-    rows = _sample_store(out)
+    rows = _sample_store(out, CODECS[codecs])
     _damage(out / "descriptors" / "c" / "1" / "0", how)
     array = open_store(out)["descriptors"]
     _forbid_zarr_reads(monkeypatch)
@@ -731,6 +742,24 @@ def test_a_chunk_of_the_wrong_size_with_a_good_checksum_is_an_error_naming_it(
     assert f"chunk file descriptors/c/1/0 decompresses to {rows * 32} bytes, not 128" in str(
         raised.value
     )
+
+
+@pytest.mark.parametrize("rows", [3, 5])
+def test_an_uncompressed_chunk_of_the_wrong_size_with_a_good_checksum_is_an_error_naming_it(
+    tmp_path, monkeypatch, rows
+):
+    import google_crc32c
+
+    out = tmp_path / "d.zarr"
+    _sample_store(out, stores.CHECKSUM_ONLY)
+    plain = np.ones((rows, 8), np.float32).tobytes()
+    crc = np.uint32(google_crc32c.value(plain)).tobytes()
+    (out / "descriptors" / "c" / "1" / "0").write_bytes(plain + crc)
+    array = open_store(out)["descriptors"]
+    _forbid_zarr_reads(monkeypatch)
+    with pytest.raises(StoreCorruptError, match=_corrupt_message(out, "descriptors")) as raised:
+        array[...]
+    assert f"chunk file descriptors/c/1/0 holds {rows * 32} bytes, not 128" in str(raised.value)
 
 
 def test_zstd_frame_content_size_is_read_for_every_header_width():

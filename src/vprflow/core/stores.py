@@ -49,11 +49,17 @@ log = logging.getLogger("vprflow")
 # time (2.08 vs 2.13 on sparse VLAD rows, 91 vs 262 ms per 26 MB), which bounded the
 # per-image speed of stages writing ~400 KB per image. Values are the same at any level.
 COMPRESSOR = zarr.codecs.ZstdCodec(level=1)
-# The codecs of every array. Without a checksum a flipped byte in a compressed chunk
-# either fails with a bare "Zstd decompression error" or, worse, decodes to other
-# values (NaN included) that a later stage ranks and counts. CRC-32C runs on the
-# compressed bytes, so it checks exactly what is on disk.
+# The codecs of every array but CHECKSUM_ONLY's. Without a checksum a flipped byte in a
+# compressed chunk either fails with a bare "Zstd decompression error" or, worse, decodes
+# to other values (NaN included) that a later stage ranks and counts. CRC-32C runs on
+# the compressed bytes, so it checks exactly what is on disk.
 COMPRESSORS = (COMPRESSOR, zarr.codecs.Crc32cCodec())
+# The codecs of arrays whose bytes zstd hardly shrinks: the checksum alone. Float patch
+# features keep 90% of their bytes at level 1 (DAISY on the corridor), and decoding them
+# was 0.1 ms of every image read in every stage that reads them (descriptors,
+# vocabulary, matches): 27 of anyloc_vlad's 163 ms over 256 images. Sparse VLAD rows
+# shrink to 20-36% and keep COMPRESSORS.
+CHECKSUM_ONLY = (zarr.codecs.Crc32cCodec(),)
 # Array attribute: the number of chunk files the array had when its store was finished.
 # zarr returns the fill value for a missing chunk file, so a lost file is otherwise
 # invisible.
@@ -415,6 +421,11 @@ def _row_selection(selection, shape: tuple[int, ...]) -> tuple[int, int, bool] |
 
 
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
+# The codec chains the row reader decodes: COMPRESSORS and CHECKSUM_ONLY.
+_ROW_CODECS = (
+    [zarr.codecs.BytesCodec, zarr.codecs.ZstdCodec, zarr.codecs.Crc32cCodec],
+    [zarr.codecs.BytesCodec, zarr.codecs.Crc32cCodec],
+)
 
 
 class _RowReader:
@@ -424,12 +435,13 @@ class _RowReader:
 
     Only for arrays whose every stored byte it understands: zarr v3 on a local
     directory, a regular chunk grid, the default chunk key encoding, exactly the codecs
-    bytes, zstd, crc32c (:data:`COMPRESSORS`) and a numeric dtype stored in the byte
-    order zarr returns. Each chunk file is checked (CRC-32C of the compressed bytes, the
-    last 4 bytes, little-endian, as zarr's ``Crc32cCodec``), decompressed by numcodecs'
-    zstd (the library zarr's ``ZstdCodec`` calls) straight into the result where a
-    chunk's rows are whole rows of it, and a missing chunk file is the fill value (zarr
-    does not store chunks equal to it).
+    bytes, zstd, crc32c (:data:`COMPRESSORS`) or bytes, crc32c (:data:`CHECKSUM_ONLY`)
+    and a numeric dtype stored in the byte order zarr returns. Each chunk file is
+    checked (CRC-32C of the stored bytes, the last 4 bytes, little-endian, as zarr's
+    ``Crc32cCodec``), decompressed by numcodecs' zstd (the library zarr's ``ZstdCodec``
+    calls) or copied straight into the result where a chunk's rows are whole rows of
+    it, and a missing chunk file is the fill value (zarr does not store chunks equal to
+    it).
     """
 
     def __init__(self, array: zarr.Array, directory: Path, store: Path, name: str):
@@ -444,6 +456,9 @@ class _RowReader:
         self.chunk_bytes = int(np.prod(self.chunks)) * self.dtype.itemsize
         # Chunks along axis 0 only: a chunk is whole rows, contiguous in the result.
         self.row_chunks = self.chunks[1:] == self.shape[1:]
+        self.compressed = any(
+            isinstance(codec, zarr.codecs.ZstdCodec) for codec in array.metadata.codecs
+        )
 
     @classmethod
     def of(cls, array: zarr.Array, store: Path, name: str) -> _RowReader | None:
@@ -457,8 +472,7 @@ class _RowReader:
             or type(metadata.chunk_grid) is not zarr.core.chunk_grids.RegularChunkGrid
             or type(metadata.chunk_key_encoding)
             is not zarr.core.chunk_key_encodings.DefaultChunkKeyEncoding
-            or [type(codec) for codec in metadata.codecs]
-            != [zarr.codecs.BytesCodec, zarr.codecs.ZstdCodec, zarr.codecs.Crc32cCodec]
+            or [type(codec) for codec in metadata.codecs] not in _ROW_CODECS
             or not isinstance(array.dtype, np.dtype)
             or array.dtype.kind not in "biufc"
         ):
@@ -515,8 +529,8 @@ class _RowReader:
             ]
 
     def _decode(self, data: bytes, target: np.ndarray, key: str) -> None:
-        """Check and decompress one chunk file's bytes into ``target`` (uint8, the
-        chunk's size)."""
+        """Check and decompress (or copy) one chunk file's bytes into ``target`` (uint8,
+        the chunk's size)."""
         if len(data) < 4:
             raise self._corrupt(key, f"has {len(data)} bytes, fewer than its checksum's 4")
         # A numpy view: google_crc32c takes it (not a memoryview), and it copies nothing.
@@ -528,6 +542,11 @@ class _RowReader:
                 f"fails its checksum (stored {stored:#010x}, computed {computed:#010x}, "
                 f"{len(data)} bytes)",
             )
+        if not self.compressed:
+            if len(frame) != self.chunk_bytes:
+                raise self._corrupt(key, f"holds {len(frame)} bytes, not {self.chunk_bytes}")
+            target[...] = frame
+            return
         size = _content_size(data)
         if size is not None and size != self.chunk_bytes:
             raise self._corrupt(key, f"decompresses to {size} bytes, not {self.chunk_bytes}")

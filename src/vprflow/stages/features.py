@@ -39,7 +39,7 @@ def compute_features(job: Job) -> None:
                     shape=(len(images), h, w, dim),
                     chunks=(1, h, w, dim),
                     dtype=store_dtype,
-                    compressors=stores.COMPRESSORS,
+                    compressors=stores.CHECKSUM_ONLY,
                 )
                 group.attrs.update(
                     grid=[h, w], dim=dim, patch_size=patch_size, image_size=[height, width]

@@ -40,7 +40,8 @@ def gather(shard_paths: list[str], record: dict, out: str) -> None:
                 shape=(0, *source.shape[1:]),
                 chunks=chunks,
                 dtype=source.dtype,
-                compressors=stores.COMPRESSORS,
+                # The shards' own (features: CHECKSUM_ONLY), which carry the checksum.
+                compressors=source.raw.compressors,
             )
             for shard in tqdm(shards, desc=f"gather {name}", unit="shard"):
                 if shard[name].shape[0]:
