@@ -21,6 +21,9 @@ corridor config, in one process and under the rule's thread budget (``run_stage`
   ``src/vprflow/core/stores.py`` of ``--before`` (``git show``; default: the commit
   before issue 33 item 3's store writes, one chunk a zarr write), the two runs
   interleaved in every repeat so that both see the same machine load;
+- zstd: the stage's job on a copy of its features store with the codecs features had
+  before commit dd52bef (zstd and crc32c; since then the checksum alone), interleaved
+  with the other two;
 - arithmetic: the method's per-image ``compute`` (and PCA transform) on every image's
   inputs read beforehand (float32 features, unpacked masks), one image at a time, with
   one BLAS thread or the rule's threads, whichever is faster;
@@ -51,6 +54,7 @@ import time
 import types
 from pathlib import Path
 
+import numpy as np
 from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -174,7 +178,8 @@ runpy.run_path(script, init_globals={"snakemake": snakemake})
 def measure(
     stage, workdir: Path, repeats: int, threads: int, before: types.ModuleType
 ) -> tuple[float, ...]:
-    """(stage, before, arithmetic, read, job) seconds per image of one descriptors stage."""
+    """(stage, before, stage on zstd features, arithmetic, read, job) seconds per image of
+    one descriptors stage."""
     from vprflow.core.registry import aggregator
     from vprflow.stages.dataset import Dataset
     from vprflow.stages.features import FeatureReader
@@ -187,7 +192,7 @@ def measure(
     scratch = Path(tempfile.mkdtemp(dir=workdir))
     out = scratch / "descriptors.zarr"
 
-    def timed(run) -> float:
+    def timed(run, inputs=inputs) -> float:
         """One job into a new store: ``out`` exists from the second run on, and a job
         finding its own store there discards its copy (``replace_store``), a cost no
         workflow job has."""
@@ -196,11 +201,16 @@ def measure(
         run(Job(stage.record, inputs, str(out), threads=threads))
         return time.perf_counter() - start
 
+    zstd_inputs = {**inputs, "features": zstd_features(inputs["features"], workdir)}
     best = interleaved(
-        {"stage": lambda: timed(run_job), "before": lambda: timed(before.compute_descriptors)},
+        {
+            "stage": lambda: timed(run_job),
+            "before": lambda: timed(before.compute_descriptors),
+            "zstd": lambda: timed(run_job, zstd_inputs),
+        },
         repeats,
     )
-    stage_s, before_s = best["stage"], best["before"]
+    stage_s, before_s, zstd_s = best["stage"], best["before"], best["zstd"]
 
     # The same per-image arithmetic on every image's inputs read beforehand.
     params = stage.record["params"]
@@ -240,7 +250,25 @@ def measure(
 
     job_s = min(fresh_job() for _ in range(repeats))
     shutil.rmtree(scratch)
-    return stage_s / n, before_s / n, arithmetic_s / n, read_s / n, job_s / n
+    return stage_s / n, before_s / n, zstd_s / n, arithmetic_s / n, read_s / n, job_s / n
+
+
+def zstd_features(path: str, workdir: Path) -> str:
+    """A copy of the features store at ``path`` with the codecs features had before
+    commit dd52bef (zstd, crc32c), the same values and attributes; the stage reading it
+    times what storing features with the checksum alone saves."""
+    copy = workdir / "features-zstd" / Path(path).name
+    if not copy.exists():
+        source = stores.open_store(path)
+        array = source["features"]
+        with stores.atomic_store(copy, dict(source.attrs)) as group:
+            group.create_array(
+                "features",
+                data=np.asarray(array),
+                chunks=array.chunks,
+                compressors=stores.COMPRESSORS,
+            )
+    return str(copy)
 
 
 # A stage job's imports, as the rule's script makes them, timed in a fresh process.
@@ -300,15 +328,17 @@ def run(
     )
     header = (
         f"{'method':<24} {'arith ms':>9} {'stage ms':>9} {'ratio':>6} {'before ms':>10} "
-        f"{'ratio':>6} {'read ms':>8} {'job ms':>8} {'job ratio':>9}"
+        f"{'ratio':>6} {'zstd ms':>8} {'ratio':>6} {'read ms':>8} {'job ms':>8} "
+        f"{'job ratio':>9}"
     )
     print(header)
     print("-" * len(header))
-    for name, stage_s, before_s, arithmetic_s, read_s, job_s in rows:
+    for name, stage_s, before_s, zstd_s, arithmetic_s, read_s, job_s in rows:
         print(
             f"{name:<24} {arithmetic_s * 1e3:>9.2f} {stage_s * 1e3:>9.2f} "
             f"{stage_s / arithmetic_s:>6.2f} {before_s * 1e3:>10.2f} "
-            f"{before_s / arithmetic_s:>6.2f} {read_s * 1e3:>8.2f} {job_s * 1e3:>8.2f} "
+            f"{before_s / arithmetic_s:>6.2f} {zstd_s * 1e3:>8.2f} "
+            f"{zstd_s / arithmetic_s:>6.2f} {read_s * 1e3:>8.2f} {job_s * 1e3:>8.2f} "
             f"{job_s / arithmetic_s:>9.2f}"
         )
     print()
