@@ -21,9 +21,10 @@ corridor config, in one process and under the rule's thread budget (``run_stage`
   ``src/vprflow/core/stores.py`` of ``--before`` (``git show``; default: the commit
   before issue 33 item 3's store writes, one chunk a zarr write), the two runs
   interleaved in every repeat so that both see the same machine load;
-- zstd: the stage's job on a copy of its features store with the codecs features had
-  before commit dd52bef (zstd and crc32c; since then the checksum alone), interleaved
-  with the other two;
+- zstd: the stage's job reading its features with the codecs they had before commit
+  dd52bef (zstd and crc32c; since then the checksum alone, which every other column
+  reads), interleaved with the other two; each from a copy of the store where the work
+  folder's has the other codecs;
 - arithmetic: the method's per-image ``compute`` (and PCA transform) on every image's
   inputs read beforehand (float32 features, unpacked masks), one image at a time, with
   one BLAS thread or the rule's threads, whichever is faster;
@@ -188,6 +189,8 @@ def measure(
     from vprflow.stages.segments import MaskReader
 
     inputs = {name: str(workdir / path) for name, path in stage.input_paths().items()}
+    features = inputs["features"]
+    inputs["features"] = features_with(features, workdir, stores.CHECKSUM_ONLY, "crc32c")
     n = Dataset(inputs["images"]).n_images
     scratch = Path(tempfile.mkdtemp(dir=workdir))
     out = scratch / "descriptors.zarr"
@@ -201,7 +204,10 @@ def measure(
         run(Job(stage.record, inputs, str(out), threads=threads))
         return time.perf_counter() - start
 
-    zstd_inputs = {**inputs, "features": zstd_features(inputs["features"], workdir)}
+    zstd_inputs = {
+        **inputs,
+        "features": features_with(features, workdir, stores.COMPRESSORS, "zstd"),
+    }
     best = interleaved(
         {
             "stage": lambda: timed(run_job),
@@ -253,20 +259,19 @@ def measure(
     return stage_s / n, before_s / n, zstd_s / n, arithmetic_s / n, read_s / n, job_s / n
 
 
-def zstd_features(path: str, workdir: Path) -> str:
-    """A copy of the features store at ``path`` with the codecs features had before
-    commit dd52bef (zstd, crc32c), the same values and attributes; the stage reading it
-    times what storing features with the checksum alone saves."""
-    copy = workdir / "features-zstd" / Path(path).name
+def features_with(path: str, workdir: Path, codecs: tuple, label: str) -> str:
+    """The features store at ``path`` if its array has ``codecs``, else a copy of it with
+    them (same values and attributes) under ``workdir/features-<label>``: a work folder
+    made before commit dd52bef holds zstd features, since then the checksum alone."""
+    source = stores.open_store(path)
+    array = source["features"]
+    if tuple(array.raw.compressors) == tuple(codecs):
+        return path
+    copy = workdir / f"features-{label}" / Path(path).name
     if not copy.exists():
-        source = stores.open_store(path)
-        array = source["features"]
         with stores.atomic_store(copy, dict(source.attrs)) as group:
             group.create_array(
-                "features",
-                data=np.asarray(array),
-                chunks=array.chunks,
-                compressors=stores.COMPRESSORS,
+                "features", data=np.asarray(array), chunks=array.chunks, compressors=codecs
             )
     return str(copy)
 
