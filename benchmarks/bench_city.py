@@ -386,6 +386,9 @@ def summarise(
             "cpu_s": sum(job.cpu for job in rows) if rows else None,
             "peak_mib": max(job.max_rss for job in rows) if rows else None,
             "timed_by": "benchmark" if rows else "log",
+            # Jobs whose CPU and peak memory come from their logs (the rest: Snakemake's
+            # samples every 30 s, which miss up to a job's last 30 s).
+            "exact_jobs": sum(job.exact for job in rows) if rows else 0,
         }
     cache = workdir / "results" / "cache"
     for stage, entry in stages.items():
@@ -445,6 +448,12 @@ def print_size(s: dict) -> None:
             f"{stage:<12} {jobs:>7} {e['seconds']:>9.1f} {share:>6.1f}% {cpu_cells} "
             f"{peak:>9} {store:>9}"
         )
+    timed = [e for e in s["stages"].values() if e["timed_by"] == "benchmark"]
+    exact = sum(e.get("exact_jobs", 0) for e in timed)
+    print(
+        f"CPU s and peak MiB of {exact} of {sum(e['jobs'] for e in timed)} timed jobs from "
+        "their logs (exact); the rest from Snakemake's samples every 30 s"
+    )
     if s["recall@1"]:
         print("recall@1: " + ", ".join(f"{m} {r:.3f}" for m, r in s["recall@1"].items()))
 

@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import csv
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -30,6 +31,8 @@ from typing import NamedTuple
 
 import numpy as np
 import yaml
+
+from vprflow.stages import runner
 
 REPO = Path(__file__).resolve().parents[1]
 SKIPPED = 77  # the exit status test harnesses (automake, meson, tests/test_benchmarks.py) skip
@@ -95,22 +98,37 @@ def snakemake_command(workdir: Path, config_path: Path, cores: int, *targets: st
 
 
 class Job(NamedTuple):
-    """One job's line of its Snakemake ``benchmark:`` file."""
+    """One job's line of its Snakemake ``benchmark:`` file, CPU and peak memory from its
+    log's ``resources:`` line where it has one."""
 
     seconds: float  # wall time
     max_rss: float  # MiB
     cpu: float  # CPU seconds (user + system) of the job's processes: less sensitive to load
+    exact: bool  # cpu and max_rss from the log (else Snakemake's samples, every 30 s)
+
+
+# run_stage's last log line, its format's numbers as groups: wall, CPU, peak RSS.
+RESOURCES = re.compile(re.sub(r"%\\\.\df", r"([\\d.]+)", re.escape(runner.RESOURCES)))
 
 
 def benchmark_rows(workdir: Path) -> dict[str, list[Job]]:
     """Per stage, each job's :class:`Job` from Snakemake's ``benchmark:`` files
-    (``logs/<stage>/<key>/<part>.benchmark.tsv``)."""
+    (``logs/<stage>/<key>/<part>.benchmark.tsv``) and logs (``<part>.log``).
+
+    Snakemake samples a job's CPU every 30 s, so its ``cpu_time`` misses up to the last
+    30 s of the job's threads; a log written by ``run_stage`` states the exact figure."""
     stats: dict[str, list[Job]] = {}
     for path in sorted((workdir / "logs").rglob("*.benchmark.tsv")):
         stage = path.relative_to(workdir / "logs").parts[0]
         with open(path) as f:
             row = next(csv.DictReader(f, delimiter="\t"))
-        job = Job(float(row["s"]), float(row["max_rss"]), float(row["cpu_time"]))
+        log = path.with_name(path.name.removesuffix(".benchmark.tsv") + ".log")
+        found = RESOURCES.findall(log.read_text(errors="replace")) if log.is_file() else []
+        if found:
+            _, cpu, peak = found[-1]
+            job = Job(float(row["s"]), float(peak), float(cpu), True)
+        else:
+            job = Job(float(row["s"]), float(row["max_rss"]), float(row["cpu_time"]), False)
         stats.setdefault(stage, []).append(job)
     return stats
 

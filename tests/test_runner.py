@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 
@@ -17,6 +18,8 @@ def stage():
     print("threads", torch.get_num_threads(), faiss.omp_get_max_threads(), file=sys.__stdout__)
     if {fail}:
         raise ValueError("bad input x.png")
+    import time
+    print("cpu", time.process_time(), file=sys.__stdout__)
 
 run_stage({log!r}, stage, 1)
 """
@@ -39,3 +42,12 @@ def test_stage_libraries_imported_inside_keep_the_thread_budget(tmp_path, fail):
         assert "Traceback" in log.read_text() and "bad input x.png" in log.read_text()
     else:
         assert result.returncode == 0, result.stderr
+        # The last log line: the process's CPU so far, at least what the stage had used.
+        line = log.read_text().splitlines()[-1]
+        found = re.search(
+            r"resources: stage ([\d.]+) s wall; process ([\d.]+) s CPU, peak RSS (\d+) MiB", line
+        )
+        assert found, line
+        spent = float(result.stdout.split("cpu ")[1].split()[0])
+        assert float(found[2]) >= spent - 0.01 > 0
+        assert int(found[3]) > 50  # torch alone is more

@@ -11,7 +11,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import resource
 import sys
+import time
 import traceback
 from collections.abc import Callable
 
@@ -49,8 +51,10 @@ def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> 
         logger = logging.getLogger("vprflow")
         logger.addHandler(handler)
         logger.setLevel(logging.INFO)
+        started = time.perf_counter()
         try:
             function()
+            logger.info(RESOURCES, *_resources(started))
         except BaseException as error:
             traceback.print_exc(file=log_file)
             log_file.flush()
@@ -61,3 +65,24 @@ def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> 
             raise
         finally:
             logger.removeHandler(handler)
+
+
+# The job's last log line: exact CPU and peak memory of its process (all its threads, and
+# any child it waited for). Snakemake's ``benchmark:`` files sample CPU every 30 s and so
+# miss up to the last 30 s of a job's threads (a 38 s `matches` job on 2 threads: 20.9
+# CPU s there, 60.5 by getrusage); benchmarks/bench_workflow.py reads this line instead.
+RESOURCES = "resources: stage %.2f s wall; process %.2f s CPU, peak RSS %.0f MiB"
+
+
+def _resources(started: float) -> tuple[float, float, float]:
+    """(wall seconds since ``started``; CPU seconds and peak RSS in MiB of this process
+    from its start)."""
+    own, children = (
+        resource.getrusage(who) for who in (resource.RUSAGE_SELF, resource.RUSAGE_CHILDREN)
+    )
+    cpu = own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+    # ru_maxrss is KiB on Linux, bytes on macOS.
+    peak = max(own.ru_maxrss, children.ru_maxrss) / (
+        1 << 20 if sys.platform == "darwin" else 1 << 10
+    )
+    return time.perf_counter() - started, cpu, peak
