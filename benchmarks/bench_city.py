@@ -237,31 +237,45 @@ _FINISHED = re.compile(r"^Finished jobid: (\d+) \(Rule: (\w+)\)$")
 
 
 def log_jobs(workdir: Path) -> tuple[dict[str, list[float]], dict[str, int], float]:
-    """From the newest Snakemake log: per rule, each finished job's seconds (start and
-    finish stamps, 1 s resolution: the time of rules without a ``benchmark:`` file); per
-    rule, the jobs planned (its "Job stats"); the seconds from first to last stamp."""
-    log = max((workdir / ".snakemake" / "log").glob("*.snakemake.log"))
-    stamp, rule, started, jobs, stamps = None, None, {}, {}, []
-    lines = log.read_text().splitlines()
-    for line in lines:
-        if m := _STAMP.match(line):
-            stamp = datetime.strptime(m.group(1), "%a %b %d %H:%M:%S %Y")
-            stamps.append(stamp)
-        elif m := _RULE.match(line):
-            rule = m.group(1)
-        elif (m := _JOBID.match(line)) and rule:
-            started[m.group(1)], rule = stamp, None
-        elif m := _FINISHED.match(line):
-            seconds = (stamp - started.pop(m.group(1))).total_seconds()
-            jobs.setdefault(m.group(2), []).append(seconds)
-    stats = lines.index("Job stats:")
-    planned = {}
-    for line in lines[stats + 3 :]:
-        name, count = line.split()
-        if name == "total":
-            break
-        planned[name] = int(count)
-    return jobs, planned, (stamps[-1] - stamps[0]).total_seconds()
+    """From the work folder's Snakemake logs (a run stopped and resumed has several): per
+    rule, each finished job's seconds (start and finish stamps, 1 s resolution: the time
+    of rules without a ``benchmark:`` file); per rule, the jobs of the whole run (those
+    finished under earlier logs plus those the newest planned, its "Job stats"); and the
+    seconds from first to last stamp of each log, summed."""
+    jobs: dict[str, list[float]] = {}
+    earlier: dict[str, int] = {}
+    newest: dict[str, int] = {}
+    wall = 0.0
+    logs = sorted((workdir / ".snakemake" / "log").glob("*.snakemake.log"))
+    for number, log in enumerate(logs):
+        stamp, rule, started, stamps, finished = None, None, {}, [], {}
+        lines = log.read_text().splitlines()
+        for line in lines:
+            if m := _STAMP.match(line):
+                stamp = datetime.strptime(m.group(1), "%a %b %d %H:%M:%S %Y")
+                stamps.append(stamp)
+            elif m := _RULE.match(line):
+                rule = m.group(1)
+            elif (m := _JOBID.match(line)) and rule:
+                started[m.group(1)], rule = stamp, None
+            elif m := _FINISHED.match(line):
+                seconds = (stamp - started.pop(m.group(1))).total_seconds()
+                finished.setdefault(m.group(2), []).append(seconds)
+        wall += (stamps[-1] - stamps[0]).total_seconds() if stamps else 0.0
+        for name, times in finished.items():
+            jobs.setdefault(name, []).extend(times)
+        if number < len(logs) - 1:
+            for name, times in finished.items():
+                earlier[name] = earlier.get(name, 0) + len(times)
+            continue
+        stats = lines.index("Job stats:")
+        for line in lines[stats + 3 :]:
+            name, count = line.split()
+            if name == "total":
+                break
+            newest[name] = int(count)
+    planned = {name: earlier.get(name, 0) + newest.get(name, 0) for name in earlier | newest}
+    return jobs, planned, wall
 
 
 def store_bytes(folder: Path) -> int:
