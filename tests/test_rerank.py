@@ -592,6 +592,36 @@ def test_pair_scorers_refuse_bad_pairs_and_options_by_name():
         )  # fmt: skip
 
 
+@pytest.mark.parametrize("threads", [1, 2, 3])
+@pytest.mark.parametrize("n_k", [1, 4, 9])
+def test_direct_pairs_by_blocks_on_threads_are_the_whole_arrays_argmax(threads, n_k):
+    # Ties (values rounded to a grid), NaN (the maximum, first index first) and -inf.
+    rng = np.random.default_rng(n_k * 10 + threads)
+    similarity = np.round(rng.standard_normal((13, n_k, 11)), 1).astype(np.float32)
+    similarity[rng.random(similarity.shape) < 0.03] = np.nan
+    similarity[rng.random(similarity.shape) < 0.03] = -np.inf
+    forward, mutual, values = rerank_module._direct_pairs(similarity, threads)
+    # Direct: a double loop per candidate, each argmax the first maximal index (NaN first).
+    for k in range(n_k):
+        block = similarity[:, k, :].astype(np.float64)
+        for i in range(13):
+            row = block[i]
+            j = (
+                int(np.flatnonzero(np.isnan(row))[0])
+                if np.isnan(row).any()
+                else int(np.flatnonzero(row == row.max())[0])
+            )
+            column = block[:, j]
+            back = (
+                int(np.flatnonzero(np.isnan(column))[0])
+                if np.isnan(column).any()
+                else int(np.flatnonzero(column == column.max())[0])
+            )
+            assert forward[k, i] == j
+            assert mutual[k, i] == (back == i)
+            assert np.array_equal(values[k, i], np.float32(block[i, j]), equal_nan=True)
+
+
 def test_the_batched_product_is_the_per_candidate_product_bit_for_bit():
     # What makes the batched scores the per-candidate ones: the BLAS computes each element
     # of the [P, K * Q] product as it does in a [P, Q] one.

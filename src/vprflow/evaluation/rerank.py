@@ -522,17 +522,40 @@ def _same_bits(device: torch.device) -> bool:
     return device.type == "cpu"
 
 
-def _direct_pairs(similarity: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+# Candidates per argmax task in _direct_pairs: numpy's argmax over axis 0 copies its input
+# with the axis moved last, and a block of 4 candidates keeps that copy in cache (DAISY's
+# 300 x 100 x 300: 15.2 ms whole, 12.7 in blocks of 4 on one thread, 8.0 on two).
+_ARGMAX_BLOCK = 4
+
+
+def _direct_pairs(
+    similarity: np.ndarray, threads: int = 1
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(forward [k, P] int64, mutual [k, P] bool, values [k, P] float32)`` of a CPU
     float32 product ``similarity [P, k, Q]``: each query patch's most similar patch of
     each candidate, whether that pair is mutual, and its similarity.
 
     numpy's ``argmax`` keeps :func:`mutual_nearest_neighbours`' rule (the first maximal
     index; NaN counts as the maximum in both) and runs 2-6x faster than torch's over this
-    layout, where the two ``argmax`` passes cost as much as the product itself."""
+    layout, where the two ``argmax`` passes cost as much as the product itself. They run
+    by blocks of :data:`_ARGMAX_BLOCK` candidates on ``threads`` threads (numpy releases
+    the GIL); a candidate's argmax does not depend on the blocks."""
+    from concurrent.futures import ThreadPoolExecutor
+
     n_p, n_k = similarity.shape[:2]
-    forward = similarity.argmax(axis=2)  # [P, k]
-    backward = similarity.argmax(axis=0)  # [k, Q]
+
+    def block(start: int) -> tuple[np.ndarray, np.ndarray]:
+        part = similarity[:, start : start + _ARGMAX_BLOCK]
+        return part.argmax(axis=2), part.argmax(axis=0)  # [P, b], [b, Q]
+
+    starts = range(0, n_k, _ARGMAX_BLOCK)
+    if threads > 1 and len(starts) > 1:
+        with ThreadPoolExecutor(min(threads, len(starts))) as pool:
+            parts = list(pool.map(block, starts))
+    else:
+        parts = [block(start) for start in starts]
+    forward = np.concatenate([f for f, _ in parts], axis=1)  # [P, k]
+    backward = np.concatenate([b for _, b in parts], axis=0)  # [k, Q]
     mutual = backward[np.arange(n_k), forward] == np.arange(n_p)[:, None]
     values = np.take_along_axis(similarity, forward[:, :, None], axis=2)[:, :, 0]
     return forward.T.astype(np.int64), np.ascontiguousarray(mutual.T), values.T.copy()
@@ -585,7 +608,10 @@ def _batched_pairs(query, candidates, min_similarity, bf16: bool | None = None) 
                 chosen = stack if len(group) == n_k else stack[index]
                 similarity, error = _product(q, chosen, low, bound=not direct)
                 if direct:
-                    forward, mutual, values = _direct_pairs(similarity.numpy())
+                    # The product's thread budget (run_stage sets torch's to the rule's).
+                    forward, mutual, values = _direct_pairs(
+                        similarity.numpy(), torch.get_num_threads()
+                    )
                     certain = np.ones(len(group), dtype=bool)
                 else:
                     forward, mutual, certain = _certified(similarity, error, min_similarity)
