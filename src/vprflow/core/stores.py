@@ -421,10 +421,11 @@ def _row_selection(selection, shape: tuple[int, ...]) -> tuple[int, int, bool] |
 
 
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
-# The codec chains the row reader decodes: COMPRESSORS and CHECKSUM_ONLY.
-_ROW_CODECS = (
-    [zarr.codecs.BytesCodec, zarr.codecs.ZstdCodec, zarr.codecs.Crc32cCodec],
-    [zarr.codecs.BytesCodec, zarr.codecs.Crc32cCodec],
+# The codec chains the row reader decodes: zarr's bytes serializer, then COMPRESSORS or
+# CHECKSUM_ONLY.
+_ROW_CODECS = tuple(
+    [zarr.codecs.BytesCodec, *(type(codec) for codec in chain)]
+    for chain in (COMPRESSORS, CHECKSUM_ONLY)
 )
 
 
