@@ -149,33 +149,47 @@ def _files(array_dir: Path) -> dict[str, bytes]:
     return found
 
 
+# The codec chains stages write: compressed, compressed fast (descriptors), and the
+# checksum alone (features).
+CODECS = {
+    "zstd+crc32c": stores.COMPRESSORS,
+    "zstd-fast+crc32c": stores.FAST_COMPRESSORS,
+    "crc32c": stores.CHECKSUM_ONLY,
+}
+
+
+@pytest.mark.parametrize("codecs", CODECS)
 @pytest.mark.parametrize("dtype", [np.float32, np.float16, np.int64, np.uint8, bool])
 @pytest.mark.parametrize("write_chunks", [1, 3, 100])
 def test_row_writer_stores_the_chunk_files_of_zarr_append(
-    tmp_path, monkeypatch, dtype, write_chunks
+    tmp_path, monkeypatch, dtype, write_chunks, codecs
 ):
-    """RowWriter (several chunks at once, zarr's empty-chunk comparison skipped where a
-    chunk cannot be empty) leaves the files that zarr's own Array.append of each chunk
-    leaves, the way RowWriter wrote before; plain zarr reads the same bits back."""
+    """RowWriter (several chunks at once, each chunk that cannot be empty encoded and
+    written by vprflow, the others by zarr) leaves the files that zarr's own
+    Array.append of each chunk leaves, the way RowWriter wrote before; plain zarr reads
+    the same bits back."""
     import zarr
 
     chunk_rows = 4
     rows = _chunked_rows(dtype, chunk_rows)
     row_bytes = rows.dtype.itemsize * rows.shape[1]
     monkeypatch.setattr(stores, "WRITE_BYTES", write_chunks * chunk_rows * row_bytes)
-    decided = []
-    real = stores._cannot_be_empty
+    decided, written = [], []
+    real, write_chunk = stores._cannot_be_empty, stores._write_chunk
     monkeypatch.setattr(
         stores, "_cannot_be_empty", lambda *a: decided.append(real(*a)) or decided[-1]
     )
+    monkeypatch.setattr(
+        stores, "_write_chunk", lambda a, i, r: written.append(i) or write_chunk(a, i, r)
+    )
     out = tmp_path / "new.zarr"
     with atomic_store(out) as group:
-        writer = stores.RowWriter(group, "rows", (3,), dtype, chunk_rows)
+        writer = stores.RowWriter(group, "rows", (3,), dtype, chunk_rows, CODECS[codecs])
         for first in range(0, len(rows), 3):  # appends that straddle chunks
             writer.append(rows[first : first + 3])
         writer.close()
     reference = zarr.open_group(str(tmp_path / "append.zarr"), mode="w").create_array(
-        "rows", shape=(0, 3), chunks=(chunk_rows, 3), dtype=dtype, compressors=stores.COMPRESSORS
+        "rows", shape=(0, 3), chunks=(chunk_rows, 3), dtype=dtype, compressors=CODECS[codecs]
     )
     for first in range(0, len(rows), chunk_rows):
         reference.append(rows[first : first + chunk_rows])
@@ -188,11 +202,32 @@ def test_row_writer_stores_the_chunk_files_of_zarr_append(
     ]
     for name in new:
         assert new[name] == old[name], name
-    # zarr's comparison was skipped for every chunk but the two empty ones.
+    # zarr's comparison was skipped for every chunk but the two empty ones, whose
+    # writes zarr made (and skipped); vprflow wrote the others.
     assert sorted(decided) == [False] * 2 + [True] * 6
+    assert sorted(written) == [0, 2, 3, 4, 5, 6]
     stored = zarr.open_group(str(out), mode="r")["rows"][...]
     assert stored.dtype == rows.dtype
     assert stored.tobytes() == rows.tobytes()  # bits: -0.0 stays -0.0
+
+
+@pytest.mark.parametrize("codecs", CODECS)
+def test_a_last_partial_chunk_is_written_padded_as_zarr_pads_it(tmp_path, codecs):
+    import zarr
+
+    rows = np.random.default_rng(3).standard_normal((10, 5)).astype(np.float32)
+    group = zarr.open_group(str(tmp_path / "g.zarr"), mode="w")
+    new, old = (
+        group.create_array(
+            name, shape=(0, 5), chunks=(4, 5), dtype=np.float32, compressors=CODECS[codecs]
+        )
+        for name in ("new", "append")
+    )
+    stores.store_rows(new, rows)
+    old.append(rows)
+    files = _files(tmp_path / "g.zarr" / "new")
+    assert "c/2/0" in files and files == _files(tmp_path / "g.zarr" / "append")
+    np.testing.assert_array_equal(zarr.open_group(str(tmp_path / "g.zarr"))["new"][...], rows)
 
 
 def test_store_rows_appends_at_any_row_as_zarr_append_does(tmp_path):
@@ -223,54 +258,29 @@ def test_store_rows_appends_at_any_row_as_zarr_append_does(tmp_path):
         stores.store_rows(wide, np.ones((4, 4), np.int64))
 
 
-def test_store_rows_raises_a_failed_chunk_only_after_the_others_finished(tmp_path, monkeypatch):
-    """A failing stage deletes its temporary store right after: no chunk write of the
-    failed call may still be running then."""
+def test_a_failed_chunk_write_raises_before_the_next_chunk_is_written(tmp_path, monkeypatch):
+    """Chunks are written one after another on the caller's thread: when one fails, no
+    later one is started, and none is still being written when the failing stage
+    deletes its temporary store (atomic_store)."""
     import zarr
 
     array = zarr.open_group(str(tmp_path / "g.zarr"), mode="w").create_array(
         "x", shape=(0, 3), chunks=(4, 3), dtype=np.float32, compressors=stores.COMPRESSORS
     )
-    finished = []
+    attempted = []
 
-    def slow_or_failing(_array, rows):
-        if rows[0, 0] == 0:
+    def failing_at_two(_array, rows):
+        attempted.append(int(rows[0, 0]))
+        if rows[0, 0] == 2:
             raise RuntimeError("disk full")
-        time.sleep(0.2)
-        finished.append(int(rows[0, 0]))
         return True
 
-    monkeypatch.setattr(stores, "_cannot_be_empty", slow_or_failing)
+    monkeypatch.setattr(stores, "_cannot_be_empty", failing_at_two)
     rows = np.repeat(np.arange(4, dtype=np.float32), 4)[:, None].repeat(3, axis=1)
     with pytest.raises(RuntimeError, match="disk full"):
         stores.store_rows(array, rows)
-    assert sorted(finished) == [1, 2, 3]
-
-
-def _store_rows_in(path: str) -> None:
-    import zarr
-
-    array = zarr.open_group(path, mode="w").create_array(
-        "x", shape=(0, 256), chunks=(4, 256), dtype=np.float32, compressors=stores.COMPRESSORS
-    )
-    stores.store_rows(array, np.ones((16, 256), np.float32))  # 4 chunks: the thread pool
-    assert array.shape == (16, 256)
-
-
-@pytest.mark.skipif(not hasattr(os, "fork"), reason="fork only")
-def test_store_rows_works_in_a_process_forked_after_it_was_used(tmp_path):
-    """A forked child inherits the chunk writers' pool without its threads; it gets a
-    pool of its own instead of waiting forever."""
-    _store_rows_in(str(tmp_path / "parent.zarr"))
-    child = multiprocessing.get_context("fork").Process(
-        target=_store_rows_in, args=(str(tmp_path / "child.zarr"),)
-    )
-    child.start()
-    child.join(60)
-    hung = child.is_alive()
-    if hung:
-        child.kill()
-    assert not hung and child.exitcode == 0
+    assert attempted == [0, 1, 2]
+    assert sorted(p.name for p in (tmp_path / "g.zarr" / "x" / "c").iterdir()) == ["0", "1"]
 
 
 @pytest.mark.parametrize(
@@ -568,10 +578,6 @@ def _same(got, expected):
     assert type(got) is type(expected)
     assert got.dtype == expected.dtype and got.shape == expected.shape
     assert np.array_equal(got, expected)
-
-
-# The codec chains stages write: compressed, and the checksum alone (features).
-CODECS = {"zstd+crc32c": stores.COMPRESSORS, "crc32c": stores.CHECKSUM_ONLY}
 
 
 @pytest.mark.parametrize("codecs", CODECS)

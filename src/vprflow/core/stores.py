@@ -54,6 +54,13 @@ COMPRESSOR = zarr.codecs.ZstdCodec(level=1)
 # to other values (NaN included) that a later stage ranks and counts. CRC-32C runs on
 # the compressed bytes, so it checks exactly what is on disk.
 COMPRESSORS = (COMPRESSOR, zarr.codecs.Crc32cCodec())
+# Sparse descriptor rows (SegVLAD's without PCA, ~400 KB an image, the largest arrays a
+# stage compresses as it computes; registry ``sparse_rows``), at zstd's fast level -3:
+# they compress in 0.12 against 0.275 ms an image and decompress 4x faster, for 8% more
+# bytes (corridor + roadscene descriptors 70.1 against 64.6 MB). Only there: small
+# arrays of integers (search lists, offsets, labels) grow 1.4-2.5x at it, and dense
+# descriptor rows, which no level shrinks much, are stored with CHECKSUM_ONLY.
+FAST_COMPRESSORS = (zarr.codecs.ZstdCodec(level=-3), zarr.codecs.Crc32cCodec())
 # The codecs of arrays whose bytes zstd hardly shrinks: the checksum alone. Float patch
 # features keep 90% of their bytes at level 1 (DAISY on the corridor), and decoding them
 # was 0.1 ms of every image read in every stage that reads them (descriptors,
@@ -174,8 +181,21 @@ def _seal(group: zarr.Group, path: Path) -> None:
 
 
 def count_chunk_files(array_path: Path) -> int:
-    """Files of an array's directory other than its ``zarr.json``: its chunks."""
-    return sum(len(files) for _, _, files in os.walk(array_path)) - 1
+    """Files of an array's directory other than its ``zarr.json``: its chunks.
+
+    A directory stack over ``os.scandir``, whose entries know their type: ``os.walk``
+    also stats every directory (a link check), which made counting a 2,048-image
+    features store (a directory per chunk per axis, 6,144 in all) 75 ms against 50.
+    """
+    files, stack = 0, [os.fspath(array_path)]
+    while stack:
+        with os.scandir(stack.pop()) as entries:
+            for entry in entries:
+                if not entry.is_dir():
+                    files += 1
+                elif not entry.is_symlink():  # as os.walk: a linked directory is not walked
+                    stack.append(entry.path)
+    return files - 1
 
 
 def _has_checksum(array: zarr.Array) -> bool:
@@ -421,12 +441,70 @@ def _row_selection(selection, shape: tuple[int, ...]) -> tuple[int, int, bool] |
 
 
 _ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
-# The codec chains the row reader decodes: zarr's bytes serializer, then COMPRESSORS or
-# CHECKSUM_ONLY.
+# The codec chains the row reader decodes: zarr's bytes serializer, then COMPRESSORS
+# (FAST_COMPRESSORS differ by the level alone) or CHECKSUM_ONLY.
 _ROW_CODECS = tuple(
     [zarr.codecs.BytesCodec, *(type(codec) for codec in chain)]
-    for chain in (COMPRESSORS, CHECKSUM_ONLY)
+    for chain in (COMPRESSORS, FAST_COMPRESSORS, CHECKSUM_ONLY)
 )
+
+
+def _plain_chunk_files(array: zarr.Array) -> bool:
+    """Whether vprflow reads and writes ``array``'s chunk files itself (:class:`_RowReader`,
+    :func:`store_rows`) instead of through zarr: it understands their every byte. zarr v3
+    on a local directory, a regular chunk grid, the default chunk key encoding, exactly
+    the codecs bytes, zstd, crc32c (:data:`COMPRESSORS`, :data:`FAST_COMPRESSORS`) or
+    bytes, crc32c (:data:`CHECKSUM_ONLY`), and a numeric dtype stored in the byte order
+    zarr returns."""
+    metadata = array.metadata
+    if (
+        metadata.zarr_format != 3
+        or not isinstance(array.store, zarr.storage.LocalStore)
+        or array.ndim == 0
+        or metadata.storage_transformers
+        or type(metadata.chunk_grid) is not zarr.core.chunk_grids.RegularChunkGrid
+        or type(metadata.chunk_key_encoding)
+        is not zarr.core.chunk_key_encodings.DefaultChunkKeyEncoding
+        or [type(codec) for codec in metadata.codecs] not in _ROW_CODECS
+        or not isinstance(array.dtype, np.dtype)
+        or array.dtype.kind not in "biufc"
+    ):
+        return False
+    endian = metadata.codecs[0].endian
+    stored = array.dtype
+    if endian is not None and stored.itemsize > 1:
+        stored = stored.newbyteorder("<" if endian.value == "little" else ">")
+    return stored == array.dtype
+
+
+def _array_directory(array: zarr.Array) -> Path:
+    return Path(array.store.root) / array.path
+
+
+def _write_chunk(array: zarr.Array, index: int, rows: np.ndarray) -> None:
+    """Write ``rows``, the whole content of chunk ``index`` of ``array`` (chunked along its
+    first axis only, :func:`_plain_chunk_files`), as zarr would write it: padded with
+    the fill value to the chunk's shape, encoded by the array's codecs (numcodecs' zstd,
+    the library zarr's ``ZstdCodec`` calls; CRC-32C of the result appended,
+    little-endian), at the chunk's key."""
+    step = array.chunks[0]
+    if len(rows) == step:
+        chunk = np.ascontiguousarray(rows, dtype=array.dtype)
+    else:
+        chunk = np.full(array.chunks, array.fill_value, dtype=array.dtype)
+        chunk[: len(rows)] = rows
+    data = chunk.reshape(-1).view(np.uint8)
+    for codec in array.metadata.codecs[1:-1]:  # zstd, where the array has it
+        data = np.frombuffer(
+            numcodecs.zstd.compress(data, codec.level, codec.checksum), dtype=np.uint8
+        )
+    path = _array_directory(array) / array.metadata.encode_chunk_key(
+        (index,) + (0,) * (array.ndim - 1)
+    )
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as file:
+        file.write(data)
+        file.write(google_crc32c.value(data).to_bytes(4, "little"))
 
 
 class _RowReader:
@@ -434,15 +512,12 @@ class _RowReader:
     zarr's per-chunk machinery (its event loop, buffers and codec pipeline: 0.4-0.5 ms a
     125 KB chunk against 0.2 ms of decompression, benchmarks/README.md "Descriptors").
 
-    Only for arrays whose every stored byte it understands: zarr v3 on a local
-    directory, a regular chunk grid, the default chunk key encoding, exactly the codecs
-    bytes, zstd, crc32c (:data:`COMPRESSORS`) or bytes, crc32c (:data:`CHECKSUM_ONLY`)
-    and a numeric dtype stored in the byte order zarr returns. Each chunk file is
-    checked (CRC-32C of the stored bytes, the last 4 bytes, little-endian, as zarr's
-    ``Crc32cCodec``), decompressed by numcodecs' zstd (the library zarr's ``ZstdCodec``
-    calls) or copied straight into the result where a chunk's rows are whole rows of
-    it, and a missing chunk file is the fill value (zarr does not store chunks equal to
-    it).
+    Only for arrays whose every stored byte it understands (:func:`_plain_chunk_files`).
+    Each chunk file is checked (CRC-32C of the stored bytes, the last 4 bytes,
+    little-endian, as zarr's ``Crc32cCodec``), decompressed by numcodecs' zstd (the
+    library zarr's ``ZstdCodec`` calls) or read straight into the result where a
+    chunk's rows are whole rows of it, and a missing chunk file is the fill value (zarr
+    does not store chunks equal to it).
     """
 
     def __init__(self, array: zarr.Array, directory: Path, store: Path, name: str):
@@ -464,27 +539,9 @@ class _RowReader:
     @classmethod
     def of(cls, array: zarr.Array, store: Path, name: str) -> _RowReader | None:
         """The reader of ``array``, or None where zarr must read it."""
-        metadata = array.metadata
-        if (
-            metadata.zarr_format != 3
-            or not isinstance(array.store, zarr.storage.LocalStore)
-            or array.ndim == 0
-            or metadata.storage_transformers
-            or type(metadata.chunk_grid) is not zarr.core.chunk_grids.RegularChunkGrid
-            or type(metadata.chunk_key_encoding)
-            is not zarr.core.chunk_key_encodings.DefaultChunkKeyEncoding
-            or [type(codec) for codec in metadata.codecs] not in _ROW_CODECS
-            or not isinstance(array.dtype, np.dtype)
-            or array.dtype.kind not in "biufc"
-        ):
+        if not _plain_chunk_files(array):
             return None
-        endian = metadata.codecs[0].endian
-        stored = array.dtype
-        if endian is not None and stored.itemsize > 1:
-            stored = stored.newbyteorder("<" if endian.value == "little" else ">")
-        if stored != array.dtype:
-            return None
-        return cls(array, Path(array.store.root) / array.path, store, name)
+        return cls(array, _array_directory(array), store, name)
 
     def read(self, start: int, stop: int, squeeze: bool) -> np.ndarray:
         out = np.empty((stop - start, *self.shape[1:]), dtype=self.dtype)
@@ -514,20 +571,42 @@ class _RowReader:
         high = min(region[0].stop, start + len(out))
         into = out[(slice(low - start, high - start), *region[1:])]
         key = self.array.metadata.encode_chunk_key(coords)
+        whole = self.row_chunks and high - low == self.chunks[0] and into.flags.c_contiguous
+        target = into if whole else np.empty(self.chunks, dtype=self.dtype)
+        target_bytes = target.reshape(-1).view(np.uint8)
         try:
-            with open(self.directory / key, "rb") as file:
-                data = file.read()
+            with open(self.directory / key, "rb", buffering=0) as file:
+                read = not self.compressed and self._read_into(file, target_bytes, key)
+                data = None if read else file.read()
         except FileNotFoundError:
             into[...] = self.fill
             return
-        whole = self.row_chunks and high - low == self.chunks[0] and into.flags.c_contiguous
-        target = into if whole else np.empty(self.chunks, dtype=self.dtype)
-        self._decode(data, target.reshape(-1).view(np.uint8), key)
+        if data is not None:
+            self._decode(data, target_bytes, key)
         if not whole:
             into[...] = target[
                 (slice(low - region[0].start, high - region[0].start),)
                 + tuple(slice(0, r.stop - r.start) for r in region[1:])
             ]
+
+    def _read_into(self, file, target: np.ndarray, key: str) -> bool:
+        """Read an uncompressed chunk file of the right size straight into ``target``
+        (uint8, the chunk's size) and check its CRC there; False, having read nothing,
+        where the file's size is not the chunk's and its checksum's (:meth:`_decode`
+        says what is wrong). One copy of the bytes instead of two (into a ``bytes``,
+        then into the result)."""
+        if os.fstat(file.fileno()).st_size != self.chunk_bytes + 4:
+            return False
+        view, done = memoryview(target), 0
+        while done < self.chunk_bytes and (got := file.readinto(view[done:])):
+            done += got
+        stored = file.read(4)
+        computed = google_crc32c.value(target)
+        if done != self.chunk_bytes or len(stored) != 4:
+            raise self._corrupt(key, f"changed size while it was read ({done} bytes read)")
+        if computed != int.from_bytes(stored, "little"):
+            raise self._checksum_error(key, stored, computed)
+        return True
 
     def _decode(self, data: bytes, target: np.ndarray, key: str) -> None:
         """Check and decompress (or copy) one chunk file's bytes into ``target`` (uint8,
@@ -536,13 +615,9 @@ class _RowReader:
             raise self._corrupt(key, f"has {len(data)} bytes, fewer than its checksum's 4")
         # A numpy view: google_crc32c takes it (not a memoryview), and it copies nothing.
         frame = np.frombuffer(data, dtype=np.uint8)[:-4]
-        stored, computed = int.from_bytes(data[-4:], "little"), google_crc32c.value(frame)
-        if computed != stored:
-            raise self._corrupt(
-                key,
-                f"fails its checksum (stored {stored:#010x}, computed {computed:#010x}, "
-                f"{len(data)} bytes)",
-            )
+        computed = google_crc32c.value(frame)
+        if computed != int.from_bytes(data[-4:], "little"):
+            raise self._checksum_error(key, data[-4:], computed)
         if not self.compressed:
             if len(frame) != self.chunk_bytes:
                 raise self._corrupt(key, f"holds {len(frame)} bytes, not {self.chunk_bytes}")
@@ -563,6 +638,13 @@ class _RowReader:
         if len(plain) != self.chunk_bytes:
             raise self._corrupt(key, f"decompresses to {len(plain)} bytes, not {self.chunk_bytes}")
         target[...] = np.frombuffer(plain, dtype=np.uint8)
+
+    def _checksum_error(self, key: str, stored: bytes, computed: int) -> StoreCorruptError:
+        stored_value = int.from_bytes(stored, "little")
+        return self._corrupt(
+            key,
+            f"fails its checksum (stored {stored_value:#010x}, computed {computed:#010x})",
+        )
 
     def _corrupt(self, key: str, fault: str) -> StoreCorruptError:
         return StoreCorruptError(
@@ -663,23 +745,9 @@ def rows_per_chunk(row_bytes: int) -> int:
 
 
 # RowWriter stores whole chunks of about this many bytes at a time (at least one chunk),
-# each chunk a zarr write of its own, up to CHUNK_THREADS at once: zarr then compresses
-# them concurrently (zstd on its thread pool) and rewrites the array's zarr.json once per
-# WRITE_BYTES instead of once per chunk. Not one zarr write of several chunks: zarr
-# copies a value that is not exactly one chunk into a fresh buffer per chunk (61-136 ms
-# of CPU per 512 MB). What is stored is the same: the chunks do not change.
+# so that the array's zarr.json is rewritten once per WRITE_BYTES instead of once per
+# chunk. What is stored is the same: the chunks do not change.
 WRITE_BYTES = 16 << 20
-CHUNK_THREADS = 4
-
-
-def _new_chunk_writers() -> None:
-    global _CHUNK_WRITERS
-    _CHUNK_WRITERS = ThreadPoolExecutor(CHUNK_THREADS, thread_name_prefix="vprflow-chunk")
-
-
-_new_chunk_writers()
-# A forked child has the pool but none of its threads, and would wait forever on it.
-os.register_at_fork(after_in_child=_new_chunk_writers)
 
 
 def _cannot_be_empty(array: zarr.Array, rows: np.ndarray) -> bool:
@@ -711,9 +779,19 @@ def _cannot_be_empty(array: zarr.Array, rows: np.ndarray) -> bool:
 
 def store_rows(array: zarr.Array, rows: np.ndarray) -> None:
     """Append ``rows`` to ``array`` (chunked along its first axis only) as
-    ``array.append(rows)`` would, with the same chunk files: one zarr write per chunk,
-    several at once, each without zarr's empty-chunk comparison where
-    :func:`_cannot_be_empty` shows it cannot find one."""
+    ``array.append(rows)`` would, with the same chunk files: one write per chunk, one
+    after another. Where :func:`_cannot_be_empty` shows a chunk cannot equal the fill
+    value (which zarr would not store), its file is written by :func:`_write_chunk` if
+    vprflow writes the array's chunk files (:func:`_plain_chunk_files`) and the chunk
+    is new, else by zarr without its empty-chunk comparison; otherwise by zarr.
+
+    Not zarr's own write where it can be helped: its Python work per chunk (an event
+    loop, buffers, codec pipeline) holds the GIL beside a stage's computing thread, and
+    took SegVLAD's descriptors stage from 0.70 to 0.83 ms an image (2,048 DAISY images,
+    ~400 KB of rows each). One chunk at a time: RowWriter calls this on its background
+    thread while the stage computes on another, and 4 chunks compressed at once took
+    the cores from it (the same stage 0.72 against 0.65 ms an image), though they write
+    a store alone faster (266 MB of sparse rows 0.29 against 0.46 s)."""
     if tuple(array.chunks[1:]) != tuple(array.shape[1:]):
         raise ValueError(
             f"store_rows: array {array.store_path} has chunks {array.chunks} for shape "
@@ -726,22 +804,20 @@ def store_rows(array: zarr.Array, rows: np.ndarray) -> None:
     array.resize((stop, *array.shape[1:]))
     # A runtime setting, not stored: zarr.json is the same either way.
     skipping = array.with_config({"write_empty_chunks": True})
+    plain = _plain_chunk_files(array)
 
     def store(first: int) -> None:
         last = min(first - first % step + step, stop)
         part = rows[first - start : last - start]
-        (skipping if _cannot_be_empty(array, part) else array)[first:last] = part
+        if not _cannot_be_empty(array, part):
+            array[first:last] = part
+        elif plain and first % step == 0:
+            _write_chunk(array, first // step, part)
+        else:
+            skipping[first:last] = part
 
-    firsts = [start, *range(start - start % step + step, stop, step)]
-    if len(firsts) == 1:
-        store(start)
-        return
-    writes = [_CHUNK_WRITERS.submit(store, first) for first in firsts]
-    # All finish before a failure is raised: a failing stage then deletes its temporary
-    # store with no chunk write still under way (atomic_store).
-    wait(writes)
-    for write in writes:
-        write.result()
+    for first in [start, *range(start - start % step + step, stop, step)]:
+        store(first)
 
 
 class RowWriter:
@@ -751,16 +827,25 @@ class RowWriter:
 
     Each write (compression, mostly) runs on a background thread while the caller
     computes the next rows; one write at a time, in order. :meth:`close` waits for
-    the last and re-raises a failed write.
+    the last and re-raises a failed write. ``compressors``: :data:`COMPRESSORS` or
+    :data:`FAST_COMPRESSORS`.
     """
 
-    def __init__(self, group: zarr.Group, name: str, row_shape: tuple, dtype, chunk_rows: int):
+    def __init__(
+        self,
+        group: zarr.Group,
+        name: str,
+        row_shape: tuple,
+        dtype,
+        chunk_rows: int,
+        compressors: tuple = COMPRESSORS,
+    ):
         self.array = group.create_array(
             name,
             shape=(0, *row_shape),
             chunks=(chunk_rows, *row_shape),
             dtype=dtype,
-            compressors=COMPRESSORS,
+            compressors=compressors,
         )
         self.group = group
         self.name = name
@@ -814,8 +899,16 @@ class RaggedWriter(RowWriter):
     """Append per-image blocks of rows ``[n_i, *row_shape]`` into one concatenated array,
     with ``<name>_offsets [n + 1]`` written on :meth:`close`."""
 
-    def __init__(self, group: zarr.Group, name: str, row_shape: tuple, dtype, chunk_rows: int):
-        super().__init__(group, name, row_shape, dtype, chunk_rows)
+    def __init__(
+        self,
+        group: zarr.Group,
+        name: str,
+        row_shape: tuple,
+        dtype,
+        chunk_rows: int,
+        compressors: tuple = COMPRESSORS,
+    ):
+        super().__init__(group, name, row_shape, dtype, chunk_rows, compressors)
         self.offsets = [0]
 
     def append(self, rows: np.ndarray, what: str | None = None) -> None:
