@@ -17,8 +17,9 @@ corridor config, in one process and under the rule's thread budget (``run_stage`
 
 - stage: the descriptors stage's job (``vprflow.stages.jobs.run_job``) over all images
   (store reads, PCA, writes, zarr), each run into a new store (removed untimed);
-- before: the same job through ``src/vprflow/stages/descriptors.py`` and
-  ``src/vprflow/core/stores.py`` of ``--before`` (``git show``; default: the commit
+- before: the same job through ``src/vprflow/stages/descriptors.py``,
+  ``src/vprflow/core/stores.py`` and the ``FeatureReader`` of
+  ``src/vprflow/stages/features.py`` of ``--before`` (``git show``; default: the commit
   before issue 33 item 3's store writes, one chunk a zarr write), the two runs
   interleaved in every repeat so that both see the same machine load;
 - zstd: the stage's job reading its features with the codecs they had before commit
@@ -73,11 +74,15 @@ BEFORE = "2cc3dee"
 
 def load_before(rev: str) -> types.ModuleType:
     """``src/vprflow/stages/descriptors.py`` at ``rev`` as a module of its own, its
-    ``stores`` being ``src/vprflow/core/stores.py`` at ``rev`` (the write path: atomic
-    stores, RowWriter); the rest of the package is imported as it is now."""
+    ``stores`` being ``src/vprflow/core/stores.py`` at ``rev`` (atomic stores, the row
+    reader, RowWriter) and its ``FeatureReader`` that of ``src/vprflow/stages/
+    features.py`` at ``rev``; the rest of the package is imported as it is now."""
     stores_before = load_module(rev, "src/vprflow/core/stores.py", "stores_before")
+    features_before = load_module(rev, "src/vprflow/stages/features.py", "features_before")
+    features_before.stores = stores_before
     module = load_module(rev, "src/vprflow/stages/descriptors.py", "descriptors_before")
     module.stores = stores_before
+    module.FeatureReader = features_before.FeatureReader
     module.aggregator = _with_functions_of(module)
     return module
 

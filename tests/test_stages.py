@@ -154,6 +154,21 @@ def test_slic_segments_partition_every_image(pipeline):
         np.testing.assert_array_equal(masks.sum(axis=0), 1)  # SLIC labels every pixel once
 
 
+def test_the_feature_reader_gives_each_images_features_read_only(pipeline):
+    from vprflow.stages.features import FeatureReader
+
+    group = stores.open_store(stage_path(pipeline, "features", "anyloc_vlad"))
+    per_image = 4 * int(np.prod(group["features"].shape[1:]))
+    for block_bytes in (0, 3 * per_image, 64 << 20):  # one image, 3, all of them a read
+        reader = FeatureReader(group, block_bytes)
+        for index in [0, 1, 5, 4, 11, 2]:  # forwards, back, across blocks
+            grid = reader(index)
+            np.testing.assert_array_equal(grid, read_features(group, index))
+            assert grid.dtype == np.float32 and not grid.flags.writeable
+            with pytest.raises(ValueError, match="read-only"):
+                grid += 1
+
+
 def test_vocabulary_and_pca_shapes(pipeline):
     centres = read_centres(stage_path(pipeline, "vocabulary"))
     assert centres.shape == (3, 104)
@@ -476,9 +491,21 @@ def test_float16_segment_descriptors_are_the_float32_ones_rounded(pipeline, tmp_
     np.testing.assert_array_equal(np.asarray(half[...]), np.asarray(full[...]).astype(np.float16))
 
 
+@pytest.mark.parametrize("way", ["as probed", "on the pool", "on the calling thread"])
 @pytest.mark.parametrize("method", ["segvlad", "anyloc_vlad"])
-def test_descriptors_are_the_same_bits_with_more_threads(pipeline, tmp_path, method):
-    """Images computed three at a time store what the sharded one-thread runs stored."""
+def test_descriptors_are_the_same_bits_with_more_threads(
+    pipeline, tmp_path, monkeypatch, method, way
+):
+    """Images computed with three threads, on a pool of them or on the calling thread
+    (whichever the probes find faster), store what the sharded one-thread runs stored."""
+    from vprflow.stages import descriptors
+
+    forced = {
+        "on the pool": descriptors.in_order,
+        "on the calling thread": lambda pool, function, items, workers: map(function, items),
+    }
+    if way in forced:
+        monkeypatch.setattr(descriptors, "fastest_in_order", forced[way])
     plan, runner, _, _ = pipeline
     (stage,) = [
         s for s in plan.stages["descriptors"].values() if s.record["params"]["aggregator"] == method
@@ -490,6 +517,76 @@ def test_descriptors_are_the_same_bits_with_more_threads(pipeline, tmp_path, met
     stored = stores.open_store(stage_path(pipeline, "descriptors", method))
     for name, array in stores.array_items(stored):
         np.testing.assert_array_equal(np.asarray(threaded[name]), np.asarray(array), err_msg=name)
+
+
+def test_sparse_rows_are_compressed_and_dense_ones_stored_with_the_checksum_alone(
+    pipeline, tmp_path
+):
+    """SegVLAD's rows without PCA (registry ``sparse_rows``: at K = 32 on real images
+    mostly zeros, here at K = 3 not) are stored compressed, anyloc_vlad's and projected
+    rows with the checksum alone; the bits read back are the same either way."""
+    plan, runner, _, _ = pipeline
+    stored = {}
+    for method in ("segvlad", "anyloc_vlad", "segment_gem"):
+        stored[method] = stores.open_store(stage_path(pipeline, "descriptors", method))
+    (segvlad,) = [
+        s
+        for s in plan.stages["descriptors"].values()
+        if s.record["params"]["aggregator"] == "segvlad"
+    ]
+    inputs = {name: runner.path(*ref) for name, ref in segvlad.inputs.items() if name != "pca"}
+    compute_descriptors(Job(segvlad.record, inputs, str(tmp_path / "raw.zarr"), threads=1))
+    stored["segvlad without pca"] = stores.open_store(str(tmp_path / "raw.zarr"))
+    for method, group in stored.items():
+        codecs = tuple(group["descriptors"].raw.compressors)
+        sparse = method == "segvlad without pca"
+        assert codecs == (stores.FAST_COMPRESSORS if sparse else stores.CHECKSUM_ONLY), method
+        rows = np.asarray(group["descriptors"][...])
+        # zarr's own read gives the same bits as vprflow's row reader.
+        zarr_rows = np.asarray(group["descriptors"].raw[...])
+        assert rows.tobytes() == zarr_rows.tobytes(), method
+
+
+class Ticks:
+    """A clock that advances only when told: an item computed on a thread named
+    ``slow`` costs 10 ticks, elsewhere 1."""
+
+    def __init__(self, slow: str):
+        import threading
+
+        self.now, self.slow, self.lock = 0, slow, threading.Lock()
+
+    def __call__(self) -> float:
+        return self.now
+
+    def compute(self, item: int) -> tuple[int, str]:
+        import threading
+
+        on_pool = threading.current_thread().name.startswith("probe-pool")
+        with self.lock:
+            self.now += 10 if on_pool == (self.slow == "pool") else 1
+        return item * item, "pool" if on_pool else "caller"
+
+
+@pytest.mark.parametrize("slow", ["pool", "caller"])
+@pytest.mark.parametrize("n_items", [0, 1, 5, 30, 200])
+def test_fastest_in_order_yields_every_result_in_order_computed_the_faster_way(slow, n_items):
+    from concurrent.futures import ThreadPoolExecutor
+
+    from vprflow.stages.descriptors import fastest_in_order
+
+    ticks = Ticks(slow)
+    probe, rounds = 4, 3
+    with ThreadPoolExecutor(2, thread_name_prefix="probe-pool") as pool:
+        got = list(fastest_in_order(pool, ticks.compute, range(n_items), 2, probe, rounds, ticks))
+    assert [value for value, _ in got] == [i * i for i in range(n_items)]
+    ways = [way for _, way in got]
+    # The first item alone on the calling thread, then the probes in turn, then the
+    # faster way for the rest.
+    expected = ["caller"] + (["caller"] * probe + ["pool"] * probe) * rounds
+    faster = "caller" if slow == "pool" else "pool"
+    expected += [faster] * max(0, n_items - len(expected))
+    assert ways == expected[:n_items]
 
 
 @pytest.mark.parametrize(

@@ -107,11 +107,17 @@ def read_features(group, index: int) -> np.ndarray:
 
 
 class FeatureReader:
-    """``reader(index) -> float32 [h, w, D]`` (a copy), reading about ``block_bytes``
+    """``reader(index) -> float32 [h, w, D]``, read-only, reading about ``block_bytes``
     of images per store access: a per-image stage walks the images in order, and one
-    store read per image costs more than the arithmetic on it for small grids."""
+    store read per image costs more than the arithmetic on it for small grids.
 
-    def __init__(self, group, block_bytes: int = 64 << 20):
+    An image is a read-only view of its block (a copy was 0.03 ms of a 125 KB DAISY
+    image, a third of reading it). Blocks stay small enough for the allocator to reuse
+    the last one's memory (glibc maps anything above 32 MiB afresh, and touching new
+    pages costs more than the copy): 4 MiB read 256 MiB of DAISY features in 0.044 ms
+    an image against 0.056 at 64 MiB."""
+
+    def __init__(self, group, block_bytes: int = 4 << 20):
         self.array = group["features"]
         per_image = 4 * int(np.prod(self.array.shape[1:]))
         self.block = max(1, block_bytes // max(per_image, 1))
@@ -122,4 +128,5 @@ class FeatureReader:
             self.start = index
             stop = min(index + self.block, self.array.shape[0])
             self.cached = np.asarray(self.array[index:stop], dtype=np.float32)
-        return self.cached[index - self.start].copy()
+            self.cached.flags.writeable = False
+        return self.cached[index - self.start]
