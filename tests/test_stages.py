@@ -519,32 +519,14 @@ def test_descriptors_are_the_same_bits_with_more_threads(
         np.testing.assert_array_equal(np.asarray(threaded[name]), np.asarray(array), err_msg=name)
 
 
-def test_sparse_rows_are_compressed_and_dense_ones_stored_with_the_checksum_alone(
-    pipeline, tmp_path
-):
-    """SegVLAD's rows without PCA (registry ``sparse_rows``: at K = 32 on real images
-    mostly zeros, here at K = 3 not) are stored compressed, anyloc_vlad's and projected
-    rows with the checksum alone; the bits read back are the same either way."""
-    plan, runner, _, _ = pipeline
-    stored = {}
-    for method in ("segvlad", "anyloc_vlad", "segment_gem"):
-        stored[method] = stores.open_store(stage_path(pipeline, "descriptors", method))
-    (segvlad,) = [
-        s
-        for s in plan.stages["descriptors"].values()
-        if s.record["params"]["aggregator"] == "segvlad"
-    ]
-    inputs = {name: runner.path(*ref) for name, ref in segvlad.inputs.items() if name != "pca"}
-    compute_descriptors(Job(segvlad.record, inputs, str(tmp_path / "raw.zarr"), threads=1))
-    stored["segvlad without pca"] = stores.open_store(str(tmp_path / "raw.zarr"))
-    for method, group in stored.items():
-        codecs = tuple(group["descriptors"].raw.compressors)
-        sparse = method == "segvlad without pca"
-        assert codecs == (stores.FAST_COMPRESSORS if sparse else stores.CHECKSUM_ONLY), method
+def test_descriptor_stores_are_compressed_fast_and_read_back_as_zarr_reads_them(pipeline):
+    """Every descriptors store (global, per segment, projected) uses FAST_COMPRESSORS;
+    vprflow's row reader returns the bits zarr's own read does."""
+    for method in ("segvlad", "anyloc_vlad", "segment_gem", "gem", "snsm"):
+        group = stores.open_store(stage_path(pipeline, "descriptors", method))
+        assert tuple(group["descriptors"].raw.compressors) == stores.FAST_COMPRESSORS, method
         rows = np.asarray(group["descriptors"][...])
-        # zarr's own read gives the same bits as vprflow's row reader.
-        zarr_rows = np.asarray(group["descriptors"].raw[...])
-        assert rows.tobytes() == zarr_rows.tobytes(), method
+        assert rows.tobytes() == np.asarray(group["descriptors"].raw[...]).tobytes(), method
 
 
 class Ticks:

@@ -571,11 +571,6 @@ class Aggregator:
     -> [dim]``, which the generic :func:`vprflow.stages.descriptors.grid_descriptor`
     runs per image (``image_descriptor`` left out; ``output="global"`` only); an
     aggregator with a per-image function of its own (centres, masks) names that instead.
-    ``sparse_rows``: whether its rows are mostly zeros, which the descriptors stage
-    compresses (:data:`vprflow.core.stores.FAST_COMPRESSORS`) unless PCA projects them:
-    SegVLAD's per-segment VLAD (a segment's patches touch few clusters; zstd keeps
-    20-40% of the bytes). Other rows are dense floats, which zstd hardly shrinks
-    (anyloc_vlad's and PCA-projected rows to 90-100%), stored with the checksum alone.
     """
 
     name: str
@@ -591,7 +586,6 @@ class Aggregator:
     reads: str = "features"
     sections: tuple[str, ...] = ()
     compute: str | None = None
-    sparse_rows: bool = False
 
     def __post_init__(self):
         # Left out, ``options`` and ``columns`` are the values of its sections, and
@@ -688,7 +682,6 @@ AGGREGATORS: dict[str, Aggregator] = {
             explanation="segment_matches",
             pca_fit=_segvlad_pca_fit,
             sections=("segvlad", "vlad"),
-            sparse_rows=True,
         ),
         Aggregator(
             "segment_gem",

@@ -54,12 +54,14 @@ COMPRESSOR = zarr.codecs.ZstdCodec(level=1)
 # to other values (NaN included) that a later stage ranks and counts. CRC-32C runs on
 # the compressed bytes, so it checks exactly what is on disk.
 COMPRESSORS = (COMPRESSOR, zarr.codecs.Crc32cCodec())
-# Sparse descriptor rows (SegVLAD's without PCA, ~400 KB an image, the largest arrays a
-# stage compresses as it computes; registry ``sparse_rows``), at zstd's fast level -3:
-# they compress in 0.12 against 0.275 ms an image and decompress 4x faster, for 8% more
-# bytes (corridor + roadscene descriptors 70.1 against 64.6 MB). Only there: small
-# arrays of integers (search lists, offsets, labels) grow 1.4-2.5x at it, and dense
-# descriptor rows, which no level shrinks much, are stored with CHECKSUM_ONLY.
+# Descriptor rows, the largest arrays a stage compresses as it computes, at zstd's fast
+# level -3. SegVLAD's sparse rows without PCA (~400 KB an image) compress in 0.12
+# against 0.275 ms an image and decompress 4x faster than at level 1, for 8% more bytes;
+# dense rows (anyloc_vlad, SNSM, PCA-projected), which level 1 shrank to 64-92%, stay at
+# 73-100% but go through at 2.7-5 GB/s (20-36 GB/s back) against 0.4-0.9. Not
+# CHECKSUM_ONLY for those: a store's last chunk is padded to the chunk's 4 MiB, which
+# only compression takes back (a 100-image store would be 4.2 MB instead of 1.2). Only
+# descriptors: small arrays of integers (search lists, offsets) grow 1.4-2.5x at -3.
 FAST_COMPRESSORS = (zarr.codecs.ZstdCodec(level=-3), zarr.codecs.Crc32cCodec())
 # The codecs of arrays whose bytes zstd hardly shrinks: the checksum alone. Float patch
 # features keep 90% of their bytes at level 1 (DAISY on the corridor), and decoding them

@@ -59,8 +59,6 @@ def compute_descriptors(job: Job) -> None:
     # segvlad.store_dtype); the others store float32.
     dtype = np.dtype(params["store_dtype"] if "store_dtype" in params else np.float32)
     attrs = {**stage_attrs("descriptors", job.record, images), "kind": agg.output}
-    sparse = agg.sparse_rows and pca is None
-    codecs = stores.FAST_COMPRESSORS if sparse else stores.CHECKSUM_ONLY
 
     def rows_of(data: tuple) -> np.ndarray:
         rows = describe.compute(*data)
@@ -86,6 +84,7 @@ def compute_descriptors(job: Job) -> None:
                 group.attrs["dim"] = dim
                 kind = stores.RaggedWriter if by_segment else stores.RowWriter
                 chunk_rows = stores.rows_per_chunk(4 * dim)
+                codecs = stores.FAST_COMPRESSORS
                 writer = kind(group, "descriptors", (dim,), dtype, chunk_rows, codecs)
             writer.append(rows, f"descriptors of {dataset.paths[i]}")
         writer.close()
