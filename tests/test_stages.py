@@ -530,13 +530,13 @@ def test_descriptor_stores_are_compressed_fast_and_read_back_as_zarr_reads_them(
 
 
 class Ticks:
-    """A clock that advances only when told: an item computed on a thread named
-    ``slow`` costs 10 ticks, elsewhere 1."""
+    """A clock that advances only when told: an item computed on the ``slow`` way (the
+    pool's threads or the caller's) costs ``cost`` ticks, on the other 1."""
 
-    def __init__(self, slow: str):
+    def __init__(self, slow: str, cost: float = 10):
         import threading
 
-        self.now, self.slow, self.lock = 0, slow, threading.Lock()
+        self.now, self.slow, self.cost, self.lock = 0, slow, cost, threading.Lock()
 
     def __call__(self) -> float:
         return self.now
@@ -546,18 +546,23 @@ class Ticks:
 
         on_pool = threading.current_thread().name.startswith("probe-pool")
         with self.lock:
-            self.now += 10 if on_pool == (self.slow == "pool") else 1
+            self.now += self.cost if on_pool == (self.slow == "pool") else 1
         return item * item, "pool" if on_pool else "caller"
 
 
 @pytest.mark.parametrize("slow", ["pool", "caller"])
+@pytest.mark.parametrize(("cost", "rounds_run"), [(10, 1), (1.2, 3)])
 @pytest.mark.parametrize("n_items", [0, 1, 5, 30, 200])
-def test_fastest_in_order_yields_every_result_in_order_computed_the_faster_way(slow, n_items):
+def test_fastest_in_order_yields_every_result_in_order_computed_the_faster_way(
+    slow, cost, rounds_run, n_items
+):
+    """One way 10 times slower is clear after one round of probes; 1.2 times slower
+    takes all three."""
     from concurrent.futures import ThreadPoolExecutor
 
     from vprflow.stages.descriptors import fastest_in_order
 
-    ticks = Ticks(slow)
+    ticks = Ticks(slow, cost)
     probe, rounds = 4, 3
     with ThreadPoolExecutor(2, thread_name_prefix="probe-pool") as pool:
         got = list(fastest_in_order(pool, ticks.compute, range(n_items), 2, probe, rounds, ticks))
@@ -565,7 +570,7 @@ def test_fastest_in_order_yields_every_result_in_order_computed_the_faster_way(s
     ways = [way for _, way in got]
     # The first item alone on the calling thread, then the probes in turn, then the
     # faster way for the rest.
-    expected = ["caller"] + (["caller"] * probe + ["pool"] * probe) * rounds
+    expected = ["caller"] + (["caller"] * probe + ["pool"] * probe) * rounds_run
     faster = "caller" if slow == "pool" else "pool"
     expected += [faster] * max(0, n_items - len(expected))
     assert ways == expected[:n_items]

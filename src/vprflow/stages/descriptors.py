@@ -90,8 +90,9 @@ def compute_descriptors(job: Job) -> None:
         writer.close()
 
 
-# Images timed each way per round, and rounds, before fastest_in_order settles on one.
-PROBE_IMAGES, PROBE_ROUNDS = 16, 3
+# Images timed each way per round, and at most so many rounds, before fastest_in_order
+# settles on one; it settles after any round where one way is CLEAR_MARGIN times faster.
+PROBE_IMAGES, PROBE_ROUNDS, CLEAR_MARGIN = 16, 3, 1.5
 
 
 def fastest_in_order(
@@ -112,8 +113,9 @@ def fastest_in_order(
     thread, 0.45 on a pool of 2; SegVLAD without PCA 1.29 against 1.55), while a large
     product lets them work at once (SegVLAD with PCA: 1.21 on the pool against 1.40).
     After ``items[0]`` alone (first-call costs: imports, caches), ``probe`` items are
-    computed on this thread, ``probe`` on the pool, ``rounds`` times in turn; each
-    way's fastest round decides. A round is timed whole, drawing the items (the store
+    computed on this thread, ``probe`` on the pool, ``rounds`` times in turn (or until
+    one way is :data:`CLEAR_MARGIN` times faster); each way's fastest round decides.
+    A round is timed whole, drawing the items (the store
     reads) and what the caller does with each result (the writes) included: the pool's
     threads contend with those for the GIL, and a probe of the computing alone chose
     the pool where it was slower. A wrong choice under a moving load costs at most the
@@ -136,6 +138,8 @@ def fastest_in_order(
             if count == 0:
                 return
             best[way] = min(best[way], (clock() - start) / count)
+        if max(best.values()) > CLEAR_MARGIN * min(best.values()):
+            break
     way = min(best, key=best.get)
     log.info(
         "computing on %s (probes: %s)",
