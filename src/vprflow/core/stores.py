@@ -901,16 +901,8 @@ class RaggedWriter(RowWriter):
     """Append per-image blocks of rows ``[n_i, *row_shape]`` into one concatenated array,
     with ``<name>_offsets [n + 1]`` written on :meth:`close`."""
 
-    def __init__(
-        self,
-        group: zarr.Group,
-        name: str,
-        row_shape: tuple,
-        dtype,
-        chunk_rows: int,
-        compressors: tuple = COMPRESSORS,
-    ):
-        super().__init__(group, name, row_shape, dtype, chunk_rows, compressors)
+    def __init__(self, *args, **kwargs):  # RowWriter's
+        super().__init__(*args, **kwargs)
         self.offsets = [0]
 
     def append(self, rows: np.ndarray, what: str | None = None) -> None:
