@@ -84,8 +84,9 @@ def compute_descriptors(job: Job) -> None:
                 group.attrs["dim"] = dim
                 kind = stores.RaggedWriter if by_segment else stores.RowWriter
                 chunk_rows = stores.rows_per_chunk(4 * dim)
-                codecs = stores.FAST_COMPRESSORS
-                writer = kind(group, "descriptors", (dim,), dtype, chunk_rows, codecs)
+                writer = kind(
+                    group, "descriptors", (dim,), dtype, chunk_rows, stores.FAST_COMPRESSORS
+                )
             writer.append(rows, f"descriptors of {dataset.paths[i]}")
         writer.close()
 
@@ -115,11 +116,10 @@ def fastest_in_order(
     After ``items[0]`` alone (first-call costs: imports, caches), ``probe`` items are
     computed on this thread, ``probe`` on the pool, ``rounds`` times in turn (or until
     one way is :data:`CLEAR_MARGIN` times faster); each way's fastest round decides.
-    A round is timed whole, drawing the items (the store
-    reads) and what the caller does with each result (the writes) included: the pool's
-    threads contend with those for the GIL, and a probe of the computing alone chose
-    the pool where it was slower. A wrong choice under a moving load costs at most the
-    difference.
+    A round is timed whole, drawing the items (the store reads) and what the caller
+    does with each result (the writes) included: the pool's threads contend with those
+    for the GIL, and a probe of the computing alone chose the pool where it was slower.
+    A wrong choice under a moving load costs at most the difference.
     """
     items = iter(items)
     for first in itertools.islice(items, 1):
