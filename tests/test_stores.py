@@ -67,8 +67,14 @@ def test_successful_block_appears_atomically_and_stale_tmp_is_removed(tmp_path):
     assert [str(s) for s in store["names"][...]] == ["a.jpg", "b.jpg"]
 
 
+@pytest.mark.parametrize("write_bytes", [stores.WRITE_BYTES, 1])  # 1: a write per chunk
 @pytest.mark.parametrize("chunk_rows", [1, 4, 7, 1000])
-def test_ragged_writer_round_trip_with_many_small_appends(tmp_path, chunk_rows):
+def test_ragged_writer_round_trip_with_many_small_appends(
+    tmp_path, monkeypatch, chunk_rows, write_bytes
+):
+    # With a write per chunk, a write's rows start and end inside appended blocks, often
+    # several blocks short of a chunk: the writer splits what it keeps there.
+    monkeypatch.setattr(stores, "WRITE_BYTES", write_bytes)
     rng = np.random.default_rng(chunk_rows)
     blocks = [
         rng.standard_normal((int(n), 3, 2)).astype(np.float32) for n in rng.integers(0, 6, 57)
@@ -91,6 +97,20 @@ def test_ragged_writer_round_trip_with_many_small_appends(tmp_path, chunk_rows):
     for i, block in enumerate(blocks):
         np.testing.assert_array_equal(_ragged_rows(store, "rows", i), block)
     np.testing.assert_array_equal(store["rows"][...], np.concatenate(blocks))
+
+
+def test_split_rows_divides_the_appended_arrays_after_count_rows():
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        parts = [
+            np.arange(n) + 10 * i for i, n in enumerate(rng.integers(0, 5, rng.integers(1, 7)))
+        ]
+        joined = np.concatenate(parts)
+        count = int(rng.integers(0, len(joined) + 1))
+        head, tail = stores._split_rows(parts, count)
+        assert sum(map(len, head)) == count and all(len(p) for p in head + tail)
+        np.testing.assert_array_equal(np.concatenate([*head, *tail, joined[:0]]), joined)
+        assert all(any(np.shares_memory(p, q) for q in parts) for p in head + tail)  # views
 
 
 def test_a_failing_stage_leaves_no_store_behind_its_background_writes(tmp_path):
@@ -209,6 +229,25 @@ def test_row_writer_stores_the_chunk_files_of_zarr_append(
     stored = zarr.open_group(str(out), mode="r")["rows"][...]
     assert stored.dtype == rows.dtype
     assert stored.tobytes() == rows.tobytes()  # bits: -0.0 stays -0.0
+
+
+def test_row_writer_records_its_length_once_where_it_writes_every_chunk_file(tmp_path, monkeypatch):
+    import zarr
+
+    resizes = []
+    resize = zarr.Array.resize
+    monkeypatch.setattr(
+        zarr.Array, "resize", lambda a, shape: resizes.append(shape) or resize(a, shape)
+    )
+    monkeypatch.setattr(stores, "WRITE_BYTES", 1)  # a write per chunk
+    rows = np.random.default_rng(4).standard_normal((30, 3)).astype(np.float32)
+    with atomic_store(tmp_path / "r.zarr") as group:
+        writer = stores.RowWriter(group, "rows", (3,), np.float32, 4)
+        for first in range(0, len(rows), 5):
+            writer.append(rows[first : first + 5])
+        writer.close()
+    assert resizes == [(30, 3)]
+    np.testing.assert_array_equal(open_store(tmp_path / "r.zarr")["rows"][...], rows)
 
 
 @pytest.mark.parametrize("codecs", CODECS)
