@@ -15,7 +15,10 @@ class DatasetError(ValueError):
     """Bad dataset input; the message names the folder, file or value at fault."""
 
 
-def short_repr(value) -> str:
-    """``repr(value)`` cut to 60 characters, for quoting a bad value in a message."""
-    text = repr(value)
-    return text if len(text) <= 60 else text[:57] + "..."
+def short_repr(value, limit: int = 60, quote: bool = True) -> str:
+    """``repr(value)`` (or the text itself with ``quote=False``) cut to about ``limit``
+    characters, saying how long it was, for quoting a bad value in a message."""
+    text = repr(value) if quote else str(value)
+    if len(text) <= limit:
+        return text
+    return f"{text[: max(limit - 30, 20)]}... ({len(text)} characters)"

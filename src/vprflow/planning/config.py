@@ -20,7 +20,7 @@ from pathlib import Path
 
 import yaml
 
-from vprflow.core.errors import ConfigError
+from vprflow.core.errors import ConfigError, short_repr
 from vprflow.core.registry import (
     AGGREGATORS,
     BACKBONES,
@@ -105,8 +105,8 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
             where = ".".join(str(p) for p in error.absolute_path) or "(top level)"
             message = error.message
             if error.validator == "pattern" and "x-error" in error.schema:  # a name's
-                message = f"{shorten(error.instance)} {error.schema['x-error']}"
-            lines.append(f"  config key '{where}': {shorten(message, quote=False)}")
+                message = f"{short_repr(error.instance, MAX_SHOWN)} {error.schema['x-error']}"
+            lines.append(f"  config key '{where}': {short_repr(message, MAX_SHOWN, quote=False)}")
         raise ConfigError("invalid configuration:\n" + "\n".join(lines))
     unread = unread_keys(config, schema)
     if unread:
@@ -128,19 +128,10 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     unknown = [name for name in config["targets"] if name not in config["datasets"]]
     if unknown:
         raise ConfigError(
-            f"config key 'targets' names datasets {shorten(unknown)} that are not "
-            f"configured; configured: {shorten(sorted(config['datasets']))}"
+            f"config key 'targets' names datasets {short_repr(unknown, MAX_SHOWN)} that are not "
+            f"configured; configured: {short_repr(sorted(config['datasets']), MAX_SHOWN)}"
         )
     return config
-
-
-def shorten(value, quote: bool = True) -> str:
-    """``value`` (its repr, or the text itself with ``quote=False``) cut to
-    :data:`MAX_SHOWN` characters, for an error message."""
-    text = repr(value) if quote else str(value)
-    return (
-        text if len(text) <= MAX_SHOWN else f"{text[: MAX_SHOWN - 30]}... ({len(text)} characters)"
-    )
 
 
 def count_values(value, limit: int) -> int:
@@ -173,9 +164,9 @@ class _UniqueKeyLoader(yaml.SafeLoader):
                 try:
                     if key in first:
                         raise ConfigError(
-                            f"config file {self.name}: key {shorten(key)} is given twice in "
-                            f"one mapping, on line {first[key]} and line {line}; YAML would "
-                            "keep only the second (merge the two into one)"
+                            f"config file {self.name}: key {short_repr(key, MAX_SHOWN)} is "
+                            f"given twice in one mapping, on line {first[key]} and line "
+                            f"{line}; YAML would keep only the second (merge the two into one)"
                         )
                     first[key] = line
                 except TypeError:  # an unhashable key: the constructor names it
