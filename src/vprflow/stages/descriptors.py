@@ -14,6 +14,7 @@ import time
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Executor, Future, ThreadPoolExecutor
+from contextlib import nullcontext
 from dataclasses import dataclass
 
 import numpy as np
@@ -68,14 +69,15 @@ def compute_descriptors(job: Job) -> None:
     with (
         stores.atomic_store(job.out, attrs) as group,
         threadpool_limits(limits=1),
-        ThreadPoolExecutor(threads) as pool,
+        # A pool of one thread would only add hand-overs.
+        ThreadPoolExecutor(threads) if threads > 1 else nullcontext() as pool,
     ):
         # Store reads stay on this thread, in image order (the readers cache blocks).
         reads = (describe.read(i) for i in images)
-        if threads > 1:
-            computed = fastest_in_order(pool, rows_of, reads, threads)
-        else:  # a pool of one thread only adds hand-overs
+        if pool is None:
             computed = map(rows_of, reads)
+        else:
+            computed = fastest_in_order(pool, rows_of, reads, threads)
         progress = tqdm(computed, total=len(images), desc=agg.name, unit="image")
         writer = None
         for i, rows in zip(images, progress, strict=True):
