@@ -942,3 +942,29 @@ def test_a_store_replaced_under_every_rename_names_concurrent_runs_and_nolock(
         _write_keyed_store(out, {"params": {"k": 2}}, 2.0)
     monkeypatch.undo()
     assert not temporary_paths(out)
+
+
+@pytest.mark.parametrize("node", ["group", "array"])
+def test_set_attrs_leaves_the_zarr_json_of_attrs_update_in_one_write(tmp_path, monkeypatch, node):
+    import zarr
+
+    def made(name: str):
+        group = zarr.open_group(str(tmp_path / name), mode="w", attributes={"stage": "x"})
+        if node == "group":
+            return group, tmp_path / name / "zarr.json"
+        array = group.create_array("a", shape=(2,), dtype=np.float32, attributes={"n": 1})
+        return array, tmp_path / name / "a" / "zarr.json"
+
+    values = {"grid": [15, 20], "stage": "y", "dim": 104}
+    reference, reference_json = made("update.zarr")
+    reference.attrs.update(values)
+    writes = []
+    update = type(reference).update_attributes
+    monkeypatch.setattr(
+        type(reference), "update_attributes", lambda n, a: writes.append(a) or update(n, a)
+    )
+    target, target_json = made("set.zarr")
+    stores.set_attrs(target, **values)
+    assert len(writes) == 1
+    assert target_json.read_text() == reference_json.read_text()
+    assert dict(target.attrs) == dict(reference.attrs)

@@ -152,9 +152,7 @@ def atomic_store(path: str | Path, attrs: dict | None = None) -> Iterator[zarr.G
     remove_abandoned_temporaries(path)
     tmp = temporary_path(path)
     tmp.parent.mkdir(parents=True, exist_ok=True)
-    group = zarr.open_group(str(tmp), mode="w")
-    if attrs:
-        group.attrs.update(attrs)
+    group = zarr.open_group(str(tmp), mode="w", attributes=attrs)
     try:
         yield group
     except BaseException:
@@ -168,6 +166,13 @@ def atomic_store(path: str | Path, attrs: dict | None = None) -> Iterator[zarr.G
         replace_store(tmp, path)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def set_attrs(node: zarr.Group | zarr.Array, **values) -> None:
+    """Add or replace attributes of ``node`` in one write of its ``zarr.json``, the
+    file zarr's ``attrs.update`` leaves: that writes it once per key, about 1 ms each
+    through zarr's event loop, several of a short job's fixed milliseconds."""
+    node.attrs.put({**node.attrs.asdict(), **values})
 
 
 def _seal(group: zarr.Group, path: Path) -> None:
@@ -746,9 +751,9 @@ def rows_per_chunk(row_bytes: int) -> int:
     return max(1, (1 << 22) // max(row_bytes, 1))
 
 
-# RowWriter stores whole chunks of about this many bytes at a time (at least one chunk),
-# so that the array's zarr.json is rewritten once per WRITE_BYTES instead of once per
-# chunk. What is stored is the same: the chunks do not change.
+# RowWriter stores whole chunks of about this many bytes at a time (at least one chunk).
+# What is stored is the same: the chunks do not change. A write per 4 MiB chunk made
+# SegVLAD's descriptors stage 8% slower (more hand-overs between the two threads).
 WRITE_BYTES = 16 << 20
 
 

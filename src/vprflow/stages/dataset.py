@@ -59,7 +59,8 @@ def build_images(job: Job) -> None:
         name, files.reference, files.query, by_path.get, "are byte-identical copies of references"
     )
     with stores.atomic_store(out, {"stage": "images", "record": record}) as group:
-        group.attrs.update(
+        stores.set_attrs(
+            group,
             name=name,
             data_root_at_build=str(Path(data_root).resolve()),
             n_reference=len(files.reference),
@@ -120,7 +121,8 @@ def build_truth(job: Job) -> None:
     truth = ground_truth(files, params["ground_truth"], dataset_folder(data_root, entry))
     counts = np.array([len(t) for t in truth], dtype=np.int64)
     with stores.atomic_store(out, {"stage": "dataset", "record": record}) as group:
-        group.attrs.update(
+        stores.set_attrs(
+            group,
             name=name,
             data_root_at_build=str(Path(data_root).resolve()),
             n_reference=n_reference,

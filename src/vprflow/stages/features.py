@@ -41,8 +41,8 @@ def compute_features(job: Job) -> None:
                     dtype=store_dtype,
                     compressors=stores.CHECKSUM_ONLY,
                 )
-                group.attrs.update(
-                    grid=[h, w], dim=dim, patch_size=patch_size, image_size=[height, width]
+                stores.set_attrs(
+                    group, grid=[h, w], dim=dim, patch_size=patch_size, image_size=[height, width]
                 )
             elif grids.shape[1:] != array.shape[1:]:
                 raise ValueError(

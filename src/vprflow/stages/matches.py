@@ -106,7 +106,8 @@ def compute_matches(job: Job) -> None:
         offsets = np.concatenate([[0], np.cumsum(counts.ravel())]).astype(np.int64)
         stores.write_array(group, "offsets", offsets)
         stores.write_array(group, "retrieval_ranking", retrieved.astype(np.int64))
-        group.attrs.update(
+        stores.set_attrs(
+            group,
             grid=grid,
             patch_size=patch,
             top_k=int(top_k),

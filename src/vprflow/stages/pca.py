@@ -47,8 +47,12 @@ def fit_pca_stage(job: Job) -> None:
     )
     with stores.atomic_store(job.out, {"stage": "pca", "record": record}) as group:
         # `dim` is the effective dimension: capped at the sample's numerical rank.
-        group.attrs.update(
-            whiten=fitted.whiten, n_samples=len(chosen), dim=fitted.dim, requested_dim=params["dim"]
+        stores.set_attrs(
+            group,
+            whiten=fitted.whiten,
+            n_samples=len(chosen),
+            dim=fitted.dim,
+            requested_dim=params["dim"],
         )
         stores.write_array(group, "mean", fitted.mean)
         stores.write_array(group, "components", fitted.components)

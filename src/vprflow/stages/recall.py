@@ -188,7 +188,8 @@ def evaluate(job: Job) -> None:
     descriptors = stores.open_store(descriptors_path)
     bytes_per_image = descriptor_bytes_per_image(descriptors["descriptors"], n_ref + n_query)
     with stores.atomic_store(job.out, {"stage": "recall", "record": record}) as result:
-        result.attrs.update(
+        stores.set_attrs(
+            result,
             recall={str(n): v for n, v in recalls.items()},
             map={str(n): v for n, v in maps.items()},
             precision_recall=precision,

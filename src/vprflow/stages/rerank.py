@@ -72,7 +72,8 @@ def rerank_stage(job: Job) -> None:
     ms = 1000 * (time.perf_counter() - started) / max(n_query, 1)
     attrs = matches.group.attrs
     with stores.atomic_store(job.out, {"stage": "rerank", "record": job.record}) as group:
-        group.attrs.update(
+        stores.set_attrs(
+            group,
             score=entry.score,
             # What the re-ranked row costs beyond its retrieval: matching and scoring.
             ms_per_query=attrs["ms_per_query"] + ms,

@@ -32,7 +32,7 @@ def compute_segments(job: Job) -> None:
         for i, masks in _segmented(segment, images, job.batch_size):
             if shape is None:
                 shape = masks.shape[1:]
-                group.attrs.update(mask_height=shape[0], mask_width=shape[1])
+                stores.set_attrs(group, mask_height=shape[0], mask_width=shape[1])
                 writer = stores.RaggedWriter(
                     group, "masks", ((shape[0] * shape[1] + 7) // 8,), np.uint8, chunk_rows=256
                 )
