@@ -519,6 +519,29 @@ def test_a_deleted_chunk_file_is_an_error_counting_the_chunks(tmp_path):
     assert "array 'descriptors' has 3 chunk files, 4 were written" in str(raised.value)
 
 
+def test_a_store_with_every_chunk_written_opens_without_listing_its_directories(
+    tmp_path, monkeypatch
+):
+    out = tmp_path / "d.zarr"
+    rows = _sample_store(out)
+    monkeypatch.setattr(stores, "count_chunk_files", lambda path: pytest.fail(f"listed {path}"))
+    np.testing.assert_array_equal(open_store(out)["descriptors"][...], rows)
+
+
+def test_a_deleted_chunk_file_beside_skipped_empty_chunks_is_an_error(tmp_path):
+    out = tmp_path / "z.zarr"
+    rows = np.ones((12, 3), np.float32)
+    rows[4:8] = 0  # chunk 1 equals the fill value: zarr stores no file for it
+    with atomic_store(out) as group:
+        writer = stores.RowWriter(group, "rows", (3,), np.float32, chunk_rows=4)
+        writer.append(rows)
+        writer.close()
+    np.testing.assert_array_equal(open_store(out)["rows"][...], rows)
+    (out / "rows" / "c" / "2" / "0").unlink()
+    with pytest.raises(StoreCorruptError, match="has 1 chunk files, 2 were written"):
+        open_store(out)
+
+
 def test_a_store_without_checksums_is_refused_as_older_than_checksums(tmp_path):
     import zarr
 
