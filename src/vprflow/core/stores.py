@@ -214,13 +214,13 @@ def _every_chunk_file_present(array: zarr.Array, directory: Path, written: int) 
     chunk files, and only overlooks files that are no chunk of the array, which no
     read opens. Where zarr skipped chunks equal to the fill value, or a file is
     missing, the caller counts the files."""
-    grid = [range(-(-size // step)) for size, step in zip(array.shape, array.chunks, strict=True)]
-    if written != int(np.prod([len(axis) for axis in grid])):
+    if written != array.nchunks:
         return False
     encode = array.metadata.encode_chunk_key
     root = os.fspath(directory)
     return all(
-        os.path.isfile(os.path.join(root, encode(coords))) for coords in itertools.product(*grid)
+        os.path.isfile(os.path.join(root, encode(coords)))
+        for coords in itertools.product(*map(range, array.cdata_shape))
     )
 
 
