@@ -3,6 +3,7 @@ import sys
 from functools import cache
 from pathlib import Path
 
+from vprflow.planning.checkpoints import fetching_checkpoints
 from vprflow.planning.config import validate_config
 from vprflow.core.errors import PlanError
 from vprflow.data.datasets import list_dataset
@@ -71,7 +72,13 @@ try:
             Path(workflow.current_basedir).parent,
             PREFIX,
         )
-    PLAN = build_plan(CONFIG, _memo)
+    # Missing checkpoints are one error naming them all, unless this run fetches them.
+    PLAN = build_plan(
+        CONFIG,
+        _memo,
+        allow_missing_checkpoints=fetching_checkpoints(sys.argv),
+        configfiles=workflow.configfiles,
+    )
 except Exception as _error:
     # `onerror` does not run for a failure here: withdraw the tables now, since none
     # of them describes a config that cannot be planned (a sample dataset that could not
@@ -85,7 +92,7 @@ if len(_memo) != _memo_size:
 # A map of every store to its dataset and methods, and log links by method. Written
 # here, not in `onstart` (which a host workflow's module import never runs); not by
 # cluster job steps, which parse this file again.
-if workflow.is_main_process:
+if workflow.is_main_process and not PLAN.checkpoint_error:
     write_index(PLAN, PREFIX)
 # The stages vprflow.planning.plan.STAGES runs in shards: the `gather` rule combines them.
 SHARDED_STAGES = "|".join(SHARDED)

@@ -13,6 +13,14 @@ from vprflow.aggregation.vocabularies import (
     vocabulary_url,
 )
 from vprflow.data.download import download_entry, manifest_inputs
+from vprflow.planning.checkpoints import (
+    ABSOLUTE_OUTPUT,
+    by_hand,
+    checkpoint_url,
+    fetchable_paths,
+    fetching_checkpoints,
+    output_pattern,
+)
 
 # Shipped manifests are named relative to workflow/ (found while this file is parsed).
 WORKFLOW_DIR = Path(workflow.current_basedir).parent
@@ -22,6 +30,8 @@ WORKFLOW_DIR = Path(workflow.current_basedir).parent
 localrules:
     download,
     published_vocabulary,
+    trained_checkpoint,
+    trained_checkpoint_absolute,
 
 
 rule download:
@@ -60,3 +70,50 @@ rule published_vocabulary:
         sha256=lambda wildcards: PUBLISHED_VOCABULARIES[wildcards.name].sha256,
     script:
         "../scripts/published_vocabulary.py"
+
+
+# Every trained model's checkpoint the plan reads that can be downloaded
+# (vprflow.planning.checkpoints): `snakemake trained_checkpoints` fetches the missing ones.
+rule trained_checkpoints:
+    input:
+        fetchable_paths(PLAN.checkpoints),
+
+
+if workflow.is_main_process and fetching_checkpoints(sys.argv):
+    for _line in by_hand(PLAN.checkpoints):
+        print(f"vprflow: {_line}", file=sys.stderr)
+
+
+# One published checkpoint, at the path its backbone entry names; kept only when its SHA-256
+# is the published one (where there is one), so an interrupted or wrong download leaves none.
+rule trained_checkpoint:
+    output:
+        "{checkpoint}",
+    log:
+        "logs/trained_checkpoint/{checkpoint}.log",
+    wildcard_constraints:
+        checkpoint=output_pattern(fetchable_paths(PLAN.checkpoints, absolute=False)),
+    conda:
+        "../envs/vprflow.yaml"
+    params:
+        # They take `output`, so no rerun trigger: the plan hashes the file itself.
+        url=lambda wildcards, output: checkpoint_url(
+            PLAN.checkpoints[output[0]].published
+        ),
+        sha256=lambda wildcards, output: PLAN.checkpoints[output[0]].published.sha256,
+    message:
+        "vprflow: fetching {output} from {params.url} (log: {log})"
+    script:
+        "../scripts/trained_checkpoint.py"
+
+
+# A checkpoint at an absolute path: its log under logs/trained_checkpoint/absolute/.
+use rule trained_checkpoint as trained_checkpoint_absolute with:
+    output:
+        ABSOLUTE_OUTPUT,
+    log:
+        "logs/trained_checkpoint/absolute/{checkpoint}.log",
+    wildcard_constraints:
+        checkpoint=output_pattern(
+            [p[1:] for p in fetchable_paths(PLAN.checkpoints, absolute=True)]
+        ),

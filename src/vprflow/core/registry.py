@@ -95,12 +95,21 @@ class SamKind:
 class TrainedVariant:
     """One published checkpoint of a trained model: its file name, where to get it, the
     repository that publishes it, and the keyword arguments its ``load_<model>`` takes
-    for it (NetVLAD: ``variant``)."""
+    for it (NetVLAD: ``variant``).
+
+    ``direct``: ``url`` serves the file itself, so the ``trained_checkpoint`` rule fetches
+    it; False for a page a person downloads from (Google Drive). ``sha256``: the SHA-256
+    the publisher states, or the first hex digits of it where that is all it states (a
+    torchvision file name); None where vprflow has none on record, and then the fetched
+    file's hash is logged, not checked.
+    """
 
     file: str
     url: str
     repository: str
     loader_options: dict = field(default_factory=dict)
+    direct: bool = True
+    sha256: str | None = None
 
 
 @dataclass(frozen=True)
@@ -216,6 +225,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
                         "https://drive.google.com/open?id=17luTjZFCX639guSVy00OUtzfTQo4AMF2",
                         "Nanne/pytorch-NetVlad",
                         {"variant": "nanne-pitts30k"},
+                        direct=False,
                     ),
                 ),
             ]
@@ -281,6 +291,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
                 "resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt",
                 "https://drive.google.com/file/d/1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L/view",
                 "amaralibey/MixVPR",
+                direct=False,
             )
         },
         (320, 320),
@@ -298,6 +309,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
                 "https://drive.google.com/drive/folders/1VYPw9uGD11NgiGFgfWueLt3noJYOIuhL",
                 "amaralibey/gsv-cities",
                 {"dim": 4096},
+                direct=False,
             )
         },
         (320, 320),
@@ -357,6 +369,8 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
                 "https://download.pytorch.org/models/resnet50-0676ba61.pth",
                 "pytorch/vision",
                 {"depth": 50},
+                # torchvision names its files after their SHA-256's first 8 hex digits.
+                sha256="0676ba61",
             )
         },
         None,

@@ -18,6 +18,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
@@ -27,6 +28,7 @@ from vprflow.core.errors import PlanError
 from vprflow.core.paths import PUBLISHED_VOCABULARY, store_path
 from vprflow.data.datasets import listing_truth
 from vprflow.data.images import ImageReadError, dataset_orientation, image_size
+from vprflow.planning.checkpoints import PlannedCheckpoint, missing_message
 from vprflow.planning.config import METHOD_DEFAULT_SECTIONS
 from vprflow.planning.fingerprints import (
     dataset_contents,
@@ -138,6 +140,11 @@ class Plan:
     # The image lists the dataset keys were made from (absent: not listable), so the
     # workflow does not list 10^5 files a second time for shard ranges.
     dataset_files: dict[str, DatasetFiles] = field(default_factory=dict)
+    # Every trained model's checkpoint file the plan reads, by path.
+    checkpoints: dict[str, PlannedCheckpoint] = field(default_factory=dict)
+    # Set when checkpoints are missing and the plan was built all the same (to fetch
+    # them): the stages that read one have no key of their contents, so none is built.
+    checkpoint_error: str | None = None
 
     def add(
         self,
@@ -165,6 +172,8 @@ class Plan:
         return key
 
     def get(self, stage: str, key: str) -> Stage:
+        if self.checkpoint_error:
+            raise PlanError(self.checkpoint_error)
         try:
             return self.stages[stage][key]
         except KeyError:
@@ -218,12 +227,20 @@ def deep_merge(base: dict, override: dict) -> dict:
     return merged
 
 
-def build_plan(config: dict, memo: dict | None = None) -> Plan:
+def build_plan(
+    config: dict,
+    memo: dict | None = None,
+    allow_missing_checkpoints: bool = False,
+    configfiles=(),
+) -> Plan:
     """Every stage of every (dataset, method) pair in ``config``; shared stages dedupe.
 
     ``memo`` caches content hashes of local model weights and imported files across
     runs (see :func:`vprflow.planning.fingerprints.source_fingerprint`); pass a dict loaded from
-    disk to reuse it.
+    disk to reuse it. Trained models' checkpoint files that do not exist are one
+    PlanError naming them all (:mod:`vprflow.planning.checkpoints`; ``configfiles`` go
+    into the fetch command it gives); with ``allow_missing_checkpoints`` the plan is
+    built to fetch them, and any stage asked of it raises that error.
     """
     memo = {} if memo is None else memo
     plan = Plan()
@@ -250,6 +267,11 @@ def build_plan(config: dict, memo: dict | None = None) -> Plan:
                 f"datasets.{dataset_name}.rerank names {unknown}, which are not defined "
                 f"under methods: {sorted(config['methods'])}"
             )
+    missing = [c for c in plan.checkpoints.values() if not os.path.exists(c.path)]
+    if missing:
+        plan.checkpoint_error = missing_message(missing, configfiles)
+        if not allow_missing_checkpoints:
+            raise PlanError(plan.checkpoint_error)
     return plan
 
 
@@ -519,6 +541,12 @@ def _trained_weights(m: _Method, name: str, backbone: dict, spec: TrainedModel) 
     path = backbone["checkpoint"]
     if path is None:
         raise PlanError(f"config key {where}.checkpoint is not set: {hint}")
+    m.plan.checkpoints.setdefault(
+        path,
+        PlannedCheckpoint(path, f"{where}.checkpoint", backbone["backbone"], variant, published),
+    )
+    if not os.path.exists(path):  # named with every other missing one, after planning
+        return {"checkpoint_sha256": None}
     try:
         return {"checkpoint_sha256": memoised(path, m.memo, file_digest, f"{where}.checkpoint")}
     except PlanError as error:
