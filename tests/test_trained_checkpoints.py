@@ -72,7 +72,7 @@ def test_every_missing_checkpoint_of_the_example_config_is_named_in_one_error(
     assert "SHA-256 begins 0676ba61" in message  # torchvision's, from its file name
     assert message.count("by hand, from the page https://drive.google.com/") == 2
     assert (
-        f"snakemake {FETCH_TARGET} --cores 1 --configfile config/config.yaml "
+        f"snakemake --cores 2 {FETCH_TARGET} --configfile config/config.yaml "
         "config/trained.yaml" in message
     )
 
@@ -90,7 +90,7 @@ def test_the_fetch_command_names_each_config_file_once_relative_to_here(tmp_path
     monkeypatch.chdir(tmp_path)
     files = [tmp_path / "config" / "a.yaml", "config/b.yaml", tmp_path / "config" / "a.yaml"]
     assert fetch_command(files) == (
-        f"snakemake {FETCH_TARGET} --cores 1 --configfile config/a.yaml config/b.yaml"
+        f"snakemake --cores 2 {FETCH_TARGET} --configfile config/a.yaml config/b.yaml"
     )
     assert fetching_checkpoints(["snakemake", FETCH_TARGET, "--cores", "1"])
     assert not fetching_checkpoints(["snakemake", "--cores", "1", "results/recall_x.csv"])
@@ -147,7 +147,7 @@ def test_the_fetch_target_fetches_every_missing_checkpoint_and_refuses_a_wrong_o
     assert planned.returncode != 0
     said = planned.stdout + planned.stderr
     assert "2 trained-model checkpoint file(s)" in said, said[-3000:]
-    assert f"snakemake {FETCH_TARGET} --cores 1 --configfile" in said
+    assert f"snakemake --cores 2 {FETCH_TARGET} --configfile" in said
 
     dry = snakemake(tmp_path, path, FETCH_TARGET, "-n")
     assert dry.stdout.count("vprflow: fetching") == 2

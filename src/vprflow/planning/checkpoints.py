@@ -75,7 +75,7 @@ def fetch_command(configfiles=()) -> str:
         if name not in names:  # Snakemake lists the default config file again
             names.append(name)
     files = f" --configfile {' '.join(names)}" if names else ""
-    return f"snakemake {FETCH_TARGET} --cores 1{files}"
+    return f"snakemake --cores 2 {FETCH_TARGET}{files}"
 
 
 def _sha256_text(published: TrainedVariant) -> str:
