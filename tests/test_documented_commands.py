@@ -9,13 +9,15 @@ without touching this file. Each one is
   but Snakemake then trips over: a target after `--configfile` (or `--config`,
   `--set-resources`, ...) is read as one more value of that option; every config file
   must exist, every target must be a results path or a rule name;
-* dry-run (`-n`) against the shipped data (corridor, roadscene from $VPRFLOW_DATA) and a
-  miniature of every dataset preset, in a scratch copy of the repository laid out as the
-  documents assume (`data/`, `../shared/data`, `models/`), unless PARSE_ONLY says why not.
+* dry-run (`-n` in front) against the shipped data (corridor, roadscene from
+  $VPRFLOW_DATA) and a miniature of each preset a command names, in a scratch copy of
+  the repository laid out as the documents assume (`data/`, `../shared/data`, a stand-in
+  for each checkpoint under `models/`), unless PARSE_ONLY says why not.
 
 Placeholders (`<preset>`) take the values in PLACEHOLDERS; an optional `[...]` part of a
-synopsis is left out. The dry runs share one Python process (a few seconds each rather
-than ten to start Snakemake and import the package anew).
+synopsis is left out, and so are `NAME=value` settings before the command. The dry runs
+share one Python process: a fresh Snakemake that imports the package for each would take
+several times as long.
 """
 
 from __future__ import annotations
@@ -116,8 +118,12 @@ def _without_optional_parts(tokens: list[str]) -> list[str]:
     return kept
 
 
-# `snakemake` where a shell line starts a command: at its start or after `&&`, `;`, `|`.
-COMMAND_WORD = re.compile(r"(?:^|[;&|])\s*(?:python -m )?snakemake(?:\s|$)")
+# `snakemake` where a shell line starts a command: at its start or after `&&`, `;`, `|`,
+# past a `$ ` prompt and `NAME=value` environment settings.
+COMMAND_WORD = re.compile(
+    r"(?:^|[;&|])\s*(?:\$\s+)?(?:[A-Za-z_]\w*=\S*\s+)*(?:python -m )?snakemake(?:\s|$)"
+)
+ENVIRONMENT = re.compile(r"[A-Za-z_]\w*=.*")
 
 
 def commands_in(text: str, where: str) -> list[tuple[str, list[str]]]:
@@ -139,7 +145,7 @@ def commands_in(text: str, where: str) -> list[tuple[str, list[str]]]:
                 argv = _without_optional_parts(segment[start:])
                 found.append((" ".join(segment), argv))
             segment = []
-        else:
+        elif segment or not (token == "$" or ENVIRONMENT.fullmatch(token)):
             segment.append(token)
     return found
 
@@ -232,11 +238,13 @@ def test_the_commands_are_found_in_every_kind_of_place():
 def test_a_command_line_is_split_at_chains_comments_and_optional_parts():
     line = 'pip install -e ".[dev]" && snakemake --cores 2 [--config data_root=...] [targets]  # x'
     assert [argv for _, argv in commands_in(line, "here")] == [["--cores", "2"]]
-    line = "snakemake --config 'targets=[roadscene]' results/recall_<name>.csv; snakemake -n"
+    line = "snakemake --config 'targets=[roadscene]' results/recall_<name>.csv; X=1 snakemake -n"
     assert [argv for _, argv in commands_in(line, "here")] == [
         ["--config", "targets=[roadscene]", "results/recall_roadscene.csv"],
         ["-n"],
     ]
+    assert [argv for _, argv in commands_in("$ snakemake --unlock", "here")] == [["--unlock"]]
+    assert commands_in("workflow/scripts/*.py  read snakemake.input, call it's", "here") == []
 
 
 # ---------------------------------------------------------------------------- parsing
