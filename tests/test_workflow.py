@@ -357,6 +357,29 @@ def test_export_writes_a_methods_descriptors_to_one_npz(toy_run):
     assert result.returncode != 0 and "no method 'nosuch' on dataset 'toy'" in result.stderr
 
 
+def test_pairs_files_are_pairs_depth_deep_and_a_new_depth_rewrites_only_them(toy_run):
+    workdir, config = toy_run
+    shallow = copy.deepcopy(config)
+    shallow["pairs_depth"] = 2
+    rows = ("anyloc_vlad", "anyloc_vlad+mnn", "segvlad")
+    targets = [f"results/pairs/toy/{row}/pairs.txt" for row in rows]
+    snakemake(workdir, write_config(workdir, shallow, "pairs2.yaml"), *targets)
+    for row, target in zip(rows, targets, strict=True):
+        queries = [line.split(" ")[0] for line in (workdir / target).read_text().splitlines()]
+        per_query = {q: queries.count(q) for q in queries}
+        # SegVLAD ranks only images that got a vote: a query may have fewer.
+        assert len(per_query) == 10 and max(per_query.values()) == 2, row
+        if row != "segvlad":
+            assert set(per_query.values()) == {2}, row
+    deeper = copy.deepcopy(config)
+    deeper["pairs_depth"] = 3
+    outputs = scheduled_outputs(workdir, write_config(workdir, deeper, "pairs3.yaml"), targets[1])
+    assert outputs == [
+        "results/pairs/toy/anyloc_vlad+mnn/pairs.txt, "
+        "results/pairs/toy/anyloc_vlad+mnn/predictions.txt"
+    ]
+
+
 def read_rows_tsv(path: Path) -> list[dict]:
     with open(path) as f:
         return list(csv.DictReader(f, delimiter="\t"))

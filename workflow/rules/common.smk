@@ -259,9 +259,11 @@ def figure_stores(figure):
 
 def pairs_stores(wildcards):
     """Input function: the dataset and recall stores of a method's (or re-ranked row's)
-    pairs files."""
+    pairs files, and the descriptors (and segment search) that rank past the recall's
+    depth."""
     stores = method_stores(PLAN, wildcards.dataset, wildcards.method)
-    return {name: stores[name] for name in ("dataset", "recall")}
+    names = ("dataset", "recall", "descriptors", "search")
+    return {name: stores[name] for name in names if name in stores}
 
 
 def export_stores(wildcards):

@@ -1,5 +1,6 @@
 # A method's descriptors of a dataset as one .npz file, and a method's (or re-ranked
-# row's) retrievals as hloc's and kapture's pairs files, on request:
+# row's) retrievals as hloc's and kapture's pairs files, `pairs_depth` references a
+# query, on request:
 #   snakemake --cores 1 results/export/<dataset>/<method>.npz
 #   snakemake --cores 1 results/pairs/<dataset>/<method>/pairs.txt
 
@@ -27,6 +28,9 @@ rule pairs:
         "logs/pairs/{dataset}/{method}.log",
     conda:
         "../envs/vprflow.yaml"
+    # Not in any store's key: a new depth rewrites these files alone.
+    params:
+        depth=CONFIG["pairs_depth"],
     script:
         "../scripts/pairs.py"
 

@@ -198,6 +198,13 @@ CHANGES: tuple[Change, ...] = (
         _set("rerank", "segvlad", value=["mnn", "ransac", "mnn_dinov2"]),
     ),
     Change(
+        "pairs_depth",
+        "20 -> 50",
+        _set("pairs_depth", value=50),
+        top=True,
+        note="no key; only the pairs files, which take it, are rewritten",
+    ),
+    Change(
         "device",
         "auto -> cpu",
         _set("device", value="cpu"),

@@ -53,9 +53,64 @@ SCORE_MEANING = {
 }
 
 
-def write_pairs(dataset_path: str, recall_path: str, pairs_out: str, kapture_out: str) -> None:
-    """Each query's ranked references, in the order the recall stage scored them (its
-    ``ranking [Nq, K]``, K the deepest Recall@N; a short ranking ends early), as:
+def ranking_at_depth(
+    dataset: Dataset,
+    recall_path: str,
+    depth: int,
+    descriptors_path: str,
+    search_path: str | None = None,
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """Each query's first ``depth`` references (at most every reference), ``(ranking
+    [Nq, depth'] int64, scores, score kind)``, ``-1`` where a ranking ends early.
+
+    The recall store's ranking (what its table scored: ``top_k`` deep, at least the
+    deepest Recall@N, and a re-ranked row's as deep as its re-ranker's top K) is cut to
+    ``depth``; a deeper ``depth`` continues it with the method's own retrieval
+    (:func:`vprflow.stages.recall.retrieve` over the descriptors and search stores),
+    skipping references already ranked, so no stage reruns for it. Continued entries of a
+    re-ranked row score as its lowest score (0 when none), as the re-ranking scores the
+    retrieval's entries past its top K. A per-segment method ranks only images that got a
+    vote (``vote_ranking: published``): its rows may end before ``depth``."""
+    from vprflow.stages.recall import retrieve
+
+    result = stores.open_store(recall_path)
+    ranking = np.asarray(result["ranking"][...])
+    scores = np.asarray(result["scores"][...], dtype=np.float64)
+    kind = result.attrs["score"]
+    depth = min(depth, dataset.n_reference)
+    if depth <= ranking.shape[1]:
+        return ranking[:, :depth], scores[:, :depth], kind
+    params = result.attrs["record"]["params"]
+    more, more_scores, more_kind = retrieve(
+        dataset, descriptors_path, depth, search_path, params.get("vote_ranking")
+    )
+    deep = np.full((len(ranking), depth), -1, dtype=np.int64)
+    deep_scores = np.zeros(deep.shape)
+    for q, (row, row_scores) in enumerate(zip(ranking, scores, strict=True)):
+        kept = row >= 0
+        row, row_scores = row[kept], row_scores[kept]
+        new = (more[q] >= 0) & ~np.isin(more[q], row)
+        if more_kind == kind:
+            extra_scores = np.asarray(more_scores[q], dtype=np.float64)[new]
+        else:
+            extra_scores = np.full(int(new.sum()), row_scores.min() if len(row_scores) else 0.0)
+        joined = np.concatenate([row, more[q][new]])[:depth]
+        deep[q, : len(joined)] = joined
+        deep_scores[q, : len(joined)] = np.concatenate([row_scores, extra_scores])[: len(joined)]
+    return deep, deep_scores, kind
+
+
+def write_pairs(
+    dataset_path: str,
+    recall_path: str,
+    pairs_out: str,
+    kapture_out: str,
+    depth: int,
+    descriptors_path: str,
+    search_path: str | None = None,
+) -> None:
+    """Each query's first ``depth`` ranked references (:func:`ranking_at_depth`; a short
+    ranking ends early), in the order the recall stage scored them, as:
 
     - ``pairs_out``: ``query reference`` per line (hloc's retrieval pairs,
       ``pairs_from_retrieval``), best first;
@@ -65,10 +120,9 @@ def write_pairs(dataset_path: str, recall_path: str, pairs_out: str, kapture_out
     Names are image paths relative to the dataset folder (hloc's and kapture's image
     names when their image root is that folder)."""
     dataset = Dataset(dataset_path)
-    result = stores.open_store(recall_path)
-    ranking = np.asarray(result["ranking"][...])
-    scores = np.asarray(result["scores"][...])
-    kind = result.attrs["score"]
+    ranking, scores, kind = ranking_at_depth(
+        dataset, recall_path, depth, descriptors_path, search_path
+    )
     names = dataset.names
     # Both formats split lines on their separators: a name holding one cannot be written.
     for name in names:
