@@ -22,7 +22,14 @@ from vprflow.stages.descriptors import compute_descriptors
 from vprflow.stages.export import ranking_at_depth, write_pairs
 from vprflow.stages.features import compute_features, read_features
 from vprflow.stages.gather import gather
-from vprflow.stages.jobs import SHARDED, Job, combine_shards, run_job, shard_ranges
+from vprflow.stages.jobs import (
+    SHARDED,
+    Job,
+    built_shard_ranges,
+    combine_shards,
+    run_job,
+    shard_ranges,
+)
 from vprflow.stages.pca import read_pca
 from vprflow.stages.recall import evaluate, retrieve
 from vprflow.stages.report import write_predictions, write_report
@@ -133,7 +140,12 @@ def test_sharded_daisy_features_equal_the_backbone_on_each_image(pipeline):
     _, _, _, root = pipeline
     group = stores.open_store(stage_path(pipeline, "features"))
     assert group["features"].shape == (2 * N_PLACES, 6, 8, 104)
-    assert group.attrs["shards"] == 2
+    # The image ranges it was gathered from, which the workflow asks for again.
+    assert group.attrs["shards"] == [[0, N_PLACES], [N_PLACES, 2 * N_PLACES]]
+    assert built_shard_ranges(stage_path(pipeline, "features")) == [
+        (0, N_PLACES),
+        (N_PLACES, 2 * N_PLACES),
+    ]
     # Gathered with the shards' codecs: float features are stored with the checksum alone.
     assert group["features"].raw.compressors == stores.CHECKSUM_ONLY
     backbone = DaisyBackbone(patch_size=8, radius=12)
@@ -513,7 +525,7 @@ def test_gather_of_one_shard_renames_it_with_the_gathered_attributes(tmp_path):
     assert dict(group.attrs) == {
         "stage": "descriptors",
         "record": {"stage": "descriptors", "key": "x"},
-        "shards": 1,
+        "shards": [[0, 3]],
     }
     np.testing.assert_array_equal(group["descriptors"][...], rows)
     np.testing.assert_array_equal(group["descriptors_offsets"][...], [0, 1, 1, 6])

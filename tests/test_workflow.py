@@ -30,6 +30,7 @@ from workflow_helpers import (
 
 from vprflow.core.paths import PREDICTIONS_CSV, RECALL_CSV, RECALL_PLOT, RECALL_TABLE
 from vprflow.core.stores import array_items
+from vprflow.planning.plan import EXECUTION_ONLY
 
 pytestmark = pytest.mark.workflow
 TARGET = "results/recall_toy.csv"
@@ -268,6 +269,33 @@ def test_a_fresh_checkout_of_the_workflow_reruns_nothing(toy_run, tmp_path):
         assert expected in result.stdout + result.stderr, triggers
 
 
+def with_execution_settings_flipped(config: dict, device: str) -> dict:
+    """``config`` with every setting that shapes no result changed: the device, the shard
+    sizes and each model entry's execution-only keys (:data:`EXECUTION_ONLY`)."""
+    changed = copy.deepcopy(config)
+    changed.update(device=device, shard_size=3, search_shard_size=4)
+    for section in ("backbones", "segmenters"):
+        for entry in changed[section].values():
+            entry["batch_size"] = entry.get("batch_size", 1) + 2
+            if "model" in entry:  # the entries that load weights read a cache
+                entry["cache_dir"] = "/elsewhere/models"
+    assert {"batch_size", "cache_dir"} == set(EXECUTION_ONLY)
+    return changed
+
+
+@pytest.mark.parametrize("device", ["cpu", "cuda"])
+def test_changing_any_execution_setting_after_a_finished_run_plans_nothing(toy_run, device):
+    """Device, batch sizes, shard sizes, model cache and cores are in no key, and must
+    not reach Snakemake's params or input triggers either: switching between a local
+    `device: auto` run and a CPU cluster run (`device=cpu`) once reran 58 of 60 jobs."""
+    workdir, config = toy_run
+    path = write_config(workdir, with_execution_settings_flipped(config, device), "run.yaml")
+    command = snakemake_command(workdir, path, "-n", TARGET, cores=1)
+    result = subprocess.run(command, capture_output=True, text=True, cwd=workdir)
+    assert result.returncode == 0, result.stderr[-3000:]
+    assert "Nothing to be done" in result.stdout + result.stderr, result.stdout[-3000:]
+
+
 def test_changing_a_reranker_reruns_only_its_reranks_and_their_recall(toy_run):
     workdir, config = toy_run
     changed = copy.deepcopy(config)
@@ -458,7 +486,7 @@ def test_same_inputs_give_a_byte_identical_csv_and_sharding_changes_nothing(toy_
         for twin in twins:
             store = workdir / "results" / "cache" / stage / twin.name
             a, b = zarr.open_group(str(store), mode="r"), zarr.open_group(str(twin), mode="r")
-            assert b.attrs["shards"] == shards and a.attrs["shards"] == 1
+            assert len(b.attrs["shards"]) == shards and len(a.attrs["shards"]) == 1
             for name, array in array_items(a):
                 np.testing.assert_array_equal(np.asarray(array[...]), np.asarray(b[name][...]))
 

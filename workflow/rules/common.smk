@@ -40,7 +40,7 @@ from vprflow.planning.reports import (
     withdraw_reports,
     withdraw_stale_reports,
 )
-from vprflow.stages.jobs import SHARDED, shard_ranges
+from vprflow.stages.jobs import SHARDED, built_shard_ranges, shard_ranges
 from vprflow.planning.store_index import write_index
 
 
@@ -121,8 +121,11 @@ def stage_record(stage):
 
 
 def stage_run_params(stage):
-    """Execution settings that do not shape the output (device, batch size)."""
-    return lambda wildcards: planned(stage, wildcards).run_params
+    """Params function: how a stage instance runs (device, batch size), which shapes none
+    of its output. It takes `output` so that Snakemake's params trigger leaves it out:
+    the store's key already holds every setting that shapes the result, and a device or
+    batch-size change must rerun nothing."""
+    return lambda wildcards, output: planned(stage, wildcards).run_params
 
 
 def gpu_request(stage):
@@ -182,9 +185,13 @@ def shard_inputs(wildcards):
     """The shards a per-image stage is gathered from, in image order."""
     stage = planned(wildcards.stage, wildcards)
     pattern = shard_pattern(wildcards.stage)
+    # A finished store's own shards: a new shard size shapes no result.
+    ranges = built_shard_ranges(
+        PREFIX + store_path(wildcards.stage, wildcards.key)
+    ) or dataset_shard_ranges(stage.dataset, wildcards.stage)
     return [
         pattern.format(key=wildcards.key, start=start, stop=stop)
-        for start, stop in dataset_shard_ranges(stage.dataset, wildcards.stage)
+        for start, stop in ranges
     ]
 
 

@@ -8,6 +8,7 @@ module ``prefix`` goes in front).
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 CACHE = "results/cache"
@@ -85,6 +86,22 @@ def store_path(stage: str, key: str) -> str:
 def shard_pattern(stage: str) -> str:
     """One shard of a per-image stage, wildcards ``{key}``, ``{start}``, ``{stop}``."""
     return f"{CACHE}/{stage}/{{key}}.shards/{{start}}-{{stop}}.zarr"
+
+
+def shard_range(path: str | Path) -> tuple[int, int]:
+    """The ``(start, stop)`` image range of a shard at ``path`` (:func:`shard_pattern`)."""
+    match = re.fullmatch(r"(\d+)-(\d+)\.zarr", Path(path).name)
+    if match is None:
+        raise ValueError(f"{path}: not a shard (<start>-<stop>.zarr)")
+    return int(match[1]), int(match[2])
+
+
+def shard_layout(shard_paths: list[str]) -> list[list[int]]:
+    """The ``[start, stop]`` image ranges of the shards a store is gathered from, in
+    order: the store keeps them (its ``shards`` attribute), so that while it exists the
+    workflow asks for the same shards (:func:`vprflow.stages.jobs.built_shard_ranges`)
+    and a change of the shard size, which shapes no result, reruns nothing."""
+    return [list(shard_range(path)) for path in shard_paths]
 
 
 def log_pattern(stage: str, part: str = "{stage}") -> str:

@@ -7,6 +7,7 @@ import zarr
 from tqdm import tqdm
 
 from vprflow.core import stores
+from vprflow.core.paths import shard_layout
 
 
 def gather(shard_paths: list[str], record: dict, out: str) -> None:
@@ -21,7 +22,7 @@ def gather(shard_paths: list[str], record: dict, out: str) -> None:
     names = [name for name, _ in stores.array_items(first)]
     attrs = {k: v for k, v in first.attrs.items() if k not in ("start", "stop")}
     attrs["record"] = record
-    attrs["shards"] = len(shards)
+    attrs["shards"] = shard_layout(shard_paths)
     if len(shards) == 1:
         # One shard is the whole store: rename it instead of copying every array. Its
         # attributes are rewritten first, so `out` appears complete or not at all. Only the

@@ -10,11 +10,22 @@ image ranges (:func:`shard_ranges`), and how shards become one store
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 from vprflow.core.registry import resolve
 from vprflow.planning.plan import SHARDED, STAGES
 from vprflow.stages.base import Job
 
-__all__ = ["RUNNERS", "SHARDED", "Job", "combine_shards", "run_job", "shard_ranges"]
+__all__ = [
+    "RUNNERS",
+    "SHARDED",
+    "Job",
+    "built_shard_ranges",
+    "combine_shards",
+    "run_job",
+    "shard_ranges",
+]
 
 # Every stage's runner, as "module:function" (the table's column): imported by the job
 # that runs it, since importing torch or faiss costs seconds.
@@ -40,6 +51,22 @@ def shard_ranges(
         n_images, size = n_reference + n_query, shard_size
     size = size or n_images
     return [(start, min(start + size, n_images)) for start in range(0, n_images, size)]
+
+
+def built_shard_ranges(store: str | Path) -> list[tuple[int, int]] | None:
+    """The shard ranges the gathered ``store`` was built from, while it exists (None:
+    absent, or written before stores kept them). The gather rule asks for these rather
+    than the configured ones: Snakemake reruns a job whose set of input files changed,
+    and the shards of a finished store are gone, so a new ``shard_size`` would otherwise
+    recompute every per-image stage into identical stores."""
+    try:
+        attrs = json.loads((Path(store) / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError):
+        return None
+    shards = attrs.get("shards")
+    if not isinstance(shards, list) or not shards:
+        return None
+    return [(int(start), int(stop)) for start, stop in shards]
 
 
 def combine_shards(shard_paths: list[str], record: dict, out: str) -> None:

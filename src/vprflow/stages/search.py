@@ -18,6 +18,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
+from vprflow.core.paths import shard_layout
 from vprflow.core.registry import search_index
 from vprflow.search.topk import merge_knn
 from vprflow.stages.base import Job, stage_attrs
@@ -76,7 +77,7 @@ def merge_search(shard_paths: list[str], record: dict, out: str) -> None:
     shards = [stores.open_store(p) for p in shard_paths]
     n_rows = shards[0]["distances"].shape[0]
     k_total = min(k, sum(s["distances"].shape[1] for s in shards))
-    attrs = {"stage": "search", "record": record, "shards": len(shards)}
+    attrs = {"stage": "search", "record": record, "shards": shard_layout(shard_paths)}
     with stores.atomic_store(out, attrs) as result:
         found = _list_writers(result, k_total)
         for block in tqdm(range(0, n_rows, QUERY_BLOCK), desc="merge", unit="block"):
