@@ -724,6 +724,74 @@ def test_a_config_that_cannot_be_planned_withdraws_the_previous_tables(tmp_path)
     assert (tmp_path / TARGET).exists() and not (tmp_path / (TARGET + ".stale")).exists()
 
 
+def test_a_failure_withdraws_only_the_tables_of_the_datasets_it_asked_for(tmp_path):
+    """toy and mine are finished; runs for mine alone then fail (a mistyped target, a
+    method that cannot be planned, a ground-truth file that cannot be read, with toy's
+    folder gone from data_root): toy's tables stay, and a good run names only mine's."""
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    make_dataset(tmp_path / "data" / "mine", n_places=4, seed=1)
+    config = toy_config(tmp_path / "data", methods=["anyloc_vlad"])
+    config["datasets"]["mine"] = copy.deepcopy(config["datasets"]["toy"]) | {"path": "mine"}
+    config["targets"] = ["toy", "mine"]
+    path = write_config(tmp_path, config)
+    snakemake(tmp_path, path)
+    toy = [t.format(dataset="toy") for t in (RECALL_CSV, PREDICTIONS_CSV, RECALL_TABLE)]
+    mine = RECALL_CSV.format(dataset="mine")
+
+    def toy_tables_stand():
+        return all((tmp_path / t).exists() for t in toy) and not list(
+            tmp_path.glob("results/**/*.stale")
+        )
+
+    typo = snakemake(tmp_path, path, "--config", "targets=[mien]", check=False)
+    assert typo.returncode != 0 and "names datasets ['mien']" in typo.stderr
+    assert toy_tables_stand() and (tmp_path / mine).exists()
+    broken = copy.deepcopy(config)
+    broken["backbones"]["gone"] = {"backbone": "dinov2", "model": str(tmp_path / "no-model")}
+    broken["methods"]["gone"] = {"aggregator": "anyloc_vlad", "features": "gone"}
+    broken["datasets"]["mine"]["methods"] = ["anyloc_vlad", "gone"]
+    result = snakemake(tmp_path, write_config(tmp_path, broken, "broken.yaml"), mine, check=False)
+    assert result.returncode != 0 and "backbones.gone.model" in result.stderr
+    assert f"{mine}.stale withdrawn: dataset 'mine' cannot be planned" in result.stdout
+    assert (tmp_path / (mine + ".stale")).exists() and not (tmp_path / mine).exists()
+    for stale in tmp_path.glob("results/**/*.stale"):
+        stale.rename(stale.with_suffix(""))
+    assert toy_tables_stand()
+    # toy cannot be listed (every key of it differs: its tables look stale), and mine's
+    # ground truth cannot be read: the run asked for mine fails in mine's dataset job.
+    (tmp_path / "data" / "toy").rename(tmp_path / "toy-elsewhere")
+    (tmp_path / "data" / "mine" / "ground_truth_new.npy").write_bytes(b"not an array")
+    result = snakemake(tmp_path, path, mine, check=False)
+    assert result.returncode != 0
+    assert all((tmp_path / t).exists() for t in toy), result.stdout
+    assert (tmp_path / (mine + ".stale")).exists() and not (tmp_path / mine).exists()
+    make_dataset(tmp_path / "data" / "mine", n_places=4, seed=1)
+    result = snakemake(tmp_path, path, mine)
+    closing = [line for line in result.stdout.splitlines() if line.startswith("vprflow: ")]
+    assert any(line.startswith("vprflow: mine: ") for line in closing), closing
+    assert not any("toy" in line for line in closing), closing
+
+
+def test_a_report_without_the_runs_data_root_fails_naming_it(tmp_path):
+    """A report that cannot list the dataset finds none of the run's stores: it used to
+    exit 0 with a few of its items and "Missing metadata" warnings."""
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = toy_config("data", methods=["anyloc_vlad"])
+    path = write_config(tmp_path, config)
+    snakemake(tmp_path, path)
+    (tmp_path / "data").rename(tmp_path / "moved")
+    result = snakemake(tmp_path, path, "--report", "report.html", check=False)
+    assert result.returncode != 0 and not (tmp_path / "report.html").exists()
+    assert (
+        "dataset 'toy': its images cannot be read under data_root 'data' (dataset 'toy': "
+        "folder data/toy does not exist)" in result.stderr
+    )
+    assert "--config data_root=" in result.stderr
+    moved = ("--config", "data_root=moved")
+    snakemake(tmp_path, path, "--report", "report.html", *moved)
+    assert "recall_toy.csv" in (tmp_path / "report.html").read_text()
+
+
 def test_a_dataset_that_cannot_be_listed_withdraws_its_tables(tmp_path):
     make_dataset(tmp_path / "data" / "toy", n_places=4)
     config = toy_config(tmp_path / "data")

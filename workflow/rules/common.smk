@@ -7,7 +7,7 @@ from vprflow.planning.checkpoints import fetching_checkpoints
 from vprflow.planning.config import validate_config
 from vprflow.core.errors import PlanError
 from vprflow.data.datasets import list_dataset
-from vprflow.data.download import DownloadError, fetch_missing, requested_datasets
+from vprflow.data.download import fetch_missing, requested_datasets
 from vprflow.planning.fingerprints import load_fingerprints, save_fingerprints
 from vprflow.core.paths import (
     EXPORT,
@@ -28,13 +28,14 @@ from vprflow.core.paths import (
     store_path,
     store_pattern,
 )
-from vprflow.planning.plan import build_plan, method_stores
+from vprflow.planning.plan import build_plan, method_stores, planning_failure
 from vprflow.data.presets import presets, unknown_dataset
 from vprflow.planning.reports import (
     FIGURES,
     clear_superseded,
     closing_lines,
     dataset_outputs,
+    failed_datasets,
     figure_inputs,
     runs_jobs,
     withdraw_reports,
@@ -80,12 +81,14 @@ try:
         configfiles=workflow.configfiles,
     )
 except Exception as _error:
-    # `onerror` does not run for a failure here: withdraw the tables now, since none
-    # of them describes a config that cannot be planned (a sample dataset that could not
-    # be fetched leaves the others' tables as they are: they still describe their data).
-    if RUNS_JOBS and not isinstance(_error, DownloadError):
-        for _table in withdraw_reports(PREFIX):
-            print(f"vprflow: {_table} withdrawn: the config could not be planned")
+    # `onerror` does not run for a failure here: withdraw now the tables of the datasets
+    # the run asked for whose own inputs failed. A config that does not validate or a
+    # sample that could not be fetched makes no finished table untrue (docs/usage.md).
+    if RUNS_JOBS and planning_failure(_error):
+        _asked = requested_datasets(CONFIG, sys.argv)
+        for _name in failed_datasets(_error, CONFIG, _asked):
+            for _table in withdraw_reports(PREFIX, _name):
+                print(f"vprflow: {_table} withdrawn: dataset {_name!r} cannot be planned")
     raise
 if len(_memo) != _memo_size:
     save_fingerprints(_memo, PREFIX + FINGERPRINTS)

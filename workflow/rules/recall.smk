@@ -81,16 +81,19 @@ localrules:
 
 
 # A failed run must not leave a results table that looks current (e.g. one method of
-# several failed): tables older than their recall stores are renamed to *.stale.
+# several failed): the tables of the datasets it asked for that are older than their
+# recall stores are renamed to *.stale. Other datasets' tables are no business of this run.
 onerror:
     if RUNS_JOBS:
-        for table in withdraw_stale_reports(PLAN, PREFIX):
+        asked = requested_datasets(CONFIG, sys.argv)
+        for table in withdraw_stale_reports(PLAN, PREFIX, asked):
             print(f"vprflow: {table} is out of date after the failure (renamed)")
 
 
-# A good run supersedes the tables an earlier failure withdrew.
+# A good run supersedes the tables an earlier failure withdrew, and names the tables of
+# the datasets it was asked for.
 onsuccess:
     if RUNS_JOBS:
         for stale in clear_superseded(PREFIX):
             print(f"vprflow: removed {stale}: the table beside it is current")
-        print("\n".join(closing_lines(PLAN, PREFIX)))
+        print("\n".join(closing_lines(PLAN, PREFIX, requested_datasets(CONFIG, sys.argv))))

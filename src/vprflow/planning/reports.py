@@ -15,7 +15,7 @@ from vprflow.core.paths import (
     RECALL_TABLE,
     store_path,
 )
-from vprflow.planning.plan import Plan, method_run, method_stores
+from vprflow.planning.plan import Plan, method_run, method_stores, planning_failure
 
 
 @dataclass(frozen=True)
@@ -70,12 +70,15 @@ def figure_inputs(plan: Plan, dataset: str, method: str, figure: str) -> dict[st
     return {name: stores[name] for name in FIGURES[figure].inputs}
 
 
-def stale_reports(plan: Plan, root: str = "") -> list[Path]:
+def stale_reports(plan: Plan, root: str = "", datasets: list[str] | None = None) -> list[Path]:
     """Results tables on disk that do not describe the current config: one of the
     dataset's recall stores is missing or newer than the table. ``root`` is the
-    prefix of every path (a host workflow's module ``prefix``)."""
+    prefix of every path (a host workflow's module ``prefix``); ``datasets`` limits the
+    search to those datasets (all planned ones by default)."""
     stale = []
     for dataset, runs in plan.runs.items():
+        if datasets is not None and dataset not in datasets:
+            continue
         tables = [Path(root) / t.format(dataset=dataset) for t in _SHOWN]
         for table in tables:
             if not table.exists():
@@ -87,24 +90,42 @@ def stale_reports(plan: Plan, root: str = "") -> list[Path]:
     return stale
 
 
-def withdraw_stale_reports(plan: Plan, root: str = "") -> list[Path]:
-    """Rename every stale table to ``<name>.stale`` so that a failed run never leaves a
-    table that looks current; returns the new paths."""
-    return _withdraw(stale_reports(plan, root))
+def withdraw_stale_reports(
+    plan: Plan, root: str = "", datasets: list[str] | None = None
+) -> list[Path]:
+    """Rename every stale table (of ``datasets``: those a failed run asked for) to
+    ``<name>.stale`` so that a failed run never leaves a table that looks current;
+    returns the new paths."""
+    return _withdraw(stale_reports(plan, root, datasets))
 
 
 def withdraw_reports(root: str = "", dataset: str = "*") -> list[Path]:
     """Withdraw every table of ``dataset`` (all datasets by default) regardless of age:
-    for failures before a plan exists (a config that cannot be planned, a dataset that
-    cannot be listed), where none of them describes the current config."""
+    for failures before a plan exists (a dataset that cannot be planned or listed),
+    where none of its tables describes the current config."""
     return _withdraw([t for p in _SHOWN for t in Path(root or ".").glob(p.format(dataset=dataset))])
 
 
-def closing_lines(plan: Plan, root: str = "") -> list[str]:
-    """What a good run prints last: where each planned dataset's tables are, and the
-    command that writes the report."""
+def failed_datasets(error: BaseException, config: dict, requested: list[str]) -> list[str]:
+    """Of the datasets a run asked for (``requested``), those whose own inputs ``error``
+    (raised while planning) is about: the dataset being planned and, when a method failed,
+    every one that lists the method. None for an error of no dataset's (a config that
+    does not validate, a mistyped dataset name): it makes no finished table untrue."""
+    failure = planning_failure(error)
+    if failure is None:
+        return []
+    return [
+        name
+        for name in requested
+        if name in failure.datasets or failure.method in config["datasets"][name]["methods"]
+    ]
+
+
+def closing_lines(plan: Plan, root: str = "", datasets: list[str] | None = None) -> list[str]:
+    """What a good run prints last: where the tables of ``datasets`` (those the run asked
+    for; every planned one by default) are, and the command that writes the report."""
     lines = []
-    for dataset in plan.runs:
+    for dataset in plan.runs if datasets is None else datasets:
         tables = [t.format(dataset=dataset) for t in (RECALL_CSV, RECALL_TABLE, PREDICTIONS_CSV)]
         present = [t for t in tables if (Path(root) / t).exists()]
         if present:
@@ -115,6 +136,62 @@ def closing_lines(plan: Plan, root: str = "") -> list[str]:
             " (with this run's --config and --configfile options)"
         )
     return lines
+
+
+def report_gaps(plan: Plan, config: dict, datasets: list[str], root: str = "") -> list[str]:
+    """Why ``snakemake --report`` would leave out items of ``datasets`` (those it shows):
+    one line per dataset whose images cannot be listed under ``data_root`` (every key
+    then differs from the run's, so none of its results is found), or whose tables,
+    figures or recall stores of this config are not on disk."""
+    from vprflow.data.datasets import list_dataset
+
+    gaps = []
+    for name in datasets:
+        if name not in plan.dataset_files:
+            try:
+                list_dataset(config["data_root"], name, config["datasets"][name])
+                reason = "it cannot be listed"
+            except Exception as error:
+                # The first sentence says what is wrong; the rest is how to get the data,
+                # which a report after a good run does not need.
+                reason = str(error).split(". ", 1)[0]
+            gaps.append(
+                f"dataset {name!r}: its images cannot be read under data_root "
+                f"{config['data_root']!r} ({reason}), so no result on disk matches this "
+                "config: its tables, curves and figures would be missing"
+            )
+            continue
+        missing = [o for o in dataset_outputs(plan, name) if not (Path(root) / o).exists()]
+        missing += [
+            f"the recall store of {run.method} ({store_path('recall', run.recall_key)})"
+            for run in plan.runs[name]
+            if not (Path(root) / store_path("recall", run.recall_key)).exists()
+        ]
+        if missing:
+            shown = ", ".join(missing[:3]) + (
+                f" and {len(missing) - 3} more" if len(missing) > 3 else ""
+            )
+            gaps.append(f"dataset {name!r} has no results of this config yet: {shown} missing")
+    return gaps
+
+
+def report_error(gaps: list[str]) -> str:
+    """The message a report that would lack items fails with: each gap and the remedy."""
+    lines = "\n".join(f"  - {gap}" for gap in gaps)
+    return (
+        f"snakemake --report: the report would lack items:\n{lines}\n"
+        "Give the report the options of the run that built the results (its --config "
+        "data_root=... and --configfile), e.g. snakemake --report report.html --config "
+        "data_root=../shared/data after a run with that data_root; or run snakemake with "
+        "these options first."
+    )
+
+
+def makes_report(argv: list[str]) -> bool:
+    """Whether a ``snakemake`` command line writes a report from the results on disk
+    (``--report`` without ``--report-after-run``, which runs the workflow first)."""
+    names = {arg.split("=", 1)[0] for arg in argv[1:]}
+    return "--report" in names and "--report-after-run" not in names
 
 
 def clear_superseded(root: str = "") -> list[Path]:
