@@ -57,6 +57,9 @@ EXPECTED = {
     "rerank": ("features", "matches", "rerank", "recall"),  # mnn_dinov2's features are new
     "pairs_depth": (),  # the pairs files rank past the recall from the stored retrieval
     "device": (),
+    "shard_size": (),
+    "search_shard_size": (),
+    "backbones.daisy.batch_size": (),
 }
 
 

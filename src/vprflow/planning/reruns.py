@@ -88,6 +88,9 @@ class Change:
     note: str = field(default="", compare=False)
 
 
+EXECUTION = "how a job runs, not what it computes: nothing reruns"
+
+
 def _set(*path, value) -> Edit:
     def edit(section: dict, folder: Path) -> None:
         for name in path[:-1]:
@@ -204,12 +207,23 @@ CHANGES: tuple[Change, ...] = (
         top=True,
         note="no key; only the pairs files, which take it, are rewritten",
     ),
+    # Execution settings: in no key and in no rule's tracked params, so Snakemake reruns
+    # nothing (tests/test_workflow.py flips each after a finished run).
+    Change("device", "auto -> cpu", _set("device", value="cpu"), top=True, note=EXECUTION),
+    Change("shard_size", "0 -> 256", _set("shard_size", value=256), top=True, note=EXECUTION),
     Change(
-        "device",
-        "auto -> cpu",
-        _set("device", value="cpu"),
+        "search_shard_size",
+        "2000 -> 1",
+        _set("search_shard_size", value=1),
         top=True,
-        note="no key; Snakemake reruns the jobs that take it, into the same stores",
+        note=EXECUTION,
+    ),
+    Change(
+        "backbones.daisy.batch_size",
+        "1 -> 4",
+        _set("backbones", "daisy", "batch_size", value=4),
+        top=True,
+        note=EXECUTION,
     ),
 )
 
