@@ -87,8 +87,9 @@ except Exception as _error:
     if RUNS_JOBS and planning_failure(_error):
         _asked = requested_datasets(CONFIG, sys.argv)
         for _name in failed_datasets(_error, CONFIG, _asked):
+            _why = f"dataset {_name!r} cannot be planned"
             for _table in withdraw_reports(PREFIX, _name):
-                print(f"vprflow: {_table} withdrawn: dataset {_name!r} cannot be planned")
+                print(f"vprflow: {_table} withdrawn: {_why}")
     raise
 if len(_memo) != _memo_size:
     save_fingerprints(_memo, PREFIX + FINGERPRINTS)

@@ -96,4 +96,5 @@ onsuccess:
     if RUNS_JOBS:
         for stale in clear_superseded(PREFIX):
             print(f"vprflow: removed {stale}: the table beside it is current")
-        print("\n".join(closing_lines(PLAN, PREFIX, requested_datasets(CONFIG, sys.argv))))
+        asked = requested_datasets(CONFIG, sys.argv)
+        print("\n".join(closing_lines(PLAN, PREFIX, asked)))
