@@ -179,7 +179,7 @@ def report_error(gaps: list[str]) -> str:
     """The message a report that would lack items fails with: each gap and the remedy."""
     lines = "\n".join(f"  - {gap}" for gap in gaps)
     return (
-        f"snakemake --report: the report would lack items:\n{lines}\n"
+        f"The report would lack items:\n{lines}\n"
         "Give the report the options of the run that built the results (its --config "
         "data_root=... and --configfile), e.g. snakemake --report report.html --config "
         "data_root=../shared/data after a run with that data_root; or run snakemake with "
