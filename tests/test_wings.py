@@ -1,58 +1,26 @@
 """The package's shape: wings whose imports flow one way, no import cycle, and the flat
 module paths of 0.1 still importable (with a warning) for one release."""
 
-import ast
 import importlib
 import sys
 import warnings
 from pathlib import Path
 
 import pytest
+from script_helpers import load_script
 
 import vprflow
 
 PACKAGE = Path(vprflow.__file__).parent
 
-# A wing may import only from wings of a lower rank (and from itself).
-RANKS = {
-    "core": 0,
-    "data": 1,
-    "models": 1,
-    "search": 1,
-    "aggregation": 2,
-    "evaluation": 2,
-    "planning": 3,
-    "stages": 4,
-}
-
-
-def _module_name(path: Path) -> str:
-    parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
-    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+# The graph is read by scripts/import_graph.py (which prints it): imports anywhere in a
+# module, those inside functions included, each an arrow.
+GRAPH = load_script("import_graph")
+RANKS = GRAPH.RANKS
 
 
 def _imports() -> dict[str, set[str]]:
-    """Every vprflow module -> the vprflow modules it imports anywhere (lazy imports in
-    functions included: a cycle through one still ties the two files)."""
-    modules = {_module_name(p): p for p in PACKAGE.rglob("*.py")}
-    graph = {}
-    for name, path in modules.items():
-        found = set()
-        for node in ast.walk(ast.parse(path.read_text())):
-            targets = []
-            if isinstance(node, ast.Import):
-                targets = [alias.name for alias in node.names]
-            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-                # `from vprflow.core import stores` imports the module core.stores
-                targets = [f"{node.module}.{a.name}" for a in node.names] + [node.module]
-            found |= {t for t in targets if t in modules and t != name}
-        graph[name] = {t for t in found if not name.startswith(t + ".") and t != "vprflow"}
-    return graph
-
-
-def _wing(module: str) -> str | None:
-    parts = module.split(".")
-    return parts[1] if len(parts) > 2 or (len(parts) == 2 and parts[1] in RANKS) else None
+    return GRAPH.imports(PACKAGE)
 
 
 def test_every_folder_of_the_package_is_a_ranked_wing():
@@ -70,44 +38,19 @@ def test_the_import_graph_is_read():
 
 
 def test_imports_between_wings_flow_down_only():
-    upward = [
-        f"{a} -> {b}"
-        for a, targets in _imports().items()
-        for b in targets
-        if _wing(a) and _wing(b) and _wing(a) != _wing(b) and RANKS[_wing(b)] >= RANKS[_wing(a)]
-    ]
-    assert upward == []
+    assert GRAPH.upward(_imports()) == []
 
 
 def test_no_module_takes_part_in_an_import_cycle():
-    graph = _imports()
-    index, low, stack, on_stack, cycles = {}, {}, [], set(), []
+    assert GRAPH.cycles(_imports()) == []
 
-    def visit(v):  # Tarjan's strongly connected components
-        index[v] = low[v] = len(index)
-        stack.append(v)
-        on_stack.add(v)
-        for w in graph[v]:
-            if w not in index:
-                visit(w)
-                low[v] = min(low[v], low[w])
-            elif w in on_stack:
-                low[v] = min(low[v], index[w])
-        if low[v] == index[v]:
-            component = []
-            while True:
-                w = stack.pop()
-                on_stack.discard(w)
-                component.append(w)
-                if w == v:
-                    break
-            if len(component) > 1:
-                cycles.append(sorted(component))
 
-    for v in graph:
-        if v not in index:
-            visit(v)
-    assert cycles == []
+def test_the_cycle_finder_finds_a_cycle_through_a_lazy_import():
+    graph = {"vprflow.a.x": {"vprflow.a.y"}, "vprflow.a.y": {"vprflow.a.x"}, "vprflow.a.z": set()}
+    assert GRAPH.cycles(graph) == [["vprflow.a.x", "vprflow.a.y"]]
+    assert GRAPH.upward({"vprflow.core.x": {"vprflow.stages.y"}}) == [
+        "vprflow.core.x -> vprflow.stages.y"
+    ]
 
 
 @pytest.mark.parametrize("old", sorted(vprflow.MOVED))
