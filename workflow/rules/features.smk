@@ -20,23 +20,3 @@ rule features:
         data_root=data_root_param,
     script:
         "../scripts/stage.py"
-
-
-rule gather:
-    input:
-        shard_inputs,
-    output:
-        directory(store_pattern("{stage}")),
-    log:
-        log_pattern("{stage}", "gather"),
-    wildcard_constraints:
-        stage=SHARDED_STAGES,
-    conda:
-        "../envs/vprflow.yaml"
-    resources:
-        mem_mb=lambda wildcards, attempt: 4000 * attempt,
-        runtime=lambda wildcards, attempt: 60 * attempt,
-    params:
-        record=gather_record,
-    script:
-        "../scripts/gather.py"
