@@ -46,6 +46,7 @@ or faiss came with them; the first row is ``python -c pass``, the floor.
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import os
 import shutil
@@ -65,6 +66,7 @@ from bench_workflow import REPO, cycled_config, data_folder, run_snakemake  # no
 from vprflow.core import stores  # noqa: E402
 from vprflow.planning.config import validate_config  # noqa: E402
 from vprflow.planning.plan import STAGES, build_plan  # noqa: E402
+from vprflow.stages.jobs import RUNNERS  # noqa: E402
 from vprflow.stages.runner import run_stage  # noqa: E402
 
 # The commit this benchmark's comparison starts from (issue 33 item 3): before the
@@ -308,8 +310,9 @@ def startup(repeats: int) -> list[tuple]:
         return best, out
 
     rows = [("(python -c pass)", process("pass")[0], 0.0, False, False)]
-    for name, entry in STAGES.items():
-        module = entry.runner.split(":")[0]
+    for name in STAGES:
+        # The module the stage's runner imports (its first line).
+        module = inspect.getsource(RUNNERS[name]).split("from ", 2)[1].split()[0]
         seconds, out = process(STARTUP.format(module=module))
         imports, torch, faiss = out.split()
         rows.append((name, seconds, float(imports), torch == "True", faiss == "True"))

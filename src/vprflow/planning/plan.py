@@ -7,10 +7,10 @@ a stage's parameters and inputs get the same key and share the store; changing a
 parameter changes the key of that stage and of everything downstream only.
 
 Every stage is one row of :data:`STAGES` (at the end of this module): its format version,
-the function that runs its jobs, whether its jobs take ranges of images, and, for a stage
-an aggregator may need, how it is planned. Bump a stage's ``version`` whenever the code
-changes what the stage writes: Snakemake does not track the library's source, only the
-key does.
+whether its jobs take ranges of images, and, for a stage an aggregator may need, how it is
+planned (the function that runs its jobs is in :data:`vprflow.stages.jobs.RUNNERS`). Bump
+a stage's ``version`` whenever the code changes what the stage writes: Snakemake does not
+track the library's source, only the key does.
 """
 
 from __future__ import annotations
@@ -819,15 +819,11 @@ class StageSpec:
     # The format version, in every key of the stage: bump it when what the stage writes
     # changes (reasons below, by stage).
     version: int
-    # The function that runs one job, ``(job: vprflow.stages.base.Job) -> None``, as
-    # ``"module:function"``: the stages sit above planning, and importing a stage's module
-    # (torch, faiss) costs seconds, so vprflow.stages.jobs imports it when a job runs.
-    runner: str
     # Whose ranges the stage's jobs take: "images" (references then queries,
     # `shard_size` a job) or "references" (`search_shard_size` a job); None: one job.
-    # A sharded stage's rule writes shards; its `gather` rule combines them by `combine`.
+    # A sharded stage's rule writes shards; its `gather` rule combines them
+    # (vprflow.stages.jobs.combine_shards).
     shards: Literal["images", "references"] | None = None
-    combine: str = "vprflow.stages.gather:gather"
     # For a stage an aggregator may need (``Aggregator.needs``): how it is planned,
     # between the features and the descriptors.
     needed: _NeededPlanner | None = None
@@ -837,42 +833,35 @@ class StageSpec:
 STAGES: dict[str, StageSpec] = {
     # What the images are: their list, order, paths, sizes, SHA-256 and how they are read
     # (1: split from the dataset stage, issue 30, so the ground truth keys no model stage)
-    "images": StageSpec(1, "vprflow.stages.dataset:build_images"),
+    "images": StageSpec(1),
     # What is true about them, over the images store (its arrays copied): 2: paths
     # relative to data_root, contents in the key; 3: the ground truth only, keyed by the
     # images store's key, the ground-truth settings and the ground-truth files
-    "dataset": StageSpec(3, "vprflow.stages.dataset:build_truth"),
+    "dataset": StageSpec(3),
     # 2: crop offsets round like torchvision; 3: published resize, pos-embed
-    "features": StageSpec(3, "vprflow.stages.features:compute_features", shards="images"),
+    "features": StageSpec(3, shards="images"),
     # 2: published (OpenCV INTER_LINEAR) resize; 3: SAM prompts through sam_decoder
     # (float32 rounding differs; SAM-HQ masks upscaled from the transformer's output)
-    "segments": StageSpec(
-        3, "vprflow.stages.segments:compute_segments", shards="images", needed=_plan_segments
-    ),
+    "segments": StageSpec(3, shards="images", needed=_plan_segments),
     # 2: `centres` (plain cluster means by default); 3: numpy assignment
-    "vocabulary": StageSpec(3, "vprflow.stages.vocabulary:fit_vocabulary", needed=_plan_vocabulary),
+    "vocabulary": StageSpec(3, needed=_plan_vocabulary),
     # 2: exact solver by default, capped at the numerical rank; 3: numpy VLAD
-    "pca": StageSpec(3, "vprflow.stages.pca:fit_pca_stage", needed=_plan_pca),
+    "pca": StageSpec(3, needed=_plan_pca),
     # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm; 4: VLAD in
     # numpy, one BLAS thread per image (float32 rounding differs from torch's)
-    "descriptors": StageSpec(4, "vprflow.stages.descriptors:compute_descriptors", shards="images"),
+    "descriptors": StageSpec(4, shards="images"),
     # A range of reference images per job; the shards' top-k lists are merged, not
     # concatenated.
-    "search": StageSpec(
-        1,
-        "vprflow.stages.search:search_shard",
-        shards="references",
-        combine="vprflow.stages.search:merge_search",
-    ),
+    "search": StageSpec(1, shards="references"),
     # Each re-ranked candidate's mutual nearest neighbour patch pairs, shared by the
     # re-rankers of a method on the same features and top_k (issue 33)
-    "matches": StageSpec(1, "vprflow.stages.matches:compute_matches"),
+    "matches": StageSpec(1),
     # 2: the top K re-ordered, then the rest of the retrieval (to `depth`); 3: scores
     # from a matches store's pairs (the retrieval and the matching moved there)
-    "rerank": StageSpec(3, "vprflow.stages.rerank:rerank_stage"),
+    "rerank": StageSpec(3),
     # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
     # summary and cost per query, re-ranked lists; 6: n_queries_without_positive
-    "recall": StageSpec(6, "vprflow.stages.recall:evaluate"),
+    "recall": StageSpec(6),
 }
 
 # The table by column: what the keys hash, and the stages run in shards.

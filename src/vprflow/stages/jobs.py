@@ -1,19 +1,19 @@
 """How the rules' script, the tests and the benchmarks run a job of any stage.
 
 A rule hands its script a :class:`Job` (the stage's hashed record, its input stores,
-its output, and how to run); :func:`run_job` calls the function that
-:data:`vprflow.planning.plan.STAGES` names for ``record["stage"]``, with the job.
-The sharding policy comes from the same table: which stages run in shards, over which
-image ranges (:func:`shard_ranges`), and how shards become one store
-(:func:`combine_shards`).
+its output, and how to run); :func:`run_job` calls the stage's runner in
+:data:`RUNNERS`, one for every stage of :data:`vprflow.planning.plan.STAGES`, with the
+job. The sharding policy comes from that table: which stages run in shards, over which
+image ranges (:func:`shard_ranges`); how shards become one store is
+:func:`combine_shards`.
 """
 
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from pathlib import Path
 
-from vprflow.core.registry import resolve
 from vprflow.planning.plan import SHARDED, STAGES
 from vprflow.stages.base import Job
 
@@ -27,14 +27,94 @@ __all__ = [
     "shard_ranges",
 ]
 
-# Every stage's runner, as "module:function" (the table's column): imported by the job
-# that runs it, since importing torch or faiss costs seconds.
-RUNNERS: dict[str, str] = {name: stage.runner for name, stage in STAGES.items()}
+# Every stage's runner, ``(job) -> None``. Each imports its stage's module when a job
+# runs: a job imports only its own stage's dependencies (torch or faiss cost seconds).
+
+
+def _build_images(job: Job) -> None:
+    from vprflow.stages.dataset import build_images
+
+    build_images(job)
+
+
+def _build_truth(job: Job) -> None:
+    from vprflow.stages.dataset import build_truth
+
+    build_truth(job)
+
+
+def _compute_features(job: Job) -> None:
+    from vprflow.stages.features import compute_features
+
+    compute_features(job)
+
+
+def _compute_segments(job: Job) -> None:
+    from vprflow.stages.segments import compute_segments
+
+    compute_segments(job)
+
+
+def _fit_vocabulary(job: Job) -> None:
+    from vprflow.stages.vocabulary import fit_vocabulary
+
+    fit_vocabulary(job)
+
+
+def _fit_pca(job: Job) -> None:
+    from vprflow.stages.pca import fit_pca_stage
+
+    fit_pca_stage(job)
+
+
+def _compute_descriptors(job: Job) -> None:
+    from vprflow.stages.descriptors import compute_descriptors
+
+    compute_descriptors(job)
+
+
+def _search_shard(job: Job) -> None:
+    from vprflow.stages.search import search_shard
+
+    search_shard(job)
+
+
+def _compute_matches(job: Job) -> None:
+    from vprflow.stages.matches import compute_matches
+
+    compute_matches(job)
+
+
+def _rerank(job: Job) -> None:
+    from vprflow.stages.rerank import rerank_stage
+
+    rerank_stage(job)
+
+
+def _evaluate(job: Job) -> None:
+    from vprflow.stages.recall import evaluate
+
+    evaluate(job)
+
+
+RUNNERS: dict[str, Callable[[Job], None]] = {
+    "images": _build_images,
+    "dataset": _build_truth,
+    "features": _compute_features,
+    "segments": _compute_segments,
+    "vocabulary": _fit_vocabulary,
+    "pca": _fit_pca,
+    "descriptors": _compute_descriptors,
+    "search": _search_shard,
+    "matches": _compute_matches,
+    "rerank": _rerank,
+    "recall": _evaluate,
+}
 
 
 def run_job(job: Job) -> None:
     """Run one job of its stage (``job.record["stage"]``)."""
-    resolve(RUNNERS[job.stage])(job)
+    RUNNERS[job.stage](job)
 
 
 def shard_ranges(
@@ -70,7 +150,13 @@ def built_shard_ranges(store: str | Path) -> list[tuple[int, int]] | None:
 
 
 def combine_shards(shard_paths: list[str], record: dict, out: str) -> None:
-    """One store from a sharded stage's shards (in order), as the table's ``combine``
-    says: search shards hold per-shard top-k lists and are merged; the others are
-    concatenated."""
-    resolve(STAGES[record["stage"]].combine)(shard_paths, record, out)
+    """One store from a sharded stage's shards (in order): search shards hold per-shard
+    top-k lists and are merged; the others' rows are concatenated."""
+    if record["stage"] == "search":
+        from vprflow.stages.search import merge_search
+
+        merge_search(shard_paths, record, out)
+    else:
+        from vprflow.stages.gather import gather
+
+        gather(shard_paths, record, out)
