@@ -271,3 +271,12 @@ def test_support_maps_share_one_colour_scale_shown_by_a_colour_bar():
     query_map, reference_map = panels[1].get_images()[0], panels[3].get_images()[0]
     assert query_map.get_clim() == reference_map.get_clim() == pytest.approx((0.2, 0.9))
     figures._pyplot().close("all")
+
+
+def test_every_figure_the_report_lists_has_one_drawing_function():
+    from vprflow.planning.reports import FIGURES
+    from vprflow.stages.figures import DRAW, draw_figure
+
+    assert set(DRAW) == set(FIGURES)
+    with pytest.raises(ValueError, match="unknown figure 'nonsense'"):
+        draw_figure("nonsense", {}, "", "m", {}, "out.png")

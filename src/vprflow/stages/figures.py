@@ -269,14 +269,20 @@ def draw_support_maps(
     figures.save_figure(figures.support_map_figure(rows, title), out)
 
 
+# Each figure of vprflow.planning.reports.FIGURES by name, and the function that draws it.
+DRAW = {
+    "retrievals": draw_retrievals,
+    "segment_matches": draw_segment_matches,
+    "support_maps": draw_support_maps,
+}
+
+
 def draw_figure(
     figure: str, inputs: dict[str, str], data_root: str, method: str, settings: dict, out: str
 ) -> None:
     """Draw one method's ``figure`` (a name in :data:`vprflow.planning.reports.FIGURES`) with
-    this module's ``draw_<figure>``: a figure rule passes the figure's name, never its
-    rule name, which a host workflow may prefix."""
-    from vprflow.planning.reports import FIGURES
-
-    if figure not in FIGURES:
-        raise ValueError(f"unknown figure {figure!r}; figures: {sorted(FIGURES)}")
-    globals()[f"draw_{figure}"](inputs, data_root, method, settings, out)
+    its function in :data:`DRAW`: a figure rule passes the figure's name, never its rule
+    name, which a host workflow may prefix."""
+    if figure not in DRAW:
+        raise ValueError(f"unknown figure {figure!r}; figures: {sorted(DRAW)}")
+    DRAW[figure](inputs, data_root, method, settings, out)
