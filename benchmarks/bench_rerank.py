@@ -1,6 +1,6 @@
 """Re-ranking cost: milliseconds per query to score a query's top K candidates with each
 re-ranker, before (one float32 product per candidate) and after batching (one product per
-query, :func:`vprflow.evaluation.rerank._batched_pairs`), beside the floors of its products,
+query, :func:`vprflow.evaluation.rerank.candidate_pairs`), beside the floors of its products,
 at the patch grids of the shipped and published backbones.
 
     python benchmarks/bench_rerank.py              # K = 100, the cases below, CPU
@@ -17,15 +17,15 @@ minimum is the least disturbed run).
 Columns: ``mutual`` the mean mutual pairs per candidate (what RANSAC fits); ``before`` the
 re-ranker's score function from ``--before`` (default: the last commit with the
 per-candidate loop), loaded from ``git show REV:src/vprflow/evaluation/rerank.py`` into a
-module here; ``after`` the package's, both called as ``rerank_scores`` calls them and
-checked equal; ``fp32`` / ``bf16`` the floors: the query's batched products alone (one
+module here (its ``mnn_scores`` / ``ransac_scores``); ``after`` the stages' path, the
+``matches`` stage's ``candidate_pairs`` then the ``rerank`` stage's ``pair_scorer``, checked
+equal; ``fp32`` / ``bf16`` the floors: the query's batched products alone (one
 ``[P, D] x [D, k Q]`` GEMM per group of candidates, as the code groups them) in float32 and
 in bf16; ``x bf16`` = after / bf16 floor. For ``ransac``, ``match`` is the pairs alone
-(``_batched_pairs``) and ``fit`` the robust fits alone (``ransac_inliers`` over the
-stored pairs), with the fit's share of after. ``bf16 path`` times the certified bf16
-candidates (off by default, ``_BF16_CANDIDATES``) with the share of candidates they
-certified. The database read is not included: the stage reads the reference features
-into memory once (up to 2 GiB), so per query it is an in-memory gather.
+(``candidate_pairs``) and ``fit`` the robust fits alone (``ransac_inliers`` over the
+stored pairs), with the fit's share of after. The database read is not included: the
+stage reads the reference features into memory once (up to 2 GiB), so per query it is an
+in-memory gather.
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "src"))
 
-# The commit before re-ranking was batched (issue 33): one float32 product per candidate.
+# The last commit with one float32 product per candidate.
 BEFORE = "00ebe21"
 
 # (name, grid h, grid w, descriptor dim, patch pixels)
@@ -142,9 +142,9 @@ def main() -> int:
     )
     print(
         "| case | patches | dim | reranker | mutual | before | after | speed-up | fp32 | "
-        "bf16 | x bf16 | match | fit (share) | bf16 path (certified) |"
+        "bf16 | x bf16 | match | fit (share) |"
     )
-    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     failed = False
     for name, (h, w, dim, patch) in cases.items():
         query_np, candidates_np = inputs(h, w, dim, top_k, seed=0)
@@ -154,8 +154,8 @@ def main() -> int:
         n = h * w
         group = max(1, after._PRODUCT_ELEMENTS // (n * n))
         on_device = candidates.to(device)
-        pairs = after._batched_pairs(query, candidates, None, bf16=False)
-        mutual = np.mean([len(i) for i, _, _, _ in pairs])
+        pairs = after.candidate_pairs(query, candidates)
+        mutual = np.mean([len(i) for i, _, _ in pairs])
 
         def floor(dtype, on_device=on_device, query=query, group=group):
             q = query.to(dtype)
@@ -170,51 +170,39 @@ def main() -> int:
 
         for method in ("mnn", "ransac"):
             settings = reranker(method).settings({})
-            old_fn, new_fn = getattr(before, f"{method}_scores"), getattr(after, f"{method}_scores")
+            old_fn = getattr(before, f"{method}_scores")
+            score = after.pair_scorer(method, {}, (h, w), patch)
 
-            def run(fn, settings=settings, q=query, c=candidates, xy=centres, patch=patch):
+            def old(fn=old_fn, settings=settings, q=query, c=candidates, xy=centres, patch=patch):
                 return fn(q, c, xy, patch, **settings)
 
-            if not np.array_equal(run(old_fn), run(new_fn)):
+            def new(score=score, q=query, c=candidates):
+                return score(after.candidate_pairs(q, c))
+
+            if not np.array_equal(old(), new()):
                 print(f"# {name} {method}: scores differ from before", file=sys.stderr)
                 failed = True
-            fit_pairs = [(centres[i], centres[j]) for i, j, _, _ in pairs]
+            fit_pairs = [(centres[i], centres[j]) for i, j, _ in pairs]
             pixels = settings.get("threshold", 1.0) * patch
             fit_options = {k: settings[k] for k in ("seed", "model", "max_iters", "confidence")
                            if k in settings}  # fmt: skip
 
-            def bf16_path(method=method, run=run):
-                previous = after._BF16_CANDIDATES
-                after._BF16_CANDIDATES = True
-                try:
-                    run(getattr(after, f"{method}_scores"))
-                finally:
-                    after._BF16_CANDIDATES = previous
-
-            calls = {
-                "before": lambda run=run, old_fn=old_fn: run(old_fn),
-                "after": lambda run=run, new_fn=new_fn: run(new_fn),
-                "bf16 path": bf16_path,
-            }
+            calls = {"before": old, "after": new}
             if method == "ransac":
-                calls["match"] = lambda q=query, c=candidates: after._batched_pairs(q, c, None)
+                calls["match"] = lambda q=query, c=candidates: after.candidate_pairs(q, c)
                 calls["fit"] = lambda fit_pairs=fit_pairs, pixels=pixels, o=fit_options: [
                     after.ransac_inliers(a, b, pixels, **o) for a, b in fit_pairs
                 ]
             ms = {k: 1000 * v for k, v in fastest(repeat, calls, sync).items()}
             floor(torch.float32), floor(torch.bfloat16)  # warm-up
             ms["fp32"] = 1000 * min(floor(torch.float32) for _ in range(repeat))
-            bf16_ok = device.type == "cuda" or after._fast_bf16(device)
             ms["bf16"] = 1000 * min(floor(torch.bfloat16) for _ in range(repeat))
-            found = after._batched_pairs(query, candidates, None, bf16=True)
-            certified = sum(s is None for _, _, s, _ in found) if bf16_ok else 0
             match = f"{ms['match']:.1f}" if "match" in ms else "-"
             fit = f"{ms['fit']:.1f} ({100 * ms['fit'] / ms['after']:.0f}%)" if "fit" in ms else "-"
             print(
                 f"| {name} | {n} | {dim} | {method} | {mutual:.1f} | {ms['before']:.1f} | "
                 f"{ms['after']:.1f} | {ms['before'] / ms['after']:.1f}x | {ms['fp32']:.1f} | "
-                f"{ms['bf16']:.1f} | {ms['after'] / ms['bf16']:.2f} | {match} | {fit} | "
-                f"{ms['bf16 path']:.1f} ({100 * certified / top_k:.0f}%) |"
+                f"{ms['bf16']:.1f} | {ms['after'] / ms['bf16']:.2f} | {match} | {fit} |"
             )
     return 1 if failed else 0
 

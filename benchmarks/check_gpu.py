@@ -1,18 +1,18 @@
-"""Checks and timings on a CUDA GPU, for what CPU-only CI cannot run (issue 33).
+"""Checks and timings on a CUDA GPU, for what CPU-only CI cannot run.
 
     python benchmarks/check_gpu.py                 # A, B and C at the city's size
     python benchmarks/check_gpu.py AB              # the checks alone
     python benchmarks/check_gpu.py D               # the matches stage's pairs, timed
     python benchmarks/check_gpu.py C 316000 215400 3328   # references, queries, dim
 
-A: re-ranking on CUDA: the batched scores (certified float32 products; and with bf16
-   candidates on) against per-candidate products on the same device, for mnn (count,
-   similarity, a threshold) and ransac, at bench_rerank.py's cases (K = 100); the bf16
-   candidates it certified; and how many candidates score the same on the CPU.
+A: re-ranking on CUDA: the stages' scores (``candidate_pairs``, then ``pair_scorer``)
+   against per-candidate products on the same device, for mnn (count, similarity, a
+   threshold) and ransac, at bench_rerank.py's cases (K = 100); and how many candidates
+   score the same on the CPU.
 B: ``exact_knn`` on CUDA against float64 brute force (the tests' check), several blocks
    each way, bf16 and float32 candidates, random and clustered data; and against the CPU.
-D: the ``matches`` stage's pairs (``candidate_pairs``: per-candidate products on CUDA)
-   against the certified batched ``mnn_scores``, and the scoring of the stored pairs.
+D: the ``matches`` stage's pairs (``candidate_pairs``: per-candidate products on CUDA),
+   timed, and the scoring of the stored pairs.
 C: ``exact_knn`` on CUDA at the segment search of a Pittsburgh-30k-size run
    (``bench_city.py``'s 31.6 SLIC segments an image: 316,000 reference x 215,400 query
    segments of SegVLAD's 3,328-d without PCA) beside its bf16 floor.
@@ -78,12 +78,9 @@ def per_candidate(q, c, method, settings, centres, patch):
 
 
 if "A" in part:
-    print("\n## A: re-ranking on CUDA: batched == per-candidate on the same device", flush=True)
-    print(
-        "| case | reranker | settings | certified f32 equal | bf16 path equal | "
-        "bf16 certified | cpu == cuda |"
-    )
-    print("|---|---|---|---|---|---|---|")
+    print("\n## A: re-ranking on CUDA: the stages' == per-candidate on the same device", flush=True)
+    print("| case | reranker | settings | stages' equal | cpu == cuda |")
+    print("|---|---|---|---|---|")
     for name, (h, w, dim, patch) in CASES.items():
         qn, cn = inputs(h, w, dim, 100, seed=1)
         q = torch.from_numpy(qn).to(dev)
@@ -96,21 +93,12 @@ if "A" in part:
             ("ransac", {}),
         ):
             settings = reranker(method).settings(extra)
+            score = rr.pair_scorer(method, extra, (h, w), patch)
             ref = per_candidate(q, c, method, settings, centres, patch)
-            after = getattr(rr, f"{method}_scores")(q, c, centres, patch, **settings)
-            rr._BF16_CANDIDATES = True
-            try:
-                bf = getattr(rr, f"{method}_scores")(q, c, centres, patch, **settings)
-                found = rr._batched_pairs(q, c, settings.get("min_similarity"), bf16=True)
-                cert = sum(s is None for _, _, s, _ in found)
-            finally:
-                rr._BF16_CANDIDATES = False
-            cpu = getattr(rr, f"{method}_scores")(
-                torch.from_numpy(qn), c, centres, patch, **settings
-            )
+            after = score(rr.candidate_pairs(q, c))
+            cpu = score(rr.candidate_pairs(torch.from_numpy(qn), c))
             print(
                 f"| {name} | {method} | {extra or 'default'} | {np.array_equal(ref, after)} | "
-                f"{np.array_equal(ref, bf)} | {cert}/100 | "
                 f"{int((cpu == after).sum())}/100 |",
                 flush=True,
             )
@@ -153,9 +141,8 @@ if "B" in part:
 
 if "D" in part:
     print("\n## D: the matches stage's pairs on CUDA (K = 100, ms a query, fastest of 5)")
-    print("| case | mnn_scores (certified) | candidate_pairs | + mnn scoring | + ransac scoring | "
-          "pairs == per-candidate |")  # fmt: skip
-    print("|---|---:|---:|---:|---:|---|")
+    print("| case | candidate_pairs | + mnn scoring | + ransac scoring | pairs == per-candidate |")
+    print("|---|---:|---:|---:|---|")
 
     def best(call, n=5):
         call()
@@ -180,7 +167,6 @@ if "D" in part:
             for a, b in zip(pairs, alone, strict=True)
         )
         ms = (
-            best(lambda: rr.mnn_scores(q, c, centres, patch, **mnn)),  # noqa: B023
             best(lambda: rr.candidate_pairs(q, c)),  # noqa: B023
             best(lambda: rr.mnn_pair_scores(pairs, centres, patch, **mnn)),  # noqa: B023
             best(lambda: rr.ransac_pair_scores(pairs, centres, patch, **ransac), 2),  # noqa: B023

@@ -24,20 +24,25 @@ from vprflow.evaluation.rerank import (
     candidate_pairs,
     mnn_pair_scores,
     mnn_score,
-    mnn_scores,
     mutual_nearest_neighbours,
+    pair_scorer,
     patch_centres,
     ransac_inliers,
     ransac_pair_scores,
-    ransac_scores,
     rerank,
-    rerank_scores,
 )
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages.jobs import Job, run_job
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+
+
+def stage_scores(query, candidates, grid, patch, method, **options) -> np.ndarray:
+    """A query's scores as the ``matches`` and ``rerank`` stages compute them: its
+    candidates' pairs, scored by the re-ranker (its options checked first)."""
+    score = pair_scorer(method, options, grid, patch)
+    return score(candidate_pairs(query, candidates))
 
 
 def unit_rows(rng: np.random.Generator, n: int, dim: int) -> np.ndarray:
@@ -247,7 +252,7 @@ def toy_candidates(seed: int, h: int = 6, w: int = 8, dim: int = 32):
 
 def test_mnn_ranks_a_candidate_with_the_querys_patches_first_wherever_they_are():
     query, candidates = toy_candidates(0)
-    scores = rerank_scores(query, candidates, (6, 8), 14, "mnn")
+    scores = stage_scores(query, candidates, (6, 8), 14, "mnn")
     assert scores.dtype == np.float64 and scores.shape == (3,)
     assert scores[1] == 48  # every patch, scrambled or not, is its own mutual match
     assert scores.argmax() == 1
@@ -257,34 +262,34 @@ def test_mnn_ranks_a_candidate_with_the_querys_patches_first_wherever_they_are()
 def test_ransac_ranks_the_shifted_view_of_the_query_above_a_scrambled_one():
     pytest.importorskip("cv2")
     query, candidates = toy_candidates(0)
-    scores = rerank_scores(query, candidates, (6, 8), 14, "ransac", threshold=0.5)
+    scores = stage_scores(query, candidates, (6, 8), 14, "ransac", threshold=0.5)
     assert scores.argmax() == 2
     assert scores[2] == 6 * 7  # the shifted columns fit a translation exactly
     assert scores[1] < 10
 
 
-def test_rerank_scores_min_similarity_drops_weak_pairs_before_counting():
+def test_min_similarity_drops_weak_pairs_before_counting():
     query, candidates = toy_candidates(1)
-    everything = rerank_scores(query, candidates, (6, 8), 14, "mnn")
-    strong = rerank_scores(query, candidates, (6, 8), 14, "mnn", min_similarity=0.99)
+    everything = stage_scores(query, candidates, (6, 8), 14, "mnn")
+    strong = stage_scores(query, candidates, (6, 8), 14, "mnn", min_similarity=0.99)
     np.testing.assert_array_equal(strong, [0, 48, 42])
     assert (everything >= strong).all()
 
 
-def test_rerank_scores_takes_each_methods_defaults_from_its_registry_entry(monkeypatch):
+def test_the_scorer_takes_each_methods_defaults_from_its_registry_entry(monkeypatch):
     # The registry's Reranker entry is the one place of a kind's defaults: changing it
-    # changes what rerank_scores does when the option is left out.
+    # changes what the scorer does when the option is left out.
     query, candidates = toy_candidates(0)
-    counted = rerank_scores(query, candidates, (6, 8), 14, "mnn")
-    summed = rerank_scores(query, candidates, (6, 8), 14, "mnn", weighting="similarity")
+    counted = stage_scores(query, candidates, (6, 8), 14, "mnn")
+    summed = stage_scores(query, candidates, (6, 8), 14, "mnn", weighting="similarity")
     assert not np.array_equal(counted, summed)
     entry = registry.RERANKERS["mnn"]
     changed = dataclasses.replace(entry, defaults={**entry.defaults, "weighting": "similarity"})
     monkeypatch.setitem(registry.RERANKERS, "mnn", changed)
-    np.testing.assert_array_equal(rerank_scores(query, candidates, (6, 8), 14, "mnn"), summed)
+    np.testing.assert_array_equal(stage_scores(query, candidates, (6, 8), 14, "mnn"), summed)
 
 
-def test_rerank_scores_runs_each_kinds_score_function_with_its_settings():
+def test_the_scorer_runs_each_kinds_score_function_with_its_settings():
     pytest.importorskip("cv2")
     query, candidates = toy_candidates(3)
     centres = patch_centres(6, 8, 14)
@@ -293,13 +298,13 @@ def test_rerank_scores_runs_each_kinds_score_function_with_its_settings():
         pairs = candidate_pairs(torch.as_tensor(query), torch.as_tensor(candidates))
         direct = registry.resolve(reranker.scores)(pairs, centres, 14, **settings)
         np.testing.assert_array_equal(
-            rerank_scores(query, candidates, (6, 8), 14, name), direct, err_msg=name
+            stage_scores(query, candidates, (6, 8), 14, name), direct, err_msg=name
         )
 
 
-def test_rerank_scores_of_no_candidates_are_empty():
+def test_the_scores_of_no_candidates_are_empty():
     query, _ = toy_candidates(2)
-    scores = rerank_scores(query, np.zeros((0, 48, 32), np.float32), (6, 8), 14, "ransac")
+    scores = stage_scores(query, np.zeros((0, 48, 32), np.float32), (6, 8), 14, "ransac")
     assert scores.shape == (0,) and scores.dtype == np.float64
 
 
@@ -356,29 +361,13 @@ def test_rerank_of_the_top_k_appends_the_rest_of_the_retrieval_in_its_order():
             lambda: ransac_inliers(np.zeros((5, 2)), np.zeros((5, 2)), 1.0, confidence=1),
             "confidence",
         ),
-        (
-            lambda: rerank_scores(np.zeros((6, 4)), np.zeros((2, 6, 4)), (2, 3), 14, "sift"),
-            "method",
-        ),
-        (
-            lambda: rerank_scores(np.zeros((6, 4)), np.zeros((6, 4)), (2, 3), 14, "mnn"),
-            "candidates_features",
-        ),
-        (
-            lambda: rerank_scores(np.zeros(6), np.zeros((2, 6, 4)), (2, 3), 14, "mnn"),
-            "query_features",
-        ),
-        (lambda: rerank_scores(np.zeros((6, 4)), np.zeros((2, 6, 4)), (3, 3), 14, "mnn"), "grid"),
-        (
-            lambda: rerank_scores(np.zeros((6, 4)), np.zeros((2, 6, 5)), (2, 3), 14, "mnn"),
-            "dimension",
-        ),
-        (
-            lambda: rerank_scores(
-                np.zeros((6, 4)), np.zeros((0, 6, 4)), (2, 3), 14, "ransac", threshold=-1
-            ),
-            "threshold",
-        ),
+        (lambda: pair_scorer("sift", {}, (2, 3), 14), "method"),
+        (lambda: candidate_pairs(torch.zeros(6, 4), torch.zeros(6, 4)), "candidates"),
+        (lambda: candidate_pairs(torch.zeros(6, 4), torch.zeros(2, 6, 4, 1)), "candidates"),
+        (lambda: candidate_pairs(torch.zeros(6), torch.zeros(2, 6, 4)), "query"),
+        (lambda: candidate_pairs(torch.zeros(6, 4), torch.zeros(2, 6, 5)), "dimension"),
+        (lambda: pair_scorer("ransac", {"threshold": -1}, (2, 3), 14), "threshold"),
+        (lambda: pair_scorer("mnn", {}, (2, 0), 14), "grid_w"),
         (lambda: rerank(np.array([1, 2]), np.array([1.0, 2.0, 3.0])), "scores"),
         (lambda: rerank(np.array([[1, 2]]), np.array([[1.0, 2.0]])), "ranking_row"),
         (lambda: rerank(np.array([1, -2]), np.array([1.0, 2.0])), "ranking_row"),
@@ -390,11 +379,9 @@ def test_bad_arguments_raise_value_errors_that_name_them(call, named):
         call()
 
 
-def test_rerank_scores_rejects_options_of_the_other_method_by_name():
+def test_the_scorer_rejects_options_of_the_other_method_by_name():
     with pytest.raises(TypeError, match="weighting"):
-        rerank_scores(
-            np.zeros((6, 4)), np.zeros((1, 6, 4)), (2, 3), 14, "ransac", weighting="count"
-        )
+        pair_scorer("ransac", {"weighting": "count"}, (2, 3), 14)
 
 
 # ------------------------------------------------------------ batched scores = per-candidate scores
@@ -474,7 +461,7 @@ def test_batched_scores_equal_the_per_candidate_scores(method, options, seed):
     query, candidates = hard_candidates(seed, 17)
     expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **options)
     np.testing.assert_array_equal(
-        rerank_scores(query, candidates, (5, 6), 14, method, **options), expected
+        stage_scores(query, candidates, (5, 6), 14, method, **options), expected
     )
 
 
@@ -484,24 +471,24 @@ def test_batched_scores_of_zero_one_and_few_candidates(method, k):
     if method == "ransac":
         pytest.importorskip("cv2")
     query, candidates = hard_candidates(4, k)
-    scores = rerank_scores(query, candidates, (5, 6), 14, method)
+    scores = stage_scores(query, candidates, (5, 6), 14, method)
     assert scores.shape == (k,) and scores.dtype == np.float64
     np.testing.assert_array_equal(
         scores, per_candidate_scores(query, candidates, (5, 6), 14, method)
     )
 
 
-def test_batched_pairs_equal_the_float64_double_loop_with_ties():
+def test_candidate_pairs_equal_the_float64_double_loop_with_ties():
     # Not the 1e-7 nudges (kind 1): float32 and float64 may order those either way.
     query, candidates = hard_candidates(5, 10)
     candidates = candidates[[c for c in range(10) if c % 5 != 1]]
-    for candidate, (i, j, similarity, kept) in zip(
-        candidates, rerank_module._batched_pairs(query, candidates, None), strict=True
+    for candidate, (i, j, similarity) in zip(
+        candidates, candidate_pairs(query, candidates), strict=True
     ):
         expected = direct_mnn(query, candidate)
         assert list(zip(i.tolist(), j.tolist(), strict=True)) == [(a, b) for a, b, _ in expected]
         np.testing.assert_allclose(similarity, [v for _, _, v in expected], rtol=0, atol=1e-6)
-        assert kept.all() and i.dtype == j.dtype == np.int64
+        assert i.dtype == j.dtype == np.int64
 
 
 # ------------------------------------------------------------ pairs once, scored by each re-ranker
@@ -523,11 +510,9 @@ def test_candidate_pairs_are_each_candidates_mutual_nearest_neighbours(seed):
 
 
 def test_candidate_pairs_off_the_cpu_take_each_candidates_own_product(monkeypatch):
-    # A device whose batched product may round differently: no certificate (it proves
-    # pairs, not their values), the per-candidate products; the same pairs on the CPU.
+    # A device whose batched product may round differently: the per-candidate products,
+    # so the same pairs and similarities as on the CPU.
     monkeypatch.setattr(rerank_module, "_same_bits", lambda device: False)
-    monkeypatch.setattr(rerank_module, "_fast_bf16", lambda device: True)
-    monkeypatch.setattr(rerank_module, "_BF16_CANDIDATES", True)
     query, candidates = hard_candidates(12, 9, dim=32)
     for candidate, pairs in zip(candidates, candidate_pairs(query, candidates), strict=True):
         for got, want in zip(pairs, mutual_nearest_neighbours(query, candidate), strict=True):
@@ -538,9 +523,8 @@ def test_candidate_pairs_off_the_cpu_take_each_candidates_own_product(monkeypatc
 @pytest.mark.parametrize("seed", range(3))
 def test_scores_from_stored_pairs_equal_the_scores_from_features(method, options, seed):
     """The pair scorers over candidate_pairs (as the matches store holds them: int32
-    patch indices) give mnn_scores' and ransac_scores' scores and the per-candidate ones,
-    bit for bit, whatever min_similarity keeps (ties and a threshold on a pair's value
-    included)."""
+    patch indices) give the per-candidate scores bit for bit, whatever min_similarity
+    keeps (ties and a threshold on a pair's value included)."""
     if method == "ransac":
         pytest.importorskip("cv2")
     query, candidates = hard_candidates(seed, 17)
@@ -551,18 +535,13 @@ def test_scores_from_stored_pairs_equal_the_scores_from_features(method, options
         exact = next(s for _, _, s in pairs if len(s))
         settings["min_similarity"] = float(exact[0])
     stored = [(i.astype(np.int32), j.astype(np.int32), s.copy()) for i, j, s in pairs]
-    scorer, from_features = {
-        "mnn": (mnn_pair_scores, mnn_scores),
-        "ransac": (ransac_pair_scores, ransac_scores),
-    }[method]
+    scorer = {"mnn": mnn_pair_scores, "ransac": ransac_pair_scores}[method]
     expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **settings)
-    q, c = torch.as_tensor(query), torch.as_tensor(candidates)
-    np.testing.assert_array_equal(from_features(q, c, centres, 14, **settings), expected)
     np.testing.assert_array_equal(scorer(stored, centres, 14, **settings), expected)
     np.testing.assert_array_equal(scorer(pairs, centres, 14, **settings), expected)
     options = {k: v for k, v in settings.items() if k in registry.reranker(method).options}
     np.testing.assert_array_equal(
-        rerank_scores(query, candidates, (5, 6), 14, method, **options), expected
+        stage_scores(query, candidates, (5, 6), 14, method, **options), expected
     )
 
 
@@ -629,7 +608,8 @@ def test_the_batched_product_is_the_per_candidate_product_bit_for_bit():
     for patches, dim in ((30, 12), (300, 104), (256, 768)):
         query = torch.from_numpy(unit_rows(rng, patches, dim))
         candidates = torch.from_numpy(unit_rows(rng, 7 * patches, dim)).view(7, patches, dim)
-        batched, _ = rerank_module._product(query, candidates, torch.float32)
+        # The product candidate_pairs takes.
+        batched = (query @ candidates.reshape(-1, dim).T).view(patches, 7, patches)
         for c in range(7):
             assert torch.equal(batched[:, c], query @ candidates[c].T)
 
@@ -639,70 +619,17 @@ def test_scores_are_the_same_over_several_products(monkeypatch, method):
     if method == "ransac":
         pytest.importorskip("cv2")
     query, candidates = hard_candidates(7, 11)
-    whole = rerank_scores(query, candidates, (5, 6), 14, method)
+    whole = stage_scores(query, candidates, (5, 6), 14, method)
     # Two candidates a product: six products, the last with one candidate.
     monkeypatch.setattr(rerank_module, "_PRODUCT_ELEMENTS", 2 * 30 * 30)
-    np.testing.assert_array_equal(rerank_scores(query, candidates, (5, 6), 14, method), whole)
-
-
-@pytest.mark.parametrize(("method", "options"), SETTINGS)
-def test_bf16_candidates_certify_only_what_float32_decides(monkeypatch, method, options):
-    if method == "ransac":
-        pytest.importorskip("cv2")
-    monkeypatch.setattr(rerank_module, "_fast_bf16", lambda device: True)
-    monkeypatch.setattr(rerank_module, "_BF16_CANDIDATES", True)
-    for duplicates in (True, False):
-        query, candidates = hard_candidates(8, 15, dim=32, duplicates=duplicates)
-        expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **options)
-        np.testing.assert_array_equal(
-            rerank_scores(query, candidates, (5, 6), 14, method, **options), expected
-        )
-    # Without duplicates the near-copies (and the copy) are certified from bf16 alone.
-    pairs = rerank_module._batched_pairs(query, candidates, options.get("min_similarity"))
-    assert sum(similarity is None for _, _, similarity, _ in pairs) >= 3
-
-
-@pytest.mark.parametrize("bf16", [False, True])
-@pytest.mark.parametrize(("method", "options"), SETTINGS)
-def test_certified_float32_products_where_bits_may_differ(monkeypatch, method, options, bf16):
-    """A device whose batched product may round differently (CUDA): float32 candidates
-    are certified against the bound, the rest recomputed per candidate, and the scores are
-    still the per-candidate ones (near-ties and duplicates included)."""
-    if method == "ransac":
-        pytest.importorskip("cv2")
-    monkeypatch.setattr(rerank_module, "_same_bits", lambda device: False)
-    monkeypatch.setattr(rerank_module, "_fast_bf16", lambda device: True)
-    monkeypatch.setattr(rerank_module, "_BF16_CANDIDATES", bf16)
-    for duplicates in (True, False):
-        query, candidates = hard_candidates(11, 15, dim=32, duplicates=duplicates)
-        expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **options)
-        np.testing.assert_array_equal(
-            rerank_scores(query, candidates, (5, 6), 14, method, **options), expected
-        )
-
-
-def test_bf16_certificate_accepts_clear_pairs_and_refuses_near_ties():
-    rng = np.random.default_rng(9)
-    query = torch.from_numpy(unit_rows(rng, 30, 64))
-    clear = query[torch.randperm(30, generator=torch.Generator().manual_seed(0))]
-    tied = query.clone()
-    tied[1] = tied[0] + 1e-4  # query row 0 has two candidate rows within the bound
-    similarity, error = rerank_module._product(query, torch.stack([clear, tied]), torch.bfloat16)
-    _, mutual, certain = rerank_module._certified(similarity, error, None)
-    assert certain.tolist() == [True, False]
-    assert mutual[:, 0].all()  # the permuted copy: every patch is its own mutual pair
-    # A pair whose similarity is within the bound of min_similarity is left undecided.
-    _, _, certain = rerank_module._certified(similarity[:, :1], error[:1], 1.0)
-    assert not certain[0]
-    _, _, certain = rerank_module._certified(similarity[:, :1], error[:1], 0.5)
-    assert certain[0]
+    np.testing.assert_array_equal(stage_scores(query, candidates, (5, 6), 14, method), whole)
 
 
 def test_non_finite_descriptors_score_as_the_per_candidate_path():
     query, candidates = hard_candidates(10, 4)
     candidates[2, 3, 0] = np.nan
     np.testing.assert_array_equal(
-        rerank_scores(query, candidates, (5, 6), 14, "mnn"),
+        stage_scores(query, candidates, (5, 6), 14, "mnn"),
         per_candidate_scores(query, candidates, (5, 6), 14, "mnn"),
     )
 

@@ -17,9 +17,7 @@ import torch
 from vprflow.aggregation.snsm import (
     normalize_tokens,
     snsm_descriptor,
-    snsm_descriptors,
     snsm_grid_shape,
-    snsm_length,
     support_map,
     window_grid,
 )
@@ -219,7 +217,6 @@ def test_single_window_has_no_neighbours():
 )
 def test_descriptor_length(h, w, u, win):
     expected = ((h * u) // win) * ((w * u) // win)
-    assert snsm_length(h, w, u, win) == expected
     assert snsm_grid_shape(h, w, u, win) == ((h * u) // win, (w * u) // win)
     if h * w * u * u <= 28 * 28 * 16:
         x = np.random.default_rng(1).standard_normal((h, w, 2)).astype(np.float32)
@@ -227,18 +224,8 @@ def test_descriptor_length(h, w, u, win):
 
 
 def test_published_length_3136():
-    assert snsm_length(28, 28) == 3136
-
-
-def test_batched_matches_single():
-    rng = np.random.default_rng(11)
-    batch = rng.standard_normal((3, 4, 5, 6)).astype(np.float32)
-    out = snsm_descriptors(batch, 2, 2, "all8", "neg_l2", "token")
-    assert out.shape == (3, snsm_length(4, 5, 2, 2)) and out.dtype == np.float32
-    for i in range(3):
-        np.testing.assert_array_equal(
-            out[i], snsm_descriptor(batch[i], 2, 2, "all8", "neg_l2", "token")
-        )
+    rows, cols = snsm_grid_shape(28, 28)
+    assert rows * cols == 3136
 
 
 def test_support_map_is_symmetric_sum():
@@ -276,5 +263,3 @@ def test_invalid_settings_name_the_value(kwargs, bad):
 def test_rejects_wrong_rank():
     with pytest.raises(ValueError, match="h, w, D"):
         snsm_descriptor(np.zeros((4, 4), dtype=np.float32))
-    with pytest.raises(ValueError, match="B, h, w, D"):
-        snsm_descriptors(np.zeros((4, 4, 2), dtype=np.float32))

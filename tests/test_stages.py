@@ -301,8 +301,8 @@ def test_the_matches_store_holds_each_candidates_mutual_pairs_and_rerank_scores_
     """segvlad+ransac (top 100 of 6 references, min_similarity 0.5): the matches store's
     candidates are the retrieval's, each candidate's pairs all those of
     mutual_nearest_neighbours on the features store (min_similarity acts when scoring),
-    and the rerank store's scores those of ransac_scores on the features."""
-    from vprflow.evaluation.rerank import mutual_nearest_neighbours, patch_centres, ransac_scores
+    and the rerank store's scores those of ransac_inliers over the pairs it keeps."""
+    from vprflow.evaluation.rerank import mutual_nearest_neighbours, patch_centres, ransac_inliers
     from vprflow.stages.matches import Matches
 
     plan, runner, _, _ = pipeline
@@ -318,18 +318,20 @@ def test_the_matches_store_holds_each_candidates_mutual_pairs_and_rerank_scores_
     settings = registry.reranker("ransac").settings(rerank.record["params"]["options"])
     assert settings["min_similarity"] == 0.5
     centres = patch_centres(*matches.grid, matches.patch)
+    pixels = settings["threshold"] * matches.patch
+    fit = {k: settings[k] for k in ("seed", "model", "max_iters", "confidence")}
     for q in range(N_PLACES):
         candidates = matches.candidates(q)
         np.testing.assert_array_equal(candidates, matches.retrieval_ranking[q, :N_PLACES])
         pairs = matches.pairs(q)
         assert len(pairs) == len(candidates)
-        for r, stored in zip(candidates, pairs, strict=True):
-            direct = mutual_nearest_neighbours(patches[N_PLACES + q], patches[r])
+        scores = np.zeros(len(candidates))
+        for k, (r, stored) in enumerate(zip(candidates, pairs, strict=True)):
+            i, j, similarity = direct = mutual_nearest_neighbours(patches[N_PLACES + q], patches[r])
             for got, want in zip(stored, direct, strict=True):
                 np.testing.assert_array_equal(got, want)
-        scores = ransac_scores(
-            patches[N_PLACES + q], patches[candidates], centres, matches.patch, **settings
-        )
+            kept = similarity >= settings["min_similarity"]
+            scores[k] = ransac_inliers(centres[i[kept]], centres[j[kept]], pixels, **fit)
         row = np.asarray(reranked["ranking"][q])
         order = np.argsort(-scores, kind="stable")
         np.testing.assert_array_equal(row[: len(candidates)], candidates[order])

@@ -115,12 +115,6 @@ def snsm_grid_shape(h: int, w: int, upscale: int = 4, window: int = 2) -> tuple[
     return h * upscale // window, w * upscale // window
 
 
-def snsm_length(h: int, w: int, upscale: int = 4, window: int = 2) -> int:
-    """Descriptor length ``((h*u)/window) * ((w*u)/window)``; 3136 for 28 x 28, u=4, w=2."""
-    rows, cols = snsm_grid_shape(h, w, upscale, window)
-    return rows * cols
-
-
 def _element_tokens(cells: int, upscale: int, window: int) -> np.ndarray:
     """``[cells, window]`` token index along one axis of every window element."""
     return (np.arange(cells)[:, None] * window + np.arange(window)[None, :]) // upscale
@@ -308,27 +302,3 @@ def snsm_descriptor(
     normalised = normalize_tokens(x, normalization).astype(np.float64)
     support = _support_from_tokens(normalised, upscale, window, neighbourhood, similarity)
     return support.astype(np.float32).reshape(-1)
-
-
-def snsm_descriptors(
-    tokens: np.ndarray,
-    upscale: int = 4,
-    window: int = 2,
-    neighbourhood: str = "diagonal4",
-    similarity: str = "cosine",
-    normalization: str = "channel",
-) -> np.ndarray:
-    """SNSM descriptors of a batch ``[B, h, w, D]`` -> float32 ``[B, snsm_length(h, w, u, w)]``.
-
-    Images are processed one at a time so peak memory stays at one image's window grid.
-    """
-    x = np.asarray(tokens)
-    if x.ndim != 4:
-        raise ValueError(f"tokens must be [B, h, w, D], got shape {x.shape}")
-    length = snsm_length(x.shape[1], x.shape[2], upscale, window)
-    out = np.empty((x.shape[0], length), dtype=np.float32)
-    for index in range(x.shape[0]):
-        out[index] = snsm_descriptor(
-            x[index], upscale, window, neighbourhood, similarity, normalization
-        )
-    return out

@@ -851,9 +851,9 @@ class Reranker:
     **settings) -> scores [K] float64`` (higher is better), ``pairs`` one ``(i [M], j
     [M], similarity [M] float32)`` per candidate: its mutual nearest neighbour patch
     pairs with the query, as :func:`vprflow.evaluation.rerank.candidate_pairs` finds them
-    and the ``matches`` stage stores them (the ``rerank`` stage and
-    :func:`vprflow.evaluation.rerank.rerank_scores` call it; an empty ``pairs`` checks
-    the settings alone). ``defaults``: the entry's keys that shape its scores, with their defaults
+    and the ``matches`` stage stores them (:func:`vprflow.evaluation.rerank.pair_scorer`
+    binds it for the ``rerank`` stage; an empty ``pairs`` checks the settings alone).
+    ``defaults``: the entry's keys that shape its scores, with their defaults
     (``load_schema`` writes them into the schema, so the config's defaults are these);
     the rest of the entry, ``features`` and ``top_k``, reach the key through the plan.
     ``fixed``: the function's further settings, which the config leaves at these values

@@ -19,8 +19,8 @@ options, defaults and score kind):
     mutual pairs, placed at their patch centres (:func:`patch_centres`), are inliers of
     one robustly fitted homography.
 
-:func:`rerank_scores` does both steps for one query; :func:`mnn_scores` and
-:func:`ransac_scores` take the features too (the same scores, bit for bit).
+The ``rerank`` stage scores a query's stored pairs with :func:`pair_scorer`, the entry's
+score function with its settings.
 
 Published variants and how each function reproduces them
 --------------------------------------------------------
@@ -70,21 +70,18 @@ EffoVPR (Tzachor et al., ICLR 2025, arXiv:2405.18065), zero-shot re-ranking:
   equality. ``weighting="similarity"`` (the sum of the kept pairs' similarities) is a
   vprflow variant, not published.
 
-Batched, and the same scores
+Batched, and the same pairs
 ---------------------------
-:func:`mnn_scores` and :func:`ransac_scores` take a query's K candidates in one float32
-product ``[P, D] x [D, K Q]`` (or a few, :data:`_PRODUCT_ELEMENTS` similarities each), not
-K products: :func:`_batched_pairs`. The scores are those of :func:`mutual_nearest_neighbours`
-run per candidate (the code before issue 33), bit for bit: on CPUs the batched product's
-elements are the per-candidate product's bits (:func:`_same_bits`) and the pairs are read
-by the same ``argmax`` rule; elsewhere each candidate's pairs are certified from an error
-bound (:func:`_product`, :func:`_certified`) or recomputed per candidate. bf16 products
-are implemented with the same certificate (``_BF16_CANDIDATES``) but off: their bound (about
-0.008 on unit rows) certified at most a quarter of the benchmark's candidates, so they cost
-more than they save. ``benchmarks/bench_rerank.py`` times before, after and both floors.
-:func:`candidate_pairs` (the ``matches`` stage's) needs every pair's float32 similarity
-whatever ``min_similarity`` later keeps, so off the CPU it takes the per-candidate
-products, not the certificate (which proves pairs, not their values).
+:func:`candidate_pairs` takes a query's K candidates in one float32 product ``[P, D] x
+[D, K Q]`` (or a few, :data:`_PRODUCT_ELEMENTS` similarities each), not K products, where
+that gives the same pairs and similarities as :func:`mutual_nearest_neighbours` run per
+candidate, bit for bit: on CPUs the batched product's elements are the per-candidate
+product's bits (:func:`_same_bits`) and the pairs are read by the same ``argmax`` rule
+(:func:`_direct_pairs`). cuBLAS picks its kernel (and split-K) by shape, so on other
+devices each candidate takes its own product: the stored similarities are the
+per-candidate product's whatever ``min_similarity`` later keeps.
+``benchmarks/bench_rerank.py`` times the batched scores against one product per candidate
+and against the products alone.
 
 Nothing here keeps state between calls; the RANSAC sampler is seeded per call. torch is
 imported where it is used: the config schema lists :data:`WEIGHTINGS` from here, and
@@ -93,7 +90,9 @@ validating a config must not import torch.
 
 from __future__ import annotations
 
+import functools
 import math
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -337,180 +336,10 @@ def ransac_inliers(
     return int(np.count_nonzero(error <= threshold))
 
 
-# Elements of one batched product [P, k * Q]: about 64 MiB in float32 (plus the bf16 product
-# and its top-2 reductions), so the G/14 grid at 322 px (529 patches) takes 59 candidates
-# a product, DAISY's 300-patch grid all 100 of a K = 100 query.
+# Elements of one batched product [P, k * Q]: about 64 MiB in float32, so the G/14 grid at
+# 322 px (529 patches) takes 59 candidates a product, DAISY's 300-patch grid all 100 of a
+# K = 100 query.
 _PRODUCT_ELEMENTS = 1 << 24
-_UNIT32 = 2.0**-24
-# Off by default: the bf16 bound is about 0.008 on unit rows (bf16 keeps 8 significant
-# bits: 0.0045 input and 0.0039 output rounding), wider than most top-2 gaps between
-# unrelated patches (0.01-0.03 at D = 104-1536), so on the benchmark's inputs it certified
-# 0-25% of the candidates, and its product plus two top-2 passes cost more than the
-# float32 products they saved (benchmarks/README.md, re-ranking).
-_BF16_CANDIDATES = False
-
-
-def _fast_bf16(device: torch.device) -> bool:
-    """Whether bf16 products beat float32 ones on ``device``: on CUDA, and on CPUs whose
-    instruction set multiplies bf16 natively (AVX512-BF16 or AMX; elsewhere oneDNN
-    emulates them, slower than float32)."""
-    if device.type == "cuda":
-        return True
-    if device.type != "cpu":
-        return False
-    try:
-        with open("/proc/cpuinfo", encoding="utf-8") as info:
-            flags = info.read()
-    except OSError:
-        return False
-    return "avx512_bf16" in flags or "amx_bf16" in flags
-
-
-def _float32_matmul_unit(device: torch.device) -> float:
-    """Unit roundoff of the inputs of a float32 GEMM under torch's matmul precision setting
-    (TF32 or bf16 passes round them; "highest" does not)."""
-    import torch
-
-    precision = torch.get_float32_matmul_precision()
-    if device.type == "cuda" and precision == "highest" and torch.backends.cuda.matmul.allow_tf32:
-        precision = "high"
-    return {"highest": 0.0, "high": 2.0**-11}.get(precision, 2.0**-8)
-
-
-def _product(query: torch.Tensor, candidates: torch.Tensor, low: torch.dtype, bound: bool = True):
-    """``(similarity [P, k, Q] float32, error [k])`` from one product of ``query [P, D]``
-    with the ``k`` candidates ``[k, Q, D]`` (float32, on one device) computed in ``low``
-    precision (``error`` None for a float32 product not ``bound``): ``error[c]`` bounds
-    ``|similarity - s|`` for every pair of candidate ``c``,
-    ``s`` being what the per-candidate float32 product of :func:`mutual_nearest_neighbours`
-    gives for it. The sum, after Higham's bounds (``gamma = n u / (1 - n u)``, ``u =
-    2^-24``, ``n = D``), of:
-
-    - this product's input rounding (``low`` = bf16): ``|q_lo| |c_hi| + |q_hi| |c_lo| +
-      |q_lo| |c_lo|``, with ``q_hi = bf16(q)``, ``q_lo = q - q_hi`` (exact in float32)
-      and each norm the largest over the rows of the query or of the candidate;
-    - its float32 accumulation in any order, ``2 gamma |q_hi| |c_hi|`` (doubled for
-      round-toward-zero accumulators such as tensor cores), and on CPUs the rounding of
-      its bf16 output, ``2^-9`` of the largest ``|q_hi . c_hi|``;
-    - the per-candidate float32 product's own error, ``(2 gamma + 2 u_in + u_in^2) |q| |c|``,
-      ``u_in`` the input rounding of torch's float32 matmul precision (0 at "highest");
-      the same for this product when ``low`` is float32;
-    - 2% and ``8 u |q| |c| + D 2^-140`` for the float32 arithmetic of the bound and of
-      the thresholds compared against it, and for underflow.
-
-    A candidate whose bound is not finite or whose ``|q| |c|`` exceeds ``2^100`` (where the
-    product could overflow) gets an infinite bound: never certified.
-
-    On 1-norm rows (the stores' default) at D = 104 to 1536 that is about 0.004 with bf16
-    and 1e-5 to 2e-4 with float32 candidates."""
-    import torch
-
-    n_p, dim = query.shape
-    k, n_q = candidates.shape[:2]
-    flat = candidates.reshape(k * n_q, dim)
-    if low == torch.float32 and not bound:
-        return (query @ flat.T).view(n_p, k, n_q), None
-    gamma = dim * _UNIT32 / (1 - dim * _UNIT32)
-    u_in = _float32_matmul_unit(query.device)
-    q_norm = torch.linalg.vector_norm(query, dim=1).max()
-    c_norm = torch.linalg.vector_norm(flat, dim=1).view(k, n_q).amax(dim=1)
-    fp32 = (2 * gamma + 2 * u_in + u_in * u_in) * q_norm * c_norm
-    if low == torch.float32:
-        similarity = (query @ flat.T).view(n_p, k, n_q)
-        low_error = fp32
-    else:
-        q_hi, c_hi = query.to(low), flat.to(low)
-        q_hi_f, c_hi_f = q_hi.float(), c_hi.float()
-        qh = torch.linalg.vector_norm(q_hi_f, dim=1).max()
-        ql = torch.linalg.vector_norm(q_hi_f - query, dim=1).max()
-        ch = torch.linalg.vector_norm(c_hi_f, dim=1).view(k, n_q).amax(dim=1)
-        cl = torch.linalg.vector_norm(c_hi_f.sub_(flat), dim=1).view(k, n_q).amax(dim=1)
-        low_error = ql * ch + qh * cl + ql * cl + 2 * gamma * qh * ch
-        raw = None
-        if query.device.type != "cpu":
-            # CUDA writes float32 from bf16 inputs: no output rounding.
-            try:
-                raw = torch.mm(q_hi, c_hi.T, out_dtype=torch.float32)
-            except (RuntimeError, TypeError, NotImplementedError):
-                raw = None
-        if raw is None:
-            raw = q_hi @ c_hi.T
-            if raw.dtype != torch.float32:
-                low_error = low_error + torch.finfo(low).eps / 2 * qh * ch * (1 + 2 * gamma)
-        similarity = raw.float().view(n_p, k, n_q)
-    error = 1.02 * (low_error + fp32) + 8 * _UNIT32 * q_norm * c_norm + dim * 2.0**-140
-    error[~torch.isfinite(error) | (q_norm * c_norm > 2.0**100)] = math.inf
-    return similarity, error
-
-
-def _top2_gap(similarity: torch.Tensor, dim: int) -> tuple:
-    """``(max, argmax, max - second max)`` along ``dim`` (gap ``inf`` where the dimension
-    has one element; 0 where the maximum is repeated)."""
-    import torch
-
-    if similarity.shape[dim] < 2:
-        best, index = similarity.max(dim=dim)
-        return best, index, torch.full_like(best, math.inf)
-    top = similarity.topk(2, dim=dim)
-    values = top.values.movedim(dim, -1)
-    return values[..., 0], top.indices.movedim(dim, -1)[..., 0], values[..., 0] - values[..., 1]
-
-
-def _certified(similarity: torch.Tensor, error: torch.Tensor, min_similarity):
-    """Mutual pairs of a batched product and whether they are the float32 ones.
-
-    ``similarity [P, k, Q]`` within ``error [k]`` of the per-candidate float32 product
-    ``s``. Returns ``(forward [P, k], mutual [P, k], certain [k])`` on the device:
-    ``forward[i, c]`` is query patch ``i``'s most similar patch of candidate ``c`` and
-    ``mutual[i, c]`` whether the pair is mutual, both by ``similarity``; where
-    ``certain[c]``, those pairs are exactly the mutual pairs of ``s`` and (with
-    ``min_similarity``) every pair's ``s >= min_similarity`` is decided as by
-    ``similarity``.
-
-    Why that holds: with ``e = error[c]``, call a pair *possible* when its similarity is
-    within ``2 e`` of both its row's and its column's maximum. A mutual pair of ``s`` is
-    possible (its ``s`` is the largest of its row, so its similarity is at most ``2 e``
-    below the row maximum's, and likewise for the column), and a mutual pair of
-    ``similarity`` whose row and column have their second maximum more than ``2 e`` below
-    (*clear*) is a mutual pair of ``s`` with a strict margin (so ties and their
-    lower-index rule never decide it). Every possible pair outside a clear row and a
-    clear column is in an unclear row or column; so when no unclear row or column holds
-    a possible pair, the possible pairs are the clear mutual pairs of ``similarity``, and
-    the two sets of mutual pairs are equal. Unclear rows and columns are few (near-ties
-    within ``2 e``), so only they are read again. A kept pair is decided when its
-    similarity is more than ``e`` from ``min_similarity``.
-    """
-    import torch
-
-    n_p, k, n_q = similarity.shape
-    row_max, forward, row_gap = _top2_gap(similarity, 2)  # [P, k]
-    col_max, backward, col_gap = _top2_gap(similarity, 0)  # [k, Q]
-    rows = torch.arange(n_p, device=similarity.device)
-    mutual = backward.gather(1, forward.T).T == rows[:, None]
-    twice = 2 * error
-    # A non-finite input shows in its bound (made infinite by _product); NaN similarities
-    # would compare as clear gaps, so such a candidate is never certified.
-    uncertain = ~torch.isfinite(error)
-    row_floor = row_max - twice  # [P, k]
-    col_floor = col_max - twice[:, None]  # [k, Q]
-    i, c = torch.nonzero(row_gap <= twice, as_tuple=True)
-    if len(i):
-        near = similarity[i, c]  # [A, Q]
-        possible = (near >= row_floor[i, c, None]) & (near >= col_floor[c])
-        uncertain[c[possible.any(dim=1)]] = True
-    c, j = torch.nonzero(col_gap <= twice[:, None], as_tuple=True)
-    if len(j):
-        near = similarity[:, c, j]  # [P, A]
-        possible = (near >= row_floor[:, c]) & (near >= col_floor[c, j])
-        uncertain[c[possible.any(dim=0)]] = True
-    if min_similarity is not None:
-        # float64, and widened by float32's rounding of min_similarity: numpy compares a
-        # float32 similarity with the threshold rounded to float32.
-        threshold = float(min_similarity)
-        slack = error.double() + 2.0**-23 * abs(threshold)
-        close = mutual & ((row_max.double() - threshold).abs() <= slack)
-        uncertain |= close.any(dim=0)
-    return forward, mutual, ~uncertain
 
 
 def _same_bits(device: torch.device) -> bool:
@@ -561,101 +390,59 @@ def _direct_pairs(
     return forward.T.astype(np.int64), np.ascontiguousarray(mutual.T), values.T.copy()
 
 
-def _batched_pairs(query, candidates, min_similarity, bf16: bool | None = None) -> list:
-    """The mutual nearest neighbour pairs of ``query`` ``[P, D]`` with each candidate of
-    ``candidates`` ``[K, Q, D]``, exactly as :func:`mutual_nearest_neighbours` finds them
-    one candidate at a time: ``[(i [M] int64, j [M] int64, similarity [M] float32 or None,
-    kept [M] bool)]`` per candidate, ``i`` increasing, ``kept`` = similarity ``>=
-    min_similarity`` (all when ``None``).
+def candidate_pairs(query, candidates) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Each candidate's mutual nearest neighbour pairs with ``query`` ``[P, D]``, exactly as
+    :func:`mutual_nearest_neighbours` finds them one candidate at a time, on any device:
+    ``[(i [M] int64, j [M] int64, similarity [M] float32)]`` per candidate of
+    ``candidates`` ``[K, Q, D]`` (moved to ``query``'s device), ``i`` increasing.
 
-    One float32 product per group of candidates (up to :data:`_PRODUCT_ELEMENTS`
-    similarities) on ``query``'s device instead of one per candidate. Where its values are
-    the per-candidate product's bit for bit (:func:`_same_bits`), the pairs are read from
-    it by the same rule (``argmax`` both ways, the first maximal index on ties), so the
-    pairs, their similarities and every score are the same for any float32 input. On other
-    devices :func:`_certified` proves a candidate's pairs from the bound of
-    :func:`_product` (their ``similarity`` is then ``None``), and a candidate it cannot (a
-    near-tie within about 1e-4) goes through :func:`mutual_nearest_neighbours` itself.
+    What the ``matches`` stage stores, and what the re-rankers' pair scorers
+    (:func:`pair_scorer`) read: no threshold is applied (``min_similarity`` and
+    ``weighting`` act when scoring), so the pairs depend on the features alone.
 
-    ``bf16`` (``None``: :data:`_BF16_CANDIDATES`, and only where :func:`_fast_bf16`):
-    first one bf16 product per group, whose pairs are taken only for the candidates
-    :func:`_certified` proves (``similarity`` ``None``); the rest go on as above. Pass
-    ``bf16=False`` where the similarities are needed; on a device without
-    :func:`_same_bits` they come from the per-candidate product. Inputs other than
-    float32 take :func:`mutual_nearest_neighbours` per candidate.
+    Where a batched product's elements are the per-candidate product's bits
+    (:func:`_same_bits`: on CPUs), float32 inputs take one product per group of candidates
+    (up to :data:`_PRODUCT_ELEMENTS` similarities) and read the pairs from it by the same
+    rule (:func:`_direct_pairs`); elsewhere, and for other dtypes, each candidate takes
+    its own product.
     """
     import torch
 
     q = _as_matrix(query, "query")
     stack = torch.as_tensor(candidates)
-    n_k = stack.shape[0]
+    if stack.ndim != 3 or not stack.is_floating_point():
+        raise ValueError(
+            "candidates must be [K, Q, D] floating-point patch descriptors, got shape "
+            f"{tuple(stack.shape)} of {stack.dtype}"
+        )
+    if stack.shape[2] != q.shape[1]:
+        raise ValueError(
+            f"candidates have descriptors of dimension {stack.shape[2]}, query {q.shape[1]}"
+        )
+    n_k, n_q = stack.shape[:2]
+    n_p, dim = q.shape
     found: list = [None] * n_k
     float32 = q.dtype == torch.float32 and stack.dtype == torch.float32
-    if float32 and q.shape[0] > 0 and min(stack.shape) > 0:
+    if float32 and _same_bits(q.device) and n_p > 0 and n_q > 0 and dim > 0:
         stack = stack.to(q.device)
-        per_product = max(1, _PRODUCT_ELEMENTS // (q.shape[0] * stack.shape[1]))
-        use_bf16 = (_BF16_CANDIDATES if bf16 is None else bf16) and _fast_bf16(q.device)
-        products = [torch.bfloat16] if use_bf16 else []
-        if _same_bits(q.device) or bf16 is not False:
-            products.append(torch.float32)
-        pending = list(range(n_k))
-        for low in products:
-            direct = low == torch.float32 and _same_bits(q.device)
-            left = []
-            for start in range(0, len(pending), per_product):
-                group = pending[start : start + per_product]
-                index = torch.tensor(group, device=q.device)
-                chosen = stack if len(group) == n_k else stack[index]
-                similarity, error = _product(q, chosen, low, bound=not direct)
-                if direct:
-                    # The product's thread budget (run_stage sets torch's to the rule's).
-                    forward, mutual, values = _direct_pairs(
-                        similarity.numpy(), torch.get_num_threads()
-                    )
-                    certain = np.ones(len(group), dtype=bool)
-                else:
-                    forward, mutual, certain = _certified(similarity, error, min_similarity)
-                    values = similarity.gather(2, forward[:, :, None])[:, :, 0]
-                    # One transfer of [k, P] rows, then numpy per candidate: a loop of small
-                    # torch operations is what slowed 10-20x under load.
-                    forward = forward.T.contiguous().cpu().numpy().astype(np.int64)
-                    mutual = mutual.T.contiguous().cpu().numpy()
-                    values = values.T.contiguous().cpu().numpy()
-                    certain = certain.cpu().numpy()
-                for c, k in enumerate(group):
-                    if not certain[c]:
-                        left.append(k)
-                        continue
-                    i = np.flatnonzero(mutual[c])
-                    kept = _kept(values[c, i], min_similarity)
-                    found[k] = (i, forward[c, i], values[c, i] if direct else None, kept)
-            pending = left
+        per_product = max(1, _PRODUCT_ELEMENTS // (n_p * n_q))
+        for start in range(0, n_k, per_product):
+            group = stack[start : start + per_product]
+            similarity = (q @ group.reshape(-1, dim).T).view(n_p, len(group), n_q)
+            # The product's thread budget (run_stage sets torch's to the rule's).
+            forward, mutual, values = _direct_pairs(similarity.numpy(), torch.get_num_threads())
+            for c in range(len(group)):
+                i = np.flatnonzero(mutual[c])
+                found[start + c] = (i, forward[c, i], values[c, i])
     for k in range(n_k):
         if found[k] is None:
-            i, j, similarity = mutual_nearest_neighbours(q, stack[k])
-            found[k] = (i, j, similarity, _kept(similarity, min_similarity))
+            found[k] = mutual_nearest_neighbours(q, stack[k])
     return found
 
 
-def candidate_pairs(query, candidates) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-    """Each candidate's mutual nearest neighbour pairs with ``query``, exactly as
-    :func:`mutual_nearest_neighbours` finds them one candidate at a time, on any device:
-    ``[(i [M] int64, j [M] int64, similarity [M] float32)]`` per candidate of
-    ``candidates`` ``[K, Q, D]``, ``i`` increasing.
-
-    What the ``matches`` stage stores, and what the re-rankers' pair scorers
-    (:func:`mnn_pair_scores`, :func:`ransac_pair_scores`) read: no threshold is applied
-    (``min_similarity`` and ``weighting`` act when scoring), and the similarities are
-    always the per-candidate float32 product's, so the pairs depend on the features
-    alone. :func:`_batched_pairs` without bf16: on CPUs its batched product (the same
-    bits); elsewhere each candidate's own product.
-    """
-    return [(i, j, s) for i, j, s, _ in _batched_pairs(query, candidates, None, bf16=False)]
-
-
 def _with_kept(pairs, min_similarity) -> list:
-    """``pairs`` (:func:`candidate_pairs`' tuples) with the mask of those kept by
-    ``min_similarity``, as :func:`_batched_pairs` gives them."""
+    """``pairs`` (:func:`candidate_pairs`' tuples) with the mask ``[M]`` of those kept by
+    ``min_similarity``."""
     found = []
     for k, (i, j, similarity) in enumerate(pairs):
         similarity = np.asarray(similarity)
@@ -668,78 +455,29 @@ def _with_kept(pairs, min_similarity) -> list:
     return found
 
 
-def _checked_inputs(query_features, candidates_features, grid, patch, device):
-    """``(query [P, D], candidates [K, Q, D], centres [P, 2])`` of :func:`rerank_scores`'
-    arguments, checked; ``query`` on ``device``."""
-    import torch
-
-    query = _as_matrix(query_features, "query_features", device)
-    candidates = torch.as_tensor(candidates_features)
-    if candidates.ndim != 3:
-        raise ValueError(
-            "candidates_features must be [K, Q, D] patch descriptors, got shape "
-            f"{tuple(candidates.shape)}"
-        )
-    if not candidates.is_floating_point():
-        raise ValueError(
-            f"candidates_features must be floating point (float32 expected), got {candidates.dtype}"
-        )
-    if len(grid) != 2:
-        raise ValueError(f"grid must be (h, w), got {grid!r}")
-    h, w = grid
-    centres = patch_centres(h, w, patch)  # also checks that h, w and patch are positive
-    if query.shape[0] != h * w or candidates.shape[1] != h * w:
-        raise ValueError(
-            f"grid {tuple(grid)} has {h * w} patches, but query_features has "
-            f"{query.shape[0]} and candidates_features {candidates.shape[1]} per image"
-        )
-    if candidates.shape[2] != query.shape[1]:
-        raise ValueError(
-            f"candidates_features has descriptors of dimension {candidates.shape[2]}, "
-            f"query_features {query.shape[1]}"
-        )
-    return query, candidates, centres
-
-
-def rerank_scores(
-    query_features,
-    candidates_features,
-    grid: tuple[int, int],
-    patch: int,
-    method: str,
-    **options,
-) -> np.ndarray:
-    """Score ``[K]`` float64 of each candidate for the query (higher is better).
-
-    ``query_features`` ``[P, D]`` and ``candidates_features`` ``[K, Q, D]``: patch
-    descriptors flattened row-major from a ``grid = (h, w)`` of ``patch``-pixel patches,
-    so ``P = Q = h * w``; float32 numpy arrays or torch tensors.
+def pair_scorer(
+    method: str, options: dict, grid: tuple[int, int], patch: int
+) -> Callable[[list], np.ndarray]:
+    """What the ``rerank`` stage scores each query's candidates with: ``pairs``
+    (:func:`candidate_pairs`' list, or a ``matches`` store's) -> scores ``[K]`` float64
+    (higher is better).
 
     ``method`` names a :data:`vprflow.core.registry.RERANKERS` entry, whose pair scorer
     (:func:`mnn_pair_scores`, :func:`ransac_pair_scores`) gets ``options`` (the keys of a
-    ``rerankers`` entry, and the entry's fixed settings) over the entry's defaults; an
-    option the method does not take is a ``TypeError`` naming it. The pairs are
-    :func:`candidate_pairs`': what the ``matches`` and ``rerank`` stages compute in two
-    steps, here in one.
-
-    ``device`` (``None``: where ``query_features`` is, the CPU for numpy): where the
-    similarity matrices are computed. The candidates are moved there together and matched
-    in groups of one product each (:func:`_batched_pairs`), so device memory holds the
-    candidates and one ``[P, k Q]`` product of about 64 MiB (:data:`_PRODUCT_ELEMENTS`).
+    ``rerankers`` entry) over the entry's defaults and its fixed settings, and the patch
+    centres of the features' ``grid = (h, w)`` of ``patch``-pixel patches. Every setting
+    is checked here, before any candidate: a bad value is a ``ValueError``, an option the
+    method does not take a ``TypeError``, each naming it.
     """
     try:
         entry = reranker(method)
     except ValueError as error:
         raise ValueError(f"method: {error}") from None
-    device = options.pop("device", None)
     settings = entry.settings(options)
-    query, candidates, centres = _checked_inputs(
-        query_features, candidates_features, grid, patch, device
-    )
+    centres = patch_centres(*grid, patch)
     score = resolve(entry.scores)
-    # No pairs first: a bad option fails by name before the (costlier) matching.
     score([], centres, patch, **settings)
-    return score(candidate_pairs(query, candidates), centres, patch, **settings)
+    return functools.partial(score, centres=centres, patch=patch, **settings)
 
 
 def _mnn(found: list, weighting: str) -> np.ndarray:
@@ -762,20 +500,6 @@ def mnn_pair_scores(
     _check_weighting(weighting)
     _check_min_similarity(min_similarity)
     return _mnn(_with_kept(pairs, min_similarity), weighting)
-
-
-def mnn_scores(
-    query, candidates, centres: np.ndarray, patch: int, *, weighting: str, min_similarity
-) -> np.ndarray:
-    """:func:`mnn_pair_scores` of each candidate ``[K, Q, D]`` for ``query`` ``[P, D]``
-    (``centres`` and ``patch`` unused), float64 ``[K]``, its pairs from
-    :func:`_batched_pairs` (one product per query; a count may take bf16 products where
-    they are on)."""
-    _check_weighting(weighting)
-    _check_min_similarity(min_similarity)
-    # "similarity" sums the float32 values themselves: bf16 candidates would not give them.
-    bf16 = None if weighting == "count" else False
-    return _mnn(_batched_pairs(query, candidates, min_similarity, bf16), weighting)
 
 
 def _ransac_options(min_similarity, threshold, model, seed, max_iters, confidence) -> dict:
@@ -813,26 +537,6 @@ def ransac_pair_scores(
     Float64 ``[K]``."""
     ransac = _ransac_options(min_similarity, threshold, model, seed, max_iters, confidence)
     found = _with_kept(pairs, min_similarity)
-    return _ransac(found, centres, float(threshold) * patch, ransac)
-
-
-def ransac_scores(
-    query,
-    candidates,
-    centres: np.ndarray,
-    patch: int,
-    *,
-    min_similarity,
-    threshold: float,
-    seed: int,
-    model: str,
-    max_iters: int,
-    confidence: float,
-) -> np.ndarray:
-    """:func:`ransac_pair_scores` of each candidate ``[K, Q, D]`` for ``query``
-    ``[P, D]``, its pairs from :func:`_batched_pairs`. Float64 ``[K]``."""
-    ransac = _ransac_options(min_similarity, threshold, model, seed, max_iters, confidence)
-    found = _batched_pairs(query, candidates, min_similarity)
     return _ransac(found, centres, float(threshold) * patch, ransac)
 
 

@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
-from vprflow.core.registry import reranker, resolve
+from vprflow.core.registry import reranker
 from vprflow.stages.base import Job
 from vprflow.stages.matches import Matches
 
@@ -34,22 +34,19 @@ def rerank_stage(job: Job) -> None:
     deep as the matches store's retrieval. ``ms_per_query`` is the re-ranking's cost: the
     matches store's matching plus this scoring; ``search_ms_per_query`` the retrieval's
     (the matches store's)."""
-    from vprflow.evaluation.rerank import patch_centres, rerank
+    from vprflow.evaluation.rerank import pair_scorer, rerank
 
     params = job.params
-    entry = reranker(params["kind"])
-    settings = entry.settings(params["options"])
-    score = resolve(entry.scores)
     matches = Matches(job.inputs["matches"])
     retrieved = matches.retrieval_ranking
     n_query = len(retrieved)
-    centres = patch_centres(*matches.grid, matches.patch)
-    score([], centres, matches.patch, **settings)  # a bad option fails even with no candidate
+    # Checks every option now: a bad one fails even with no candidate.
+    score = pair_scorer(params["kind"], params["options"], matches.grid, matches.patch)
     ranking = np.full_like(retrieved, -1)
     scores = np.zeros(retrieved.shape)  # padding (rank -1) scores 0, as in voting
 
     def scored(pairs: list) -> np.ndarray | None:
-        return score(pairs, centres, matches.patch, **settings) if pairs else None
+        return score(pairs) if pairs else None
 
     started = time.perf_counter()
     # Queries are scored on job.threads threads, a block at a time: RANSAC's fit is
@@ -74,7 +71,7 @@ def rerank_stage(job: Job) -> None:
     with stores.atomic_store(job.out, {"stage": "rerank", "record": job.record}) as group:
         stores.set_attrs(
             group,
-            score=entry.score,
+            score=reranker(params["kind"]).score,
             # What the re-ranked row costs beyond its retrieval: matching and scoring.
             ms_per_query=attrs["ms_per_query"] + ms,
             # The retrieval's own cost, for the re-ranked row's search_ms_per_query.
