@@ -8,10 +8,11 @@ import pytest
 import yaml
 from workflow_helpers import REPO
 
+from vprflow.aggregation.aggregators import AGGREGATORS
 from vprflow.core import registry
 from vprflow.core.errors import ConfigError, PlanError
 from vprflow.planning.config import validate_config
-from vprflow.planning.plan import build_plan, content_key
+from vprflow.planning.plan import RECALL_DEPTH, build_plan, content_key
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
@@ -613,7 +614,7 @@ def test_the_rerank_stage_retrieves_as_deep_as_the_recall_reads(config):
     recall = plan.get("recall", run.recall_key)
     rerank = plan.get("rerank", recall.inputs["rerank"][1])
     matches = plan.get(*rerank.inputs["matches"])
-    assert matches.record["params"]["depth"] == recall.record["params"]["top_k"] == 20
+    assert matches.record["params"]["depth"] == recall.record["params"][RECALL_DEPTH] == 20
 
 
 def test_the_rerankers_of_a_method_on_the_same_features_and_top_k_share_one_matches_store():
@@ -681,7 +682,7 @@ def test_the_stages_an_aggregator_may_need_are_planned_as_the_table_of_stages_sa
         "vocabulary",
         "pca",
     }
-    for needs in registry.AGGREGATORS["segvlad"].needs:
+    for needs in AGGREGATORS["segvlad"].needs:
         assert plan.STAGES[needs].needed is not None
     monkeypatch.setitem(plan.STAGES, "pca", replace(plan.STAGES["pca"], needed=None))
     with pytest.raises(PlanError, match="aggregator 'segvlad' needs unknown stage 'pca'"):

@@ -39,13 +39,13 @@ from vprflow.planning.fingerprints import (
 
 if TYPE_CHECKING:
     from vprflow.data.datasets import DatasetFiles
+from vprflow.aggregation.aggregators import aggregator
 from vprflow.core.registry import (
     RERANKERS,
     SEARCH_INDEXES,
     TRAINED_KINDS,
     Aggregator,
     TrainedModel,
-    aggregator,
     model_kind,
     prefixed,
     search_settings,
@@ -665,6 +665,12 @@ def _plan_pca(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef | Non
     return m.add("pca", params, dict(inputs)), _prefixed("pca", pca)
 
 
+# How deep the recall's ranking goes (its deepest Recall@N, at least 20): named "top_k"
+# in the recall record because that name is hashed into every recall store's key. In
+# the code it is the depth; `top_k` names only a re-ranker's K, the candidates it scores.
+RECALL_DEPTH = "top_k"
+
+
 def _plan_retrieval(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict, dict]:
     """What ranks the references for each query, for recall and re-ranking alike: the
     inputs (descriptors; and the segment search a per-segment method votes over), the
@@ -674,7 +680,7 @@ def _plan_retrieval(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _Stor
     params = {
         "recall_at": m.dataset["recall_at"],
         "denominator": m.dataset["denominator"],
-        "top_k": max(max(m.dataset["recall_at"]), 20),
+        RECALL_DEPTH: max(max(m.dataset["recall_at"]), 20),
     }
     columns: dict = {}
     if m.aggregator.output == "segments":
@@ -725,7 +731,7 @@ def _plan_matches(
         "top_k": entry["top_k"],
         # As deep as the recall's ranking: the rest of the retrieval follows the
         # re-ranked top K, so Recall@N beyond top_k is the retrieval's, not truncated.
-        "depth": recall_params["top_k"],
+        "depth": recall_params[RECALL_DEPTH],
     }
     if "vote_ranking" in recall_params:
         params["vote_ranking"] = recall_params["vote_ranking"]

@@ -63,8 +63,8 @@ def ranking_at_depth(
     """Each query's first ``depth`` references (at most every reference), ``(ranking
     [Nq, depth'] int64, scores, score kind)``, ``-1`` where a ranking ends early.
 
-    The recall store's ranking (what its table scored: ``top_k`` deep, at least the
-    deepest Recall@N, and a re-ranked row's as deep as its re-ranker's top K) is cut to
+    The recall store's ranking (what its table scored: as deep as the recall's depth, at
+    least the deepest Recall@N, and a re-ranked row's as deep as its re-ranker's top K) is cut to
     ``depth``; a deeper ``depth`` continues it with the method's own retrieval
     (:func:`vprflow.stages.recall.retrieve` over the descriptors and search stores),
     skipping references already ranked, so no stage reruns for it. Continued entries of a

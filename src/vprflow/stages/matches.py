@@ -52,6 +52,7 @@ def compute_matches(job: Job) -> None:
     inputs, params = job.inputs, job.params
     dataset = Dataset(inputs["images"])
     n_ref, n_query = dataset.n_reference, dataset.n_query
+    # The candidates, then the rest of the retrieval as deep as the recall reads.
     (retrieved, _, _), search_ms = timed_retrieve(
         dataset,
         inputs["descriptors"],

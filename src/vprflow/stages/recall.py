@@ -10,6 +10,7 @@ import numpy as np
 
 from vprflow.core import stores
 from vprflow.evaluation.recall import COST_COLUMNS
+from vprflow.planning.plan import RECALL_DEPTH
 from vprflow.stages.base import Job
 from vprflow.stages.dataset import Dataset
 
@@ -19,24 +20,25 @@ log = logging.getLogger("vprflow")
 def retrieve(
     dataset: Dataset,
     descriptors_path: str,
-    top_k: int,
+    depth: int,
     search_path: str | None = None,
     vote_ranking: str | None = None,
 ) -> tuple[np.ndarray, np.ndarray, str]:
-    """Each query's top ``top_k`` references: ``(ranking [Nq, k], scores [Nq, k],
-    score kind)``. Per-segment descriptors are ranked by voting over the segment lists
-    of the ``search`` stage (``search_path``); scores are votes (higher is better).
-    Global ones by exact search; scores are squared L2 distances (lower is better)."""
+    """Each query's first ``depth`` references: ``(ranking [Nq, d], scores [Nq, d],
+    score kind)``, ``d`` = ``depth`` capped at the references. Per-segment descriptors
+    are ranked by voting over the segment lists of the ``search`` stage
+    (``search_path``); scores are votes (higher is better). Global ones by exact search;
+    scores are squared L2 distances (lower is better)."""
     from vprflow.search.flat import flat_knn
     from vprflow.search.voting import image_of_segment, scored_vote_ranking
     from vprflow.stages.search import read_search
 
     group = stores.open_store(descriptors_path)
     n_ref, n_query = dataset.n_reference, dataset.n_query
-    top_k = min(top_k, n_ref)
+    depth = min(depth, n_ref)
     if group.attrs["kind"] != "segments":
         vectors = np.asarray(group["descriptors"][...])
-        scores, ranking = flat_knn(vectors[:n_ref], vectors[n_ref:], top_k)
+        scores, ranking = flat_knn(vectors[:n_ref], vectors[n_ref:], depth)
         return ranking, scores, "squared_l2"
     if search_path is None:
         raise ValueError(f"{descriptors_path}: per-segment descriptors need a search input")
@@ -51,7 +53,7 @@ def retrieve(
         owner[:split],
         n_query,
         n_ref,
-        top_k,
+        depth,
         vote_ranking,
     )
     return ranking, scores, "votes"
@@ -68,13 +70,13 @@ def descriptor_bytes_per_image(descriptors, n_images: int) -> float:
 def timed_retrieve(
     dataset: Dataset,
     descriptors_path: str,
-    top_k: int,
+    depth: int,
     search_path: str | None = None,
     vote_ranking: str | None = None,
 ) -> tuple[tuple[np.ndarray, np.ndarray, str], float]:
     """:func:`retrieve`'s result, and the milliseconds it took per query."""
     started = time.perf_counter()
-    found = retrieve(dataset, descriptors_path, top_k, search_path, vote_ranking)
+    found = retrieve(dataset, descriptors_path, depth, search_path, vote_ranking)
     return found, 1000 * (time.perf_counter() - started) / max(dataset.n_query, 1)
 
 
@@ -154,9 +156,10 @@ def evaluate(job: Job) -> None:
     recall_exact = None
     vote_ranking = params.get("vote_ranking")
     rerank_ms = None
+    depth = params[RECALL_DEPTH]
     if rerank_path is None:
         (ranking, scores, score_kind), search_ms = timed_retrieve(
-            dataset, descriptors_path, params["top_k"], search_path, vote_ranking
+            dataset, descriptors_path, depth, search_path, vote_ranking
         )
     else:
         # The rerank stage ran (and timed) the retrieval it re-ordered.
@@ -166,9 +169,8 @@ def evaluate(job: Job) -> None:
         score_kind = reranked.attrs["score"]
         search_ms, rerank_ms = reranked.attrs["search_ms_per_query"], reranked.attrs["ms_per_query"]
     if exact_search_path is not None and has_truth:
-        exact_ranking = retrieve(
-            dataset, descriptors_path, params["top_k"], exact_search_path, vote_ranking
-        )[0]
+        exact = retrieve(dataset, descriptors_path, depth, exact_search_path, vote_ranking)
+        exact_ranking = exact[0]
         recall_exact = recall_at(exact_ranking, truth, params["recall_at"], denominator)
     # N beyond the number of references is kept: it equals Recall@n_ref.
     recalls, maps, precision = {}, {}, {}
