@@ -1,6 +1,7 @@
 # A dataset's two stores: `images` (what the images are: list, order, content, reader)
-# and `dataset` (what is true about them: the ground truth), so a ground-truth change
-# reruns no model stage. No file inputs: the keys cover the images' and ground-truth
+# and `dataset` (the whole dataset as recall and the figures read it: the images store's
+# lists and what is true about them, the ground truth), so a ground-truth change reruns
+# no model stage. No file inputs: the keys cover the images' and ground-truth
 # files' contents (see vprflow.planning.fingerprints.dataset_contents), and their location must
 # not trigger a rerun.
 rule images:
