@@ -1,0 +1,61 @@
+"""The README's numbers that a run decides stay the run's: corridor's SegVLAD Recall@1
+with the shipped PCA and with the published one. ``benchmarks/bench_readme.py`` owns
+every number the README quotes (it also times the install and the corridor run, which
+no test may); this reads the test suite's own corridor run."""
+
+from __future__ import annotations
+
+import importlib.util
+import shutil
+from pathlib import Path
+
+import pytest
+from workflow_helpers import repo_config, snakemake, write_config
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def bench_readme():
+    path = REPO / "benchmarks" / "bench_readme.py"
+    spec = importlib.util.spec_from_file_location("bench_readme", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.mark.workflow
+@pytest.mark.data
+def test_the_readmes_segvlad_recall_at_1_values_are_the_corridor_runs(
+    corridor_run, data_root, tmp_path
+):
+    bench = bench_readme()
+    quoted = bench.readme_quotes((REPO / "README.md").read_text())
+    source, _ = corridor_run
+    shipped = bench.recall_at_1(source / "results" / "recall_corridor.csv", "segvlad")
+    # A copy, mtimes kept: only SegVLAD's PCA and what follows it run again.
+    workdir = tmp_path / "run"
+    shutil.copytree(source, workdir, symlinks=True)
+    config = repo_config()
+    config["data_root"] = str(data_root)
+    published_config = bench.published_pca_config(config)
+    path = write_config(workdir, published_config, "published_pca.yaml")
+    snakemake(workdir, path, "--", "results/recall_corridor.csv")
+    published = bench.recall_at_1(workdir / "results" / "recall_corridor.csv", "segvlad")
+    measured = {"segvlad_r1_shipped_pca": shipped, "segvlad_r1_published_pca": published}
+    for name, value in measured.items():
+        assert quoted[name] == (round(value, 2),), f"README.md: {name} {quoted[name]}, run {value}"
+
+
+def test_the_published_pca_comparison_changes_only_segvlads_pca_and_rows():
+    """What README.md calls the published PCA (1024 whitened components) over the shipped
+    corridor entry, SegVLAD alone; every other key as shipped."""
+    config = repo_config()
+    corridor = bench_readme().published_pca_config(config)["datasets"]["corridor"]
+    assert corridor["defaults"] == {"pca": {"dim": 1024, "whiten": True}}
+    assert corridor["methods"] == ["segvlad"] and corridor["rerank"] == {"segvlad": []}
+    changed = ("defaults", "methods", "rerank")
+    shipped = config["datasets"]["corridor"]
+    assert shipped["defaults"]["pca"] != corridor["defaults"]["pca"]
+    assert {k: v for k, v in corridor.items() if k not in changed} == {
+        k: v for k, v in shipped.items() if k not in changed
+    }
