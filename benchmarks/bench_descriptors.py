@@ -100,10 +100,22 @@ def load_module(rev: str, path: str, name: str) -> types.ModuleType:
     return module
 
 
+# Each aggregator's per-image function in stages/descriptors.py as it was at BEFORE
+# (each then had one of its own, ``(options, input paths) -> ImageDescriptor``).
+_FUNCTIONS_BEFORE = {
+    "segvlad": "segvlad_descriptors",
+    "segment_gem": "segment_gem_descriptors",
+    "anyloc_vlad": "anyloc_vlad_descriptor",
+    "snsm": "snsm_descriptor",
+    **dict.fromkeys(("gem", "average", "max"), "pooled_descriptor"),
+    "model": "model_descriptor",
+}
+
+
 def _with_functions_of(module: types.ModuleType):
-    """``registry.aggregator`` whose entries run ``module``'s per-image functions (the
-    readers as they were then), not those the registry's ``"module:function"`` names."""
-    from vprflow.core.registry import aggregator, resolve
+    """``aggregator`` whose entries run ``module``'s per-image functions (the readers as
+    they were then), not the entries' ``compute`` as the stage runs it now."""
+    from vprflow.aggregation.aggregators import aggregator
 
     class Entry:
         def __init__(self, name: str):
@@ -113,10 +125,7 @@ def _with_functions_of(module: types.ModuleType):
             return getattr(self.entry, name)
 
         def descriptor_function(self, options: dict, inputs: dict):
-            function = getattr(module, self.entry.image_descriptor.split(":")[1])
-            if self.entry.compute is not None:
-                return function(options, inputs, resolve(self.entry.compute))
-            return function(options, inputs)
+            return getattr(module, _FUNCTIONS_BEFORE[self.entry.name])(options, inputs)
 
     return Entry
 
@@ -188,9 +197,10 @@ def measure(
 ) -> tuple[float, ...]:
     """(stage, before, stage on zstd features, arithmetic, read, job) seconds per image of
     one descriptors stage."""
-    from vprflow.core.registry import aggregator
+    from vprflow.aggregation.aggregators import aggregator
     from vprflow.stages.dataset import Dataset
     from vprflow.stages.features import FeatureReader
+    from vprflow.stages.image_descriptors import image_descriptor
     from vprflow.stages.jobs import Job, run_job
     from vprflow.stages.pca import read_pca
     from vprflow.stages.segments import MaskReader
@@ -227,7 +237,7 @@ def measure(
 
     # The same per-image arithmetic on every image's inputs read beforehand.
     params = stage.record["params"]
-    describe = aggregator(params["aggregator"]).descriptor_function(params, inputs)
+    describe = image_descriptor(aggregator(params["aggregator"]), params, inputs)
     data = [describe.read(i) for i in range(n)]
     pca = read_pca(inputs["pca"]) if "pca" in inputs else None
 

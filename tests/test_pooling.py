@@ -142,11 +142,12 @@ def features_store(tmp_path, grid: np.ndarray) -> str:
     return path
 
 
-def image_descriptor(spec: dict, inputs: dict) -> np.ndarray:
-    """Image 0's descriptor through the aggregator's registry entry."""
-    from vprflow.core.registry import aggregator
+def describe_image(spec: dict, inputs: dict) -> np.ndarray:
+    """Image 0's descriptor through the aggregator's entry, as the stages compute it."""
+    from vprflow.aggregation.aggregators import aggregator
+    from vprflow.stages.image_descriptors import image_descriptor
 
-    return aggregator(spec["aggregator"]).descriptor_function(spec, inputs)(0)
+    return image_descriptor(aggregator(spec["aggregator"]), spec, inputs)(0)
 
 
 @pytest.mark.parametrize("aggregator", ["gem", "average", "max"])
@@ -156,7 +157,7 @@ def test_stage_pools_channel_normalised_tokens_by_default(aggregator, tmp_path):
     grid = (tokens((4, 5, 6), seed=3) * 7.0).astype(np.float32)
     inputs = {"features": features_store(tmp_path, grid)}
     spec = {"aggregator": aggregator, "p": 3.0, "normalization": "channel"}
-    pooled = image_descriptor(spec, inputs)
+    pooled = describe_image(spec, inputs)
     normalised = direct_channel_normalised(grid)
     expected = {
         "gem": lambda: direct_gem(normalised, 3.0, 1e-6, "signed"),
@@ -164,7 +165,7 @@ def test_stage_pools_channel_normalised_tokens_by_default(aggregator, tmp_path):
         "max": lambda: np.array([max(c) for c in columns(normalised)]),
     }[aggregator]()
     np.testing.assert_allclose(pooled, expected, rtol=1e-5, atol=1e-6)
-    raw = image_descriptor({**spec, "normalization": "none"}, inputs)
+    raw = describe_image({**spec, "normalization": "none"}, inputs)
     assert not np.allclose(raw, pooled, rtol=1e-3)
 
 
@@ -183,8 +184,8 @@ def test_stage_vlad_normalises_each_patch_first(tmp_path):
         stores.write_array(group, "centres", centres)
     spec = {"aggregator": "anyloc_vlad", "normalize_descriptors": True}
     inputs = {"vocabulary": path, "features": features_store(tmp_path, grid)}
-    vector = image_descriptor(spec, inputs)
-    raw = image_descriptor({**spec, "normalize_descriptors": False}, inputs)
+    vector = describe_image(spec, inputs)
+    raw = describe_image({**spec, "normalize_descriptors": False}, inputs)
     flat = grid.reshape(-1, 8).astype(np.float64)
     unit = flat / np.linalg.norm(flat, axis=1, keepdims=True)
     np.testing.assert_allclose(vector, direct_vlad(unit, centres), rtol=1e-4, atol=1e-5)

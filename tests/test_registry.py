@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import inspect
 import json
 from pathlib import Path
 
@@ -11,6 +12,7 @@ import pytest
 import yaml
 from script_helpers import load_script
 
+from vprflow.aggregation.aggregators import AGGREGATORS, aggregator
 from vprflow.core import registry
 from vprflow.planning.config import (
     METHOD_DEFAULT_SECTIONS,
@@ -32,7 +34,7 @@ def test_a_component_name_outside_the_registry_is_refused_listing_the_registrys(
     raw["methods"]["segvlad"]["aggregator"] = "softvlad"
     with pytest.raises(ConfigError, match="'softvlad' is not one of") as error:
         validate_config(raw, SCHEMA_PATH)
-    assert str(list(registry.AGGREGATORS)) in str(error.value)
+    assert str(list(AGGREGATORS)) in str(error.value)
 
 
 def test_the_schema_file_does_not_restate_what_the_code_lists():
@@ -136,7 +138,6 @@ def test_references_lists_every_lazy_reference_of_the_registry_and_each_resolves
     entries = [
         *registry.BACKBONES.values(),
         *registry.SEGMENTERS.values(),
-        *registry.AGGREGATORS.values(),
         *registry.SEARCH_INDEXES.values(),
         *registry.RERANKERS.values(),
     ]
@@ -323,16 +324,21 @@ def test_a_schema_that_restates_a_reranker_default_is_refused_naming_it(tmp_path
 
 
 def test_every_aggregator_needs_only_planned_stages_and_has_a_function():
-    for agg in registry.AGGREGATORS.values():
+    for agg in AGGREGATORS.values():
         assert set(agg.needs) <= set(FORMAT_VERSIONS) - {"images", "dataset", "features", "recall"}
         assert agg.output in ("global", "segments")
         assert agg.reads in ("features", "descriptor"), agg.name
-        assert callable(registry.resolve(agg.image_descriptor)), agg.name
+        assert agg.compute.__module__ == "vprflow.aggregation.aggregators", agg.name
+        inputs = {"masks", "image_size", "patch_size"} if "segments" in agg.needs else set()
+        inputs |= {"centres"} if "vocabulary" in agg.needs else set()
+        keywords = list(inspect.signature(agg.compute).parameters)
+        assert keywords[:2] == ["grid", "options"], agg.name
+        assert set(keywords[2:]) == inputs, agg.name
 
 
 def test_unknown_components_are_refused_by_name():
     with pytest.raises(ValueError, match="unknown aggregator 'vlad2'"):
-        registry.aggregator("vlad2")
+        aggregator("vlad2")
     with pytest.raises(ValueError, match="unknown backbone 'dinov4'"):
         registry.model_kind("features", {"backbone": "dinov4"})
 
@@ -361,7 +367,7 @@ def test_defaults_are_filled_before_hashing_so_keys_record_what_ran():
     assert filled != validate_config(other, SCHEMA_PATH)
 
 
-@pytest.mark.parametrize("name", sorted(registry.AGGREGATORS))
+@pytest.mark.parametrize("name", sorted(AGGREGATORS))
 def test_the_plan_builds_exactly_the_stages_an_aggregator_needs(name, tmp_path):
     from synthetic import make_dataset
     from workflow_helpers import toy_config
@@ -369,7 +375,7 @@ def test_the_plan_builds_exactly_the_stages_an_aggregator_needs(name, tmp_path):
     make_dataset(tmp_path / "toy", n_places=3)
     config = toy_config(tmp_path, resolution=[64, 48], methods=["m"])
     config["methods"] = {"m": {"aggregator": name, "features": "daisy"}}
-    if registry.AGGREGATORS[name].reads == "descriptor":  # a trained model's (planned only)
+    if AGGREGATORS[name].reads == "descriptor":  # a trained model's (planned only)
         (tmp_path / "weights.ckpt").write_bytes(b"weights")
         config["backbones"]["own"] = {
             "backbone": "salad",
@@ -378,7 +384,7 @@ def test_the_plan_builds_exactly_the_stages_an_aggregator_needs(name, tmp_path):
         config["methods"]["m"]["features"] = "own"
     plan = build_plan(validate_config(config, SCHEMA_PATH))
     (descriptors,) = plan.stages["descriptors"].values()
-    assert set(descriptors.inputs) == {"images", "features", *registry.AGGREGATORS[name].needs}
+    assert set(descriptors.inputs) == {"images", "features", *AGGREGATORS[name].needs}
 
 
 def _properties(schema: dict):
@@ -473,7 +479,7 @@ def test_method_sections_are_derived_from_the_registry_in_their_old_order():
     # The old tuple, then (after it) only sections of aggregators added since.
     assert METHOD_DEFAULT_SECTIONS[: len(old)] == old
     assert config.method_default_sections() == METHOD_DEFAULT_SECTIONS
-    own = [s for agg in registry.AGGREGATORS.values() for s in agg.sections]
+    own = [s for agg in AGGREGATORS.values() for s in agg.sections]
     assert set(METHOD_DEFAULT_SECTIONS) == set(own) | set(config.SHARED_SECTIONS)
     added = tuple(s for s in dict.fromkeys(own) if s not in old)
     assert METHOD_DEFAULT_SECTIONS[len(old) :] == added
@@ -482,40 +488,29 @@ def test_method_sections_are_derived_from_the_registry_in_their_old_order():
 def test_a_new_aggregators_section_follows_the_others(monkeypatch):
     from vprflow.planning import config
 
-    new = registry.Aggregator("new", (), "global", sections=("new_section",), compute="m:f")
-    monkeypatch.setitem(registry.AGGREGATORS, new.name, new)
+    new = registry.Aggregator("new", (), "global", _grid_sum, sections=("new_section",))
+    monkeypatch.setitem(AGGREGATORS, new.name, new)
     assert config.method_default_sections() == (*METHOD_DEFAULT_SECTIONS, "new_section")
 
 
 def test_an_aggregator_left_without_options_and_columns_reads_its_sections():
     method = {"vlad": {"a": 1, "b": 2}, "segvlad": {"order": 3}, "snsm": {"window": 5}}
-    both = registry.Aggregator("x", (), "global", sections=("segvlad", "vlad"), compute="m:f")
+    both = registry.Aggregator("x", (), "global", _grid_sum, sections=("segvlad", "vlad"))
     assert both.options(method) == {"order": 3, "a": 1, "b": 2}
     assert both.columns(method) == {"segvlad.order": 3, "vlad.a": 1, "vlad.b": 2}
-    assert both.image_descriptor == "vprflow.stages.descriptors:grid_descriptor"
     # What the entries' written-out lambdas were before `sections`.
     for name, section in (("anyloc_vlad", "vlad"), ("snsm", "snsm")):
-        agg = registry.AGGREGATORS[name]
+        agg = AGGREGATORS[name]
         assert agg.options(method) == dict(method[section])
         assert agg.columns(method) == registry.prefixed(section, method[section])
-    segvlad = registry.AGGREGATORS["segvlad"]
+    segvlad = AGGREGATORS["segvlad"]
     assert segvlad.columns(method) == {
         **registry.prefixed("segvlad", method["segvlad"]),
         **registry.prefixed("vlad", method["vlad"]),
     }
-    model = registry.AGGREGATORS["model"]
+    model = AGGREGATORS["model"]
     assert (model.options(method), model.columns(method)) == ({}, {})
-    with pytest.raises(ValueError, match="compute"):
-        registry.Aggregator("y", (), "global", sections=("vlad",))
-    with pytest.raises(ValueError, match="compute"):
-        registry.Aggregator("z", (), "segments", compute="m:f")
 
 
-def test_references_lists_an_aggregators_compute_function(monkeypatch):
-    new = registry.Aggregator(
-        "mean", (), "global", compute="vprflow.aggregation.pooling:average_pool"
-    )
-    monkeypatch.setitem(registry.AGGREGATORS, new.name, new)
-    listed = dict(registry.references())
-    assert listed["aggregator mean"] == "vprflow.stages.descriptors:grid_descriptor"
-    assert listed["aggregator mean: compute"] == "vprflow.aggregation.pooling:average_pool"
+def _grid_sum(grid, options):
+    return grid.sum(axis=(0, 1))

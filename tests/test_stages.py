@@ -190,8 +190,8 @@ def test_vocabulary_and_pca_shapes(pipeline):
 
 def test_segvlad_descriptors_are_the_projected_segment_vlads(pipeline):
     """The descriptors stage equals image_segvlad + the PCA projection, per image."""
+    from vprflow.aggregation.aggregators import vlad_input
     from vprflow.aggregation.segvlad import image_segvlad
-    from vprflow.stages.descriptors import vlad_input
 
     features = stores.open_store(stage_path(pipeline, "features"))
     segments = stores.open_store(stage_path(pipeline, "segments"))
@@ -887,24 +887,24 @@ def test_the_dataset_stage_lists_images_as_planned(tmp_path):
         assert [n.removeprefix("query/") for n in names[3:]] == expected
 
 
-def test_an_aggregator_with_a_compute_function_needs_no_per_image_function(pipeline):
-    """The generic grid_descriptor runs an entry's ``compute`` over each image's patch
-    grid with the method's options: GeM of the channel-normalised tokens this way gives
-    the gem method's stored descriptors bit for bit."""
+def test_a_new_aggregator_is_its_compute_function_and_nothing_in_the_stages(pipeline):
+    """An entry's ``compute`` runs over each image's patch grid with the method's
+    options, as every aggregator's does: GeM of the channel-normalised tokens this way
+    gives the gem method's stored descriptors bit for bit."""
     from vprflow.core.registry import Aggregator
+    from vprflow.stages.image_descriptors import image_descriptor
 
     path = stage_path(pipeline, "features", "gem")
     stored = stores.open_store(stage_path(pipeline, "descriptors", "gem"))["descriptors"]
-    new = Aggregator("gem_again", (), "global", compute=f"{__name__}:_normalised_gem")
-    describe = new.descriptor_function(
-        {"aggregator": "gem_again", "p": 3.0, "normalization": "channel"}, {"features": path}
-    )
+    new = Aggregator("gem_again", (), "global", _normalised_gem)
+    options = {"aggregator": "gem_again", "p": 3.0, "normalization": "channel"}
+    describe = image_descriptor(new, options, {"features": path})
     for index in (0, 2 * N_PLACES - 1):
         np.testing.assert_array_equal(describe(index), stored[index])
 
 
-def _normalised_gem(grid: np.ndarray, p: float, normalization: str) -> np.ndarray:
+def _normalised_gem(grid: np.ndarray, options: dict) -> np.ndarray:
     from vprflow.aggregation.pooling import gem
     from vprflow.aggregation.snsm import normalize_tokens
 
-    return gem(normalize_tokens(grid, normalization), p=p)
+    return gem(normalize_tokens(grid, options["normalization"]), p=options["p"])

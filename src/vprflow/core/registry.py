@@ -20,6 +20,7 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any
 
 # ------------------------------------------------------------------ model kinds
 
@@ -556,11 +557,14 @@ class Aggregator:
     ``needs``: upstream stages besides ``dataset`` and ``features``, in plan order
     (``pca`` is planned only when the method's ``pca.enabled``). ``output``:
     ``"global"`` (one vector per image) or ``"segments"`` (one per segment, retrieved
-    by voting). ``options(method)`` is the descriptor stage's own hashed settings
-    (method = the resolved method settings); ``columns(method)`` its CSV columns.
-    ``image_descriptor`` is ``"module:function"`` with signature
-    ``(options, input store paths) -> ImageDescriptor`` (stages/descriptors.py): a
-    callable ``image index -> [dim] or [S, dim]`` split into store reads and arithmetic.
+    by voting). ``compute``: its per-image function, ``(grid [h, w, D], options,
+    **inputs) -> [dim]`` (``[S, dim]`` per segment), ``options`` the descriptor stage's
+    params; ``inputs`` are what its ``needs`` give: ``centres`` (``vocabulary``),
+    ``masks``, ``image_size`` and ``patch_size`` (``segments``).
+    :func:`vprflow.stages.image_descriptors.image_descriptor` reads them and runs it, for
+    every aggregator alike. ``options(method)`` is the descriptor stage's own hashed
+    settings (method = the resolved method settings); ``columns(method)`` its CSV
+    columns.
     ``explanation``: the report's figure of how the method decided, besides the
     retrievals every method gets (a name in :data:`vprflow.planning.reports.FIGURES`), or None.
     ``pca_fit``: see :meth:`pca_descriptor_options` (for aggregators with ``pca``).
@@ -581,29 +585,23 @@ class Aggregator:
     :data:`vprflow.planning.config.METHOD_DEFAULT_SECTIONS` is derived from them, so a
     new aggregator's section needs no list besides the schema. Left out, ``options`` is
     their values merged and ``columns`` their values as ``<section>.<key>`` columns.
-    ``compute``: ``"module:function"`` of the plain math, ``(grid [h, w, D], **options)
-    -> [dim]``, which the generic :func:`vprflow.stages.descriptors.grid_descriptor`
-    runs per image (``image_descriptor`` left out; ``output="global"`` only); an
-    aggregator with a per-image function of its own (centres, masks) names that instead.
     """
 
     name: str
     needs: tuple[str, ...]
     output: str
+    compute: Callable[..., Any]
     options: Callable[[dict], dict] | None = None
     columns: Callable[[dict], dict] | None = None
-    image_descriptor: str | None = None
     explanation: str | None = None
     resize: str = "linear"
     exif_orientation: str = "apply"
     pca_fit: Callable[[dict, dict], dict] | None = None
     reads: str = "features"
     sections: tuple[str, ...] = ()
-    compute: str | None = None
 
     def __post_init__(self):
-        # Left out, ``options`` and ``columns`` are the values of its sections, and
-        # ``image_descriptor`` the generic per-image function running ``compute``.
+        # Left out, ``options`` and ``columns`` are the values of its sections.
         sections = self.sections
 
         def options(method: dict) -> dict:
@@ -616,128 +614,20 @@ class Aggregator:
             object.__setattr__(self, "options", options)
         if self.columns is None:
             object.__setattr__(self, "columns", columns)
-        if self.image_descriptor is None:
-            if self.compute is None or self.output != "global":
-                raise ValueError(
-                    f"aggregator {self.name!r}: without an image_descriptor it needs a "
-                    "compute function and output 'global'"
-                )
-            object.__setattr__(self, "image_descriptor", f"{_DESCRIPTORS}:grid_descriptor")
 
     def pca_descriptor_options(self, method: dict, options: dict) -> dict:
         """The descriptor options of the vectors a PCA is fitted on (the PCA stage
-        computes them with :meth:`descriptor_function`): the method's own, less how
+        computes them as the descriptors stage does): the method's own, less how
         they are stored, unless the aggregator's ``pca_fit(method, options)`` says
         otherwise (SegVLAD: at ``pca.fit_order``)."""
         if self.pca_fit is not None:
             return self.pca_fit(method, options)
         return {k: v for k, v in options.items() if k != "store_dtype"}
 
-    def descriptor_function(self, options: dict, inputs: dict[str, str]):
-        function = resolve(self.image_descriptor)
-        if self.compute is not None:  # the generic per-image function runs it
-            return function(options, inputs, resolve(self.compute))
-        return function(options, inputs)
-
 
 def prefixed(section: str, values: dict) -> dict:
     """CSV columns ``<section>.<key>`` of a settings section."""
     return {f"{section}.{k}": v for k, v in values.items()}
-
-
-def _segvlad_pca_fit(method: dict, options: dict) -> dict:
-    """Published: one PCA per neighbourhood order, fitted on descriptors of the method's
-    own order; an integer ``pca.fit_order`` fixes the order instead."""
-    fit_order = method["pca"]["fit_order"]
-    order = options["order"] if fit_order == "method" else fit_order
-    return {**{k: v for k, v in options.items() if k != "store_dtype"}, "order": order}
-
-
-def _segvlad_options(method: dict) -> dict:
-    segvlad = method["segvlad"]
-    return {
-        "order": segvlad["order"],
-        "mask_to_patch": segvlad["mask_to_patch"],
-        "small_graph": segvlad["small_graph"],
-        "store_dtype": segvlad["store_dtype"],
-        **method["vlad"],
-    }
-
-
-_DESCRIPTORS = "vprflow.stages.descriptors"
-
-
-def _pooling(name: str) -> Aggregator:
-    """GeM, average or max pooling: the `pooling` settings it uses (``gem_p`` for GeM
-    only, passed to the pooling function as ``p``) are its options and its columns."""
-    keys = ("normalization", "gem_p") if name == "gem" else ("normalization",)
-    return Aggregator(
-        name,
-        (),
-        "global",
-        lambda m: {"p" if k == "gem_p" else k: m["pooling"][k] for k in keys},
-        lambda m: prefixed("pooling", {k: m["pooling"][k] for k in keys}),
-        f"{_DESCRIPTORS}:pooled_descriptor",
-        resize="antialias",
-        exif_orientation="ignore",
-        sections=("pooling",),
-    )
-
-
-AGGREGATORS: dict[str, Aggregator] = {
-    agg.name: agg
-    for agg in (
-        Aggregator(
-            "segvlad",
-            ("segments", "vocabulary", "pca"),
-            "segments",
-            _segvlad_options,
-            image_descriptor=f"{_DESCRIPTORS}:segvlad_descriptors",
-            explanation="segment_matches",
-            pca_fit=_segvlad_pca_fit,
-            sections=("segvlad", "vlad"),
-        ),
-        Aggregator(
-            "segment_gem",
-            ("segments", "pca"),
-            "segments",
-            lambda m: {"p": m["pooling"]["gem_p"], "normalization": m["pooling"]["normalization"]},
-            lambda m: prefixed("pooling", {k: m["pooling"][k] for k in ("gem_p", "normalization")}),
-            f"{_DESCRIPTORS}:segment_gem_descriptors",
-            explanation="segment_matches",
-            sections=("pooling",),
-        ),
-        Aggregator(
-            "anyloc_vlad",
-            ("vocabulary",),
-            "global",
-            image_descriptor=f"{_DESCRIPTORS}:anyloc_vlad_descriptor",
-            sections=("vlad",),
-        ),
-        Aggregator(
-            "snsm",
-            (),
-            "global",
-            image_descriptor=f"{_DESCRIPTORS}:snsm_descriptor",
-            explanation="support_maps",
-            resize="antialias",
-            exif_orientation="ignore",
-            sections=("snsm",),
-        ),
-        *(_pooling(name) for name in ("gem", "average", "max")),
-        # A trained model's own descriptor (issue 32): the 1 x 1 grid its backbone entry
-        # stores under `output: descriptor`. Every published reader (Patch-NetVLAD, SALAD,
-        # BoQ, VPR-methods-evaluation) opens images with PIL, ignoring EXIF orientation.
-        Aggregator(
-            "model",
-            (),
-            "global",
-            image_descriptor=f"{_DESCRIPTORS}:model_descriptor",
-            exif_orientation="ignore",
-            reads="descriptor",
-        ),
-    )
-}
 
 
 # ------------------------------------------------------------------ search indexes
@@ -913,12 +803,6 @@ def reranker(name: str) -> Reranker:
     return RERANKERS[name]
 
 
-def aggregator(name: str) -> Aggregator:
-    if name not in AGGREGATORS:
-        raise ValueError(f"unknown aggregator {name!r}; expected one of {sorted(AGGREGATORS)}")
-    return AGGREGATORS[name]
-
-
 def resolve(reference: str):
     """The object a ``"module:function"`` reference names (imported on first use)."""
     module, _, name = reference.partition(":")
@@ -941,10 +825,6 @@ def references() -> list[tuple[str, str]]:
                 found.append((f"{role} {kind.name}: adapter", kind.spec.adapter))
             if isinstance(kind.spec, TrainedModel):
                 found.append((f"{role} {kind.name}: model", kind.spec.loader))
-    for agg in AGGREGATORS.values():
-        found.append((f"aggregator {agg.name}", agg.image_descriptor))
-        if agg.compute is not None:
-            found.append((f"aggregator {agg.name}: compute", agg.compute))
     found += [(f"search index {i.name}", i.knn) for i in SEARCH_INDEXES.values()]
     found += [(f"re-ranker {r.name}", r.scores) for r in RERANKERS.values()]
     return found

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import copy
 import sys
+from collections.abc import Collection
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -183,7 +184,7 @@ def merge_entry(base: dict, override: dict) -> dict:
     return merged
 
 
-def with_presets(config: dict) -> dict:
+def with_presets(config: dict, vocabulary_aggregators: Collection[str]) -> dict:
     """``config["datasets"]`` completed with the presets it uses: those it names (its
     entry of the same name merged over the preset) and those whose folder exists under
     ``data_root``. Other presets stay out, so a missing one costs nothing. With
@@ -194,7 +195,8 @@ def with_presets(config: dict) -> dict:
     that bears a preset's name is merged with it all the same, and the log and the
     ``protocol`` column say so. When the entry (or a method it runs) chooses other
     features than the preset's, the settings tied to the published features follow
-    (:func:`follow_features`) or planning stops naming the keys to set."""
+    (:func:`follow_features`) or planning stops naming the keys to set (for a method
+    whose aggregator, one of ``vocabulary_aggregators``, needs a vocabulary)."""
     datasets = dict(config.get("datasets") or {})
     targets = set(config.get("targets") or ())
     for name in sorted(RENAMED.keys() & (datasets.keys() | targets)):
@@ -225,7 +227,9 @@ def with_presets(config: dict) -> dict:
                     "merge without this note",
                 )
             _say(notes)
-            _check_method_features(name, datasets[name], preset.dataset, config)
+            _check_method_features(
+                name, datasets[name], preset.dataset, config, vocabulary_aggregators
+            )
         elif name in targets or (
             (Path(config["data_root"]) / preset.dataset["path"]).is_dir()
             and not undefined_components(preset.dataset, config)
@@ -233,7 +237,9 @@ def with_presets(config: dict) -> dict:
             datasets[name], notes = follow_features(name, preset.dataset, {}, config)
             datasets[name] = with_trained_baselines(name, datasets[name], config)
             _say(notes)
-            _check_method_features(name, datasets[name], preset.dataset, config)
+            _check_method_features(
+                name, datasets[name], preset.dataset, config, vocabulary_aggregators
+            )
     return datasets
 
 
@@ -353,12 +359,14 @@ def _not_published_features(entry_name: str, config: dict) -> str | None:
     return ", ".join(differences) or None
 
 
-def _check_method_features(name: str, dataset: dict, preset: dict, config: dict) -> None:
-    """Planning stops when a method the dataset runs has features of its own while the
-    dataset's vocabulary is still the preset's published one, fitted on other features:
-    the keys to set are named (the vocabulary stage would fail after the fetch and the
-    features otherwise)."""
-    from vprflow.core.registry import AGGREGATORS
+def _check_method_features(
+    name: str, dataset: dict, preset: dict, config: dict, vocabulary_aggregators: Collection[str]
+) -> None:
+    """Planning stops when a method the dataset runs (by an aggregator of
+    ``vocabulary_aggregators``, those that need a vocabulary) has features of its own
+    while the dataset's vocabulary is still the preset's published one, fitted on other
+    features: the keys to set are named (the vocabulary stage would fail after the fetch
+    and the features otherwise)."""
 
     defaults = dataset.get("defaults") or {}
     vocabulary = defaults.get("vocabulary") or {}
@@ -368,11 +376,9 @@ def _check_method_features(name: str, dataset: dict, preset: dict, config: dict)
     for method in dataset.get("methods") or ():
         settings = (config.get("methods") or {}).get(method) or {}
         features = settings.get("features")
-        aggregator = AGGREGATORS.get(settings.get("aggregator"))
         if (
             features in (None, own)
-            or aggregator is None
-            or "vocabulary" not in aggregator.needs
+            or settings.get("aggregator") not in vocabulary_aggregators
             or "source" in (settings.get("vocabulary") or {})
         ):
             continue

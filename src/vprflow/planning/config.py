@@ -20,9 +20,9 @@ from pathlib import Path
 
 import yaml
 
+from vprflow.aggregation.aggregators import AGGREGATORS
 from vprflow.core.errors import ConfigError, short_repr
 from vprflow.core.registry import (
-    AGGREGATORS,
     BACKBONES,
     RERANKERS,
     SEARCH_INDEXES,
@@ -94,7 +94,8 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     check_config_size(config, files)
     schema = load_schema(schema_path)
     if isinstance(config.get("data_root"), str):
-        config = {**config, "datasets": with_presets(config)}
+        vocabulary = {n for n, agg in AGGREGATORS.items() if "vocabulary" in agg.needs}
+        config = {**config, "datasets": with_presets(config, vocabulary)}
     errors = sorted(
         jsonschema.Draft202012Validator(schema).iter_errors(config),
         key=lambda e: list(map(str, e.absolute_path)),

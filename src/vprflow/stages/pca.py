@@ -6,10 +6,11 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
+from vprflow.aggregation.aggregators import aggregator
 from vprflow.core import stores
-from vprflow.core.registry import aggregator
 from vprflow.stages.base import Job
 from vprflow.stages.dataset import Dataset
+from vprflow.stages.image_descriptors import image_descriptor
 
 
 def fit_pca_stage(job: Job) -> None:
@@ -20,7 +21,7 @@ def fit_pca_stage(job: Job) -> None:
 
     inputs, record, params = job.inputs, job.record, job.params
     dataset = Dataset(inputs["images"])
-    describe = aggregator(params["aggregator"]).descriptor_function(params["fit_on"], inputs)
+    describe = image_descriptor(aggregator(params["aggregator"]), params["fit_on"], inputs)
     segments_path = inputs["segments"]
     offsets = np.asarray(stores.open_store(segments_path)["masks_offsets"][...])
     total = int(offsets[dataset.n_reference])
