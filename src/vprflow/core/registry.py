@@ -338,7 +338,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
     # nothing); one variant per published backbone and length, ResNet50_2048 first.
     **{
         name.lower(): TrainedModel(
-            f"{_TRAINED}.cosplace:load_{name.lower()}",
+            loader,
             {
                 f"{backbone}_{dim}": TrainedVariant(
                     f"{backbone}_{dim}_{name.lower()}.pth",
@@ -357,7 +357,10 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
             "the ResNet's layer4 (ResNet-50: 2048-d), stride 32",
             crop=False,
         )
-        for name, published in (("CosPlace", _COSPLACE_DIMS), ("EigenPlaces", _EIGENPLACES_DIMS))
+        for name, published, loader in (
+            ("CosPlace", _COSPLACE_DIMS, f"{_TRAINED}.cosplace:load_cosplace"),
+            ("EigenPlaces", _EIGENPLACES_DIMS, f"{_TRAINED}.cosplace:load_eigenplaces"),
+        )
     },
     # torchvision's ImageNet ResNet-50 as dense features only: the map of `layer` 1-4
     # (SNSM's All-Backbones-VLAD baseline reads layer1-4, layer3 by default), at the
