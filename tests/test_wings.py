@@ -83,3 +83,10 @@ def test_new_paths_import_without_a_warning():
         warnings.simplefilter("error", DeprecationWarning)
         importlib.import_module("vprflow.planning.plan")
         importlib.import_module("vprflow.stages.jobs")
+
+
+def test_code_is_named_by_string_only_in_the_registrys_lazy_entries():
+    """Outside core/registry.py (model kinds, search indexes, re-rankers: listed by
+    ``registry.references()``) every tie between modules is an import the graph sees."""
+    assert {module for module, _ in GRAPH.string_ties(PACKAGE)} <= {"vprflow.core.registry"}
+    assert not [x for x in GRAPH.dynamic_lookups(PACKAGE) if "globals()" in x]
