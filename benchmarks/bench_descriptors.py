@@ -198,12 +198,9 @@ def measure(
     """(stage, before, stage on zstd features, arithmetic, read, job) seconds per image of
     one descriptors stage."""
     from vprflow.aggregation.aggregators import aggregator
-    from vprflow.stages.dataset import Dataset
-    from vprflow.stages.features import FeatureReader
     from vprflow.stages.image_descriptors import image_descriptor
     from vprflow.stages.jobs import Job, run_job
-    from vprflow.stages.pca import read_pca
-    from vprflow.stages.segments import MaskReader
+    from vprflow.stages.readers import Dataset, FeatureReader, MaskReader, read_pca
 
     inputs = {name: str(workdir / path) for name, path in stage.input_paths().items()}
     features = inputs["features"]

@@ -36,8 +36,8 @@ from PIL import Image
 from vprflow.data.images import read_image, scan_images
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
-from vprflow.stages.dataset import Dataset
 from vprflow.stages.jobs import Job, run_job
+from vprflow.stages.readers import Dataset
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -17,10 +17,10 @@ from vprflow.core.errors import DatasetError
 from vprflow.data.images import read_image, resize_image
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
-from vprflow.stages.dataset import Dataset, build_images
+from vprflow.stages.dataset import build_images
 from vprflow.stages.descriptors import compute_descriptors
 from vprflow.stages.export import ranking_at_depth, write_pairs
-from vprflow.stages.features import compute_features, read_features
+from vprflow.stages.features import compute_features
 from vprflow.stages.gather import gather
 from vprflow.stages.jobs import (
     SHARDED,
@@ -30,12 +30,18 @@ from vprflow.stages.jobs import (
     run_job,
     shard_ranges,
 )
-from vprflow.stages.pca import read_pca
-from vprflow.stages.recall import evaluate, retrieve
+from vprflow.stages.readers import (
+    Dataset,
+    read_centres,
+    read_features,
+    read_masks,
+    read_pca,
+    read_search,
+)
+from vprflow.stages.recall import evaluate
 from vprflow.stages.report import write_predictions, write_report
-from vprflow.stages.search import read_search, search_shard
-from vprflow.stages.segments import read_masks
-from vprflow.stages.vocabulary import read_centres
+from vprflow.stages.retrieval import retrieve
+from vprflow.stages.search import search_shard
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
@@ -167,7 +173,7 @@ def test_slic_segments_partition_every_image(pipeline):
 
 
 def test_the_feature_reader_gives_each_images_features_read_only(pipeline):
-    from vprflow.stages.features import FeatureReader
+    from vprflow.stages.readers import FeatureReader
 
     group = stores.open_store(stage_path(pipeline, "features", "anyloc_vlad"))
     per_image = 4 * int(np.prod(group["features"].shape[1:]))
@@ -303,7 +309,7 @@ def test_the_matches_store_holds_each_candidates_mutual_pairs_and_rerank_scores_
     mutual_nearest_neighbours on the features store (min_similarity acts when scoring),
     and the rerank store's scores those of ransac_inliers over the pairs it keeps."""
     from vprflow.evaluation.rerank import mutual_nearest_neighbours, patch_centres, ransac_inliers
-    from vprflow.stages.matches import Matches
+    from vprflow.stages.readers import Matches
 
     plan, runner, _, _ = pipeline
     run = {r.method: r for r in plan.runs["toy"]}["segvlad+ransac"]

@@ -27,8 +27,8 @@ from vprflow.models.checkpoints import CheckpointError
 from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
-from vprflow.stages.dataset import Dataset
 from vprflow.stages.jobs import Job, run_job
+from vprflow.stages.readers import Dataset
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"

@@ -29,7 +29,8 @@ from vprflow.data.download import DownloadError
 from vprflow.planning.config import load_schema, validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages.jobs import Job
-from vprflow.stages.vocabulary import fit_vocabulary, read_centres
+from vprflow.stages.readers import read_centres
+from vprflow.stages.vocabulary import fit_vocabulary
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"

@@ -23,6 +23,11 @@ def _imports() -> dict[str, set[str]]:
     return GRAPH.imports(PACKAGE)
 
 
+# What the stages share: a job, every store's readers, the retrieval, a descriptor of one
+# image. A runner (the function of one rule) imports these, never another runner.
+STAGE_SUPPORT = {"base", "readers", "retrieval", "image_descriptors"}
+
+
 def test_every_folder_of_the_package_is_a_ranked_wing():
     folders = {p.name for p in PACKAGE.iterdir() if p.is_dir() and p.name != "__pycache__"}
     assert folders == set(RANKS)
@@ -90,3 +95,16 @@ def test_code_is_named_by_string_only_in_the_registrys_lazy_entries():
     ``registry.references()``) every tie between modules is an import the graph sees."""
     assert {module for module, _ in GRAPH.string_ties(PACKAGE)} <= {"vprflow.core.registry"}
     assert not [x for x in GRAPH.dynamic_lookups(PACKAGE) if "globals()" in x]
+
+
+def test_no_stage_runner_imports_another_runner():
+    """Only stages/jobs.py, which binds every rule to its runner, imports runners; the
+    runners meet in the readers and the retrieval."""
+    graph = _imports()
+    stages = {m for m in graph if m.startswith("vprflow.stages.")}
+    runners = {m for m in stages if m.rsplit(".", 1)[1] not in STAGE_SUPPORT | {"jobs"}}
+    crossing = sorted(
+        (m, t) for m in stages - {"vprflow.stages.jobs"} for t in graph[m] & runners
+    )
+    assert crossing == []
+    assert {f"vprflow.stages.{name}" for name in STAGE_SUPPORT} <= stages

@@ -16,9 +16,10 @@ from vprflow.core.errors import DatasetError
 from vprflow.core.paths import dataset_folder
 from vprflow.data import datasets
 from vprflow.data.ground_truth import ground_truth, ground_truth_rule
-from vprflow.data.images import ImageReadError, dataset_orientation, decode_image
+from vprflow.data.images import dataset_orientation, decode_image
 from vprflow.planning.fingerprints import file_digest, images_digest, truth_digest
-from vprflow.stages.base import Job, shard_range
+from vprflow.stages.base import Job
+from vprflow.stages.readers import IMAGE_ARRAYS, read_image_bytes
 
 log = logging.getLogger("vprflow")
 
@@ -43,7 +44,7 @@ def build_images(job: Job) -> None:
     orientation = dataset_orientation(params["exif_orientation"])  # method: upright
     digests = []
     for i, path in enumerate(tqdm(paths, desc=f"checking {name} images")):
-        data = _read_bytes(path)
+        data = read_image_bytes(path)
         digests.append(hashlib.sha256(data).hexdigest())
         sizes[i] = decode_image(data, path, orientation).shape[:2]
     by_path = dict(zip(paths, digests, strict=True))
@@ -92,10 +93,6 @@ def build_images(job: Job) -> None:
         len(files.query),
         folder.resolve(),
     )
-
-
-# What the truth store copies of the images store, so its readers read one store.
-IMAGE_ARRAYS = ("paths", "names", "sha256", "image_sizes")
 
 
 def build_truth(job: Job) -> None:
@@ -165,13 +162,6 @@ def _check_native_size(name: str, paths: list[Path], sizes: np.ndarray, size: li
         )
 
 
-def _read_bytes(path: Path) -> bytes:
-    try:
-        return Path(path).read_bytes()
-    except OSError as error:
-        raise ImageReadError(f"cannot read image {path}: {error}") from error
-
-
 def _changed_since_planning(
     name: str, paths: list[Path], digests: dict[Path, str], fingerprints: str | None
 ) -> str:
@@ -187,66 +177,3 @@ def _changed_since_planning(
         f"describes them{which}. Run snakemake again: it re-plans, and rebuilds what "
         "depends on the changed files"
     )
-
-
-class Dataset:
-    """Read-side view of an images or dataset store (the ground truth: only the
-    latter). ``paths`` are the image files under ``data_root`` (relative to it when none
-    is given)."""
-
-    def __init__(self, path: str, data_root: str | None = None):
-        self.group = stores.open_store(path)
-        self._sha256: list[str] | None = None
-        self.n_reference = int(self.group.attrs["n_reference"])
-        self.n_query = int(self.group.attrs["n_query"])
-        self.n_images = self.n_reference + self.n_query
-        relative = stores.read_strings(self.group, "paths")
-        root = Path(data_root) if data_root is not None else None
-        self.paths = [str(root / p) if root else p for p in relative]
-        self.names = stores.read_strings(self.group, "names")
-        self.exif_orientation = self.group.attrs["exif_orientation"]
-
-    def read_image(self, index: int, exif_orientation: str | None = None) -> np.ndarray:
-        """Image ``index`` as :func:`vprflow.data.images.read_image` decodes it, with
-        ``exif_orientation`` (a method's stage passes its own) or the dataset's, after
-        checking that the file still holds what the images stage hashed: an image
-        changed during a run must fail, naming it, not be computed under the key of its
-        old content."""
-        path = self.paths[index]
-        data = _read_bytes(Path(path))
-        if self._sha256 is None:
-            self._sha256 = stores.read_strings(self.group, "sha256")
-        if hashlib.sha256(data).hexdigest() != self._sha256[index]:
-            raise DatasetError(
-                f"{path} changed after the images stage read it (its SHA-256 differs), so "
-                "results computed now would be stored under its old content's key. Run "
-                "snakemake again: it re-plans and rebuilds what depends on the image"
-            )
-        return decode_image(data, path, exif_orientation or self.exif_orientation)
-
-    @property
-    def has_ground_truth(self) -> bool:
-        """False for ``ground_truth: {kind: none}``: rankings, but nothing to judge them by."""
-        return self.group.attrs["ground_truth_rule"] != "none"
-
-    def truth(self) -> list[np.ndarray]:
-        refs = np.asarray(self.group["truth"][...])
-        offsets = np.asarray(self.group["truth_offsets"][...])
-        return [refs[offsets[q] : offsets[q + 1]] for q in range(self.n_query)]
-
-    def indices(self, which: str) -> np.ndarray:
-        return {
-            "reference": np.arange(self.n_reference),
-            "query": np.arange(self.n_reference, self.n_images),
-            "both": np.arange(self.n_images),
-        }[which]
-
-
-def open_shard(
-    images_path: str, data_root: str, start: int | None, stop: int | None
-) -> tuple[Dataset, range]:
-    """The images store (image paths under ``data_root``) and the images ``start..stop``
-    a per-image stage reads; logs the folder it reads from."""
-    dataset = Dataset(images_path, data_root)
-    log.info("reading images under %s", Path(data_root).resolve())
-    return dataset, shard_range(dataset.n_images, start, stop)

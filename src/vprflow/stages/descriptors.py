@@ -23,9 +23,8 @@ from tqdm import tqdm
 from vprflow.aggregation.aggregators import aggregator
 from vprflow.core import stores
 from vprflow.stages.base import Job, stage_attrs
-from vprflow.stages.dataset import Dataset
 from vprflow.stages.image_descriptors import image_descriptor
-from vprflow.stages.pca import read_pca
+from vprflow.stages.readers import Dataset, read_pca
 
 log = logging.getLogger("vprflow")
 

@@ -21,7 +21,7 @@ import numpy as np
 
 from vprflow.core import stores
 from vprflow.core.files import atomic_path
-from vprflow.stages.dataset import Dataset
+from vprflow.stages.readers import Dataset
 
 
 def export_descriptors(
@@ -66,12 +66,12 @@ def ranking_at_depth(
     The recall store's ranking (what its table scored: as deep as the recall's depth, at
     least the deepest Recall@N, and a re-ranked row's as deep as its re-ranker's top K) is cut to
     ``depth``; a deeper ``depth`` continues it with the method's own retrieval
-    (:func:`vprflow.stages.recall.retrieve` over the descriptors and search stores),
+    (:func:`vprflow.stages.retrieval.retrieve` over the descriptors and search stores),
     skipping references already ranked, so no stage reruns for it. Continued entries of a
     re-ranked row score as its lowest score (0 when none), as the re-ranking scores the
     retrieval's entries past its top K. A per-segment method ranks only images that got a
     vote (``vote_ranking: published``): its rows may end before ``depth``."""
-    from vprflow.stages.recall import retrieve
+    from vprflow.stages.retrieval import retrieve
 
     result = stores.open_store(recall_path)
     ranking = np.asarray(result["ranking"][...])

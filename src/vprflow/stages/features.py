@@ -13,7 +13,7 @@ from vprflow.core import stores
 from vprflow.core.registry import model_kind
 from vprflow.data.images import resize_image
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
-from vprflow.stages.dataset import open_shard
+from vprflow.stages.readers import open_shard
 
 log = logging.getLogger("vprflow")
 
@@ -99,34 +99,3 @@ def _feature_extractor(params: dict, device: str, width: int, height: int, datas
         return backbone.features(pixels)
 
     return run, backbone.patch_size
-
-
-def read_features(group, index: int) -> np.ndarray:
-    """float32 ``[h, w, D]`` of one image of a features store."""
-    return np.asarray(group["features"][index], dtype=np.float32)
-
-
-class FeatureReader:
-    """``reader(index) -> float32 [h, w, D]``, read-only, reading about ``block_bytes``
-    of images per store access: a per-image stage walks the images in order, and one
-    store read per image costs more than the arithmetic on it for small grids.
-
-    An image is a read-only view of its block, not a copy, and blocks stay small enough
-    for the allocator to reuse the last one's memory (glibc maps anything above 32 MiB
-    afresh, and touching new pages costs more than a copy). Reading 2,048 DAISY images
-    of 125 KB (with the row reader's direct reads), ms an image: copies from 64 MiB
-    blocks 0.064, views 0.056; views from 8 MiB blocks 0.047, from 2 MiB 0.044."""
-
-    def __init__(self, group, block_bytes: int = 4 << 20):
-        self.array = group["features"]
-        per_image = 4 * int(np.prod(self.array.shape[1:]))
-        self.block = max(1, block_bytes // max(per_image, 1))
-        self.start, self.cached = 0, np.zeros((0,), np.float32)
-
-    def __call__(self, index: int) -> np.ndarray:
-        if not self.start <= index < self.start + len(self.cached):
-            self.start = index
-            stop = min(index + self.block, self.array.shape[0])
-            self.cached = np.asarray(self.array[index:stop], dtype=np.float32)
-            self.cached.flags.writeable = False
-        return self.cached[index - self.start]

@@ -15,7 +15,7 @@ import numpy as np
 from vprflow.core import stores
 from vprflow.core.files import write_text_atomic
 from vprflow.evaluation import figures
-from vprflow.stages.dataset import Dataset
+from vprflow.stages.readers import Dataset
 
 log = logging.getLogger("vprflow")
 
@@ -35,7 +35,7 @@ def plot_recall(
     precision-recall curves of their top-1 matches (the table's counting), on one figure."""
     from vprflow.evaluation.precision_recall import precision_recall_curve
     from vprflow.evaluation.recall import counted_queries
-    from vprflow.stages.recall import top1_matches
+    from vprflow.stages.retrieval import top1_matches
 
     dataset = Dataset(dataset_path)
     truth = dataset.truth()
@@ -178,7 +178,7 @@ def draw_segment_matches(
     ``inputs``: the ``dataset``, ``recall``, ``search``, ``descriptors`` and ``segments``
     stores of the method.
     """
-    from vprflow.stages.segments import MaskReader
+    from vprflow.stages.readers import MaskReader
 
     dataset = Dataset(inputs["dataset"], data_root)
     result = stores.open_store(inputs["recall"])
@@ -231,7 +231,7 @@ def draw_support_maps(
     ``inputs`` also has ``dataset``, ``recall`` and ``descriptors`` (whose attributes
     hold those settings)."""
     from vprflow.aggregation.snsm import snsm_descriptor, snsm_grid_shape
-    from vprflow.stages.features import FeatureReader
+    from vprflow.stages.readers import FeatureReader
 
     dataset = Dataset(inputs["dataset"], data_root)
     result = stores.open_store(inputs["recall"])

@@ -11,9 +11,7 @@ import numpy as np
 
 from vprflow.core import stores
 from vprflow.core.registry import Aggregator
-from vprflow.stages.features import FeatureReader
-from vprflow.stages.segments import MaskReader
-from vprflow.stages.vocabulary import read_centres
+from vprflow.stages.readers import FeatureReader, MaskReader, read_centres
 
 
 @dataclass(frozen=True)

@@ -3,7 +3,7 @@ every candidate's mutual nearest neighbour patch pairs with it
 (:func:`vprflow.evaluation.rerank.candidate_pairs`), once for all the re-rankers of a
 method on the same features and ``top_k``; each ``rerank`` stage scores them.
 
-The retrieval is the method's own (:func:`vprflow.stages.recall.retrieve`, the ranking
+The retrieval is the method's own (:func:`vprflow.stages.retrieval.retrieve`, the ranking
 its recall row is computed from, as deep as ``depth``, the recall's, or ``top_k`` if
 deeper); the patch features are the re-ranker's (any backbone entry, so they may differ
 from the method's). The pairs carry no threshold: ``min_similarity`` and the weighting
@@ -20,17 +20,14 @@ from tqdm import tqdm
 
 from vprflow.core import stores
 from vprflow.stages.base import Job
-from vprflow.stages.dataset import Dataset
-from vprflow.stages.recall import timed_retrieve
+from vprflow.stages.readers import PAIR_ARRAYS, Dataset
+from vprflow.stages.retrieval import timed_retrieve
 
 log = logging.getLogger("vprflow")
 
 # Reference features up to this size are read into memory once; larger sets are read
 # per candidate (a query's K candidates are scattered over the database).
 _IN_MEMORY_BYTES = 2 << 30
-
-# The pairs' arrays, one row a pair, in (query, candidate, increasing query patch) order.
-PAIR_ARRAYS = {"query_patch": np.int32, "candidate_patch": np.int32, "similarity": np.float32}
 
 
 def compute_matches(job: Job) -> None:
@@ -125,54 +122,3 @@ def compute_matches(job: Job) -> None:
         int(offsets[-1]),
         1000 * seconds / max(n_query, 1),
     )
-
-
-class Matches:
-    """A ``matches`` store read query by query: :meth:`pairs` gives one query's
-    candidates' pairs as :func:`vprflow.evaluation.rerank.candidate_pairs` does, reading
-    the pairs about 64 MiB at a time (queries are read in order)."""
-
-    def __init__(self, path: str):
-        self.group = stores.open_store(path)
-        attrs = self.group.attrs
-        self.grid = tuple(int(v) for v in attrs["grid"])
-        self.patch = int(attrs["patch_size"])
-        self.top_k = int(attrs["top_k"])
-        self.retrieval_ranking = np.asarray(self.group["retrieval_ranking"][...])
-        self.offsets = np.asarray(self.group["offsets"][...])
-        n_query = len(self.retrieval_ranking)
-        if len(self.offsets) != n_query * self.top_k + 1:
-            raise stores.StoreCorruptError(
-                path,
-                f"offsets has {len(self.offsets)} entries, not {n_query} queries x "
-                f"{self.top_k} candidates + 1",
-            )
-        self._arrays = {name: self.group[name] for name in PAIR_ARRAYS}
-        self._block = (64 << 20) // sum(np.dtype(d).itemsize for d in PAIR_ARRAYS.values())
-        self._start, self._rows = 0, {name: np.zeros(0, d) for name, d in PAIR_ARRAYS.items()}
-
-    def candidates(self, q: int) -> np.ndarray:
-        """Query ``q``'s candidates ``[k]`` (reference indices; the top ``top_k`` present)."""
-        head = self.retrieval_ranking[q, : self.top_k]
-        return head[head >= 0]
-
-    def pairs(self, q: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
-        """``[(query_patch [M] int32, candidate_patch [M] int32, similarity [M] float32)]``,
-        one per candidate of :meth:`candidates`."""
-        first = q * self.top_k
-        low, high = int(self.offsets[first]), int(self.offsets[first + self.top_k])
-        stop = self._start + len(self._rows["similarity"])
-        if not (self._start <= low and high <= stop):
-            # This query's pairs and those after it, about 64 MiB.
-            stop = max(high, min(low + self._block, int(self.offsets[-1])))
-            self._start = low
-            self._rows = {n: np.asarray(a[low:stop]) for n, a in self._arrays.items()}
-        rows = [self._rows[name] for name in PAIR_ARRAYS]
-        slots = first + np.flatnonzero(self.retrieval_ranking[q, : self.top_k] >= 0)
-        return [
-            tuple(
-                r[int(self.offsets[c]) - self._start : int(self.offsets[c + 1]) - self._start]
-                for r in rows
-            )
-            for c in slots
-        ]

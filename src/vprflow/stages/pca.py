@@ -9,8 +9,8 @@ from tqdm import tqdm
 from vprflow.aggregation.aggregators import aggregator
 from vprflow.core import stores
 from vprflow.stages.base import Job
-from vprflow.stages.dataset import Dataset
 from vprflow.stages.image_descriptors import image_descriptor
+from vprflow.stages.readers import Dataset
 
 
 def fit_pca_stage(job: Job) -> None:
@@ -58,15 +58,3 @@ def fit_pca_stage(job: Job) -> None:
         stores.write_array(group, "mean", fitted.mean)
         stores.write_array(group, "components", fitted.components)
         stores.write_array(group, "explained_variance", fitted.explained_variance)
-
-
-def read_pca(path: str):
-    from vprflow.aggregation.pca import Pca
-
-    group = stores.open_store(path)
-    return Pca(
-        mean=np.asarray(group["mean"][...]),
-        components=np.asarray(group["components"][...]),
-        explained_variance=np.asarray(group["explained_variance"][...]),
-        whiten=bool(group.attrs["whiten"]),
-    )

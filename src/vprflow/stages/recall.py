@@ -4,7 +4,6 @@ mAP@N (none for a dataset without ground truth: ``ground_truth: {kind: none}``).
 from __future__ import annotations
 
 import logging
-import time
 
 import numpy as np
 
@@ -12,51 +11,10 @@ from vprflow.core import stores
 from vprflow.evaluation.recall import COST_COLUMNS
 from vprflow.planning.plan import RECALL_DEPTH
 from vprflow.stages.base import Job
-from vprflow.stages.dataset import Dataset
+from vprflow.stages.readers import Dataset
+from vprflow.stages.retrieval import retrieve, timed_retrieve, top1_matches
 
 log = logging.getLogger("vprflow")
-
-
-def retrieve(
-    dataset: Dataset,
-    descriptors_path: str,
-    depth: int,
-    search_path: str | None = None,
-    vote_ranking: str | None = None,
-) -> tuple[np.ndarray, np.ndarray, str]:
-    """Each query's first ``depth`` references: ``(ranking [Nq, d], scores [Nq, d],
-    score kind)``, ``d`` = ``depth`` capped at the references. Per-segment descriptors
-    are ranked by voting over the segment lists of the ``search`` stage
-    (``search_path``); scores are votes (higher is better). Global ones by exact search;
-    scores are squared L2 distances (lower is better)."""
-    from vprflow.search.flat import flat_knn
-    from vprflow.search.voting import image_of_segment, scored_vote_ranking
-    from vprflow.stages.search import read_search
-
-    group = stores.open_store(descriptors_path)
-    n_ref, n_query = dataset.n_reference, dataset.n_query
-    depth = min(depth, n_ref)
-    if group.attrs["kind"] != "segments":
-        vectors = np.asarray(group["descriptors"][...])
-        scores, ranking = flat_knn(vectors[:n_ref], vectors[n_ref:], depth)
-        return ranking, scores, "squared_l2"
-    if search_path is None:
-        raise ValueError(f"{descriptors_path}: per-segment descriptors need a search input")
-    offsets = np.asarray(group["descriptors_offsets"][...])
-    split = int(offsets[n_ref])
-    owner = image_of_segment(offsets)
-    distances, indices = read_search(search_path)
-    ranking, scores = scored_vote_ranking(
-        distances,
-        indices,
-        owner[split:] - n_ref,
-        owner[:split],
-        n_query,
-        n_ref,
-        depth,
-        vote_ranking,
-    )
-    return ranking, scores, "votes"
 
 
 # What a query costs, as the recall store's `cost` and the results table name it.
@@ -65,42 +23,6 @@ def descriptor_bytes_per_image(descriptors, n_images: int) -> float:
     the store's array): the vector of a global method; every segment's vector of a
     per-segment one (mean over images)."""
     return float(np.prod(descriptors.shape)) * descriptors.dtype.itemsize / max(n_images, 1)
-
-
-def timed_retrieve(
-    dataset: Dataset,
-    descriptors_path: str,
-    depth: int,
-    search_path: str | None = None,
-    vote_ranking: str | None = None,
-) -> tuple[tuple[np.ndarray, np.ndarray, str], float]:
-    """:func:`retrieve`'s result, and the milliseconds it took per query."""
-    started = time.perf_counter()
-    found = retrieve(dataset, descriptors_path, depth, search_path, vote_ranking)
-    return found, 1000 * (time.perf_counter() - started) / max(dataset.n_query, 1)
-
-
-def top1_matches(
-    ranking: np.ndarray,
-    scores: np.ndarray,
-    score_kind: str,
-    truth: list[np.ndarray],
-    counted: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """What the precision-recall metrics judge, over the ``counted [Nq]`` queries:
-    ``(confidence, correct, has_positive)``, each ``[n counted]``, of every query's
-    top-1 match (:mod:`vprflow.evaluation.precision_recall`); None when no counted query has a
-    correct top-1 match, where VPR-Bench's recall is 0 / 0."""
-    from vprflow.evaluation.precision_recall import top1_confidence
-    from vprflow.evaluation.recall import correct_at, counted_queries
-
-    counted = np.asarray(counted, dtype=bool)
-    correct = (correct_at(ranking, truth) == 0)[counted]
-    confidence = top1_confidence(scores, score_kind, ranking)[counted]
-    if not (correct & np.isfinite(confidence)).any():
-        return None
-    has_positive = counted_queries(truth, "with_positives")[counted]
-    return confidence, correct, has_positive
 
 
 def log_without_positive(dataset: Dataset, queries: np.ndarray, denominator: str) -> None:

@@ -11,7 +11,7 @@ from vprflow.core import stores
 from vprflow.core.files import atomic_path
 from vprflow.evaluation.precision_recall import SUMMARY
 from vprflow.evaluation.recall import COST_COLUMNS
-from vprflow.stages.dataset import Dataset
+from vprflow.stages.readers import Dataset
 
 # The precision-recall summary of the top-1 matches and what a query costs (descriptor
 # bytes are exact; milliseconds are this run's, not a result).

@@ -21,7 +21,7 @@ from tqdm import tqdm
 from vprflow.core import stores
 from vprflow.core.registry import reranker
 from vprflow.stages.base import Job
-from vprflow.stages.matches import Matches
+from vprflow.stages.readers import Matches
 
 log = logging.getLogger("vprflow")
 

@@ -22,7 +22,7 @@ from vprflow.core.paths import shard_layout
 from vprflow.core.registry import search_index
 from vprflow.search.topk import merge_knn
 from vprflow.stages.base import Job, stage_attrs
-from vprflow.stages.dataset import Dataset
+from vprflow.stages.readers import Dataset
 
 log = logging.getLogger("vprflow")
 
@@ -103,9 +103,3 @@ def _list_writers(group, k: int) -> dict[str, stores.RowWriter]:
         "distances": stores.RowWriter(group, "distances", (k,), np.float32, chunk),
         "indices": stores.RowWriter(group, "indices", (k,), np.int64, chunk),
     }
-
-
-def read_search(path: str) -> tuple[np.ndarray, np.ndarray]:
-    """``(distances [Sq, k], indices [Sq, k])`` of a merged search store."""
-    group = stores.open_store(path)
-    return np.asarray(group["distances"][...]), np.asarray(group["indices"][...])

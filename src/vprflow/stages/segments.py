@@ -12,7 +12,7 @@ from vprflow.core import stores
 from vprflow.core.registry import model_kind
 from vprflow.data.images import resize_image
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
-from vprflow.stages.dataset import open_shard
+from vprflow.stages.readers import open_shard
 
 log = logging.getLogger("vprflow")
 
@@ -88,20 +88,3 @@ def _mask_source(params: dict, device: str, dataset):
     if hasattr(segmenter, "masks_batch"):
         return lambda indices: segmenter.masks_batch(images(indices))
     return lambda indices: [segmenter.masks(image) for image in images(indices)]
-
-
-def read_masks(group, index: int) -> np.ndarray:
-    """bool ``[S, Hm, Wm]`` of one image of a segments store."""
-    return MaskReader(group)(index)
-
-
-class MaskReader:
-    """``reader(index) -> bool [S, Hm, Wm]``, reading the packed masks of many images
-    per store access (see :class:`vprflow.core.stores.RaggedReader`)."""
-
-    def __init__(self, group):
-        self.packed = stores.RaggedReader(group, "masks")
-        self.height, self.width = int(group.attrs["mask_height"]), int(group.attrs["mask_width"])
-
-    def __call__(self, index: int) -> np.ndarray:
-        return stores.unpack_masks(self.packed(index), self.height, self.width)

@@ -8,8 +8,7 @@ from tqdm import tqdm
 from vprflow.core import stores
 from vprflow.planning.fingerprints import file_digest
 from vprflow.stages.base import Job, resolved_sources
-from vprflow.stages.dataset import Dataset
-from vprflow.stages.features import read_features
+from vprflow.stages.readers import Dataset, read_features
 
 
 def load_centres_file(path: str) -> np.ndarray:
@@ -94,7 +93,3 @@ def fit_vocabulary(job: Job) -> None:
     attrs = {"stage": "vocabulary", "record": record, "sources": resolved_sources(params)}
     with stores.atomic_store(job.out, attrs) as group:
         stores.write_array(group, "centres", centres.astype(np.float32))
-
-
-def read_centres(path: str) -> np.ndarray:
-    return np.asarray(stores.open_store(path)["centres"][...], dtype=np.float32)
