@@ -1,11 +1,12 @@
 """The workflow's stages, one module per Snakemake rule, named after it.
 
 Each stage's function takes one :class:`~vprflow.stages.base.Job` (its record, input
-stores by name, output, image range and how to run) and writes its output store; its
-module also holds the readers later stages use on that store.
-:data:`vprflow.planning.plan.STAGES` names the function of each stage, and
-:mod:`.jobs` runs it for the rules' one script (``workflow/scripts/stage.py``), the tests
-and the benchmarks. ``record`` is the stage's hashed record from
+stores by name, output, image range and how to run) and writes its output store.
+Later stages read a store through :mod:`.readers` (every store's arrays and their
+names) and a method's ranking through :mod:`.retrieval`; no stage imports another.
+:mod:`.jobs` binds each row of :data:`vprflow.planning.plan.STAGES` to its function and
+runs it for the rules' one script (``workflow/scripts/stage.py``), the tests and the
+benchmarks. ``record`` is the stage's hashed record from
 :mod:`vprflow.planning.plan` (``record["params"]`` holds the stage's own parameters); it is
 written into the output store's attributes so every store documents itself.
 
