@@ -54,7 +54,7 @@ from vprflow.core.registry import (
 # Which dataset settings shape which store. A dataset's settings are split between
 # what the images are (the `images` store: list, order, content, reader) and what is
 # true about them (the `dataset` store: the ground truth), so a ground-truth change
-# reruns no model stage (issue 30). A setting in neither tuple below shapes the images
+# reruns no model stage. A setting in neither tuple below shapes the images
 # store: one the images stage reads (recursive, follow_links, ...) is never left out.
 # The truth store's settings (of these, MSLS's `kind` and `city` also pick the images:
 # `datasets.listing_truth`).
@@ -836,37 +836,39 @@ class StageSpec:
 
 
 # Every stage, in the order a query's data flows through them (the rerun table's order).
+# Each comment says what the stage stores and what its current format version stands
+# for; the history of each bump is in git.
 STAGES: dict[str, StageSpec] = {
-    # What the images are: their list, order, paths, sizes, SHA-256 and how they are read
-    # (1: split from the dataset stage, issue 30, so the ground truth keys no model stage)
+    # What the images are: their list, order, paths, sizes, SHA-256 and how they are
+    # read. Its own store, so that no ground-truth setting reaches a model stage's key.
     "images": StageSpec(1),
-    # What is true about them, over the images store (its arrays copied): 2: paths
-    # relative to data_root, contents in the key; 3: the ground truth only, keyed by the
-    # images store's key, the ground-truth settings and the ground-truth files
+    # What is true about them: the ground truth over the images store, with its arrays
+    # copied; keyed by the images store's key, the ground-truth settings and files.
     "dataset": StageSpec(3),
-    # 2: crop offsets round like torchvision; 3: published resize, pos-embed
+    # Patch features after the published reader's resize (crop offsets rounded as
+    # torchvision, position embeddings interpolated as the authors do).
     "features": StageSpec(3, shards="images"),
-    # 2: published (OpenCV INTER_LINEAR) resize; 3: SAM prompts through sam_decoder
-    # (float32 rounding differs; SAM-HQ masks upscaled from the transformer's output)
+    # Masks after the published (OpenCV INTER_LINEAR) resize; SAM's prompts decoded by
+    # models/sam/decoder.py, SAM-HQ's masks upscaled from its transformer's output.
     "segments": StageSpec(3, shards="images", needed=_plan_segments),
-    # 2: `centres` (plain cluster means by default); 3: numpy assignment
+    # VLAD centres (plain cluster means by default), points assigned in numpy.
     "vocabulary": StageSpec(3, needed=_plan_vocabulary),
-    # 2: exact solver by default, capped at the numerical rank; 3: numpy VLAD
+    # The exact solver by default, capped at the numerical rank, over numpy VLAD.
     "pca": StageSpec(3, needed=_plan_pca),
-    # 2: crop_aligned uses the backbone's crop offsets; 3: VLAD input norm; 4: VLAD in
-    # numpy, one BLAS thread per image (float32 rounding differs from torch's)
+    # VLAD in numpy, one BLAS thread per image, with the input norm and the backbone's
+    # crop offsets (float32 rounding differs from torch's).
     "descriptors": StageSpec(4, shards="images"),
-    # A range of reference images per job; the shards' top-k lists are merged, not
-    # concatenated.
+    # Each query segment's nearest reference segments, a range of reference images per
+    # job; the shards' top-k lists are merged, not concatenated.
     "search": StageSpec(1, shards="references"),
-    # Each re-ranked candidate's mutual nearest neighbour patch pairs, shared by the
-    # re-rankers of a method on the same features and top_k (issue 33)
+    # Each re-ranked candidate's mutual nearest neighbour patch pairs, computed once for
+    # all the re-rankers of a method on the same features and top_k.
     "matches": StageSpec(1),
-    # 2: the top K re-ordered, then the rest of the retrieval (to `depth`); 3: scores
-    # from a matches store's pairs (the retrieval and the matching moved there)
+    # A re-ranker's scores from a matches store's pairs: the top K re-ordered, then the
+    # rest of the retrieval to the recall's depth.
     "rerank": StageSpec(3),
-    # 2: published vote ranking; 3: search-stage lists; 4: scores, mAP; 5: precision-recall
-    # summary and cost per query, re-ranked lists; 6: n_queries_without_positive
+    # The ranking (the published vote ranking for segments), its scores, Recall@N, mAP,
+    # the precision-recall summary, the cost per query and the queries without a positive.
     "recall": StageSpec(6),
 }
 

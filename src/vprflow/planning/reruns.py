@@ -5,7 +5,7 @@ A stage reruns exactly when the plan after the change holds a key of it that the
 before did not (``results/cache/<stage>/<key>.zarr`` does not exist yet). The table is
 docs/usage.md's "What a change reruns" (``python scripts/write_reruns_doc.py``), and
 ``tests/test_reruns.py`` checks both the doc and the expected rows: a ground-truth
-change reruns the truth store and recall, never a model stage (issue 30).
+change reruns the truth store and recall, never a model stage.
 """
 
 from __future__ import annotations
