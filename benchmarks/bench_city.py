@@ -1,6 +1,6 @@
 """The whole workflow at a papers' dataset size: a Pittsburgh-30k-shaped synthetic city
 (10,000 references to 6,816 queries), per stage time, share, peak memory and store size,
-and how each grows with the number of images (issue 33 item 5).
+and how each grows with the number of images.
 
     python benchmarks/bench_city.py --data ../shared/data [--images 2000 8000 16816]
         [--cores 2] [--workdir /tmp/vprflow-city] [--cache /tmp/vprflow-city-data] [--reuse]

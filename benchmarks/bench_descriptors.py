@@ -19,8 +19,8 @@ corridor config, in one process and under the rule's thread budget (``run_stage`
   (store reads, PCA, writes, zarr), each run into a new store (removed untimed);
 - before: the same job through ``src/vprflow/stages/descriptors.py``,
   ``src/vprflow/core/stores.py`` and the ``FeatureReader`` of
-  ``src/vprflow/stages/features.py`` of ``--before`` (``git show``; default: the commit
-  before issue 33 item 3's store writes, one chunk a zarr write), the two runs
+  ``src/vprflow/stages/features.py`` of ``--before`` (``git show``; default: the last
+  commit whose stores wrote one chunk a zarr write), the two runs
   interleaved in every repeat so that both see the same machine load;
 - zstd: the stage's job reading its features with the codecs they had before commit
   dd52bef (zstd and crc32c; since then the checksum alone, which every other column
@@ -69,7 +69,7 @@ from vprflow.planning.plan import STAGES, build_plan  # noqa: E402
 from vprflow.stages.jobs import RUNNERS  # noqa: E402
 from vprflow.stages.runner import run_stage  # noqa: E402
 
-# The commit this benchmark's comparison starts from (issue 33 item 3): before the
+# The commit this benchmark's comparison starts from: before the
 # stores wrote several chunks a zarr write (RowWriter, then store_rows).
 BEFORE = "2cc3dee"
 

@@ -49,7 +49,7 @@ SRC = Path(__file__).resolve().parents[1] / "src"
 SEGMENTS_PER_IMAGE = 85
 VOTE_TOP = 50
 CHUNK = 8192
-# exact_knn before issue 33's chunked norms and fewer, larger re-scoring steps.
+# exact_knn before its chunked norms and fewer, larger re-scoring steps.
 OLD_EXACT = "d036158"
 
 
@@ -69,8 +69,9 @@ def max_rss_mib() -> float:
 
 
 def load_old_exact(folder: Path, ref: str):
-    """``exact_knn`` as it was at git revision ``ref`` (the baseline of issue 33's exact
-    search), loaded from ``git show`` into a module of its own; None without git or ref."""
+    """``exact_knn`` as it was at git revision ``ref`` (the baseline the chunked exact
+    search is compared with), loaded from ``git show`` into a module of its own; None
+    without git or ref."""
     import importlib.util
 
     try:

@@ -70,7 +70,7 @@ from vprflow.core import stores
 
 ROOT = Path(__file__).resolve().parents[1]
 # The last commit whose RowWriter gave zarr one chunk per write and let zarr compare
-# every chunk with the fill value (issue 33 item 6).
+# every chunk with the fill value.
 BEFORE = "7f80a7d"
 BLOCKS = 32  # VLAD clusters per row
 

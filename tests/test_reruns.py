@@ -1,4 +1,4 @@
-"""What a change reruns (issue 30): the table of settings against the stages whose keys
+"""What a change reruns: the table of settings against the stages whose keys
 they change, in docs/usage.md, and no model stage for a ground-truth change."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The trained VPR models as workflow components (issue 32): tiny random models saved in
+"""The trained VPR models as workflow components: tiny random models saved in
 each published checkpoint layout (NetVLAD's Patch-NetVLAD ``state_dict``, SALAD's
 ``dino_salad.ckpt``, BoQ-DINOv2's ``dinov2_12288.pth``, MegaLoc's ``model.safetensors``),
 loaded through the real loaders by the features stage, run through the descriptors,

@@ -309,9 +309,9 @@ def test_changing_a_reranker_reruns_only_its_reranks_and_their_recall(toy_run):
 
 
 def test_changing_the_ground_truth_reruns_the_truth_store_and_recall_but_no_model_stage(toy_run):
-    # Issue 30: a ground-truth change once rebuilt the images' listing, features, segments
-    # and the vocabulary. The truth store and recall are all it shapes (the figures read
-    # recall, so `all` would redraw them too).
+    # The truth store and recall are all a ground-truth change shapes (the figures read
+    # recall, so `all` would redraw them too): no images listing, features, segments or
+    # vocabulary.
     workdir, config = toy_run
     changed = copy.deepcopy(config)
     changed["datasets"]["toy"]["ground_truth"] = {"kind": "frame_window", "radius": 1}
