@@ -51,3 +51,40 @@ def test_stage_libraries_imported_inside_keep_the_thread_budget(tmp_path, fail):
         spent = float(result.stdout.split("cpu ")[1].split()[0])
         assert float(found[2]) >= spent - 0.01 > 0
         assert int(found[3]) > 50  # torch alone is more
+        assert "CUDA" not in line  # the stage ran on the CPU
+
+
+class _FakeCuda:
+    """torch.cuda as the runner sees it after a stage used two devices."""
+
+    def __init__(self, initialised: bool):
+        self.initialised = initialised
+
+    def is_initialized(self):
+        return self.initialised
+
+    def device_count(self):
+        return 2
+
+    def max_memory_allocated(self, device):
+        return [3 << 20, 5 << 20][device]
+
+
+@pytest.mark.parametrize("initialised", [False, True])
+def test_the_resources_line_states_peak_cuda_memory_only_where_the_stage_used_cuda(
+    tmp_path, monkeypatch, initialised
+):
+    from types import SimpleNamespace
+
+    from vprflow.stages.runner import run_stage
+
+    monkeypatch.setitem(
+        sys.modules,
+        "torch",
+        SimpleNamespace(cuda=_FakeCuda(initialised), set_num_threads=lambda n: None),
+    )
+    log = tmp_path / "stage.log"
+    run_stage(str(log), lambda: None)
+    line = log.read_text().splitlines()[-1]
+    assert re.search(r"peak RSS \d+ MiB", line), line
+    assert ("; peak CUDA 5 MiB allocated" in line) == initialised, line

@@ -54,7 +54,11 @@ def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> 
         started = time.perf_counter()
         try:
             function()
-            logger.info(RESOURCES, *_resources(started))
+            cuda = _peak_cuda_mib()
+            if cuda is None:
+                logger.info(RESOURCES, *_resources(started))
+            else:
+                logger.info(RESOURCES + CUDA_PEAK, *_resources(started), cuda)
         except BaseException as error:
             traceback.print_exc(file=log_file)
             log_file.flush()
@@ -72,6 +76,9 @@ def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> 
 # miss up to the last 30 s of a job's threads (a 38 s `matches` job on 2 threads: 20.9
 # CPU s there, 60.5 by getrusage); benchmarks/bench_workflow.py reads this line instead.
 RESOURCES = "resources: stage %.2f s wall; process %.2f s CPU, peak RSS %.0f MiB"
+# Appended where the stage used CUDA: the most its tensors held at once on any device
+# (torch's allocator; the process's own memory, not the cache it reserved).
+CUDA_PEAK = "; peak CUDA %.0f MiB allocated"
 
 
 def _resources(started: float) -> tuple[float, float, float]:
@@ -86,3 +93,14 @@ def _resources(started: float) -> tuple[float, float, float]:
         1 << 20 if sys.platform == "darwin" else 1 << 10
     )
     return time.perf_counter() - started, cpu, peak
+
+
+def _peak_cuda_mib() -> float | None:
+    """The largest ``torch.cuda.max_memory_allocated`` over the devices, in MiB, where
+    this process used CUDA; None where it did not (torch not imported, or CUDA never
+    initialised: every CPU run)."""
+    torch = sys.modules.get("torch")
+    if torch is None or not torch.cuda.is_initialized():
+        return None
+    peaks = [torch.cuda.max_memory_allocated(i) for i in range(torch.cuda.device_count())]
+    return max(peaks, default=0) / (1 << 20)
