@@ -12,6 +12,7 @@ import http.server
 import io
 import json
 import os
+import re
 import subprocess
 import sys
 import tarfile
@@ -512,10 +513,11 @@ def test_download_rule_then_recall_through_the_snakefile(tmp_path, server, toy_f
     download = {**spec_for(f"{base}/workflow-toy.tar.gz", sha256(data)), "manifest": str(manifest)}
     config = toy_config(workdir / "data", download=download)
     config_path = write_config(workdir, config)
-    # Without the data the recall target fails at DAG time, naming the download command.
-    failed = snakemake(workdir, config_path, "-n", "results/recall_toy.csv", check=False)
-    assert failed.returncode != 0
-    assert "results/downloads/toy.json" in failed.stdout + failed.stderr
+    # Without the data a dry run shows the download job and fetches nothing.
+    dry = snakemake(workdir, config_path, "-n", "results/recall_toy.csv")
+    assert re.search(r"^download +1$", dry.stdout, re.M), dry.stdout
+    assert not (workdir / "data" / "toy").exists()
+    assert not (workdir / "results" / "downloads" / "toy.json").exists()
     snakemake(workdir, config_path, "results/downloads/toy.json")
     record = json.loads((workdir / "results" / "downloads" / "toy.json").read_text())
     assert record["downloaded"] and record["sha256"] == sha256(data)
@@ -526,16 +528,16 @@ def test_download_rule_then_recall_through_the_snakefile(tmp_path, server, toy_f
         rows = list(csv.DictReader(f))
     assert len(rows) == len(config["datasets"]["toy"]["methods"])
     assert all(row["n_queries"] == "10" for row in rows)
-    # After a complete run, the cached stores never stand in for a dataset that is not
-    # there: a run pointed at an empty data_root fetches the sample there first (it has a
-    # download entry), and reruns nothing, since the images are the same; a dry run
-    # fetches nothing and names the folder and the command.
+    # Pointed at an empty data_root, a run that needs the images fetches the sample there
+    # first (it has a download entry) and reruns no stage, since the images are the same.
+    # A dry run fetches nothing and shows the download.
     elsewhere = write_config(workdir, {**config, "data_root": str(tmp_path / "empty")}, "b.yaml")
-    dry = snakemake(workdir, elsewhere, "-n", "results/recall_toy.csv", check=False)
-    assert dry.returncode != 0 and "does not exist" in dry.stdout + dry.stderr
-    assert "snakemake --cores 1 results/downloads/toy.json" in dry.stdout + dry.stderr
+    (workdir / "results" / "recall_toy.csv").unlink()
+    dry = snakemake(workdir, elsewhere, "-n", "results/recall_toy.csv")
+    assert re.search(r"^download +1$", dry.stdout, re.M) and not (tmp_path / "empty").exists()
     fetched = snakemake(workdir, elsewhere, "results/recall_toy.csv")
     assert "dataset toy: downloading into" in fetched.stdout + fetched.stderr
+    assert "output: results/cache/" not in fetched.stdout + fetched.stderr
     assert (tmp_path / "empty" / "toy" / "ref").is_dir()
     assert scheduled_stages(workdir, elsewhere, "results/recall_toy.csv") == set()
     # A dataset without a download entry names itself and the folder, not a stage that
@@ -578,34 +580,23 @@ def test_a_failed_download_says_on_the_console_which_dataset_and_what_to_do(tmp_
 
 def test_a_run_asks_for_the_datasets_its_targets_name_or_else_the_configs_targets():
     config = {"targets": ["corridor"], "datasets": {"corridor": {}, "roadscene": {}, "x_y": {}}}
-    assert download.requested_datasets(config, ["snakemake", "--cores", "2"]) == ["corridor"]
-    argv = ["snakemake", "-c2", "results/recall_roadscene.csv", "results/pairs/x_y/a/pairs.txt"]
-    assert download.requested_datasets(config, argv) == ["roadscene", "x_y"]
-    assert download.requested_datasets(config, ["snakemake", "results/recall_x.csv"]) == []
+    assert download.requested_datasets(config, ()) == ["corridor"]
+    assert download.requested_datasets(config, {"all"}) == ["corridor"]
+    targets = ["results/recall_roadscene.csv", "results/pairs/x_y/a/pairs.txt"]
+    assert download.requested_datasets(config, targets) == ["roadscene", "x_y"]
+    assert download.requested_datasets(config, ["results/recall_x.csv"]) == []
 
 
-def test_a_missing_sample_dataset_the_run_needs_is_fetched_before_planning_and_only_it(
-    tmp_path, server, toy_files
-):
-    folder, base = server
-    data = make_archive(folder / "toy.zip", toy_files)
+def test_only_a_missing_sample_dataset_awaits_its_download(tmp_path):
     config = {
         "data_root": str(tmp_path / "data"),
-        "targets": ["toy", "preset_like"],
         "datasets": {
-            "toy": {"path": "toy", "download": spec_for(f"{base}/toy.zip", sha256(data))},
+            "toy": {"path": "toy", "download": spec_for("file:///toy.zip")},
             "preset_like": {"path": "preset_like"},  # no download entry: stays manual
-            "present": {"path": "present", "download": spec_for(f"{base}/none.zip")},
+            "present": {"path": "present", "download": spec_for("file:///none.zip")},
         },
     }
     (tmp_path / "data" / "present").mkdir(parents=True)
-    root = str(tmp_path) + "/"
-    names = ["toy", "preset_like", "present"]
-    assert download.fetch_missing(config, names, tmp_path, root) == ["toy"]
-    assert (tmp_path / "data" / "toy" / "ref").is_dir()
-    record = json.loads((tmp_path / "results" / "downloads" / "toy.json").read_text())
-    assert record["dataset"] == "toy" and record["sha256"] == sha256(data)
-    assert (tmp_path / "logs" / "download" / "toy.log").exists()
-    assert not (tmp_path / "data" / "preset_like").exists()
-    # Present now: nothing more to fetch.
-    assert download.fetch_missing(config, names, tmp_path, root) == []
+    assert download.awaiting_download(config) == ["toy"]
+    (tmp_path / "data" / "toy").mkdir()
+    assert download.awaiting_download(config) == []

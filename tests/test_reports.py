@@ -1,6 +1,5 @@
-"""The report's tables on disk: which command lines may withdraw them, which datasets'
-tables a failure withdraws, clearing the withdrawn copies a good run supersedes, and a
-report that would lack items."""
+"""The report's tables on disk: which datasets' tables a failure withdraws, clearing the
+withdrawn copies a good run supersedes, and a report that would lack items."""
 
 from __future__ import annotations
 
@@ -18,47 +17,12 @@ from vprflow.planning.reports import (
     clear_superseded,
     closing_lines,
     failed_datasets,
-    makes_report,
     report_error,
     report_gaps,
-    runs_jobs,
     stale_reports,
 )
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
-
-
-@pytest.mark.parametrize(
-    "argv",
-    [
-        ["snakemake", "-n", "--cores", "2"],
-        ["snakemake", "--cores", "2", "--dry-run", "results/recall_corridor.csv"],
-        ["snakemake", "-np"],
-        ["snakemake", "-pn", "--cores=2"],
-        ["snakemake", "--summary"],
-        ["snakemake", "--report", "report.html"],
-        ["snakemake", "--report=report.html"],
-        ["snakemake", "--lint"],
-        ["snakemake", "--dag"],
-        ["snakemake", "--list-rules"],
-        ["snakemake", "--unlock"],
-    ],
-)
-def test_a_command_that_runs_no_job_withdraws_nothing(argv):
-    assert not runs_jobs(argv)
-
-
-@pytest.mark.parametrize(
-    "argv",
-    [
-        ["snakemake", "--cores", "2"],
-        ["snakemake", "-c2", "results/recall_corridor.csv"],
-        ["snakemake", "-p", "--cores", "2", "--config", "data_root=../shared/data"],
-        ["snakemake", "--cores", "2", "--", "results/n.csv"],
-    ],
-)
-def test_a_command_that_runs_jobs_may_withdraw(argv):
-    assert runs_jobs(argv)
 
 
 def test_a_good_run_clears_the_withdrawn_copy_of_a_table_it_wrote_again(tmp_path):
@@ -159,19 +123,6 @@ def test_a_failed_run_finds_stale_tables_only_among_the_datasets_it_asked_for(tm
     root = str(tmp_path) + "/"
     assert stale_reports(plan, root, ["b"]) == [results / "recall_b.csv"]
     assert len(stale_reports(plan, root)) == 2
-
-
-@pytest.mark.parametrize(
-    ("argv", "expected"),
-    [
-        (["snakemake", "--report", "report.html"], True),
-        (["snakemake", "--report=r.html", "--config", "data_root=d"], True),
-        (["snakemake", "--report", "r.html", "--report-after-run", "--cores", "2"], False),
-        (["snakemake", "--cores", "2"], False),
-    ],
-)
-def test_only_a_report_from_the_results_on_disk_checks_them_first(argv, expected):
-    assert makes_report(argv) is expected
 
 
 def test_a_report_that_cannot_list_a_dataset_names_the_data_root_and_the_remedy(tmp_path):

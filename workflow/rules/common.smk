@@ -4,12 +4,14 @@ from functools import cache
 from pathlib import Path
 
 from vprflow.planning.checkpoints import fetching_checkpoints
+from vprflow.planning.command import read_command
 from vprflow.planning.config import validate_config
 from vprflow.core.errors import PlanError
 from vprflow.data.datasets import list_dataset
-from vprflow.data.download import fetch_missing, requested_datasets
+from vprflow.data.download import awaiting_download, requested_datasets
 from vprflow.planning.fingerprints import load_fingerprints, save_fingerprints
 from vprflow.core.paths import (
+    DOWNLOAD_RECORD,
     EXPORT,
     FIGURE,
     FINGERPRINTS,
@@ -23,6 +25,7 @@ from vprflow.core.paths import (
     RECALL_TABLE,
     benchmark_pattern,
     check_inside_outputs,
+    dataset_folder,
     log_pattern,
     shard_pattern,
     store_path,
@@ -37,7 +40,6 @@ from vprflow.planning.reports import (
     dataset_outputs,
     failed_datasets,
     figure_inputs,
-    runs_jobs,
     withdraw_reports,
     withdraw_stale_reports,
 )
@@ -55,37 +57,39 @@ SCHEMA = Path(workflow.current_basedir).parent / "schemas" / "config.schema.yaml
 # under it; the few paths this file opens itself (not via rules) follow.
 _modifier = getattr(workflow.modifier, "path_modifier", None)
 PREFIX = getattr(_modifier, "prefix", None) or ""
-# Only the process that may run jobs withdraws or clears tables: never a dry run, a summary,
-# a lint, a report or a cluster job.
-RUNS_JOBS = workflow.is_main_process and runs_jobs(sys.argv)
+# The targets and whether the command runs the workflow, as Snakemake's parser reads them:
+# Snakemake decides both only after it has read this file.
+COMMAND = read_command(sys.argv)
+# Only the process that may run jobs withdraws or clears tables: never a dry run (Snakemake
+# knows it already), a summary, a lint, a report or a cluster job.
+RUNS_JOBS = (
+    workflow.is_main_process
+    and not workflow.output_settings.dryrun
+    and COMMAND.runs_workflow
+)
 try:
     CONFIG = validate_config(config, SCHEMA, workflow.configfiles)
     # Content hashes of images, local model weights and imported files, memoised
     # between runs.
     _memo = load_fingerprints(PREFIX + FINGERPRINTS)
     _memo_size = len(_memo)
-    if RUNS_JOBS:
-        # A shipped sample dataset (one with a `download` entry) the run needs and that
-        # is missing is fetched before its images are listed and hashed into the plan.
-        fetch_missing(
-            CONFIG,
-            requested_datasets(CONFIG, sys.argv),
-            Path(workflow.current_basedir).parent,
-            PREFIX,
-        )
+    # Sample datasets whose folder is missing: planned without their images (keys no
+    # job builds) until the `download` checkpoint has laid them out (`downloaded`).
+    AWAITING_DOWNLOAD = set(awaiting_download(CONFIG))
     # Missing checkpoints are one error naming them all, unless this run fetches them.
+    _allow_missing = fetching_checkpoints(COMMAND.targets)
     PLAN = build_plan(
         CONFIG,
         _memo,
-        allow_missing_checkpoints=fetching_checkpoints(sys.argv),
+        allow_missing_checkpoints=_allow_missing,
         configfiles=workflow.configfiles,
     )
 except Exception as _error:
     # `onerror` does not run for a failure here: withdraw now the tables of the datasets
-    # the run asked for whose own inputs failed. A config that does not validate or a
-    # sample that could not be fetched makes no finished table untrue (docs/usage.md).
+    # the run asked for whose own inputs failed. A config that does not validate makes
+    # no finished table untrue (docs/usage.md).
     if RUNS_JOBS and planning_failure(_error):
-        _asked = requested_datasets(CONFIG, sys.argv)
+        _asked = requested_datasets(CONFIG, COMMAND.targets)
         for _name in failed_datasets(_error, CONFIG, _asked):
             _why = f"dataset {_name!r} cannot be planned"
             for _table in withdraw_reports(PREFIX, _name):
@@ -166,6 +170,48 @@ def dataset_files(name):
         raise
 
 
+def replan():
+    """Plan the config again once a download laid a dataset out: its stores get the keys
+    of its images, every other key stays as it was (same config, same files)."""
+    memo_size = len(_memo)
+    fresh = build_plan(
+        CONFIG,
+        _memo,
+        allow_missing_checkpoints=_allow_missing,
+        configfiles=workflow.configfiles,
+    )
+    vars(PLAN).update(vars(fresh))
+    dataset_files.cache_clear()
+    if len(_memo) != memo_size:
+        save_fingerprints(_memo, PREFIX + FINGERPRINTS)
+    if not PLAN.checkpoint_error:
+        write_index(PLAN, PREFIX)
+
+
+def downloaded(name):
+    """First call of an input function that reads dataset ``name``'s stores. A sample
+    dataset awaiting its download makes Snakemake schedule the `download` checkpoint
+    (in a dry run: show it) and call again once it ran, with the dataset planned."""
+    if name not in AWAITING_DOWNLOAD:
+        return
+    entry = dataset_entry(name)
+    folder = dataset_folder(CONFIG["data_root"], entry)
+    record = Path(PREFIX + DOWNLOAD_RECORD.format(dataset=name))
+    if RUNS_JOBS and not folder.is_dir() and record.exists():
+        # Its folder is gone (or data_root moved): the record no longer holds, and left
+        # in place it would stand for a download that has not happened.
+        record.unlink()
+        print(f"vprflow: removed {record}: {folder}, where it records a download, is gone")
+    checkpoints.download.get(dataset=name)
+    if not folder.is_dir():
+        raise PlanError(
+            f"dataset {name!r}: folder {folder} does not exist, though {record} records "
+            "a download there; a run without -n (--dry-run) fetches it again"
+        )
+    AWAITING_DOWNLOAD.discard(name)
+    replan()
+
+
 def data_root_param(wildcards, output):
     """Where the images are read from. A params function that takes `output` is not a
     rerun trigger for Snakemake: moving the data folder changes no key, so it must
@@ -205,6 +251,7 @@ def gather_record(wildcards):
 
 def prediction_inputs(wildcards):
     dataset_entry(wildcards.dataset)  # an unknown dataset fails here, by name
+    downloaded(wildcards.dataset)
     return {
         "dataset": store_path("dataset", PLAN.dataset_keys[wildcards.dataset]),
         "recalls": [
@@ -263,15 +310,19 @@ def figure_pattern(figure):
 
 def figure_stores(figure):
     """Input function: the stores one method's figure reads, by name."""
-    return lambda wildcards: figure_inputs(
-        PLAN, wildcards.dataset, wildcards.method, figure
-    )
+
+    def inputs(wildcards):
+        downloaded(wildcards.dataset)
+        return figure_inputs(PLAN, wildcards.dataset, wildcards.method, figure)
+
+    return inputs
 
 
 def pairs_stores(wildcards):
     """Input function: the dataset and recall stores of a method's (or re-ranked row's)
     pairs files, and the descriptors (and segment search) that rank past the recall's
     depth."""
+    downloaded(wildcards.dataset)
     stores = method_stores(PLAN, wildcards.dataset, wildcards.method)
     names = ("dataset", "recall", "descriptors", "search")
     return {name: stores[name] for name in names if name in stores}
@@ -280,5 +331,6 @@ def pairs_stores(wildcards):
 def export_stores(wildcards):
     """Input function: the images and descriptors stores of a method's export (no
     ground truth: a ground-truth change leaves it as it is)."""
+    downloaded(wildcards.dataset)
     stores = method_stores(PLAN, wildcards.dataset, wildcards.method)
     return {name: stores[name] for name in ("images", "descriptors")}

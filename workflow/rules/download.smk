@@ -1,7 +1,9 @@
-# Public datasets on demand (README.md, "Getting the data"): `snakemake --cores 1
+# Public datasets on demand (docs/usage.md, "Getting the data"): `snakemake --cores 1
 # results/downloads/<dataset>.json` fetches the dataset's `download` archive, verifies
 # it and lays out its folder under data_root when the folder is missing, then writes
 # this record. Nothing here lists images, so the target works while the data is absent.
+# A checkpoint: a run that needs a sample dataset whose folder is missing plans its stores
+# once this job laid it out (`downloaded` in common.smk).
 from vprflow.core.paths import (
     DOWNLOAD_LOG,
     DOWNLOAD_RECORD,
@@ -34,7 +36,7 @@ localrules:
     trained_checkpoint_absolute,
 
 
-rule download:
+checkpoint download:
     input:
         manifest=lambda wildcards: manifest_inputs(
             CONFIG, wildcards.dataset, WORKFLOW_DIR
@@ -79,7 +81,7 @@ rule trained_checkpoints:
         fetchable_paths(PLAN.checkpoints),
 
 
-if workflow.is_main_process and fetching_checkpoints(sys.argv):
+if workflow.is_main_process and fetching_checkpoints(COMMAND.targets):
     for _line in by_hand(PLAN.checkpoints):
         print(f"vprflow: {_line}", file=sys.stderr)
 

@@ -1,12 +1,14 @@
 # The report's figures: rules of their own, outside the content-addressed cache. Their
 # settings (`figures:`) are params, so changing one reruns only figures. Each names its
 # figure in `params`: a host workflow's `use rule * from vprflow as vpr_*` renames rules.
-from vprflow.planning.reports import makes_report, report_error, report_gaps
+from vprflow.planning.reports import report_error, report_gaps
 
 # A report made without the run's options (its data_root, say) would look for other
 # keys' stores and leave items out without an error: it fails instead, naming each gap.
-if workflow.is_main_process and makes_report(sys.argv):
-    _gaps = report_gaps(PLAN, CONFIG, requested_datasets(CONFIG, sys.argv), PREFIX)
+if workflow.is_main_process and COMMAND.makes_report:
+    _gaps = report_gaps(
+        PLAN, CONFIG, requested_datasets(CONFIG, COMMAND.targets), PREFIX
+    )
     if _gaps:
         raise PlanError(report_error(_gaps))
 

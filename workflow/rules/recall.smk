@@ -83,9 +83,11 @@ localrules:
 # A failed run must not leave a results table that looks current (e.g. one method of
 # several failed): the tables of the datasets it asked for that are older than their
 # recall stores are renamed to *.stale. Other datasets' tables are no business of this run.
+# A dataset still awaiting its download has no plan its tables could be stale against.
 onerror:
     if RUNS_JOBS:
-        asked = requested_datasets(CONFIG, sys.argv)
+        asked = requested_datasets(CONFIG, workflow.dag_settings.targets)
+        asked = [name for name in asked if name not in AWAITING_DOWNLOAD]
         for table in withdraw_stale_reports(PLAN, PREFIX, asked):
             print(f"vprflow: {table} is out of date after the failure (renamed)")
 
@@ -96,5 +98,5 @@ onsuccess:
     if RUNS_JOBS:
         for stale in clear_superseded(PREFIX):
             print(f"vprflow: removed {stale}: the table beside it is current")
-        asked = requested_datasets(CONFIG, sys.argv)
+        asked = requested_datasets(CONFIG, workflow.dag_settings.targets)
         print("\n".join(closing_lines(PLAN, PREFIX, asked)))

@@ -53,7 +53,7 @@ from contextlib import contextmanager
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 from vprflow.core.files import TAG, is_abandoned, write_text_atomic, writer_tag
-from vprflow.core.paths import DOWNLOAD_LOG, DOWNLOAD_RECORD, dataset_folder
+from vprflow.core.paths import dataset_folder
 
 log = logging.getLogger("vprflow")
 
@@ -80,10 +80,10 @@ class DownloadError(RuntimeError):
     """A failed download; the message names the URL, member or file at fault."""
 
 
-def requested_datasets(config: dict, argv: list[str]) -> list[str]:
-    """The datasets a ``snakemake`` command line (``sys.argv``) asks for: those its
-    ``results/...`` targets name, or, without such a target, the config's ``targets``."""
-    targets = [a for a in argv[1:] if a.startswith("results/")]
+def requested_datasets(config: dict, targets) -> list[str]:
+    """The datasets a ``snakemake`` command's targets ask for: those its ``results/...``
+    targets name, or, without such a target, the config's ``targets``."""
+    targets = [t for t in targets if t.startswith("results/")]
     if not targets:
         return list(config["targets"])
     named = []
@@ -94,44 +94,15 @@ def requested_datasets(config: dict, argv: list[str]) -> list[str]:
     return named
 
 
-def fetch_missing(
-    config: dict, names: list[str], workflow_dir: str | Path, root: str = ""
-) -> list[str]:
-    """Download each of ``names`` that has a ``download`` entry (the shipped sample
-    datasets; presets have none and stay manual) and whose folder is missing, as the
-    ``download`` rule does (its record and log at their paths under ``root``), before
-    the plan lists the images. Returns the names fetched. The console says what is
-    fetched and where its log is; a failure is a DownloadError naming the dataset."""
-    fetched = []
-    for name in names:
-        entry = config["datasets"].get(name, {})
-        folder = dataset_folder(config["data_root"], entry) if entry else None
-        if "download" not in entry or folder.is_dir():
-            continue
-        log_path = Path(root + DOWNLOAD_LOG.format(dataset=name))
-        log_path.parent.mkdir(parents=True, exist_ok=True)
-        print(
-            f"vprflow: dataset {name}: downloading into {folder}, which is missing "
-            f"(progress: {log_path})",
-            file=sys.stderr,
-        )
-        manifest = manifest_inputs(config, name, workflow_dir)
-        logger = logging.getLogger("vprflow")
-        with open(log_path, "w") as log_file:
-            handler = logging.StreamHandler(log_file)
-            handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(message)s"))
-            logger.addHandler(handler)
-            level, logger.level = logger.level, logging.INFO
-            try:
-                record = download_dataset(
-                    name, entry["download"], folder, manifest[0] if manifest else None
-                )
-            finally:
-                logger.removeHandler(handler)
-                logger.setLevel(level)
-        write_record(record, root + DOWNLOAD_RECORD.format(dataset=name))
-        fetched.append(name)
-    return fetched
+def awaiting_download(config: dict) -> list[str]:
+    """The datasets with a ``download`` entry (the shipped samples; presets have none
+    and stay manual) whose folder under ``data_root`` is missing: the ``download``
+    checkpoint lays them out before their stores are planned."""
+    return [
+        name
+        for name, entry in config["datasets"].items()
+        if "download" in entry and not dataset_folder(config["data_root"], entry).is_dir()
+    ]
 
 
 def download_entry(config: dict, name: str) -> dict:

@@ -56,10 +56,10 @@ def checkpoint_url(published: TrainedVariant) -> str | None:
     return published.url if published.direct else None
 
 
-def fetching_checkpoints(argv: list[str]) -> bool:
-    """Whether a ``snakemake`` command line (``sys.argv``) asks for the fetch target, so
-    that the plan may be built while checkpoints are missing."""
-    return FETCH_TARGET in argv[1:]
+def fetching_checkpoints(targets) -> bool:
+    """Whether a ``snakemake`` command's targets (:mod:`vprflow.planning.command`) hold
+    the fetch target, so that the plan may be built while checkpoints are missing."""
+    return FETCH_TARGET in targets
 
 
 def fetch_command(configfiles=()) -> str:

@@ -187,13 +187,6 @@ def report_error(gaps: list[str]) -> str:
     )
 
 
-def makes_report(argv: list[str]) -> bool:
-    """Whether a ``snakemake`` command line writes a report from the results on disk
-    (``--report`` without ``--report-after-run``, which runs the workflow first)."""
-    names = {arg.split("=", 1)[0] for arg in argv[1:]}
-    return "--report" in names and "--report-after-run" not in names
-
-
 def clear_superseded(root: str = "") -> list[Path]:
     """Delete every ``<table>.stale`` beside which a fresh ``<table>`` now stands (a good
     run after a failure wrote it again); returns the deleted paths. A withdrawn table
@@ -205,38 +198,6 @@ def clear_superseded(root: str = "") -> list[Path]:
                 stale.unlink()
                 cleared.append(stale)
     return cleared
-
-
-# Snakemake options that run no job: a call with one of them changes no file, so it never
-# withdraws a table. Snakemake decides its executor only after the Snakefile is read, so
-# at planning time the command line is the only witness.
-_NO_JOBS = {
-    "-n", "--dry-run", "--dryrun", "--just-print",
-    "-S", "--summary", "-D", "--detailed-summary",
-    "-l", "--list", "--list-rules", "--lt", "--list-target-rules",
-    "--list-changes", "--lc", "--list-code-changes", "--list-input-changes",
-    "--list-params-changes", "--list-untracked", "--lu",
-    "--lint", "--report", "--report-stylesheet", "--dag", "--rulegraph", "--filegraph",
-    "--d3dag", "--containerize", "--print-compilation", "--unlock",
-    "--cleanup-metadata", "--cleanup-shadow", "--export-cwl", "--archive",
-    "-h", "--help", "--version", "-v",
-}  # fmt: skip
-
-
-def runs_jobs(argv: list[str]) -> bool:
-    """Whether a ``snakemake`` command line (``sys.argv``) may run jobs, and so may
-    withdraw tables: not with ``-n``, ``--summary``, ``--report``, ``--lint``, ``--dag``
-    and the other options that only read. Short flags may be grouped (``-np``)."""
-    for arg in argv[1:]:
-        if arg == "--":
-            break
-        name = arg.split("=", 1)[0]
-        if name in _NO_JOBS:
-            return False
-        if name.startswith("-") and not name.startswith("--") and name[1:].isalpha():
-            if any(f"-{flag}" in _NO_JOBS for flag in name[1:]):
-                return False
-    return True
 
 
 def _withdraw(tables: list[Path]) -> list[Path]:
