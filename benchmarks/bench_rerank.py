@@ -122,8 +122,8 @@ def main() -> int:
 
     import torch
 
-    from vprflow.core.registry import reranker
     from vprflow.evaluation import rerank as after
+    from vprflow.evaluation.rerank import reranker
 
     before = load_before(args.before)
     cases = SMOKE if args.smoke else {n: CASES[n] for n in args.cases.split(",")}

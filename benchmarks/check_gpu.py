@@ -36,8 +36,8 @@ sys.path.insert(0, str(ROOT / "tests"))
 from bench_rerank import CASES, inputs  # noqa: E402
 from knn_helpers import check_against_float64, clustered, unit_vectors  # noqa: E402
 
-from vprflow.core.registry import reranker  # noqa: E402
 from vprflow.evaluation import rerank as rr  # noqa: E402
+from vprflow.evaluation.rerank import reranker  # noqa: E402
 from vprflow.search.exact import exact_knn  # noqa: E402
 
 if not torch.cuda.is_available():

@@ -15,8 +15,9 @@ from pathlib import Path
 
 import yaml
 
-from vprflow.core.registry import BACKBONES, SEARCH_INDEXES, SEGMENTERS
+from vprflow.models.kinds import BACKBONES, SEGMENTERS
 from vprflow.planning.config import METHOD_DEFAULT_SECTIONS, load_schema
+from vprflow.search.indexes import SEARCH_INDEXES
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -35,10 +36,10 @@ become file and folder names under `results/` and `logs/`.
 A method's settings are, later winning: the top-level sections
 ({sections}),
 then the dataset's `defaults`, then the method's own. Backbone and segmenter entries
-also get their kind's defaults, and a method's `retrieval.params` its index's, from
-`src/vprflow/core/registry.py` (listed below by kind and by index). A default followed by a
-condition in brackets applies only then. What the methods compute is in
-`docs/methods.md`.
+also get their kind's defaults (`src/vprflow/models/kinds.py`), and a method's
+`retrieval.params` its index's (`src/vprflow/search/defaults.py`), listed below by kind
+and by index. A default followed by a condition in brackets applies only then. What the
+methods compute is in `docs/methods.md`.
 
 This file is generated from the schema's descriptions and config/config.yaml by
 `python scripts/write_config_readme.py`; `tests/test_registry.py` checks it is current.
@@ -110,8 +111,8 @@ def _search_index_table() -> list[str]:
     lines = [
         "## `retrieval.params` by index",
         "",
-        "Each index's parameters and their defaults (`src/vprflow/core/registry.py`), filled into "
-        "a method's `retrieval.params` before hashing; `null` = chosen by `vprflow.search` "
+        "Each index's parameters and their defaults (`src/vprflow/search/defaults.py`), filled "
+        "into a method's `retrieval.params` before hashing; `null` = chosen by `vprflow.search` "
         "(`nlist`, `m`: from the data; `margin`: by `candidate_dtype`). An approximate "
         "index's table also reports an exact search's recall.",
         "",

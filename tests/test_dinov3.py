@@ -18,7 +18,7 @@ import torch
 from tiny_models import save_tiny_dinov3
 from transformers import AutoModel
 
-from vprflow.core import registry
+from vprflow.models import kinds, loaders
 from vprflow.models.vit import load_vit
 from vprflow.planning.fingerprints import source_fingerprint
 
@@ -76,13 +76,14 @@ def _patches(tokens: torch.Tensor | np.ndarray, grid: tuple[int, int]) -> np.nda
     return tokens[:, 1 + REGISTERS :].reshape(tokens.shape[0], *grid, -1)
 
 
-def test_registry_defaults_and_rope():
-    kind = registry.BACKBONES["dinov3"]
+def test_kind_defaults_and_rope():
+    kind = kinds.BACKBONES["dinov3"]
     assert kind.defaults["model"] == "facebook/dinov3-vitl16-pretrain-lvd1689m"
     # ViT-L/16 has 24 blocks: 18 (0-based) runs 19 of them, AnyLoc's 32 of 40 in depth.
     assert kind.defaults["layer"] == 18
     assert "pos_embed_interpolation" not in kind.defaults
-    assert kind.loader == "vprflow.models.vit:load_vit" and kind.weights == "model"
+    assert loaders.LOADERS["features"]["dinov3"] is loaders.LOADERS["features"]["dinov2"]
+    assert kind.weights == "model"
 
 
 def test_shapes_registers_dropped_and_sdpa(dinov3_dir):
@@ -205,7 +206,7 @@ def test_bfloat16_runs_and_stays_close(dinov3_dir):
 def test_preprocessor_config_is_in_the_key(dinov3_dir, tmp_path):
     directory = tmp_path / "model"
     shutil.copytree(dinov3_dir, directory)
-    entry = {**registry.BACKBONES["dinov3"].defaults, "backbone": "dinov3"}
+    entry = {**kinds.BACKBONES["dinov3"].defaults, "backbone": "dinov3"}
     entry["model"] = str(directory)
     without = source_fingerprint("features", entry, {}, "backbones.x")
     assert "preprocessor_config.json" not in without

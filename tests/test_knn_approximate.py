@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 from knn_helpers import clustered, unit_vectors
 
-from vprflow.core.registry import SEARCH_INDEXES, search_index
 from vprflow.search.approximate import ivf_flat_knn, ivf_pq_knn
 from vprflow.search.exact import exact_knn
+from vprflow.search.indexes import SEARCH_INDEXES, search_index
 from vprflow.search.topk import topk_agreement
 
 

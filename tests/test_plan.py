@@ -9,10 +9,10 @@ import yaml
 from workflow_helpers import REPO
 
 from vprflow.aggregation.aggregators import AGGREGATORS
-from vprflow.core import registry
 from vprflow.core.errors import ConfigError, PlanError
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import RECALL_DEPTH, build_plan, content_key
+from vprflow.search.indexes import SEARCH_INDEXES
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
@@ -466,18 +466,18 @@ def search_stages(config: dict) -> dict[str, str]:
     return {name: key for name, (_, key) in recall.inputs.items() if name != "dataset"}
 
 
-@pytest.mark.parametrize("index", sorted(registry.SEARCH_INDEXES))
+@pytest.mark.parametrize("index", sorted(SEARCH_INDEXES))
 def test_the_planned_search_params_contain_every_default_of_the_index(config, index):
     config["retrieval"]["index"] = index
     plan = build_plan(config)
     search = plan.get("search", search_stages(config)["search"])
-    assert search.record["params"]["params"] == registry.SEARCH_INDEXES[index].defaults
+    assert search.record["params"]["params"] == SEARCH_INDEXES[index].defaults
 
 
 def test_changing_an_index_default_changes_the_search_key_and_nothing_upstream(config, monkeypatch):
     config["retrieval"]["index"] = "hnsw"
     before = search_stages(config)
-    monkeypatch.setitem(registry.SEARCH_INDEXES["hnsw"].defaults, "ef_search", 64)
+    monkeypatch.setitem(SEARCH_INDEXES["hnsw"].defaults, "ef_search", 64)
     after = search_stages(config)
     assert before["search"] != after["search"]
     assert before["exact_search"] == after["exact_search"]
@@ -487,7 +487,7 @@ def test_changing_an_index_default_changes_the_search_key_and_nothing_upstream(c
 def test_an_index_default_written_out_gives_the_same_key_as_left_out(config):
     config["retrieval"] = {"index": "ivf_flat", "params": {}}
     left_out = search_stages(config)
-    config["retrieval"]["params"] = dict(registry.SEARCH_INDEXES["ivf_flat"].defaults)
+    config["retrieval"]["params"] = dict(SEARCH_INDEXES["ivf_flat"].defaults)
     assert search_stages(config) == left_out
 
 

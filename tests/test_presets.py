@@ -24,6 +24,7 @@ from vprflow.data.presets import (
     undefined_rows,
     unknown_dataset,
 )
+from vprflow.models.kinds import TRAINED_KINDS
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 
@@ -426,9 +427,10 @@ def test_a_training_free_row_is_a_method_its_preset_runs_and_a_trained_row_one_i
     for name, preset in presets().items():
         for row in preset.published:
             if "row" in row and row["row"] not in preset.dataset["methods"]:
-                assert is_trained_method(row["row"], config), (name, row)
-    assert not is_trained_method("segvlad", config)
-    assert is_trained_method("salad_tokens_vlad", config)  # anyloc_vlad on SALAD's tokens
+                assert is_trained_method(row["row"], config, TRAINED_KINDS), (name, row)
+    assert not is_trained_method("segvlad", config, TRAINED_KINDS)
+    # anyloc_vlad on SALAD's tokens
+    assert is_trained_method("salad_tokens_vlad", config, TRAINED_KINDS)
 
 
 def test_a_malformed_published_row_is_named_with_its_preset():

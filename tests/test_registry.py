@@ -1,19 +1,24 @@
-"""The registry is what everything reads; the schema file and the registry must agree."""
+"""Each wing's component entries (model kinds and their loaders, aggregators, search
+indexes, re-rankers) are what everything reads; the schema file and they must agree."""
 
 from __future__ import annotations
 
+import ast
 import copy
-import dataclasses
+import importlib
 import inspect
 import json
+import re
+import textwrap
 from pathlib import Path
 
 import pytest
 import yaml
 from script_helpers import load_script
 
-from vprflow.aggregation.aggregators import AGGREGATORS, aggregator
-from vprflow.core import registry
+from vprflow.aggregation.aggregators import AGGREGATORS, Aggregator, aggregator, prefixed
+from vprflow.evaluation import rerank
+from vprflow.models import kinds, loaders
 from vprflow.planning.config import (
     METHOD_DEFAULT_SECTIONS,
     ConfigError,
@@ -21,6 +26,7 @@ from vprflow.planning.config import (
     validate_config,
 )
 from vprflow.planning.plan import FORMAT_VERSIONS, build_plan
+from vprflow.search import indexes
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA_PATH = REPO / "workflow" / "schemas" / "config.schema.yaml"
@@ -59,10 +65,14 @@ def test_the_schema_file_does_not_restate_what_the_code_lists():
 def test_every_search_index_is_one_the_search_stage_can_run():
     import inspect
 
+    from vprflow.search.exact import exact_knn
+
     # Each index names its search function, whose keyword parameters are exactly the
-    # index's parameters (plus device where it runs on a GPU), defaults read from the entry.
-    for index in registry.SEARCH_INDEXES.values():
-        function = registry.resolve(index.knn)
+    # index's parameters (plus device where it runs on a GPU), defaults read from the entry
+    # (exact_fast's through the wrapper that imports torch only when it runs).
+    for index in indexes.SEARCH_INDEXES.values():
+        function = exact_knn if index.name == "exact_fast" else index.knn
+        assert _lazy_imports_resolve(index.knn), index.name
         keywords = {
             name: p.default
             for name, p in inspect.signature(function).parameters.items()
@@ -72,20 +82,20 @@ def test_every_search_index_is_one_the_search_stage_can_run():
         assert keywords == index.defaults, index.name
 
 
-def test_exact_knn_takes_its_keyword_defaults_from_the_registry_entry():
+def test_exact_knn_takes_its_keyword_defaults_from_the_index_entry():
     import inspect
 
     from vprflow.search.exact import exact_knn
 
-    # exact_knn's keyword defaults are read from the registry, never written again.
+    # exact_knn's keyword defaults are read from search/defaults.py, never written again.
     keywords = inspect.signature(exact_knn).parameters
-    for name, value in registry.SEARCH_INDEXES["exact_fast"].defaults.items():
+    for name, value in indexes.SEARCH_INDEXES["exact_fast"].defaults.items():
         assert keywords[name].default == value, name
 
 
 def test_config_readme_states_the_kind_and_search_index_defaults_from_the_registry():
     readme = config_readme(SCHEMA)
-    for index in registry.SEARCH_INDEXES.values():
+    for index in indexes.SEARCH_INDEXES.values():
         for name, value in index.defaults.items():
             assert f"`{name}` (`{json.dumps(value)}`)" in readme, (index.name, name)
     assert (
@@ -96,89 +106,81 @@ def test_config_readme_states_the_kind_and_search_index_defaults_from_the_regist
 
 
 @pytest.mark.parametrize(
-    ("definition", "kinds"), [("backbone", registry.BACKBONES), ("segmenter", registry.SEGMENTERS)]
+    ("definition", "entries"), [("backbone", kinds.BACKBONES), ("segmenter", kinds.SEGMENTERS)]
 )
-def test_every_kind_default_is_a_schema_property(definition, kinds):
-    """A default the registry fills in must be a key a config entry may set."""
+def test_every_kind_default_is_a_schema_property(definition, entries):
+    """A default a kind fills in must be a key a config entry may set."""
     properties = SCHEMA["definitions"][definition]["properties"]
-    for kind in kinds.values():
+    for kind in entries.values():
         assert set(kind.defaults) <= set(properties), kind.name
 
 
 def test_model_kinds_that_read_weights_name_a_default_model_and_a_loader():
-    for kinds in (registry.BACKBONES, registry.SEGMENTERS):
-        for kind in kinds.values():
+    for stage, entries in (("features", kinds.BACKBONES), ("segments", kinds.SEGMENTERS)):
+        for kind in entries.values():
             if kind.weights == "model":
                 assert kind.defaults.get("model"), kind.name
                 assert kind.uses_gpu, kind.name
-            if kind.loader is None:
-                assert kind.weights == "file", kind.name
+            # A kind loads a model (models/loaders.py names its loader) or reads a file.
+            assert (kind.name not in loaders.LOADERS[stage]) == kind.reads_file, kind.name
 
 
-def _registry_strings(value):
-    """Every string inside a registry entry (its fields, at any depth)."""
-    if isinstance(value, str):
-        yield value
-    elif isinstance(value, dict):
-        for item in (*value.keys(), *value.values()):
-            yield from _registry_strings(item)
-    elif isinstance(value, (list, tuple)):
-        for item in value:
-            yield from _registry_strings(item)
-    elif dataclasses.is_dataclass(value):
-        for item in dataclasses.fields(value):
-            yield from _registry_strings(getattr(value, item.name))
+def _lazy_imports_resolve(function) -> bool:
+    """Whether every ``from module import name`` inside ``function`` names a function that
+    exists: a loader that imports its module when it runs would otherwise fail only when
+    a workflow first runs it."""
+    found = 0
+    for node in ast.walk(ast.parse(textwrap.dedent(inspect.getsource(function)))):
+        if isinstance(node, ast.ImportFrom):
+            module = importlib.import_module(node.module)
+            for alias in node.names:
+                assert callable(getattr(module, alias.name)), (node.module, alias.name)
+                found += 1
+    return found > 0 or function.__module__ != __name__
 
 
-def test_references_lists_every_lazy_reference_of_the_registry_and_each_resolves():
-    # The registry's "module:name" strings are imports in disguise (those modules import
-    # the registry back): references() must list each one, and each must resolve, or a
-    # renamed loader would fail only when a workflow first runs it.
-    listed = registry.references()
-    entries = [
-        *registry.BACKBONES.values(),
-        *registry.SEGMENTERS.values(),
-        *registry.SEARCH_INDEXES.values(),
-        *registry.RERANKERS.values(),
-    ]
-    found = {s for entry in entries for s in _registry_strings(entry) if s.startswith("vprflow.")}
-    assert found == {reference for _, reference in listed}
-    assert len({where for where, _ in listed}) == len(listed)
-    for where, reference in listed:
-        module, _, name = reference.partition(":")
-        assert name, where
-        target = registry.resolve(reference)
-        assert callable(target), (where, reference)
-        assert target.__module__ == module, (where, reference)
+def test_the_loaders_cover_every_kind_that_loads_a_model_and_each_import_resolves():
+    for stage, kinds_of_stage in (("features", kinds.BACKBONES), ("segments", kinds.SEGMENTERS)):
+        loaded = {n for n, k in kinds_of_stage.items() if not k.reads_file}
+        assert set(loaders.LOADERS[stage]) == loaded, stage
+        for name, loader in loaders.LOADERS[stage].items():
+            assert loader.__module__ == loaders.__name__ and _lazy_imports_resolve(loader), name
+    assert set(loaders.TRAINED_MODELS) == set(kinds.TRAINED_KINDS)
+    for name, loader in loaders.TRAINED_MODELS.items():
+        assert _lazy_imports_resolve(loader), name
+
+
+def test_a_kind_that_reads_a_file_has_no_model_to_load():
+    with pytest.raises(ValueError, match="backbone 'import' reads a file"):
+        loaders.load_model("features", {"backbone": "import", "file": "x.h5"})
 
 
 def test_one_loader_serves_the_vit_kinds_and_one_the_sam_kinds_each_kind_named_once():
-    from vprflow.models.sam.adapters import SAM_KINDS, load_sam
-    from vprflow.models.vit import VIT_FAMILIES, load_vit
+    from vprflow.models.sam.adapters import ADAPTERS, SAM_KINDS
+    from vprflow.models.vit import VIT_FAMILIES
 
-    vits = {n for n, k in registry.BACKBONES.items() if isinstance(k.spec, registry.VitFamily)}
-    sams = {n for n, k in registry.SEGMENTERS.items() if isinstance(k.spec, registry.SamKind)}
+    vits = {n for n, k in kinds.BACKBONES.items() if isinstance(k.spec, kinds.VitFamily)}
+    sams = {n for n, k in kinds.SEGMENTERS.items() if isinstance(k.spec, kinds.SamKind)}
     assert vits == set(VIT_FAMILIES) == {"dinov2", "dinov3", "dino"}
     assert sams == set(SAM_KINDS) == {"sam", "sam_hq", "sam2"}
-    assert {registry.resolve(registry.BACKBONES[n].loader) for n in vits} == {load_vit}
-    assert {registry.resolve(registry.SEGMENTERS[n].loader) for n in sams} == {load_sam}
+    assert {loaders.LOADERS["features"][n] for n in vits} == {loaders._load_vit}
+    assert {loaders.LOADERS["segments"][n] for n in sams} == {loaders._load_sam}
     for name in sams:
-        spec = registry.SEGMENTERS[name].spec
-        assert SAM_KINDS[name] == (spec.model_class, registry.resolve(spec.adapter)), name
+        spec = kinds.SEGMENTERS[name].spec
+        assert SAM_KINDS[name] == (spec.model_class, ADAPTERS[spec.model_class]), name
         # The options its adapter takes are config keys the kind fills in.
-        assert set(spec.adapter_options) <= set(registry.SEGMENTERS[name].defaults), name
+        assert set(spec.adapter_options) <= set(kinds.SEGMENTERS[name].defaults), name
 
 
 def test_each_trained_kind_states_what_its_model_module_states():
-    """A trained kind's registry entry restates, torch-free, what the plan needs of its
-    model module (its published checkpoints' files and URLs, its input size, its map's
+    """A trained kind's entry restates, torch-free, what the plan needs of its model
+    module (its published checkpoints' files and URLs, its input size, its map's
     stride): each must be the module's, and the loader must take each variant's options."""
     import inspect
 
     import torch
 
     from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad
-    from vprflow.models.trained.backbone import load_trained
 
     modules = {
         "netvlad": (netvlad, {v: (s.filename, s.url) for v, s in netvlad.VARIANTS.items()}),
@@ -214,7 +216,7 @@ def test_each_trained_kind_states_what_its_model_module_states():
             {"imagenet1k_v1": ("resnet50-0676ba61.pth", resnet.TORCHVISION_RESNET_URLS[50])},
         ),
     )
-    assert set(registry.TRAINED_KINDS) == set(modules)
+    assert set(kinds.TRAINED_KINDS) == set(modules)
     # The ResNet models' maps: the default layer of their feature_map, at its stride.
     for name, model_class in (
         ("mixvpr", mixvpr.MixVPR),
@@ -224,47 +226,51 @@ def test_each_trained_kind_states_what_its_model_module_states():
         ("eigenplaces", cosplace.GeoLocalizationNet),
     ):
         layer = inspect.signature(model_class.feature_map).parameters["layer"].default
-        assert registry.BACKBONES[name].spec.patch_size == LAYER_STRIDES[layer], name
-    assert registry.BACKBONES["cosplace"].spec.default_variant == "ResNet50_2048"
+        assert kinds.BACKBONES[name].spec.patch_size == LAYER_STRIDES[layer], name
+    assert kinds.BACKBONES["cosplace"].spec.default_variant == "ResNet50_2048"
     # The ImageNet ResNet-50 trunk: its layers' strides, layer3 by default (SNSM's).
-    trunk = registry.BACKBONES["resnet50"]
+    trunk = kinds.BACKBONES["resnet50"]
     assert {f"layer{k}": v for k, v in trunk.spec.layer_strides.items()} == LAYER_STRIDES
     assert trunk.defaults["layer"] == 3 and trunk.defaults["output"] == "features"
     assert not trunk.spec.descriptor
     for name, (module, published) in modules.items():
-        kind = registry.BACKBONES[name]
+        kind = kinds.BACKBONES[name]
         spec = kind.spec
-        assert registry.resolve(kind.loader) is load_trained, name
+        assert loaders.LOADERS["features"][name] is loaders._load_trained, name
         if getattr(module, "INPUT_SIZE", None) is None:  # the images' own size: `dataset`
             assert spec.input_size is None and "resolution" not in kind.defaults, name
         else:
             assert tuple(reversed(spec.input_size)) == module.INPUT_SIZE, name
             assert kind.defaults["resolution"] == list(spec.input_size), name
         assert kind.defaults["variant"] == spec.default_variant, name
-        loader = inspect.signature(registry.resolve(spec.loader)).parameters
+        # The module's own loader (models/loaders.py's wrapper imports it when it runs).
+        wrapper = inspect.getsource(loaders.TRAINED_MODELS[name])
+        own = re.search(r"from (\S+) import (\w+)", wrapper)
+        loader = getattr(importlib.import_module(own[1]), own[2])
+        assert own[1] == module.__name__, name
         for variant in spec.variants.values():
-            assert set(variant.loader_options) <= set(loader), name
+            assert set(variant.loader_options) <= set(inspect.signature(loader).parameters), name
         assert {v: (p.file, p.url) for v, p in spec.variants.items()} == published, name
-    assert registry.BACKBONES["netvlad"].defaults["variant"] == netvlad.DEFAULT_VARIANT
+    assert kinds.BACKBONES["netvlad"].defaults["variant"] == netvlad.DEFAULT_VARIANT
     # The maps' strides: VGG16 conv5_3 halves four times, DINOv2-B/14's patches are 14.
     trunk = netvlad.NetVLADModel(4, None).encoder
     assert trunk(torch.zeros(1, 3, 64, 48)).shape[-2:] == (64 // 16, 48 // 16)
-    assert registry.BACKBONES["netvlad"].spec.patch_size == 16
+    assert kinds.BACKBONES["netvlad"].spec.patch_size == 16
     assert salad.VITB14["patch_size"] == 14
     for name in ("salad", "boq_dinov2", "megaloc"):
-        assert registry.BACKBONES[name].spec.patch_size == 14, name
+        assert kinds.BACKBONES[name].spec.patch_size == 14, name
 
 
-def test_schema_x_kinds_may_name_the_registrys_trained_kinds():
-    # The trained kinds' keys name registry.TRAINED_KINDS instead of listing them, so a
-    # new trained model is one registry entry; loaded, they list every trained kind.
+def test_schema_x_kinds_may_name_the_trained_kinds():
+    # The trained kinds' keys name kinds.TRAINED_KINDS instead of listing them, so a
+    # new trained model needs no schema change; loaded, they list every trained kind.
     raw = yaml.safe_load(SCHEMA_PATH.read_text())["definitions"]["backbone"]["properties"]
     loaded = SCHEMA["definitions"]["backbone"]["properties"]
     for key in ("checkpoint", "variant", "output"):
-        assert "vprflow.core.registry:TRAINED_KINDS" in raw[key]["x-kinds"], key
-        assert set(registry.TRAINED_KINDS) <= set(loaded[key]["x-kinds"]), key
+        assert "vprflow.models.kinds:TRAINED_KINDS" in raw[key]["x-kinds"], key
+        assert set(kinds.TRAINED_KINDS) <= set(loaded[key]["x-kinds"]), key
     assert "dinov2" in loaded["checkpoint"]["x-kinds"]
-    assert loaded["output"]["enum"] == list(registry.TRAINED_OUTPUTS)
+    assert loaded["output"]["enum"] == list(kinds.TRAINED_OUTPUTS)
 
 
 def test_a_kind_default_of_a_key_every_kind_reads_wins_over_the_schemas():
@@ -286,8 +292,8 @@ def test_every_reranker_names_a_score_function_taking_exactly_its_settings():
 
     from vprflow.evaluation.precision_recall import SCORE_KINDS
 
-    for reranker in registry.RERANKERS.values():
-        function = registry.resolve(reranker.scores)
+    for reranker in rerank.RERANKERS.values():
+        function = reranker.scores
         keywords = {
             name
             for name, p in inspect.signature(function).parameters.items()
@@ -301,7 +307,7 @@ def test_every_reranker_names_a_score_function_taking_exactly_its_settings():
 def test_the_schema_takes_each_reranker_options_default_and_kinds_from_the_registry():
     raw = yaml.safe_load(SCHEMA_PATH.read_text())["definitions"]["reranker"]["properties"]
     loaded = SCHEMA["definitions"]["reranker"]["properties"]
-    for reranker in registry.RERANKERS.values():
+    for reranker in rerank.RERANKERS.values():
         for name, value in reranker.defaults.items():
             assert "default" not in raw[name] and "x-kinds" not in raw[name], name
             assert loaded[name]["default"] == value, (reranker.name, name)
@@ -309,8 +315,8 @@ def test_the_schema_takes_each_reranker_options_default_and_kinds_from_the_regis
     config = toy_config(aggregator="gem")
     config["rerankers"] = {"r": {"kind": "ransac", "features": "daisy"}}
     filled = validate_config(config, SCHEMA_PATH)["rerankers"]["r"]
-    assert {k: filled[k] for k in registry.RERANKERS["ransac"].options} == (
-        registry.RERANKERS["ransac"].defaults
+    assert {k: filled[k] for k in rerank.RERANKERS["ransac"].options} == (
+        rerank.RERANKERS["ransac"].defaults
     )
 
 
@@ -340,7 +346,7 @@ def test_unknown_components_are_refused_by_name():
     with pytest.raises(ValueError, match="unknown aggregator 'vlad2'"):
         aggregator("vlad2")
     with pytest.raises(ValueError, match="unknown backbone 'dinov4'"):
-        registry.model_kind("features", {"backbone": "dinov4"})
+        kinds.model_kind("features", {"backbone": "dinov4"})
 
 
 def toy_config(**method) -> dict:
@@ -431,23 +437,23 @@ def test_every_method_section_is_a_default_a_dataset_default_and_a_method_overri
     assert sorted(top) == sorted([*METHOD_DEFAULT_SECTIONS, "figures"])
 
 
-def test_every_registry_default_is_a_key_its_kind_reads_and_x_kinds_name_real_kinds():
-    # One place (the schema's x-kinds) says which kind reads a key; the registry's kind
+def test_every_kind_default_is_a_key_its_kind_reads_and_x_kinds_name_real_kinds():
+    # One place (the schema's x-kinds) says which kind reads a key; the kinds'
     # defaults and re-ranker options must agree with it, or validation would refuse
     # what a kind fills in (or fill what it refuses).
     from vprflow.planning.config import kind_keys
 
     definitions = SCHEMA["definitions"]
-    for kinds, definition, kind_key in (
-        (registry.BACKBONES, definitions["backbone"], "backbone"),
-        (registry.SEGMENTERS, definitions["segmenter"], "segmenter"),
+    for entries, definition, kind_key in (
+        (kinds.BACKBONES, definitions["backbone"], "backbone"),
+        (kinds.SEGMENTERS, definitions["segmenter"], "segmenter"),
     ):
         keys = kind_keys(definition, kind_key)
-        for kind in kinds.values():
+        for kind in entries.values():
             assert set(kind.defaults) <= set(keys[kind.name]), kind.name
     keys = kind_keys(definitions["reranker"], "kind")
     common = {"kind", "features", "top_k"}
-    for reranker in registry.RERANKERS.values():
+    for reranker in rerank.RERANKERS.values():
         assert set(keys[reranker.name]) == common | set(reranker.options), reranker.name
     truth = definitions["dataset"]["properties"]["ground_truth"]
     for definition, kind_key in (
@@ -457,9 +463,9 @@ def test_every_registry_default_is_a_key_its_kind_reads_and_x_kinds_name_real_ki
         (definitions["vocabulary"], "source"),
         (truth, "kind"),
     ):
-        kinds = set(definition["properties"][kind_key]["enum"])
+        names = set(definition["properties"][kind_key]["enum"])
         for name, prop in definition["properties"].items():
-            assert set(prop.get("x-kinds", kinds)) <= kinds, (kind_key, name)
+            assert set(prop.get("x-kinds", names)) <= names, (kind_key, name)
     # A kind's `then` requires and defaults only keys the kind reads.
     truth_keys = kind_keys(truth, "kind")
     for part in truth["allOf"]:
@@ -488,25 +494,25 @@ def test_method_sections_are_derived_from_the_registry_in_their_old_order():
 def test_a_new_aggregators_section_follows_the_others(monkeypatch):
     from vprflow.planning import config
 
-    new = registry.Aggregator("new", (), "global", _grid_sum, sections=("new_section",))
+    new = Aggregator("new", (), "global", _grid_sum, sections=("new_section",))
     monkeypatch.setitem(AGGREGATORS, new.name, new)
     assert config.method_default_sections() == (*METHOD_DEFAULT_SECTIONS, "new_section")
 
 
 def test_an_aggregator_left_without_options_and_columns_reads_its_sections():
     method = {"vlad": {"a": 1, "b": 2}, "segvlad": {"order": 3}, "snsm": {"window": 5}}
-    both = registry.Aggregator("x", (), "global", _grid_sum, sections=("segvlad", "vlad"))
+    both = Aggregator("x", (), "global", _grid_sum, sections=("segvlad", "vlad"))
     assert both.options(method) == {"order": 3, "a": 1, "b": 2}
     assert both.columns(method) == {"segvlad.order": 3, "vlad.a": 1, "vlad.b": 2}
     # What the entries' written-out lambdas were before `sections`.
     for name, section in (("anyloc_vlad", "vlad"), ("snsm", "snsm")):
         agg = AGGREGATORS[name]
         assert agg.options(method) == dict(method[section])
-        assert agg.columns(method) == registry.prefixed(section, method[section])
+        assert agg.columns(method) == prefixed(section, method[section])
     segvlad = AGGREGATORS["segvlad"]
     assert segvlad.columns(method) == {
-        **registry.prefixed("segvlad", method["segvlad"]),
-        **registry.prefixed("vlad", method["vlad"]),
+        **prefixed("segvlad", method["segvlad"]),
+        **prefixed("vlad", method["vlad"]),
     }
     model = AGGREGATORS["model"]
     assert (model.options(method), model.columns(method)) == ({}, {})

@@ -18,7 +18,7 @@ import torch
 from synthetic import make_dataset
 from workflow_helpers import REPO, toy_config
 
-from vprflow.core import registry, stores
+from vprflow.core import stores
 from vprflow.evaluation import rerank as rerank_module
 from vprflow.evaluation.rerank import (
     candidate_pairs,
@@ -276,16 +276,16 @@ def test_min_similarity_drops_weak_pairs_before_counting():
     assert (everything >= strong).all()
 
 
-def test_the_scorer_takes_each_methods_defaults_from_its_registry_entry(monkeypatch):
-    # The registry's Reranker entry is the one place of a kind's defaults: changing it
+def test_the_scorer_takes_each_methods_defaults_from_its_entry(monkeypatch):
+    # The Reranker entry is the one place of a kind's defaults: changing it
     # changes what the scorer does when the option is left out.
     query, candidates = toy_candidates(0)
     counted = stage_scores(query, candidates, (6, 8), 14, "mnn")
     summed = stage_scores(query, candidates, (6, 8), 14, "mnn", weighting="similarity")
     assert not np.array_equal(counted, summed)
-    entry = registry.RERANKERS["mnn"]
+    entry = rerank_module.RERANKERS["mnn"]
     changed = dataclasses.replace(entry, defaults={**entry.defaults, "weighting": "similarity"})
-    monkeypatch.setitem(registry.RERANKERS, "mnn", changed)
+    monkeypatch.setitem(rerank_module.RERANKERS, "mnn", changed)
     np.testing.assert_array_equal(stage_scores(query, candidates, (6, 8), 14, "mnn"), summed)
 
 
@@ -293,10 +293,10 @@ def test_the_scorer_runs_each_kinds_score_function_with_its_settings():
     pytest.importorskip("cv2")
     query, candidates = toy_candidates(3)
     centres = patch_centres(6, 8, 14)
-    for name, reranker in registry.RERANKERS.items():
+    for name, reranker in rerank_module.RERANKERS.items():
         settings = {**reranker.defaults, **reranker.fixed}
         pairs = candidate_pairs(torch.as_tensor(query), torch.as_tensor(candidates))
-        direct = registry.resolve(reranker.scores)(pairs, centres, 14, **settings)
+        direct = reranker.scores(pairs, centres, 14, **settings)
         np.testing.assert_array_equal(
             stage_scores(query, candidates, (6, 8), 14, name), direct, err_msg=name
         )
@@ -391,7 +391,7 @@ def per_candidate_scores(query, candidates, grid, patch, method, **options):
     """The re-rankers as they were before batching: one float32 product per candidate
     (:func:`mutual_nearest_neighbours`, itself checked against the float64 loop above),
     then the count, the float64 sum of the kept float32 similarities, or the RANSAC fit."""
-    settings = registry.reranker(method).settings(options)
+    settings = rerank_module.reranker(method).settings(options)
     centres = patch_centres(*grid, patch)
     scores = []
     for candidate in candidates:
@@ -528,7 +528,7 @@ def test_scores_from_stored_pairs_equal_the_scores_from_features(method, options
     if method == "ransac":
         pytest.importorskip("cv2")
     query, candidates = hard_candidates(seed, 17)
-    settings = registry.reranker(method).settings(options)
+    settings = rerank_module.reranker(method).settings(options)
     centres = patch_centres(5, 6, 14)
     pairs = candidate_pairs(query, candidates)
     if "min_similarity" in options:  # a pair exactly at the threshold is kept
@@ -539,7 +539,7 @@ def test_scores_from_stored_pairs_equal_the_scores_from_features(method, options
     expected = per_candidate_scores(query, candidates, (5, 6), 14, method, **settings)
     np.testing.assert_array_equal(scorer(stored, centres, 14, **settings), expected)
     np.testing.assert_array_equal(scorer(pairs, centres, 14, **settings), expected)
-    options = {k: v for k, v in settings.items() if k in registry.reranker(method).options}
+    options = {k: v for k, v in settings.items() if k in rerank_module.reranker(method).options}
     np.testing.assert_array_equal(
         stage_scores(query, candidates, (5, 6), 14, method, **options), expected
     )
@@ -688,8 +688,8 @@ def test_a_reranked_rows_recall_beyond_its_top_k_is_its_retrievals(tmp_path):
     assert after.shape == before.shape == (6, 6)
     np.testing.assert_array_equal(np.sort(after[:, :2], axis=1), np.sort(before[:, :2], axis=1))
     np.testing.assert_array_equal(after[:, 2:], before[:, 2:])
-    # The stored score kind is the registry entry's (what the table and figures read).
-    assert reranked.attrs["score"] == registry.RERANKERS["mnn"].score
+    # The stored score kind is the Reranker entry's (what the table and figures read).
+    assert reranked.attrs["score"] == rerank_module.RERANKERS["mnn"].score
     recall, recall_reranked = retrieval.attrs["recall"], reranked.attrs["recall"]
     assert recall["4"] > recall["2"]  # the case is one a truncated ranking would get wrong
     for n in ("2", "4", "6"):

@@ -1,4 +1,4 @@
-"""The SAM kinds (``vprflow.models.sam.adapters``): registry entries and defaults, each
+"""The SAM kinds (``vprflow.models.sam.adapters``): entries (models/kinds.py) and defaults, each
 adapter's preprocessing, loading, and prompt decoding.
 
 Tiny random ``SamModel`` / ``SamHQModel`` / ``Sam2Model`` checkpoints (the conftest's
@@ -19,7 +19,8 @@ from PIL import Image
 from test_sam_decoder import hq_original
 from test_sam_generator import sample_image
 
-from vprflow.core.registry import SEGMENTERS
+from vprflow.models.kinds import SEGMENTERS
+from vprflow.models.loaders import LOADERS, load_model
 from vprflow.models.sam.adapters import (
     PIXEL_MEAN,
     PIXEL_STD,
@@ -53,7 +54,7 @@ def test_defaults_are_the_original_library_defaults():
     assert defaults["model"] == "facebook/sam-vit-huge"
 
 
-def test_registry_defaults_are_each_generators_defaults():
+def test_kind_defaults_are_each_generators_defaults():
     common = {
         "points_per_side": 32,
         "points_per_batch": 64,
@@ -66,7 +67,7 @@ def test_registry_defaults_are_each_generators_defaults():
     for kind in KINDS:
         defaults = SEGMENTERS[kind].defaults
         assert {k: defaults[k] for k in common} == common, kind
-        assert SEGMENTERS[kind].loader == "vprflow.models.sam.adapters:load_sam"
+        assert LOADERS["segments"][kind] is LOADERS["segments"]["sam"]
     assert SEGMENTERS["sam"].defaults["pred_iou_thresh"] == 0.88
     assert SEGMENTERS["sam_hq"].defaults["pred_iou_thresh"] == 0.88  # SAM's generator
     assert SEGMENTERS["sam_hq"].defaults["hq_token_only"] is False
@@ -133,13 +134,13 @@ def test_loaded_with_sdpa_attention(sam_kind_model):
     assert _load(kind, path).adapter.model.config._attn_implementation == "sdpa"
 
 
-def test_the_registrys_one_sam_loader_builds_the_kind_its_entry_names(sam_kind_model):
+def test_the_one_sam_loader_builds_the_kind_its_entry_names(sam_kind_model):
     # One loader serves every SAM kind: the entry's `segmenter` picks the model class,
     # the adapter and the adapter's options (SAM-HQ's hq_token_only).
     kind, path, _ = sam_kind_model
     extra = {"hq_token_only": True} if kind == "sam_hq" else {}
     entry = {"segmenter": kind, "model": str(path), "points_per_side": SIDE, **extra}
-    segmenter = SEGMENTERS[kind].load(entry, "cpu")
+    segmenter = load_model("segments", entry, "cpu")
     class_name, adapter_class = SAM_KINDS[kind]
     assert type(segmenter.adapter) is adapter_class
     assert type(segmenter.adapter.model).__name__ == class_name

@@ -12,9 +12,10 @@ import pytest
 from synthetic import make_dataset
 from workflow_helpers import toy_config
 
-from vprflow.core import registry, stores
+from vprflow.core import stores
 from vprflow.core.errors import DatasetError
 from vprflow.data.images import read_image, resize_image
+from vprflow.evaluation.rerank import reranker
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages.dataset import build_images
@@ -321,7 +322,7 @@ def test_the_matches_store_holds_each_candidates_mutual_pairs_and_rerank_scores_
     patches = patches.reshape(len(patches), -1, patches.shape[-1])
     assert matches.grid == tuple(features.attrs["grid"]) and matches.top_k == N_PLACES
     np.testing.assert_array_equal(matches.retrieval_ranking, reranked["retrieval_ranking"][...])
-    settings = registry.reranker("ransac").settings(rerank.record["params"]["options"])
+    settings = reranker("ransac").settings(rerank.record["params"]["options"])
     assert settings["min_similarity"] == 0.5
     centres = patch_centres(*matches.grid, matches.patch)
     pixels = settings["threshold"] * matches.patch
@@ -897,7 +898,7 @@ def test_a_new_aggregator_is_its_compute_function_and_nothing_in_the_stages(pipe
     """An entry's ``compute`` runs over each image's patch grid with the method's
     options, as every aggregator's does: GeM of the channel-normalised tokens this way
     gives the gem method's stored descriptors bit for bit."""
-    from vprflow.core.registry import Aggregator
+    from vprflow.aggregation.aggregators import Aggregator
     from vprflow.stages.image_descriptors import image_descriptor
 
     path = stage_path(pipeline, "features", "gem")

@@ -14,9 +14,9 @@ import yaml
 from synthetic import make_dataset
 from workflow_helpers import snakemake, toy_config, write_config
 
-from vprflow.core import registry
 from vprflow.core.errors import PlanError
 from vprflow.data.download import DownloadError
+from vprflow.models import kinds
 from vprflow.planning.checkpoints import (
     FETCH_TARGET,
     URL_ENV,
@@ -56,13 +56,13 @@ def test_every_missing_checkpoint_of_the_example_config_is_named_in_one_error(
     entries = {
         name: entry
         for name, entry in config["backbones"].items()
-        if entry["backbone"] in registry.TRAINED_KINDS
+        if entry["backbone"] in kinds.TRAINED_KINDS
     }
     absent = {e["checkpoint"] for e in entries.values()} - {"models/dino_salad.ckpt"}
     assert len(absent) == 9 and message.startswith("9 trained-model checkpoint file(s)")
     for name, entry in entries.items():
         if entry["checkpoint"] in absent:
-            published = registry.BACKBONES[entry["backbone"]].spec.variants[entry["variant"]]
+            published = kinds.BACKBONES[entry["backbone"]].spec.variants[entry["variant"]]
             line = next(
                 x for x in message.splitlines() if x.startswith(f"  {entry['checkpoint']} ")
             )
@@ -97,8 +97,8 @@ def test_the_fetch_command_names_each_config_file_once_relative_to_here(tmp_path
 
 
 def test_a_mirror_serves_every_file_and_a_page_is_no_download_url(monkeypatch):
-    mixvpr = registry.BACKBONES["mixvpr"].spec.variants["resnet50_4096"]
-    salad = registry.BACKBONES["salad"].spec.variants["dino_salad"]
+    mixvpr = kinds.BACKBONES["mixvpr"].spec.variants["resnet50_4096"]
+    salad = kinds.BACKBONES["salad"].spec.variants["dino_salad"]
     monkeypatch.delenv(URL_ENV, raising=False)
     assert checkpoint_url(mixvpr) is None and checkpoint_url(salad) == salad.url
     monkeypatch.setenv(URL_ENV, "file:///mirror/")

@@ -6,7 +6,7 @@ recall and re-rank stages with the rules' own runners, and their plans.
 
 The published loaders build the published sizes; the tests give them the tiny sizes the
 models' own tests use (their ``config`` / ``encoder`` / size arguments) by wrapping the
-loader the registry names, which the backbone adapter resolves when a job runs."""
+loader models/loaders.py names, which imports its module when a job runs."""
 
 from __future__ import annotations
 
@@ -20,9 +20,10 @@ from synthetic import make_dataset
 from trained_references import prefixed, randomise, tiny_config
 from workflow_helpers import toy_config
 
-from vprflow.core import registry, stores
+from vprflow.core import stores
 from vprflow.core.errors import PlanError
 from vprflow.data.images import read_image, resize_image
+from vprflow.models import kinds
 from vprflow.models.checkpoints import CheckpointError
 from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad
 from vprflow.planning.config import validate_config
@@ -121,7 +122,7 @@ def save_tiny(kind: str, folder: Path, seed: int = 1) -> tuple[torch.nn.Module, 
 
 @pytest.fixture
 def tiny_loaders(monkeypatch):
-    """The registry's loaders, given the tiny sizes (the real loaders read the files)."""
+    """The models' loaders, given the tiny sizes (the real loaders read the files)."""
     for module, name, sizes, *_ in TINY.values():
         original = getattr(module, name)
 
@@ -203,7 +204,7 @@ def test_every_trained_kind_is_a_global_method_whose_descriptor_is_the_models(
         assert run.row_params["features.backbone"] == kind
         assert run.row_params["features.output"] == "descriptor"
         # The published input size, or the images' own (MegaLoc): the dataset's.
-        width, height = registry.BACKBONES[kind].spec.input_size or (64, 48)
+        width, height = kinds.BACKBONES[kind].spec.input_size or (64, 48)
         assert run.row_params["features.resolution"] == (
             "dataset" if kind == "megaloc" else f"{width} {height}"
         )
@@ -251,7 +252,7 @@ def test_output_features_is_the_map_the_head_reads_and_feeds_anyloc_vlad(
     run_stage(plan, "recall", run.recall_key, tmp_path / "data", tmp_path / "c", done)
     (features_key,) = plan.stages["features"]
     features = stores.open_store(done["features", features_key])
-    spec = registry.BACKBONES[kind].spec
+    spec = kinds.BACKBONES[kind].spec
     width, height = spec.input_size
     assert features.attrs["patch_size"] == spec.patch_size
     dataset = Dataset(done["images", plan.images_keys["toy"]])
@@ -358,20 +359,20 @@ def test_an_unknown_variant_is_refused_listing_the_kinds(tmp_path):
 
 
 def test_the_adapter_names_the_expected_file_when_no_checkpoint_is_given():
-    from vprflow.models.trained.backbone import load_trained
+    from vprflow.models.loaders import load_model
 
     with pytest.raises(CheckpointError, match=r"dino_salad.ckpt \(serizba/salad\), from https"):
-        load_trained({"backbone": "salad"}, "cpu")
+        load_model("features", {"backbone": "salad"}, "cpu")
 
 
 def test_a_models_own_loader_error_reaches_the_features_stage(tmp_path):
     """A file of another layout is named by the model's loader, with its URL."""
-    from vprflow.models.trained.backbone import load_trained
+    from vprflow.models.loaders import load_model
 
     wrong = tmp_path / "dino_salad.ckpt"
     torch.save({"something": torch.zeros(1)}, wrong)
     with pytest.raises(CheckpointError, match=salad.SALAD_URL):
-        load_trained({"backbone": "salad", "checkpoint": str(wrong)}, "cpu")
+        load_model("features", {"backbone": "salad", "checkpoint": str(wrong)}, "cpu")
 
 
 def test_the_example_config_adds_every_trained_model_and_names_missing_checkpoints(tmp_path):
@@ -388,7 +389,7 @@ def test_the_example_config_adds_every_trained_model_and_names_missing_checkpoin
     config["datasets"]["corridor"]["methods"] = extra["datasets"]["corridor"]["methods"]
     config["data_root"] = str(tmp_path)
     trained = {e["backbone"] for e in extra["backbones"].values()}
-    assert trained == set(registry.TRAINED_KINDS)
+    assert trained == set(kinds.TRAINED_KINDS)
     filled = validate_config(config, SCHEMA)
     with pytest.raises(
         PlanError, match=r"backbones\.netvlad\.checkpoint.*pitts_WPCA4096\.pth\.tar"
@@ -419,10 +420,10 @@ def test_the_resnet_models_through_the_adapter_are_their_forward_and_their_map(
 ):
     """The ResNet-50 models at their published sizes (their loaders build no other),
     default random weights saved as a plain state dict: the adapter's descriptor is the
-    model's forward on the ImageNet-normalised pixels, and its dense map has the
-    registry's stride."""
+    model's forward on the ImageNet-normalised pixels, and its dense map has its
+    entry's stride."""
+    from vprflow.models.loaders import load_model
     from vprflow.models.trained import boq, convap, cosplace, mixvpr
-    from vprflow.models.trained.backbone import load_trained
 
     build = {
         "mixvpr": mixvpr.MixVPR,
@@ -438,21 +439,21 @@ def test_the_resnet_models_through_the_adapter_are_their_forward_and_their_map(
     width, height = size
     pixels = np.random.default_rng(0).random((2, height, width, 3), dtype=np.float32)
     entry = {"backbone": kind, "checkpoint": str(path)}
-    got = load_trained(entry, "cpu").features(pixels)
+    got = load_model("features", entry, "cpu").features(pixels)
     x = torch.cat([imagenet(image, source) for image in pixels])
     with torch.no_grad():
         expected = source(x).numpy()
     assert got.shape == (2, 1, 1, source.dim)
     np.testing.assert_allclose(got[:, 0, 0], expected, rtol=0, atol=FLOAT32_ATOL)
-    dense = load_trained({**entry, "output": "features"}, "cpu").features(pixels)
-    stride = registry.BACKBONES[kind].spec.patch_size
+    dense = load_model("features", {**entry, "output": "features"}, "cpu").features(pixels)
+    stride = kinds.BACKBONES[kind].spec.patch_size
     assert dense.shape[1:3] == (-(-height // stride), -(-width // stride))
 
 
 def test_the_imagenet_resnet50_gives_the_map_of_its_layer(tmp_path):
     """``resnet50`` (torchvision's layout) stores the map of ``layer`` (1-4, layer3 by
     default as SNSM's baseline), per-patch L2-normalised, with that layer's stride."""
-    from vprflow.models.trained.backbone import load_trained
+    from vprflow.models.loaders import load_model
     from vprflow.models.trunks.resnet import ResNet
 
     torch.manual_seed(0)
@@ -466,7 +467,7 @@ def test_the_imagenet_resnet50_gives_the_map_of_its_layer(tmp_path):
         entry = {"backbone": "resnet50", "checkpoint": str(path)}
         if layer != 3:
             entry["layer"] = layer
-        backbone = load_trained(entry, "cpu")
+        backbone = load_model("features", entry, "cpu")
         with torch.no_grad():
             expected = source.feature_map(x, f"layer{layer}").permute(0, 2, 3, 1).numpy()
         expected = expected / np.linalg.norm(expected, axis=-1, keepdims=True)

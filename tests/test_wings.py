@@ -2,6 +2,7 @@
 module paths of 0.1 still importable (with a warning) for one release."""
 
 import importlib
+import subprocess
 import sys
 import warnings
 from pathlib import Path
@@ -90,11 +91,27 @@ def test_new_paths_import_without_a_warning():
         importlib.import_module("vprflow.stages.jobs")
 
 
-def test_code_is_named_by_string_only_in_the_registrys_lazy_entries():
-    """Outside core/registry.py (model kinds, search indexes, re-rankers: listed by
-    ``registry.references()``) every tie between modules is an import the graph sees."""
-    assert {module for module, _ in GRAPH.string_ties(PACKAGE)} <= {"vprflow.core.registry"}
+def test_no_module_names_code_by_a_module_name_string():
+    """Every tie between modules is an import the graph sees: no ``"module:function"``
+    string anywhere in the package, and no lookup in ``globals()``."""
+    assert GRAPH.string_ties(PACKAGE) == []
     assert not [x for x in GRAPH.dynamic_lookups(PACKAGE) if "globals()" in x]
+
+
+def test_the_string_tie_finder_finds_one():
+    assert GRAPH.TIE.match("vprflow.models.vit:load_vit")
+    assert not GRAPH.TIE.match("vprflow.models.vit")
+
+
+def test_planning_imports_no_torch():
+    """Planning reads every wing's entries (model kinds, aggregators, search indexes,
+    re-rankers) without importing a model: the loaders import theirs when they run."""
+    code = (
+        "import sys, vprflow.planning.plan, vprflow.planning.config, vprflow.stages.jobs; "
+        "print(sorted(m for m in ('torch', 'faiss', 'cv2', 'transformers') if m in sys.modules))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert done.stdout.strip() == "[]"
 
 
 def test_no_stage_runner_imports_another_runner():

@@ -1,9 +1,9 @@
 """vprflow: training-free visual place recognition experiments as a Snakemake workflow.
 
 The package is in wings, one folder per concern, imports flowing one way (down this
-list): ``core`` (arrays, files, paths, stores, errors, devices, the registry), ``data``
-(images, datasets, ground truth, presets, downloads), ``models`` (backbones and
-segmenters), ``aggregation`` (VLAD, SegVLAD, SNSM, pooling, PCA), ``search`` (k-NN,
+list): ``core`` (arrays, files, paths, stores, errors, devices), ``data`` (images,
+datasets, ground truth, presets, downloads), ``models`` (backbones and segmenters: their
+kinds and loaders), ``aggregation`` (VLAD, SegVLAD, SNSM, pooling, PCA), ``search`` (k-NN,
 voting), ``evaluation`` (recall, precision-recall, re-ranking, figures), ``planning``
 (config, plan, fingerprints, reports) and ``stages`` (one module per rule).
 docs/ARCHITECTURE.md reads them in the order a query takes.
@@ -20,7 +20,7 @@ import warnings
 
 # Old module -> its new place (release 0.2 moved the flat modules into wings).
 MOVED = {
-    **dict.fromkeys(("arrays", "files", "paths", "stores", "devices", "registry"), "core"),
+    **dict.fromkeys(("arrays", "files", "paths", "stores", "devices"), "core"),
     **dict.fromkeys(
         (
             "images",

@@ -1,5 +1,5 @@
-"""Every aggregator vprflow knows, one :class:`~vprflow.core.registry.Aggregator` entry
-each: what it needs upstream, what it outputs, its settings and its per-image function.
+"""Every aggregator vprflow knows, one :class:`Aggregator` entry each: what it needs
+upstream, what it outputs, its settings and its per-image function.
 
 Each entry's ``compute`` is a function of this module, ``(grid [h, w, D], options,
 **inputs) -> [dim]`` (``[S, dim]`` per segment), over the math of this wing;
@@ -11,6 +11,10 @@ Each entry's ``compute`` is a function of this module, ``(grid [h, w, D], option
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
 import numpy as np
 
 from vprflow.aggregation import pooling
@@ -18,7 +22,92 @@ from vprflow.aggregation.segvlad import image_segvlad, mask_patch_membership
 from vprflow.aggregation.snsm import normalize_tokens, snsm_descriptor
 from vprflow.aggregation.vlad import vlad
 from vprflow.core.arrays import l2_normalize
-from vprflow.core.registry import Aggregator, prefixed
+
+# The value of a backbone's `resize` and a dataset's `exif_orientation` that defers to
+# the method's aggregator (its `resize` / `exif_orientation` below): the published
+# pipeline's reader.
+BY_METHOD = "method"
+
+
+@dataclass(frozen=True)
+class Aggregator:
+    """A method's descriptor: what it needs upstream and what it outputs.
+
+    ``needs``: upstream stages besides ``dataset`` and ``features``, in plan order
+    (``pca`` is planned only when the method's ``pca.enabled``). ``output``:
+    ``"global"`` (one vector per image) or ``"segments"`` (one per segment, retrieved
+    by voting). ``compute``: its per-image function, ``(grid [h, w, D], options,
+    **inputs) -> [dim]`` (``[S, dim]`` per segment), ``options`` the descriptor stage's
+    params; ``inputs`` are what its ``needs`` give: ``centres`` (``vocabulary``),
+    ``masks``, ``image_size`` and ``patch_size`` (``segments``).
+    :func:`vprflow.stages.image_descriptors.image_descriptor` reads them and runs it, for
+    every aggregator alike. ``options(method)`` is the descriptor stage's own hashed
+    settings (method = the resolved method settings); ``columns(method)`` its CSV
+    columns.
+    ``explanation``: the report's figure of how the method decided, besides the
+    retrievals every method gets (a name in :data:`vprflow.planning.reports.FIGURES`), or None.
+    ``pca_fit``: see :meth:`pca_descriptor_options` (for aggregators with ``pca``).
+    ``resize``: how the published pipeline resizes images before the backbone (a
+    :data:`vprflow.data.images.RESIZE_METHODS` name), the default of a backbone's
+    ``resize: method``: SegVLAD's and AnyLoc's readers use OpenCV, SNSM's (and its
+    pooling baselines') torchvision on PIL images. ``exif_orientation``: whether that
+    reader turns images as their EXIF Orientation tag says (a
+    :data:`vprflow.data.images.EXIF_ORIENTATIONS` name), the default of a dataset's
+    ``exif_orientation: method``: ``cv2.imread`` (SegVLAD, AnyLoc) applies it, SNSM's
+    ``PIL.Image.open(...).convert('RGB')`` ignores it. ``reads``: what its features
+    store must hold, ``"features"`` (a dense patch grid, every backbone kind's; a trained
+    kind's under ``output: features``) or ``"descriptor"`` (a trained model's own
+    descriptor, ``output: descriptor``); the plan refuses any other pairing, and for
+    ``"descriptor"`` ``resize: method`` is the trained kind's published reader.
+
+    ``sections``: the config sections of its own settings (each a schema definition);
+    :data:`vprflow.planning.config.METHOD_DEFAULT_SECTIONS` is derived from them, so a
+    new aggregator's section needs no list besides the schema. Left out, ``options`` is
+    their values merged and ``columns`` their values as ``<section>.<key>`` columns.
+    """
+
+    name: str
+    needs: tuple[str, ...]
+    output: str
+    compute: Callable[..., Any]
+    options: Callable[[dict], dict] | None = None
+    columns: Callable[[dict], dict] | None = None
+    explanation: str | None = None
+    resize: str = "linear"
+    exif_orientation: str = "apply"
+    pca_fit: Callable[[dict, dict], dict] | None = None
+    reads: str = "features"
+    sections: tuple[str, ...] = ()
+
+    def __post_init__(self):
+        # Left out, ``options`` and ``columns`` are the values of its sections.
+        sections = self.sections
+
+        def options(method: dict) -> dict:
+            return {k: v for s in sections for k, v in method[s].items()}
+
+        def columns(method: dict) -> dict:
+            return {k: v for s in sections for k, v in prefixed(s, method[s]).items()}
+
+        if self.options is None:
+            object.__setattr__(self, "options", options)
+        if self.columns is None:
+            object.__setattr__(self, "columns", columns)
+
+    def pca_descriptor_options(self, method: dict, options: dict) -> dict:
+        """The descriptor options of the vectors a PCA is fitted on (the PCA stage
+        computes them as the descriptors stage does): the method's own, less how
+        they are stored, unless the aggregator's ``pca_fit(method, options)`` says
+        otherwise (SegVLAD: at ``pca.fit_order``)."""
+        if self.pca_fit is not None:
+            return self.pca_fit(method, options)
+        return {k: v for k, v in options.items() if k != "store_dtype"}
+
+
+def prefixed(section: str, values: dict) -> dict:
+    """CSV columns ``<section>.<key>`` of a settings section."""
+    return {f"{section}.{k}": v for k, v in values.items()}
+
 
 # ------------------------------------------------------------------ per-image functions
 

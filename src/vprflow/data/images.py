@@ -46,7 +46,7 @@ EXIF_ORIENTATIONS = ("apply", "ignore")
 def dataset_orientation(setting: str) -> str:
     """The EXIF orientation of a dataset's own reads (its image sizes, a native
     resolution, the figures) for its ``exif_orientation`` setting: the setting, or for
-    ``method`` (each method's stages read as its published reader: the registry's
+    ``method`` (each method's stages read as its published reader: its aggregator's
     ``Aggregator.exif_orientation``) ``apply``, the image upright as people view it."""
     return "apply" if setting == "method" else setting
 

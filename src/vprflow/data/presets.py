@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import copy
 import sys
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -123,21 +123,34 @@ def undefined_rows(methods) -> list[str]:
     ]
 
 
-def is_trained_method(method: str, config: dict) -> bool:
+def is_trained_method(method: str, config: dict, trained_kinds: Collection[str]) -> bool:
     """Whether ``method`` of ``config`` runs a trained VPR model: the aggregator
-    ``model`` (a model's own descriptor), or its own ``features`` a trained kind's
-    backbone entry (config/trained.yaml's salad_tokens_vlad). A method the config lacks
-    counts when it bears a trained kind's name, as config/trained.yaml names them."""
-    from vprflow.core.registry import TRAINED_KINDS
-
+    ``model`` (a model's own descriptor), or its own ``features`` a backbone entry of
+    one of ``trained_kinds`` (config/trained.yaml's salad_tokens_vlad). A method the
+    config lacks counts when it bears a trained kind's name, as config/trained.yaml
+    names them."""
     settings = (config.get("methods") or {}).get(method)
     if not isinstance(settings, dict):
-        return method in TRAINED_KINDS
+        return method in trained_kinds
     backbone = (config.get("backbones") or {}).get(settings.get("features")) or {}
-    return settings.get("aggregator") == "model" or backbone.get("backbone") in TRAINED_KINDS
+    return settings.get("aggregator") == "model" or backbone.get("backbone") in trained_kinds
 
 
-def with_trained_baselines(name: str, dataset: dict, config: dict) -> dict:
+@dataclass(frozen=True)
+class Components:
+    """What the presets read of the code's components, given by planning (this wing
+    imports none of theirs): the aggregators that need a vocabulary, the trained
+    backbone kinds, and ``fill_backbone(entry)``, a backbone entry with its kind's
+    defaults filled in."""
+
+    vocabulary_aggregators: Collection[str]
+    trained_kinds: Collection[str]
+    fill_backbone: Callable[[dict], dict]
+
+
+def with_trained_baselines(
+    name: str, dataset: dict, config: dict, trained_kinds: Collection[str]
+) -> dict:
     """The preset ``name``'s config entry ``dataset`` with the trained methods its
     published rows name appended to ``methods`` (in the rows' order, skipping those it
     runs already), when the config sets ``trained_baselines: true``; else unchanged. A
@@ -150,7 +163,11 @@ def with_trained_baselines(name: str, dataset: dict, config: dict) -> dict:
     defined = config.get("methods") or {}
     for row in presets()[name].published:
         method = row.get("row")
-        if method is None or method in methods or not is_trained_method(method, config):
+        if (
+            method is None
+            or method in methods
+            or not is_trained_method(method, config, trained_kinds)
+        ):
             continue
         if method not in defined:
             from vprflow.core.errors import ConfigError
@@ -184,7 +201,7 @@ def merge_entry(base: dict, override: dict) -> dict:
     return merged
 
 
-def with_presets(config: dict, vocabulary_aggregators: Collection[str]) -> dict:
+def with_presets(config: dict, components: Components) -> dict:
     """``config["datasets"]`` completed with the presets it uses: those it names (its
     entry of the same name merged over the preset) and those whose folder exists under
     ``data_root``. Other presets stay out, so a missing one costs nothing. With
@@ -196,7 +213,7 @@ def with_presets(config: dict, vocabulary_aggregators: Collection[str]) -> dict:
     ``protocol`` column say so. When the entry (or a method it runs) chooses other
     features than the preset's, the settings tied to the published features follow
     (:func:`follow_features`) or planning stops naming the keys to set (for a method
-    whose aggregator, one of ``vocabulary_aggregators``, needs a vocabulary)."""
+    whose aggregator needs a vocabulary)."""
     datasets = dict(config.get("datasets") or {})
     targets = set(config.get("targets") or ())
     for name in sorted(RENAMED.keys() & (datasets.keys() | targets)):
@@ -214,8 +231,10 @@ def with_presets(config: dict, vocabulary_aggregators: Collection[str]) -> dict:
             entry = datasets[name] or {}
             if entry.get("preset") is False:
                 continue  # the user's own dataset; protocol() says so
-            base, notes = follow_features(name, preset.dataset, entry, config)
-            datasets[name] = with_trained_baselines(name, merge_entry(base, entry), config)
+            base, notes = follow_features(name, preset.dataset, entry, config, components)
+            datasets[name] = with_trained_baselines(
+                name, merge_entry(base, entry), config, components.trained_kinds
+            )
             if entry.get("preset") is None and all(key in entry for key in REQUIRED):
                 datasets[name]["preset"] = True  # read (and removed) by protocol()
                 taken = sorted(k for k in preset.dataset if k not in entry)
@@ -228,17 +247,19 @@ def with_presets(config: dict, vocabulary_aggregators: Collection[str]) -> dict:
                 )
             _say(notes)
             _check_method_features(
-                name, datasets[name], preset.dataset, config, vocabulary_aggregators
+                name, datasets[name], preset.dataset, config, components.vocabulary_aggregators
             )
         elif name in targets or (
             (Path(config["data_root"]) / preset.dataset["path"]).is_dir()
             and not undefined_components(preset.dataset, config)
         ):
-            datasets[name], notes = follow_features(name, preset.dataset, {}, config)
-            datasets[name] = with_trained_baselines(name, datasets[name], config)
+            datasets[name], notes = follow_features(name, preset.dataset, {}, config, components)
+            datasets[name] = with_trained_baselines(
+                name, datasets[name], config, components.trained_kinds
+            )
             _say(notes)
             _check_method_features(
-                name, datasets[name], preset.dataset, config, vocabulary_aggregators
+                name, datasets[name], preset.dataset, config, components.vocabulary_aggregators
             )
     return datasets
 
@@ -257,7 +278,9 @@ def _say(notes: list[str]) -> None:
             print(f"vprflow: {note}", file=sys.stderr)
 
 
-def follow_features(name: str, preset: dict, entry: dict, config: dict) -> tuple[dict, list]:
+def follow_features(
+    name: str, preset: dict, entry: dict, config: dict, components: Components
+) -> tuple[dict, list]:
     """The preset's entry made to follow the features ``entry`` chooses
     (``defaults.features``), and notes saying what followed. Tied to the preset's
     features (DINOv2 ViT-G/14 layer 31 value): its published vocabulary (centres of
@@ -273,7 +296,7 @@ def follow_features(name: str, preset: dict, entry: dict, config: dict) -> tuple
         return preset, []
     if chosen is None or chosen == own:
         # The same entry name, but is it still the features the vocabulary is of?
-        why = _not_published_features(own, config)
+        why = _not_published_features(own, config, components.fill_backbone)
         chosen, change = own, f"backbones.{own} ({why})"
         if why is None:
             return preset, []
@@ -332,17 +355,17 @@ def follow_features(name: str, preset: dict, entry: dict, config: dict) -> tuple
     return base, notes
 
 
-def _not_published_features(entry_name: str, config: dict) -> str | None:
+def _not_published_features(
+    entry_name: str, config: dict, fill_backbone: Callable[[dict], dict]
+) -> str | None:
     """How the config's backbone entry ``entry_name`` differs from DINOv2 ViT-G/14 layer
     31 value, the features of the published 1,536-d vocabularies, or None where it does
     not (as far as the entry tells: a local model directory is taken for ViT-G/14)."""
-    from vprflow.core.registry import with_defaults
-
     spec = (config.get("backbones") or {}).get(entry_name)
     if not isinstance(spec, dict):
         return None
     try:
-        filled = with_defaults("features", spec)
+        filled = fill_backbone(spec)
     except Exception:  # an invalid entry: the schema says why
         return None
     if filled.get("backbone") != "dinov2":

@@ -7,9 +7,9 @@ candidate reference gets a score (higher is better) and :func:`rerank` re-orders
 candidates by it. Both scores read the candidate's mutual nearest neighbour patch pairs
 (:func:`candidate_pairs`), found once per (retrieval, features, ``top_k``) by the
 ``matches`` stage and scored by each re-ranker in its ``rerank`` stage. Two scores, named
-by ``method`` (the ``kind`` of a ``rerankers`` entry, one
-:data:`vprflow.core.registry.RERANKERS` entry each: its score function over the pairs,
-options, defaults and score kind):
+by ``method`` (the ``kind`` of a ``rerankers`` entry, one :data:`RERANKERS` entry each,
+at the end of this module: its score function over the pairs, options, defaults and
+score kind):
 
 ``"mnn"``
     :func:`mnn_pair_scores` (:func:`mnn_score` per candidate): how many patch pairs are
@@ -93,11 +93,10 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
-
-from vprflow.core.registry import reranker, resolve
 
 if TYPE_CHECKING:
     import torch
@@ -462,7 +461,7 @@ def pair_scorer(
     (:func:`candidate_pairs`' list, or a ``matches`` store's) -> scores ``[K]`` float64
     (higher is better).
 
-    ``method`` names a :data:`vprflow.core.registry.RERANKERS` entry, whose pair scorer
+    ``method`` names a :data:`RERANKERS` entry, whose pair scorer
     (:func:`mnn_pair_scores`, :func:`ransac_pair_scores`) gets ``options`` (the keys of a
     ``rerankers`` entry) over the entry's defaults and its fixed settings, and the patch
     centres of the features' ``grid = (h, w)`` of ``patch``-pixel patches. Every setting
@@ -475,7 +474,7 @@ def pair_scorer(
         raise ValueError(f"method: {error}") from None
     settings = entry.settings(options)
     centres = patch_centres(*grid, patch)
-    score = resolve(entry.scores)
+    score = entry.scores
     score([], centres, patch, **settings)
     return functools.partial(score, centres=centres, patch=patch, **settings)
 
@@ -579,3 +578,71 @@ def rerank(ranking_row: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.
     floor = float(values[present].min()) if len(present) else 0.0
     full = np.concatenate([values, np.full(len(ranking) - k, floor)])
     return ranking[order].astype(np.int64), full[order]
+
+
+@dataclass(frozen=True)
+class Reranker:
+    """A ``rerankers.<name>.kind``: how it scores a query's candidates.
+
+    ``scores``: its score function, ``(pairs, centres [P, 2], patch, **settings) ->
+    scores [K] float64`` (higher is better), ``pairs`` one ``(i [M], j [M], similarity
+    [M] float32)`` per candidate: its mutual nearest neighbour patch pairs with the
+    query, as :func:`candidate_pairs` finds them and the ``matches`` stage stores them
+    (:func:`pair_scorer` binds it for the ``rerank`` stage; an empty ``pairs`` checks the
+    settings alone).
+    ``defaults``: the entry's keys that shape its scores, with their defaults
+    (``load_schema`` writes them into the schema, so the config's defaults are these);
+    the rest of the entry, ``features`` and ``top_k``, reach the key through the plan.
+    ``fixed``: the function's further settings, which the config leaves at these values
+    (not in the key: only a code change moves them). ``score``: the kind of score stored
+    (a :data:`vprflow.evaluation.precision_recall.SCORE_KINDS` name).
+    """
+
+    name: str
+    scores: Callable[..., np.ndarray]
+    defaults: dict
+    fixed: dict = field(default_factory=dict)
+    score: str = "matches"
+
+    @property
+    def options(self) -> tuple[str, ...]:
+        """The config keys the kind reads besides ``kind``, ``features`` and ``top_k``."""
+        return tuple(self.defaults)
+
+    def settings(self, options: dict) -> dict:
+        """Every setting of the score function: ``options`` over the defaults; a key
+        the kind does not take is refused by name."""
+        known = {**self.defaults, **self.fixed}
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            raise TypeError(
+                f"re-ranker {self.name!r} got unknown options {unknown}; it takes {list(known)}"
+            )
+        return {**known, **options}
+
+
+RERANKERS: dict[str, Reranker] = {
+    r.name: r
+    for r in (
+        # EffoVPR's zero-shot score: the count of mutual pairs at least T2 similar.
+        Reranker(
+            "mnn",
+            mnn_pair_scores,
+            {"weighting": "count", "min_similarity": None},
+        ),
+        # Patch-NetVLAD's RANSAC score; threshold in patches (1.5, as published). The
+        # estimator's budget stays fixed: the config never set it.
+        Reranker(
+            "ransac",
+            ransac_pair_scores,
+            {"min_similarity": None, "threshold": 1.5, "seed": 0},
+            fixed={"model": "homography", "max_iters": 2000, "confidence": 0.999},
+        ),
+    )
+}
+
+
+def reranker(name: str) -> Reranker:
+    if name not in RERANKERS:
+        raise ValueError(f"unknown re-ranker kind {name!r}; expected one of {sorted(RERANKERS)}")
+    return RERANKERS[name]

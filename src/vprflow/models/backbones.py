@@ -6,8 +6,8 @@ grid of patch descriptors ``[B, h, w, D]`` with ``h = H // patch_size`` and
 
 ``daisy`` is weight-free: scikit-image's dense DAISY sampled at the centre of every
 patch, a classical dense-VLAD baseline. ``dinov2`` and ``dino`` are the foundation
-models of the published pipelines (``vprflow.models.vit``); :mod:`vprflow.core.registry` says
-which loader builds which kind.
+models of the published pipelines (``vprflow.models.vit``); :mod:`vprflow.models.loaders`
+says which loader builds which kind.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from typing import Protocol
 import numpy as np
 
 from vprflow.core.arrays import center_crop_box, l2_normalize
-from vprflow.core.registry import BACKBONES, with_defaults
+from vprflow.models.kinds import BACKBONES, with_defaults
 
 _DAISY = BACKBONES["daisy"].defaults
 

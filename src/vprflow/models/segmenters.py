@@ -12,7 +12,7 @@ from typing import Protocol
 
 import numpy as np
 
-from vprflow.core.registry import SEGMENTERS, with_defaults
+from vprflow.models.kinds import SEGMENTERS, with_defaults
 
 _SLIC = SEGMENTERS["slic"].defaults
 _FELZENSZWALB = SEGMENTERS["felzenszwalb"].defaults

@@ -60,20 +60,20 @@ from torch import nn
 
 from vprflow.core.arrays import center_crop_box
 from vprflow.core.devices import resolve_device, resolve_dtype
-from vprflow.core.registry import (
+from vprflow.models.hub import load_pretrained, resolve_model_source
+from vprflow.models.kinds import (
     BACKBONES,
     FACETS,
     POS_EMBED_INTERPOLATIONS,
     VitFamily,
     with_defaults,
 )
-from vprflow.models.hub import load_pretrained, resolve_model_source
 
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
-# Backbone kind -> its VitFamily: the registry's ViT entries, each kind named there once.
+# Backbone kind -> its VitFamily: the ViT entries of models/kinds.py, each kind named there once.
 VIT_FAMILIES = {
     name: kind.spec for name, kind in BACKBONES.items() if isinstance(kind.spec, VitFamily)
 }

@@ -21,7 +21,7 @@ import re
 from dataclasses import dataclass
 from pathlib import Path
 
-from vprflow.core.registry import TrainedVariant
+from vprflow.models.kinds import TrainedVariant
 
 log = logging.getLogger("vprflow")
 

@@ -4,12 +4,12 @@ The schema is the one place that states a setting's default: :func:`validate_con
 fills every ``default`` it declares, at any depth (through ``$ref`` definitions, the
 entries of ``datasets``, ``backbones`` and ``segmenters``, and the ``then`` of an
 ``if``/``then`` the instance meets, for defaults of one ground-truth kind), after each
-backbone and segmenter entry's kind defaults from :mod:`vprflow.core.registry` (so a
+backbone and segmenter entry's kind defaults from :mod:`vprflow.models.kinds` (so a
 kind's default of a key every kind reads wins over the schema's). Objects the
 schema marks ``x-partial`` (a method's overrides, a dataset's ``defaults``) stay as
 written: they are merged over the filled top-level sections
 (:func:`vprflow.planning.plan.resolve_method`), and the plan fills the search index's parameter
-defaults into the merged ``retrieval`` (:func:`vprflow.core.registry.search_settings`).
+defaults into the merged ``retrieval`` (:func:`vprflow.search.indexes.search_settings`).
 """
 
 from __future__ import annotations
@@ -22,20 +22,17 @@ import yaml
 
 from vprflow.aggregation.aggregators import AGGREGATORS
 from vprflow.core.errors import ConfigError, short_repr
-from vprflow.core.registry import (
-    BACKBONES,
-    RERANKERS,
-    SEARCH_INDEXES,
-    SEGMENTERS,
-    with_defaults,
-)
+from vprflow.evaluation.rerank import RERANKERS
+from vprflow.models.kinds import BACKBONES, SEGMENTERS, TRAINED_KINDS, with_defaults
+from vprflow.search.indexes import SEARCH_INDEXES
 
 # The modules whose constants a schema `x-enum` may name: the config is validated
 # without importing torch, so each of these must import without it (test_enumerations).
 ENUM_MODULES = (
     "vprflow.core.dtypes",
-    "vprflow.core.registry",
     "vprflow.data.images",
+    "vprflow.models.kinds",
+    "vprflow.aggregation.aggregators",
     "vprflow.search.voting",
     "vprflow.aggregation.vlad",
     "vprflow.aggregation.pca",
@@ -46,17 +43,17 @@ ENUM_MODULES = (
 )
 
 # The sections of the stages that several aggregators share; an aggregator's own
-# settings are its registry entry's `sections`.
+# settings are its entry's `sections` (aggregation/aggregators.py).
 SHARED_SECTIONS = ("vocabulary", "pca", "voting", "retrieval")
-# The order of the sections named before they were derived from the registry: it
+# The order of the sections named before they were derived from the aggregators: it
 # reaches the resolved settings and the tables, so it stays; a section not in it (a new
-# aggregator's) follows them in registry order.
+# aggregator's) follows them in AGGREGATORS order.
 SECTION_ORDER = ("vocabulary", "vlad", "pca", "segvlad", "voting", "retrieval", "snsm", "pooling")
 
 
 def method_default_sections() -> tuple[str, ...]:
     """The shared sections and every aggregator's ``sections``, once each, in
-    :data:`SECTION_ORDER` then registry order."""
+    :data:`SECTION_ORDER` then :data:`AGGREGATORS` order."""
     named = dict.fromkeys(
         [*SHARED_SECTIONS, *(s for agg in AGGREGATORS.values() for s in agg.sections)]
     )
@@ -88,14 +85,18 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     """
     import jsonschema
 
-    from vprflow.data.presets import presets, protocol, with_presets
+    from vprflow.data.presets import Components, presets, protocol, with_presets
 
     check_config_files(files)
     check_config_size(config, files)
     schema = load_schema(schema_path)
     if isinstance(config.get("data_root"), str):
-        vocabulary = {n for n, agg in AGGREGATORS.items() if "vocabulary" in agg.needs}
-        config = {**config, "datasets": with_presets(config, vocabulary)}
+        components = Components(
+            vocabulary_aggregators={n for n, a in AGGREGATORS.items() if "vocabulary" in a.needs},
+            trained_kinds=TRAINED_KINDS,
+            fill_backbone=lambda entry: with_defaults("features", entry),
+        )
+        config = {**config, "datasets": with_presets(config, components)}
     errors = sorted(
         jsonschema.Draft202012Validator(schema).iter_errors(config),
         key=lambda e: list(map(str, e.absolute_path)),
@@ -116,7 +117,7 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     for entries, stage in (("backbones", "features"), ("segmenters", "segments")):
         for entry in config[entries].values():
             # Kind-specific defaults (a DINOv2 layer, SAM thresholds, a trained model's
-            # input size) from the registry, before the schema's: a kind's default of a
+            # input size) from models/kinds.py, before the schema's: a kind's default of a
             # key every kind reads (a trained model's `resolution`) wins over the schema's.
             entry.update(with_defaults(stage, entry))
     fill_defaults(config, schema)
@@ -295,13 +296,15 @@ def unread_keys(config: dict, schema: dict) -> list[str]:
 
 def load_schema(path: str | Path) -> dict:
     """The schema file, completed with the lists the code owns: the names of backbones,
-    segmenters, aggregators, search indexes and re-rankers (:mod:`vprflow.core.registry`),
+    segmenters, aggregators, search indexes and re-rankers (:mod:`vprflow.models.kinds`,
+    :mod:`vprflow.aggregation.aggregators`, :mod:`vprflow.search.indexes`,
+    :data:`vprflow.evaluation.rerank.RERANKERS`),
     of ground-truth kinds (:data:`vprflow.data.ground_truth.KINDS`) and of published
     vocabularies (:data:`vprflow.aggregation.vocabularies.PUBLISHED`) as enums, every
     other enum from the constant its ``x-enum`` names (:func:`enum_values`), the kinds
     an ``x-kinds`` item ``"module:CONSTANT"`` names (the trained models'), each
-    re-ranker option's default and the kinds that read it from the registry's
-    :class:`~vprflow.core.registry.Reranker` entries, and each method section of
+    re-ranker option's default and the kinds that read it from the
+    :class:`~vprflow.evaluation.rerank.Reranker` entries, and each method section of
     :data:`METHOD_DEFAULT_SECTIONS` as a top-level key, a method key and a dataset
     ``defaults`` key (each a reference to the section's definition)."""
     from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
@@ -378,8 +381,8 @@ def _fill_enums(part, where: str) -> None:
     if not isinstance(part, dict):
         return
     if isinstance(part.get("x-kinds"), list) and any(":" in str(k) for k in part["x-kinds"]):
-        # A kind list the registry holds (the trained models' kinds) is named, not typed,
-        # so that adding a trained model is one registry entry.
+        # A kind list the code holds (the trained models' kinds) is named, not typed,
+        # so that adding a trained model needs no schema change.
         try:
             part["x-kinds"] = [
                 kind
@@ -401,9 +404,10 @@ def _fill_enums(part, where: str) -> None:
 
 def _reranker_options(properties: dict) -> None:
     """Each re-ranker option's schema ``default`` and ``x-kinds`` (the kinds that read
-    it), from the registry's entries, which state them once: the schema file gives
-    neither. Every option is filled into every entry, whatever its kind, as the schema
-    always did, so an option two kinds share must have one default."""
+    it), from the :data:`~vprflow.evaluation.rerank.RERANKERS` entries, which state them
+    once: the schema file gives neither. Every option is filled into every entry,
+    whatever its kind, as the schema always did, so an option two kinds share must have
+    one default."""
     defaults: dict = {}
     kinds: dict[str, list[str]] = {}
     for reranker in RERANKERS.values():
@@ -425,7 +429,7 @@ def _reranker_options(properties: dict) -> None:
         stated = sorted({"default", "x-kinds"} & set(prop))
         if stated:
             raise ValueError(
-                f"schema reranker.{name} states {stated}: the registry's RERANKERS does"
+                f"schema reranker.{name} states {stated}: evaluation/rerank.py's RERANKERS does"
             )
         prop["default"] = value
         prop["x-kinds"] = kinds[name]

@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 from vprflow.core.errors import PlanError
 from vprflow.core.files import write_text_atomic
 from vprflow.core.paths import FINGERPRINTS
-from vprflow.core.registry import model_kind
+from vprflow.models.kinds import model_kind
 
 if TYPE_CHECKING:
     from vprflow.data.datasets import DatasetFiles
@@ -153,7 +153,7 @@ def truth_digest(data_root: str | Path, dataset: dict, file_hash) -> str:
 
 def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> dict:
     """What identifies the weights or file a backbone (``stage="features"``) or
-    segmenter (``stage="segments"``) entry reads, as its registry kind says.
+    segmenter (``stage="segments"``) entry reads, as its kind says (models/kinds.py).
 
     Hub ids stand for themselves; local model directories and imported HDF5 files are
     hashed by content (memoised by path, size and modification time, because a

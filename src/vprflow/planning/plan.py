@@ -39,17 +39,10 @@ from vprflow.planning.fingerprints import (
 
 if TYPE_CHECKING:
     from vprflow.data.datasets import DatasetFiles
-from vprflow.aggregation.aggregators import aggregator
-from vprflow.core.registry import (
-    RERANKERS,
-    SEARCH_INDEXES,
-    TRAINED_KINDS,
-    Aggregator,
-    TrainedModel,
-    model_kind,
-    prefixed,
-    search_settings,
-)
+from vprflow.aggregation.aggregators import Aggregator, aggregator, prefixed
+from vprflow.evaluation.rerank import RERANKERS
+from vprflow.models.kinds import TRAINED_KINDS, TrainedModel, model_kind
+from vprflow.search.indexes import SEARCH_INDEXES, search_settings
 
 # Which dataset settings shape which store. A dataset's settings are split between
 # what the images are (the `images` store: list, order, content, reader) and what is
@@ -413,7 +406,7 @@ def _plan_method(
     keys: tuple[str, str],
     method_name: str,
 ) -> list[MethodRun]:
-    """Plan one method's stages (as its registry entry needs them) and its CSV rows:
+    """Plan one method's stages (as its aggregator's entry needs them) and its CSV rows:
     features, the stages its aggregator needs, descriptors, then recall (through the
     segment search for a per-segment method), and a re-ranked row per re-ranker the
     dataset names for it. Each stage's planner returns its store and its CSV columns."""
@@ -440,7 +433,7 @@ def _plan_method(
     inputs = {"images": m.images_store, "features": features}
     for stage in agg.needs:
         spec = STAGES.get(stage)
-        if spec is None or spec.needed is None:  # a registry entry the table does not back
+        if spec is None or spec.needed is None:  # an aggregator the table does not back
             raise PlanError(f"aggregator {agg.name!r} needs unknown stage {stage!r}")
         store, columns = spec.needed(m, inputs)
         if store is not None:
@@ -595,7 +588,7 @@ def _trained_weights(m: _Method, name: str, backbone: dict, spec: TrainedModel) 
 
 def _exif_orientation(m: _Method) -> str:
     """How the method's stages read images: the dataset's ``exif_orientation``, or for
-    ``method`` (the default) as the published pipeline's reader does (the registry's
+    ``method`` (the default) as the published pipeline's reader does (its aggregator's
     ``Aggregator.exif_orientation``), as ``resize: method`` resizes."""
     orientation = m.dataset["exif_orientation"]
     return m.aggregator.exif_orientation if orientation == "method" else orientation

@@ -11,6 +11,7 @@ nearest first:
 - :mod:`vprflow.search.topk`: merging top-k lists (shards) and comparing them.
 
 Which function runs a ``retrieval.index`` is said once, by its
-:data:`vprflow.core.registry.SEARCH_INDEXES` entry
-(:meth:`vprflow.core.registry.SearchIndex.search`).
+:data:`vprflow.search.indexes.SEARCH_INDEXES` entry
+(:meth:`vprflow.search.indexes.SearchIndex.search`); the parameters' defaults are
+:mod:`vprflow.search.defaults`.
 """

@@ -2,8 +2,8 @@
 ``(database [Nd, D], queries [Nq, D], k, **params) -> (distances [Nq, k'] float32,
 indices [Nq, k'] int64)``, ``k' = min(k, Nd)``, nearest first.
 
-Parameters left out take the defaults of the index's :data:`vprflow.core.registry.SEARCH_INDEXES`
-entry (the keyword defaults below are read from it).
+Parameters left out take the defaults of :mod:`vprflow.search.defaults` (which the
+search stage's keys record).
 
 IVF training is deterministic: the coarse and PQ k-means use ``seed``. HNSW graph
 construction is parallel and therefore only reproducible with one OpenMP thread.
@@ -17,12 +17,10 @@ import math
 
 import numpy as np
 
-from vprflow.core.registry import SEARCH_INDEXES
+from vprflow.search.defaults import HNSW as _HNSW
+from vprflow.search.defaults import IVF_FLAT as _IVF_FLAT
+from vprflow.search.defaults import IVF_PQ as _IVF_PQ
 from vprflow.search.inputs import empty_result, faiss_inputs, positive_int
-
-_IVF_FLAT = SEARCH_INDEXES["ivf_flat"].defaults
-_IVF_PQ = SEARCH_INDEXES["ivf_pq"].defaults
-_HNSW = SEARCH_INDEXES["hnsw"].defaults
 
 
 def ivf_flat_knn(

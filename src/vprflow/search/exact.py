@@ -66,7 +66,7 @@ import numpy as np
 import torch
 
 from vprflow.core.devices import resolve_device
-from vprflow.core.registry import SEARCH_INDEXES
+from vprflow.search.defaults import EXACT as _EXACT
 from vprflow.search.inputs import as_matrix, non_negative_int, positive_int
 from vprflow.search.topk import NO_INDEX
 
@@ -87,9 +87,6 @@ _UNIT32 = 2.0**-24  # float32 unit roundoff
 # Columns per group in candidate selection (_select): the product is reduced to one bound per
 # group, and only the best groups are keyed item by item.
 GROUP = 16
-
-# exact_knn's defaults: the search stage passes them from the key; direct callers get the same.
-_EXACT = SEARCH_INDEXES["exact_fast"].defaults
 
 
 def exact_knn(
@@ -112,8 +109,8 @@ def exact_knn(
     distances are within float32 rounding of each other (see the module docstring).
 
     ``device``: ``"auto"``, ``"cpu"``, ``"cuda"`` (see :func:`vprflow.core.devices.resolve_device`).
-    The other settings default to the registry's ``exact_fast`` entry
-    (:data:`vprflow.core.registry.SEARCH_INDEXES`).
+    The other settings default to :data:`vprflow.search.defaults.EXACT` (the search
+    stage passes them from its key).
     ``candidate_dtype``: ``"bfloat16"``, ``"float16"`` (slow on CPUs) or ``"float32"``, the
     precision of the products that choose candidates; like ``margin`` (extra candidates
     per block beyond k, ``None``: :data:`DEFAULT_MARGINS` by dtype) it changes speed, never

@@ -10,8 +10,9 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
-from vprflow.core.registry import model_kind
 from vprflow.data.images import resize_image
+from vprflow.models.kinds import model_kind
+from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
 from vprflow.stages.readers import open_shard
 
@@ -74,7 +75,7 @@ def _feature_extractor(params: dict, device: str, width: int, height: int, datas
     features instead of running a model (``<image file name>/ift_dino``).
     """
     kind = model_kind("features", params)
-    if kind.loader is None:
+    if kind.reads_file:
         from vprflow.core.arrays import l2_normalize
         from vprflow.data.published import read_features_h5
 
@@ -85,7 +86,7 @@ def _feature_extractor(params: dict, device: str, width: int, height: int, datas
             return l2_normalize(grids) if params["normalize"] else grids
 
         return read, params["patch_size"]
-    backbone = kind.load(params, device)
+    backbone = load_model("features", params, device)
 
     turn = params["exif_orientation"]  # the method's reader's (plan._exif_orientation)
 

@@ -9,8 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from vprflow.aggregation.aggregators import Aggregator
 from vprflow.core import stores
-from vprflow.core.registry import Aggregator
 from vprflow.stages.readers import FeatureReader, MaskReader, read_centres
 
 

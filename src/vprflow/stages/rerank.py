@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
-from vprflow.core.registry import reranker
+from vprflow.evaluation.rerank import reranker
 from vprflow.stages.base import Job
 from vprflow.stages.readers import Matches
 

@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from vprflow.core import stores
 from vprflow.core.paths import shard_layout
-from vprflow.core.registry import search_index
+from vprflow.search.indexes import search_index
 from vprflow.search.topk import merge_knn
 from vprflow.stages.base import Job, stage_attrs
 from vprflow.stages.readers import Dataset

@@ -9,8 +9,9 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
-from vprflow.core.registry import model_kind
 from vprflow.data.images import resize_image
+from vprflow.models.kinds import model_kind
+from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
 from vprflow.stages.readers import open_shard
 
@@ -68,13 +69,13 @@ def _mask_source(params: dict, device: str, dataset):
     with ``masks_batch`` (SAM kinds) take a list of images in one call.
     """
     kind = model_kind("segments", params)
-    if kind.loader is None:
+    if kind.reads_file:
         from vprflow.data.published import read_masks_h5
 
         return lambda indices: [
             read_masks_h5(params["file"], Path(dataset.paths[i]).name) for i in indices
         ]
-    segmenter = kind.load(params, device)
+    segmenter = load_model("segments", params, device)
     width, height = params["resolution"]
 
     turn = params["exif_orientation"]  # as the method's features (plan._exif_orientation)

@@ -5,9 +5,10 @@ An adapter is the model-specific part of automatic mask generation: preprocessin
 the image embedding, prompt decoding to low-resolution logits and predicted IoUs, and
 the upscaling map (:class:`SamAdapter`, :class:`SamHQAdapter`, :class:`Sam2Adapter`;
 see their docstrings). Everything else (point grid, filters, NMS, clean-up) is the
-shared generator, :class:`vprflow.models.sam.generator.SamSegmenter`; the registry's
-loader of every SAM kind, :func:`load_sam`, returns one around the kind's adapter (the
-registry's :class:`vprflow.core.registry.SamKind` names the model class and adapter).
+shared generator, :class:`vprflow.models.sam.generator.SamSegmenter`; the loader of
+every SAM kind, :func:`load_sam`, returns one around the kind's adapter (its
+:class:`vprflow.models.kinds.SamKind` names the transformers class, which picks the
+adapter: :data:`ADAPTERS`).
 
 Prompts are decoded by :mod:`vprflow.models.sam.decoder` (the same function with the image-side
 work shared across a batch's prompts). For SAM-HQ it follows the original
@@ -22,7 +23,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from vprflow.core.registry import SEGMENTERS, SamKind, resolve, with_defaults
+from vprflow.models.kinds import SEGMENTERS, SamKind, with_defaults
 from vprflow.models.sam import decoder as sam_decoder
 from vprflow.models.sam.generator import SamSegmenter
 from vprflow.models.sam.masks import LogitUpscaler
@@ -276,8 +277,8 @@ class Sam2Adapter(SamAdapter):
 
 
 def sam_params(params: dict, kind: str = "sam") -> dict:
-    """Config dict -> complete parameters of SAM kind ``kind`` (its registry defaults
-    filled, values validated). Keys outside those defaults (e.g. ``segmenter``) are
+    """Config dict -> complete parameters of SAM kind ``kind`` (its defaults of
+    models/kinds.py filled, values validated). Keys outside those defaults (e.g. ``segmenter``) are
     ignored."""
     if kind not in SAM_KINDS:
         raise ValueError(f"unknown SAM kind {kind!r}; expected one of {sorted(SAM_KINDS)}")
@@ -293,8 +294,8 @@ def sam_params(params: dict, kind: str = "sam") -> dict:
 
 def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmenter:
     """Load a model of SAM kind ``kind`` (hub id or local directory, scaled-dot-product
-    attention) as a :class:`SamSegmenter`: the registry entry's transformers class
-    around its adapter, which gets the entry's ``adapter_options``.
+    attention) as a :class:`SamSegmenter`: the kind's transformers class around its
+    adapter, which gets the entry's ``adapter_options``.
 
     Raises ``vprflow.models.hub.ModelNotFoundError`` naming the model when it is neither a
     local directory nor obtainable from the hub.
@@ -318,15 +319,18 @@ def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmente
 
 
 def load_sam(params: dict, device: str = "auto") -> SamSegmenter:
-    """The registry's loader of every SAM kind: the kind its ``segmenter`` names
-    (``sam`` when it names none), defaults the registry's (each kind's own generator's)."""
+    """The loader of every SAM kind: the kind its ``segmenter`` names (``sam`` when it
+    names none), defaults its entry's in models/kinds.py (each kind's own generator's)."""
     return load_segmenter(params.get("segmenter") or "sam", params, device)
 
 
-# kind -> (transformers class name, adapter class), from the registry's SAM entries:
-# each kind is named there once, and its adapter by a "module:Class" reference.
+# transformers class name -> the adapter that runs a model of it.
+ADAPTERS = {"SamModel": SamAdapter, "SamHQModel": SamHQAdapter, "Sam2Model": Sam2Adapter}
+
+# kind -> (transformers class name, adapter class), from the SAM entries of
+# models/kinds.py, each kind named there once.
 SAM_KINDS = {
-    name: (kind.spec.model_class, resolve(kind.spec.adapter))
+    name: (kind.spec.model_class, ADAPTERS[kind.spec.model_class])
     for name, kind in SEGMENTERS.items()
     if isinstance(kind.spec, SamKind)
 }

@@ -1,8 +1,8 @@
-"""Any trained VPR model as a vprflow backbone (issue 32).
+"""Any trained VPR model as a vprflow backbone.
 
 The trained models (:mod:`vprflow.models.trained`: NetVLAD, SALAD, BoQ-DINOv2, MegaLoc,
 MixVPR, Conv-AP, BoQ-ResNet50, CosPlace, EigenPlaces; the kinds of
-:data:`vprflow.core.registry.TRAINED_KINDS`) are plain torch modules whose ``forward``
+:data:`vprflow.models.kinds.TRAINED_KINDS`) are plain torch modules whose ``forward``
 takes ImageNet-normalised ``[B, 3, H, W]`` and returns the model's L2-normalised
 descriptor ``[B, D]``, and whose ``feature_map`` returns the dense map their head reads
 ``[B, C, h, w]``. :class:`TrainedBackbone` gives
@@ -15,8 +15,8 @@ runs them like any other backbone:
 - ``output: features``: the dense map, channels last, for AnyLoc-VLAD, SegVLAD, SNSM,
   pooling and re-ranking.
 
-Each kind's registry entry (:class:`vprflow.core.registry.TrainedModel`) names its
-``load_<model>(checkpoint, ...)``, its published checkpoints, its input size (the
+Each kind's entry (:class:`vprflow.models.kinds.TrainedModel`) names its published
+checkpoints, its input size (the
 entry's default ``resolution``: the features stage resizes to it, as the published
 reader does, before the model sees the image) and the stride of its map.
 """
@@ -28,8 +28,8 @@ import torch
 
 from vprflow.core.arrays import center_crop_box, l2_normalize
 from vprflow.core.devices import resolve_device
-from vprflow.core.registry import TRAINED_OUTPUTS, TrainedModel, model_kind, resolve, with_defaults
 from vprflow.models.checkpoints import CheckpointError
+from vprflow.models.kinds import TRAINED_OUTPUTS, TrainedModel, model_kind, with_defaults
 from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD
 
 
@@ -37,7 +37,7 @@ class TrainedBackbone:
     """A trained model behind the backbone interface (module docstring).
 
     ``model``: the loaded module (``forward``, ``feature_map``, ``mean``, ``std``);
-    ``output``: :data:`~vprflow.core.registry.TRAINED_OUTPUTS`; ``patch_size``: the
+    ``output``: :data:`~vprflow.models.kinds.TRAINED_OUTPUTS`; ``patch_size``: the
     stride of its ``feature_map``; ``crop``: centre-crop inputs to whole patches first
     (the DINOv2 models need multiples of 14; vprflow's ViT backbones crop the same way);
     ``normalize``: L2-normalise each stored vector (the descriptors already are, up to
@@ -95,10 +95,12 @@ class TrainedBackbone:
         return l2_normalize(grids) if self.normalize else grids
 
 
-def load_trained(params: dict, device: str = "auto") -> TrainedBackbone:
+def load_trained(params: dict, load_model, device: str = "auto") -> TrainedBackbone:
     """A :class:`TrainedBackbone` from a trained kind's backbone entry: ``backbone``
-    (one of :data:`~vprflow.core.registry.TRAINED_KINDS`), ``checkpoint`` (the published file),
-    ``variant``, ``output``, ``normalize``. A missing ``checkpoint`` raises
+    (one of :data:`~vprflow.models.kinds.TRAINED_KINDS`), ``checkpoint`` (the published
+    file), ``variant``, ``output``, ``normalize``; ``load_model(checkpoint path,
+    **variant loader_options)`` builds the model
+    (:data:`vprflow.models.loaders.TRAINED_MODELS`). A missing ``checkpoint`` raises
     :class:`CheckpointError` naming the model, the file its variant expects and where to
     get it (the plan refuses it earlier, with the same words; the model's loader names a
     file of another layout)."""
@@ -126,7 +128,7 @@ def load_trained(params: dict, device: str = "auto") -> TrainedBackbone:
         options["end"] = layer
     if params["output"] == "descriptor" and not spec.descriptor:
         raise ValueError(f"backbone {kind.name!r} has no descriptor of its own; output: features")
-    model = resolve(spec.loader)(str(params["checkpoint"]), **options)
+    model = load_model(str(params["checkpoint"]), **options)
     return TrainedBackbone(
         model,
         params["output"],
