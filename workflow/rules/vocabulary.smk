@@ -11,9 +11,11 @@ rule vocabulary:
         "../envs/vprflow.yaml"
     threads: 2
     resources:
+        gpu=gpu_request("vocabulary"),
         mem_mb=lambda wildcards, attempt: 4000 * attempt,
         runtime=lambda wildcards, attempt: 60 * attempt,
     params:
         record=stage_record("vocabulary"),
+        run=stage_run_params("vocabulary"),
     script:
         "../scripts/stage.py"

@@ -14,12 +14,19 @@ CENTRES = ("mean", "unit")
 
 
 def fit_spherical_kmeans(
-    x: np.ndarray, n_clusters: int = 32, n_iter: int = 100, seed: int = 0, centres: str = "mean"
+    x: np.ndarray,
+    n_clusters: int = 32,
+    n_iter: int = 100,
+    seed: int = 0,
+    centres: str = "mean",
+    device: str = "cpu",
 ) -> np.ndarray:
-    """Spherical (cosine) k-means with faiss -> centres ``[K, D]`` float32.
+    """Spherical (cosine) k-means as faiss trains it -> centres ``[K, D]`` float32.
 
     ``x`` is L2-normalised first. faiss's own subsampling is disabled: the caller
-    decides how many descriptors to use.
+    decides how many descriptors to use. ``device`` (a config device name): on the CPU
+    faiss itself trains (:func:`spherical_centroids`); on any other device the same
+    algorithm in torch does, there (:mod:`vprflow.aggregation.kmeans`).
 
     ``centres="mean"`` (default, as AnyLoc's cosine k-means): each centre is the plain
     mean of the unit descriptors assigned to it (by cosine to the faiss centroids), NOT
@@ -29,13 +36,40 @@ def fit_spherical_kmeans(
     matter. A cluster that receives no descriptor keeps its unit faiss centroid.
     ``centres="unit"``: the unit-norm faiss centroids.
     """
-    import faiss
-
     if centres not in CENTRES:
         raise ValueError(f"unknown vocabulary centres {centres!r}; expected one of {CENTRES}")
     x = np.ascontiguousarray(l2_normalize(np.asarray(x, dtype=np.float32)))
     if len(x) < n_clusters:
         raise ValueError(f"k-means needs at least {n_clusters} descriptors, got {len(x)}")
+    if not on_cpu(device):
+        from vprflow.aggregation.kmeans import fit_on_device
+
+        if not np.isfinite(x).all():  # faiss refuses them itself
+            raise ValueError("k-means input contains NaN or infinite values")
+        return fit_on_device(x, n_clusters, n_iter, seed, centres, device)
+    unit = l2_normalize(spherical_centroids(x, n_clusters, n_iter, seed)[0])
+    if centres == "unit":
+        return unit
+    return cluster_means(x, assign(x, unit), unit)
+
+
+def on_cpu(device) -> bool:
+    """Whether config device ``device`` (``auto`` included) is the CPU: where the
+    vocabulary's k-means is faiss's own."""
+    if str(device) == "cpu":  # without importing torch
+        return True
+    from vprflow.core.devices import resolve_device
+
+    return resolve_device(str(device)).type == "cpu"
+
+
+def spherical_centroids(
+    x: np.ndarray, n_clusters: int, n_iter: int, seed: int
+) -> tuple[np.ndarray, int]:
+    """faiss's spherical k-means of unit rows ``x`` ``[N, D]`` float32 on the CPU ->
+    ``(unit centroids [K, D] float32, iterations run)``; no subsampling."""
+    import faiss
+
     kmeans = faiss.Kmeans(
         x.shape[1],
         n_clusters,
@@ -46,10 +80,7 @@ def fit_spherical_kmeans(
         verbose=False,
     )
     kmeans.train(x)
-    unit = l2_normalize(kmeans.centroids.astype(np.float32))
-    if centres == "unit":
-        return unit
-    return cluster_means(x, assign(x, unit), unit)
+    return kmeans.centroids.astype(np.float32), len(kmeans.iteration_stats)
 
 
 def cluster_means(x: np.ndarray, labels: np.ndarray, fallback: np.ndarray) -> np.ndarray:

@@ -636,7 +636,11 @@ def _plan_vocabulary(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRe
             file=vocabulary["file"],
             sha256=memoised(vocabulary["file"], m.memo, file_digest, "vocabulary.file"),
         )
-    store = m.add("vocabulary", params, stores)
+    # Fitting k-means to a model's wide features is GPU work, as matching them is.
+    backbone = m.entry("backbones", m.settings["features"])
+    fitted = vocabulary["source"] == "map"
+    run_params = {**m.execution, "uses_gpu": fitted and model_kind("features", backbone).uses_gpu}
+    store = m.add("vocabulary", params, stores, run_params)
     return store, _prefixed("vocabulary", {k: v for k, v in vocabulary.items() if k != "name"})
 
 

@@ -89,6 +89,7 @@ def fit_vocabulary(job: Job) -> None:
             params["n_iter"],
             params["seed"],
             centres=params["centres"],
+            device=job.device,
         )
     attrs = {"stage": "vocabulary", "record": record, "sources": resolved_sources(params)}
     with stores.atomic_store(job.out, attrs) as group:
