@@ -156,4 +156,3 @@ def load_model(stage: str, params: dict, device: str = "auto"):
     if kind.reads_file:
         raise ValueError(f"{kind.role} {kind.name!r} reads a file; it has no model to load")
     return LOADERS[stage][kind.name](params, device)
-
