@@ -120,8 +120,6 @@ def test_no_stage_runner_imports_another_runner():
     graph = _imports()
     stages = {m for m in graph if m.startswith("vprflow.stages.")}
     runners = {m for m in stages if m.rsplit(".", 1)[1] not in STAGE_SUPPORT | {"jobs"}}
-    crossing = sorted(
-        (m, t) for m in stages - {"vprflow.stages.jobs"} for t in graph[m] & runners
-    )
+    crossing = sorted((m, t) for m in stages - {"vprflow.stages.jobs"} for t in graph[m] & runners)
     assert crossing == []
     assert {f"vprflow.stages.{name}" for name in STAGE_SUPPORT} <= stages
