@@ -282,7 +282,8 @@ def report_inputs(wildcards):
             f"{PREDICTIONS_CSV.format(dataset=wildcards.dataset)} (`snakemake` builds them "
             "and its figures when the dataset is in `targets`)"
         )
-    # The table brings the per-query predictions along (as it always has).
+    # The table brings the per-query predictions along: a table whose rankings are
+    # missing could not be checked query by query.
     return {
         **prediction_inputs(wildcards),
         "predictions": PREDICTIONS_CSV.format(dataset=wildcards.dataset),

@@ -29,8 +29,8 @@ log = logging.getLogger("vprflow")
 def as_index(value, where: str) -> int:
     """``value`` as an index: an integer (Python or numpy) or an integral float.
 
-    A fractional float used to be truncated (2.5 -> 2) and a boolean read as 0 or 1;
-    either gives a believable but wrong ground truth, so both are refused. ``where``
+    A fractional float truncated (2.5 -> 2) or a boolean read as 0 or 1 would give a
+    believable but wrong ground truth, so both are refused. ``where``
     names the file, row and field (``"<file> row 4: reference index"``).
     """
     if isinstance(value, np.ndarray) and value.ndim == 0:

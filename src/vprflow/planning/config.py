@@ -45,9 +45,9 @@ ENUM_MODULES = (
 # The sections of the stages that several aggregators share; an aggregator's own
 # settings are its entry's `sections` (aggregation/aggregators.py).
 SHARED_SECTIONS = ("vocabulary", "pca", "voting", "retrieval")
-# The order of the sections named before they were derived from the aggregators: it
-# reaches the resolved settings and the tables, so it stays; a section not in it (a new
-# aggregator's) follows them in AGGREGATORS order.
+# The order of the method sections: it reaches the resolved settings and the tables'
+# columns, so it is fixed here rather than left to AGGREGATORS' order; a section not in
+# it (a new aggregator's) follows them in AGGREGATORS order.
 SECTION_ORDER = ("vocabulary", "vlad", "pca", "segvlad", "voting", "retrieval", "snsm", "pooling")
 
 
@@ -178,8 +178,8 @@ class _UniqueKeyLoader(yaml.SafeLoader):
 
 def check_config_files(files=()) -> None:
     """Read each config file again, refusing a key given twice in one mapping, naming the
-    file, the key and both lines: pasting a second ``datasets:`` block used to replace
-    the first without a word."""
+    file, the key and both lines: YAML lets a second ``datasets:`` block pasted below the
+    first replace it without a word."""
     for path in files:
         try:
             with open(path, encoding="utf-8") as stream:
@@ -406,8 +406,7 @@ def _reranker_options(properties: dict) -> None:
     """Each re-ranker option's schema ``default`` and ``x-kinds`` (the kinds that read
     it), from the :data:`~vprflow.evaluation.rerank.RERANKERS` entries, which state them
     once: the schema file gives neither. Every option is filled into every entry,
-    whatever its kind, as the schema always did, so an option two kinds share must have
-    one default."""
+    whatever its kind, so an option two kinds share must have one default."""
     defaults: dict = {}
     kinds: dict[str, list[str]] = {}
     for reranker in RERANKERS.values():
