@@ -509,13 +509,26 @@ def test_candidate_pairs_are_each_candidates_mutual_nearest_neighbours(seed):
             np.testing.assert_array_equal(got, want)
 
 
-def test_candidate_pairs_off_the_cpu_take_each_candidates_own_product(monkeypatch):
-    # A device whose batched product may round differently: the per-candidate products,
-    # so the same pairs and similarities as on the CPU.
-    monkeypatch.setattr(rerank_module, "_same_bits", lambda device: False)
-    query, candidates = hard_candidates(12, 9, dim=32)
-    for candidate, pairs in zip(candidates, candidate_pairs(query, candidates), strict=True):
-        for got, want in zip(pairs, mutual_nearest_neighbours(query, candidate), strict=True):
+@pytest.mark.parametrize("per_product", [None, 2, 1])
+@pytest.mark.parametrize("seed", range(3))
+def test_pairs_read_on_the_device_are_the_per_candidate_pairs_bit_for_bit(
+    monkeypatch, seed, per_product
+):
+    """The path other devices take (the batched product's argmax and similarities read by
+    torch where the product is), run on the CPU: every candidate's pairs and float32
+    similarities those of its own product (exact ties on both sides, duplicate patches,
+    near-ties within rounding, a NaN), whether a product holds all 17 candidates, two or
+    one."""
+    monkeypatch.setattr(rerank_module, "_host_argmax", lambda device: False)
+    if per_product is not None:
+        monkeypatch.setattr(rerank_module, "_DEVICE_PRODUCT_ELEMENTS", per_product * 30 * 30)
+    query, candidates = hard_candidates(seed, 17)
+    candidates[6, 4, 2] = np.nan
+    pairs = candidate_pairs(torch.from_numpy(query), candidates)
+    assert len(pairs) == len(candidates)
+    for candidate, found in zip(candidates, pairs, strict=True):
+        for got, want in zip(found, mutual_nearest_neighbours(query, candidate), strict=True):
+            assert got.dtype == want.dtype
             np.testing.assert_array_equal(got, want)
 
 

@@ -73,13 +73,15 @@ EffoVPR (Tzachor et al., ICLR 2025, arXiv:2405.18065), zero-shot re-ranking:
 Batched, and the same pairs
 ---------------------------
 :func:`candidate_pairs` takes a query's K candidates in one float32 product ``[P, D] x
-[D, K Q]`` (or a few, :data:`_PRODUCT_ELEMENTS` similarities each), not K products, where
-that gives the same pairs and similarities as :func:`mutual_nearest_neighbours` run per
-candidate, bit for bit: on CPUs the batched product's elements are the per-candidate
-product's bits (:func:`_same_bits`) and the pairs are read by the same ``argmax`` rule
-(:func:`_direct_pairs`). cuBLAS picks its kernel (and split-K) by shape, so on other
-devices each candidate takes its own product: the stored similarities are the
-per-candidate product's whatever ``min_similarity`` later keeps.
+[D, K Q]`` (or a few, :func:`_product_elements` similarities each), not K products, and
+reads every candidate's pairs off it by the ``argmax`` rule of
+:func:`mutual_nearest_neighbours`. On CPUs that gives the same pairs and similarities as
+:func:`mutual_nearest_neighbours` run per candidate, bit for bit: the batched product's
+elements are the per-candidate product's bits, and numpy reads the pairs on the host
+(:func:`_direct_pairs`). On other devices torch reads them on the device
+(:func:`_device_pairs`) and only the pairs come back; the similarities are the batched
+float32 product's (never TF32), which a library that picks its kernel by shape (cuBLAS,
+split-K) may round otherwise than one product per candidate.
 ``benchmarks/bench_rerank.py`` times the batched scores against one product per candidate
 and against the products alone.
 
@@ -335,19 +337,34 @@ def ransac_inliers(
     return int(np.count_nonzero(error <= threshold))
 
 
-# Elements of one batched product [P, k * Q]: about 64 MiB in float32, so the G/14 grid at
-# 322 px (529 patches) takes 59 candidates a product, DAISY's 300-patch grid all 100 of a
-# K = 100 query.
+# Elements of one batched product [P, k * Q] on the CPU: about 64 MiB in float32, so the
+# G/14 grid at 322 px (529 patches) takes 59 candidates a product, DAISY's 300-patch grid
+# all 100 of a K = 100 query.
 _PRODUCT_ELEMENTS = 1 << 24
 
+# On other devices a product of up to 1 GiB (float32), a quarter of the free memory at
+# most: the G/14 grid of a 640 x 480 image (1,564 patches) takes a K = 100 query's
+# candidates in one product, which keeps the device busy where 100 products did not.
+_DEVICE_PRODUCT_ELEMENTS = 1 << 28
 
-def _same_bits(device: torch.device) -> bool:
-    """Whether a float32 product of ``[P, D] x [D, k Q]`` gives each element the bits of
-    the ``[P, D] x [D, Q]`` product: on CPUs (oneDNN/MKL's packed kernels accumulate each
-    element over ``D`` in an order set by ``D`` alone; ``tests/test_rerank.py`` checks it
-    at the benchmark's grids). cuBLAS picks its kernel (and split-K) by shape, so other
-    devices are not assumed to."""
+
+def _host_argmax(device: torch.device) -> bool:
+    """Whether the pairs are read off the product by numpy on the host (CPUs: the product
+    is there already, and numpy's argmax over this layout is 2-6x torch's) rather than by
+    torch on the product's device (elsewhere: only the pairs come back)."""
     return device.type == "cpu"
+
+
+def _product_elements(device: torch.device) -> int:
+    """Similarities a product on ``device`` holds at most (see the constants above)."""
+    import torch
+
+    if _host_argmax(device):
+        return _PRODUCT_ELEMENTS
+    if device.type == "cuda":
+        free, _ = torch.cuda.mem_get_info(device)
+        return max(_PRODUCT_ELEMENTS, min(_DEVICE_PRODUCT_ELEMENTS, free // 16))
+    return _DEVICE_PRODUCT_ELEMENTS
 
 
 # Candidates per argmax task in _direct_pairs: numpy's argmax over axis 0 copies its input
@@ -389,9 +406,43 @@ def _direct_pairs(
     return forward.T.astype(np.int64), np.ascontiguousarray(mutual.T), values.T.copy()
 
 
+def _device_pairs(similarity: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_direct_pairs` of a product ``similarity [P, k, Q]`` on any device, by
+    torch's ``argmax`` there (the rule of :func:`mutual_nearest_neighbours`, which takes
+    the same ``argmax``): only the ``[k, P]`` results come back to the host."""
+    import torch
+
+    n_p = similarity.shape[0]
+    forward = similarity.argmax(dim=2)  # [P, k]
+    backward = similarity.argmax(dim=0)  # [k, Q]
+    rows = torch.arange(n_p, device=similarity.device)
+    mutual = backward.gather(1, forward.T) == rows  # [k, P]
+    values = similarity.gather(2, forward[:, :, None])[:, :, 0]  # [P, k]
+    return (
+        forward.T.cpu().numpy().astype(np.int64),
+        mutual.cpu().numpy(),
+        values.T.float().cpu().numpy(),
+    )
+
+
+def _split(forward: np.ndarray, mutual: np.ndarray, values: np.ndarray) -> list:
+    """Each candidate's ``(i, j, similarity)`` from ``[k, P]`` arrays: its mutual query
+    patches ``i`` (increasing), their ``forward`` patches and ``values``."""
+    k, i = np.nonzero(mutual)  # row-major: by candidate, then increasing i
+    ends = np.cumsum(np.count_nonzero(mutual, axis=1))[:-1]
+    return list(
+        zip(
+            np.split(i, ends),
+            np.split(forward[k, i], ends),
+            np.split(values[k, i], ends),
+            strict=True,
+        )
+    )
+
+
 def candidate_pairs(query, candidates) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """Each candidate's mutual nearest neighbour pairs with ``query`` ``[P, D]``, exactly as
-    :func:`mutual_nearest_neighbours` finds them one candidate at a time, on any device:
+    :func:`mutual_nearest_neighbours` finds them one candidate at a time:
     ``[(i [M] int64, j [M] int64, similarity [M] float32)]`` per candidate of
     ``candidates`` ``[K, Q, D]`` (moved to ``query``'s device), ``i`` increasing.
 
@@ -399,11 +450,17 @@ def candidate_pairs(query, candidates) -> list[tuple[np.ndarray, np.ndarray, np.
     (:func:`pair_scorer`) read: no threshold is applied (``min_similarity`` and
     ``weighting`` act when scoring), so the pairs depend on the features alone.
 
-    Where a batched product's elements are the per-candidate product's bits
-    (:func:`_same_bits`: on CPUs), float32 inputs take one product per group of candidates
-    (up to :data:`_PRODUCT_ELEMENTS` similarities) and read the pairs from it by the same
-    rule (:func:`_direct_pairs`); elsewhere, and for other dtypes, each candidate takes
-    its own product.
+    The candidates take one product ``[P, D] x [D, k Q]`` per group of ``k`` (up to
+    :func:`_product_elements` similarities), in the dtype
+    :func:`mutual_nearest_neighbours` takes (float32 for float32 features, never TF32),
+    and each pair keeps that product's similarity. On CPUs the batched product's elements
+    are the per-candidate product's bits (``tests/test_rerank.py`` checks it at the
+    benchmark's grids), and numpy reads the pairs off it (:func:`_direct_pairs`); on other
+    devices torch reads them there (:func:`_device_pairs`), by the same ``argmax``, and a
+    library such as cuBLAS, which picks its kernel by shape, may round a batched product's
+    elements otherwise than a per-candidate one (``benchmarks/check_gpu.py`` counts the
+    pairs and similarities that differ). Other dtypes on a CPU take one product per
+    candidate.
     """
     import torch
 
@@ -420,22 +477,29 @@ def candidate_pairs(query, candidates) -> list[tuple[np.ndarray, np.ndarray, np.
         )
     n_k, n_q = stack.shape[:2]
     n_p, dim = q.shape
-    found: list = [None] * n_k
+    on_host = _host_argmax(q.device)
     float32 = q.dtype == torch.float32 and stack.dtype == torch.float32
-    if float32 and _same_bits(q.device) and n_p > 0 and n_q > 0 and dim > 0:
-        stack = stack.to(q.device)
-        per_product = max(1, _PRODUCT_ELEMENTS // (n_p * n_q))
+    if n_p == 0 or n_q == 0 or dim == 0 or (on_host and not float32):
+        return [mutual_nearest_neighbours(q, stack[k]) for k in range(n_k)]
+    dtype = torch.promote_types(q.dtype, stack.dtype)
+    q = q.to(dtype)
+    per_product = max(1, _product_elements(q.device) // (n_p * n_q))
+    found: list = []
+    precision = torch.get_float32_matmul_precision()
+    torch.set_float32_matmul_precision("highest")  # float32 products, never TF32
+    try:
         for start in range(0, n_k, per_product):
-            group = stack[start : start + per_product]
+            group = stack[start : start + per_product].to(q.device, dtype)
             similarity = (q @ group.reshape(-1, dim).T).view(n_p, len(group), n_q)
-            # The product's thread budget (run_stage sets torch's to the rule's).
-            forward, mutual, values = _direct_pairs(similarity.numpy(), torch.get_num_threads())
-            for c in range(len(group)):
-                i = np.flatnonzero(mutual[c])
-                found[start + c] = (i, forward[c, i], values[c, i])
-    for k in range(n_k):
-        if found[k] is None:
-            found[k] = mutual_nearest_neighbours(q, stack[k])
+            if on_host:
+                # The product's thread budget (run_stage sets torch's to the rule's).
+                parts = _direct_pairs(similarity.numpy(), torch.get_num_threads())
+            else:
+                parts = _device_pairs(similarity)
+            del similarity
+            found.extend(_split(*parts))
+    finally:
+        torch.set_float32_matmul_precision(precision)
     return found
 
 
