@@ -1,11 +1,17 @@
 """Re-ranking cost: milliseconds per query to score a query's top K candidates with each
 re-ranker, before (one float32 product per candidate) and after batching (one product per
-query, :func:`vprflow.evaluation.rerank.candidate_pairs`), beside the floors of its products,
-at the patch grids of the shipped and published backbones.
+group of candidates, :func:`vprflow.evaluation.rerank.candidate_pairs`), and the matching
+alone before and after a given revision, beside the floors of its products, at the patch
+grids of the shipped and published backbones.
 
     python benchmarks/bench_rerank.py              # K = 100, the cases below, CPU
     python benchmarks/bench_rerank.py --device cuda   # the similarity matrices on a GPU
     python benchmarks/bench_rerank.py --smoke      # tiny grid, K = 5
+
+On a machine reached without git, save the old code first and name the copies:
+``git show 00ebe21:src/vprflow/evaluation/rerank.py > before_scores.py``, ``git show
+023a60e:src/vprflow/evaluation/rerank.py > before_pairs.py``, then ``--before
+before_scores.py --before-pairs before_pairs.py``.
 
 Inputs are random: each query is a ``[h * w, D]`` grid of unit vectors; half of its
 candidates are the same scene shifted by one patch with noise (so they share many
@@ -21,11 +27,15 @@ module here (its ``mnn_scores`` / ``ransac_scores``); ``after`` the stages' path
 ``matches`` stage's ``candidate_pairs`` then the ``rerank`` stage's ``pair_scorer``, checked
 equal; ``fp32`` / ``bf16`` the floors: the query's batched products alone (one
 ``[P, D] x [D, k Q]`` GEMM per group of candidates, as the code groups them) in float32 and
-in bf16; ``x bf16`` = after / bf16 floor. For ``ransac``, ``match`` is the pairs alone
-(``candidate_pairs``) and ``fit`` the robust fits alone (``ransac_inliers`` over the
-stored pairs), with the fit's share of after. The database read is not included: the
-stage reads the reference features into memory once (up to 2 GiB), so per query it is an
-in-memory gather.
+in bf16; ``x bf16`` = after / bf16 floor. For ``ransac``, ``fit`` is the robust fits
+alone (``ransac_inliers`` over the stored pairs), with the fit's share of after. ``match``
+is the pairs alone (``candidate_pairs``, checked equal to before's), ``match before`` the
+same from ``--before-pairs`` (default: the last commit with one product per candidate off
+the CPU), ``x fp32`` = match / fp32 floor (the floor being ``K P Q D 2`` flops at the
+measured rate of those products). The database read is not included: the stage reads the
+reference features into memory once (up to 2 GiB; off the CPU it moves them to the device
+once, so ``match`` takes candidates already there, ``match before`` from the host, as each
+stage did).
 """
 
 from __future__ import annotations
@@ -46,6 +56,8 @@ sys.path.insert(0, str(ROOT / "src"))
 
 # The last commit with one float32 product per candidate.
 BEFORE = "00ebe21"
+# The last commit with one product per candidate off the CPU (candidate_pairs).
+BEFORE_PAIRS = "023a60e"
 
 # (name, grid h, grid w, descriptor dim, patch pixels)
 CASES = {
@@ -91,7 +103,14 @@ def load_before(rev: str) -> types.ModuleType:
             ["git", "show", f"{rev}:src/vprflow/evaluation/rerank.py"],
             cwd=ROOT, capture_output=True, text=True, check=True,
         ).stdout  # fmt: skip
-    module = types.ModuleType("rerank_before")
+    # core.registry is gone; the old score functions timed here never called what they
+    # imported from it (only its rerank_scores did).
+    source = source.replace(
+        "from vprflow.core.registry import", "# from vprflow.core.registry import"
+    )
+    name = f"rerank_before_{len([m for m in sys.modules if m.startswith('rerank_before')])}"
+    module = types.ModuleType(name)
+    sys.modules[name] = module  # where dataclasses look up a class's module
     exec(compile(source, f"{rev}:rerank.py", "exec"), module.__dict__)
     return module
 
@@ -117,6 +136,9 @@ def main() -> int:
     parser.add_argument("--device", default="cpu", help="cpu, cuda, ... (torch device)")
     parser.add_argument("--cases", default=",".join(CASES), help="comma-separated names")
     parser.add_argument("--before", default=BEFORE, help="old code: git revision or rerank.py")
+    parser.add_argument(
+        "--before-pairs", default=BEFORE_PAIRS, help="old matching: git revision or rerank.py"
+    )
     parser.add_argument("--smoke", action="store_true", help="tiny grid, K = 5, one repeat")
     args = parser.parse_args()
 
@@ -126,6 +148,7 @@ def main() -> int:
     from vprflow.evaluation.rerank import reranker
 
     before = load_before(args.before)
+    before_pairs = load_before(args.before_pairs).candidate_pairs
     cases = SMOKE if args.smoke else {n: CASES[n] for n in args.cases.split(",")}
     top_k, repeat = (5, 1) if args.smoke else (args.top_k, args.repeat)
     device = torch.device(args.device)
@@ -137,14 +160,14 @@ def main() -> int:
     print(
         f"# {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
         f"torch {torch.__version__} ({torch.get_num_threads()} threads), device "
-        f"{args.device}, K = {top_k}, fastest of {repeat}, before = {args.before}; "
-        "times in ms per query"
+        f"{args.device}, K = {top_k}, fastest of {repeat}, before = {args.before}, "
+        f"match before = {args.before_pairs}; times in ms per query"
     )
     print(
         "| case | patches | dim | reranker | mutual | before | after | speed-up | fp32 | "
-        "bf16 | x bf16 | match | fit (share) |"
+        "bf16 | x bf16 | fit (share) | match before | match | x fp32 |"
     )
-    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|")
     failed = False
     for name, (h, w, dim, patch) in cases.items():
         query_np, candidates_np = inputs(h, w, dim, top_k, seed=0)
@@ -152,10 +175,16 @@ def main() -> int:
         candidates = torch.from_numpy(candidates_np)
         centres = after.patch_centres(h, w, patch)
         n = h * w
-        group = max(1, after._PRODUCT_ELEMENTS // (n * n))
+        group = max(1, after._product_elements(device) // (n * n))
         on_device = candidates.to(device)
-        pairs = after.candidate_pairs(query, candidates)
+        pairs = after.candidate_pairs(query, on_device)
         mutual = np.mean([len(i) for i, _, _ in pairs])
+        if not all(
+            all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+            for a, b in zip(pairs, before_pairs(query, candidates), strict=True)
+        ):
+            print(f"# {name}: pairs differ from match before's", file=sys.stderr)
+            failed = True
 
         def floor(dtype, on_device=on_device, query=query, group=group):
             q = query.to(dtype)
@@ -176,7 +205,7 @@ def main() -> int:
             def old(fn=old_fn, settings=settings, q=query, c=candidates, xy=centres, patch=patch):
                 return fn(q, c, xy, patch, **settings)
 
-            def new(score=score, q=query, c=candidates):
+            def new(score=score, q=query, c=on_device):
                 return score(after.candidate_pairs(q, c))
 
             if not np.array_equal(old(), new()):
@@ -189,7 +218,8 @@ def main() -> int:
 
             calls = {"before": old, "after": new}
             if method == "ransac":
-                calls["match"] = lambda q=query, c=candidates: after.candidate_pairs(q, c)
+                calls["match before"] = lambda q=query, c=candidates: before_pairs(q, c)
+                calls["match"] = lambda q=query, c=on_device: after.candidate_pairs(q, c)
                 calls["fit"] = lambda fit_pairs=fit_pairs, pixels=pixels, o=fit_options: [
                     after.ransac_inliers(a, b, pixels, **o) for a, b in fit_pairs
                 ]
@@ -197,12 +227,17 @@ def main() -> int:
             floor(torch.float32), floor(torch.bfloat16)  # warm-up
             ms["fp32"] = 1000 * min(floor(torch.float32) for _ in range(repeat))
             ms["bf16"] = 1000 * min(floor(torch.bfloat16) for _ in range(repeat))
-            match = f"{ms['match']:.1f}" if "match" in ms else "-"
+            if "match" in ms:
+                match = (
+                    f"{ms['match before']:.1f} | {ms['match']:.1f} | {ms['match'] / ms['fp32']:.2f}"
+                )
+            else:
+                match = "- | - | -"
             fit = f"{ms['fit']:.1f} ({100 * ms['fit'] / ms['after']:.0f}%)" if "fit" in ms else "-"
             print(
                 f"| {name} | {n} | {dim} | {method} | {mutual:.1f} | {ms['before']:.1f} | "
                 f"{ms['after']:.1f} | {ms['before'] / ms['after']:.1f}x | {ms['fp32']:.1f} | "
-                f"{ms['bf16']:.1f} | {ms['after'] / ms['bf16']:.2f} | {match} | {fit} |"
+                f"{ms['bf16']:.1f} | {ms['after'] / ms['bf16']:.2f} | {fit} | {match} |"
             )
     return 1 if failed else 0
 

@@ -11,8 +11,11 @@ A: re-ranking on CUDA: the stages' scores (``candidate_pairs``, then ``pair_scor
    score the same on the CPU.
 B: ``exact_knn`` on CUDA against float64 brute force (the tests' check), several blocks
    each way, bf16 and float32 candidates, random and clustered data; and against the CPU.
-D: the ``matches`` stage's pairs (``candidate_pairs``: per-candidate products on CUDA),
-   timed, and the scoring of the stored pairs.
+D: the ``matches`` stage's pairs (``candidate_pairs``: one product per group of
+   candidates, the pairs read on the device) at bench_rerank.py's grids and the published
+   SegVLAD's, timed against one product per candidate and against the products alone
+   (``x fp32``), with the scoring of the stored pairs; how many candidates' pairs and
+   similarities equal the per-candidate products' on CUDA and the CPU's.
 C: ``exact_knn`` on CUDA at the segment search of a Pittsburgh-30k-size run
    (``bench_city.py``'s 31.6 SLIC segments an image: 316,000 reference x 215,400 query
    segments of SegVLAD's 3,328-d without PCA) beside its bf16 floor.
@@ -141,8 +144,11 @@ if "B" in part:
 
 if "D" in part:
     print("\n## D: the matches stage's pairs on CUDA (K = 100, ms a query, fastest of 5)")
-    print("| case | candidate_pairs | + mnn scoring | + ransac scoring | pairs == per-candidate |")
-    print("|---|---:|---:|---:|---|")
+    print(
+        "| case | per candidate | candidate_pairs | x fp32 | + mnn scoring | + ransac scoring | "
+        "pairs == per-candidate | == CPU's | similarity max diff to CPU |"
+    )
+    print("|---|---:|---:|---:|---:|---:|---|---|---:|")
 
     def best(call, n=5):
         call()
@@ -155,23 +161,44 @@ if "D" in part:
             times.append(time.perf_counter() - started)
         return 1000 * min(times)
 
-    for name, (h, w, dim, patch) in CASES.items():
+    def same(a, b):
+        return all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
+
+    # The published SegVLAD's grid (DINOv2 ViT-G/14 at 640 x 480: 34 x 45 patches of 1,536)
+    # beside bench_rerank.py's.
+    for name, (h, w, dim, patch) in {**CASES, "dinov2_g_640x480": (34, 45, 1536, 14)}.items():
         qn, cn = inputs(h, w, dim, 100, seed=0)
-        q, c = torch.from_numpy(qn).to(dev), torch.from_numpy(cn)
+        # As the stage holds them: the query and the candidates on the device.
+        q, c = torch.from_numpy(qn).to(dev), torch.from_numpy(cn).to(dev)
         centres = rr.patch_centres(h, w, patch)
         mnn, ransac = reranker("mnn").settings({}), reranker("ransac").settings({})
         pairs = rr.candidate_pairs(q, c)
         alone = [rr.mutual_nearest_neighbours(q, c[k]) for k in range(len(c))]
-        same = len(pairs) == len(alone) and all(
-            all(np.array_equal(x, y) for x, y in zip(a, b, strict=True))
-            for a, b in zip(pairs, alone, strict=True)
+        on_cpu = rr.candidate_pairs(torch.from_numpy(qn), torch.from_numpy(cn))
+        equal = sum(same(a, b) for a, b in zip(pairs, alone, strict=True))
+        equal_cpu = sum(same(a, b) for a, b in zip(pairs, on_cpu, strict=True))
+        diff = max(
+            (
+                float(np.abs(a[2] - b[2]).max())
+                for a, b in zip(pairs, on_cpu, strict=True)
+                if len(a[2]) and np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1])
+            ),
+            default=0.0,
         )
+        flat = c.reshape(-1, dim)
+        step = max(1, rr._product_elements(dev) // (h * w) ** 2) * h * w
         ms = (
+            best(lambda: [rr.mutual_nearest_neighbours(q, c[k]) for k in range(len(c))], 2),  # noqa: B023
             best(lambda: rr.candidate_pairs(q, c)),  # noqa: B023
+            best(lambda: [q @ flat[s : s + step].T for s in range(0, len(flat), step)]),  # noqa: B023
             best(lambda: rr.mnn_pair_scores(pairs, centres, patch, **mnn)),  # noqa: B023
             best(lambda: rr.ransac_pair_scores(pairs, centres, patch, **ransac), 2),  # noqa: B023
         )
-        print(f"| {name} | " + " | ".join(f"{m:.1f}" for m in ms) + f" | {same} |", flush=True)
+        print(
+            f"| {name} | {ms[0]:.1f} | {ms[1]:.1f} | {ms[1] / ms[2]:.2f} | {ms[3]:.1f} | "
+            f"{ms[4]:.1f} | {equal}/100 | {equal_cpu}/100 | {diff:.1e} |",
+            flush=True,
+        )
 
 if "C" in part:
     n_ref, n_q, dim, k = int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), 50

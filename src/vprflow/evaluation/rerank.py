@@ -343,8 +343,8 @@ def ransac_inliers(
 _PRODUCT_ELEMENTS = 1 << 24
 
 # On other devices a product of up to 1 GiB (float32), a quarter of the free memory at
-# most: the G/14 grid of a 640 x 480 image (1,564 patches) takes a K = 100 query's
-# candidates in one product, which keeps the device busy where 100 products did not.
+# most: the G/14 grid of a 640 x 480 image (34 x 45 = 1,530 patches) takes a K = 100
+# query's candidates in one product, which keeps the device busy where 100 did not.
 _DEVICE_PRODUCT_ELEMENTS = 1 << 28
 
 
