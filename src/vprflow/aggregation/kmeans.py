@@ -127,11 +127,12 @@ def _normalise_rows(c: torch.Tensor) -> torch.Tensor:
     return c * inverse
 
 
-def _chunk_rows(k: int, device: torch.device) -> int:
-    # The [rows, K] products and one-hot blocks of a chunk: 16 M elements on a GPU, 1 M on
-    # a CPU (near its caches); never fewer than 1,024 rows.
+def _chunk_rows(width: int, device: torch.device) -> int:
+    # Rows of a chunk whose blocks are ``width`` wide (the [rows, K] products and one-hot,
+    # or a float64 copy of [rows, D]): 16 M elements on a GPU, 1 M on a CPU (near its
+    # caches); never fewer than 1,024 rows.
     budget = 1 << 24 if device.type != "cpu" else 1 << 20
-    return max(1024, budget // max(k, 1))
+    return max(1024, budget // max(width, 1))
 
 
 def spherical_kmeans(x: torch.Tensor, k: int, n_iter: int, seed: int) -> tuple[torch.Tensor, int]:
@@ -212,7 +213,7 @@ def fit_on_device(
         d = x.shape[1]
         sums = torch.zeros((k, d), dtype=torch.float64, device=device)
         counts = torch.zeros(k, dtype=torch.int64, device=device)
-        step = _chunk_rows(k, device)
+        step = _chunk_rows(d, device)
         for start in range(0, len(x), step):
             rows = points[start : start + step]
             labels = torch.argmax(rows @ unit.T, dim=1)
