@@ -806,6 +806,47 @@ def test_an_image_changed_after_the_dataset_stage_fails_the_stage_reading_it(tmp
     assert not out.exists()
 
 
+def test_a_vits_features_are_the_same_bits_in_batches_of_one_four_or_auto(tmp_path):
+    from tiny_models import save_tiny_dinov2
+
+    make_dataset(tmp_path / "data" / "toy", n_places=3, width=64, height=48)
+    config = toy_config(
+        tmp_path / "data", resolution=[64, 48], methods=["gem"], defaults={"features": "vit"}
+    )
+    model = save_tiny_dinov2(tmp_path / "vit", hidden_size=32, image_size=56, seed=0)
+    config["backbones"]["vit"] = {"backbone": "dinov2", "model": str(model), "layer": 1}
+    plan = build_plan(validate_config(config, SCHEMA))
+    dataset = str(tmp_path / "dataset.zarr")
+    images = plan.get("images", plan.images_keys["toy"])
+    build_images(Job(images.record, {}, dataset, data_root=str(tmp_path / "data")))
+    features = next(iter(plan.stages["features"].values()))
+    stored = {}
+    for size in (1, 4, "auto"):  # 6 images: 4 then a ragged 2
+        out = str(tmp_path / f"features-{size}.zarr")
+        run = {"device": "cpu", "batch_size": size}
+        root = str(tmp_path / "data")
+        job = Job(features.record, {"images": dataset}, out, data_root=root, run=run, threads=2)
+        compute_features(job)
+        group = stores.open_store(out)
+        stored[size] = np.asarray(group["features"][...]), dict(group.attrs)
+    (alone, attrs), *others = stored.values()
+    assert alone.shape == (6, 3, 4, 32)
+    for batched, batched_attrs in others:
+        np.testing.assert_array_equal(batched, alone)
+        assert batched_attrs == attrs
+
+
+def test_a_batch_size_neither_whole_nor_auto_is_refused_naming_it(tmp_path):
+    plan = small_plan(tmp_path)
+    dataset = str(tmp_path / "dataset.zarr")
+    images = plan.get("images", plan.images_keys["toy"])
+    build_images(Job(images.record, {}, dataset, data_root=str(tmp_path / "data")))
+    features = next(iter(plan.stages["features"].values()))
+    run = {"device": "cpu", "batch_size": "max"}
+    with pytest.raises(ValueError, match="batch_size.*'max'"):
+        compute_features(Job(features.record, {"images": dataset}, str(tmp_path / "f"), run=run))
+
+
 def test_an_image_changed_after_planning_fails_the_dataset_stage_naming_it(tmp_path):
     from vprflow.planning.fingerprints import save_fingerprints
 

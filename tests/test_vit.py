@@ -293,6 +293,19 @@ def test_bfloat16_on_cpu_runs_and_stays_close(kind, dinov2_dir, dino_dir):
     assert cosine.min() > 0.95
 
 
+@pytest.mark.parametrize("dtype", ["float32", "bfloat16"])
+@pytest.mark.parametrize("kind", ["dinov2", "dino"])
+def test_a_batch_gives_each_image_the_bits_it_gets_alone_on_the_cpu(kind, dtype, request):
+    model_dir = request.getfixturevalue(f"{kind}_dir")
+    params = {"backbone": kind, "model": str(model_dir), "layer": -1, "dtype": dtype}
+    backbone = load_vit(params, "cpu")
+    images = _images(4, 50, 60, seed=9)
+    alone = np.concatenate([backbone.features(image[None]) for image in images])
+    for size in (3, 4):
+        batched = [backbone.features(images[i : i + size]) for i in range(0, 4, size)]
+        np.testing.assert_array_equal(np.concatenate(batched), alone)
+
+
 def test_float16_on_cpu_is_refused(dinov2_dir):
     with pytest.raises(ValueError, match="bfloat16"):
         load_vit({"backbone": "dinov2", "model": str(dinov2_dir), "dtype": "float16"}, "cpu")

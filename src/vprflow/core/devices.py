@@ -13,6 +13,8 @@ features under a float16 key. bfloat16 is the reduced precision that runs on CPU
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from vprflow.core.dtypes import COMPUTE_DTYPES
@@ -79,3 +81,28 @@ def resolve_dtype(name: str, device: torch.device | str) -> torch.dtype:
             "the CPU, or run on a GPU"
         )
     return DTYPES[text]
+
+
+# ``batch_size: auto`` on a GPU: the largest batch whose activations fit this share of
+# the memory free once the model is loaded (the rest absorbs fragmentation and the
+# allocator's rounding), and never more than MAX_AUTO_BATCH images: past a few thousand
+# tokens a batch the GPU is busy already, and larger batches only hold more host memory
+# (the images read ahead and the features waiting to be written).
+AUTO_BATCH_MEMORY_SHARE = 0.8
+MAX_AUTO_BATCH = 64
+
+
+def free_memory(device: torch.device) -> int:
+    """Bytes a CUDA ``device`` can still give this process: what the driver reports
+    free plus what torch's caching allocator holds but does not use."""
+    free, _ = torch.cuda.mem_get_info(device)
+    return int(free + torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device))
+
+
+def batch_for_memory(free_bytes: int, bytes_per_image: int, cap: int = MAX_AUTO_BATCH) -> int:
+    """Images a batch whose activations take ``bytes_per_image`` each can hold within
+    :data:`AUTO_BATCH_MEMORY_SHARE` of ``free_bytes``: at least 1, at most ``cap``."""
+    if bytes_per_image <= 0:
+        return max(1, cap)
+    fits = math.floor(AUTO_BATCH_MEMORY_SHARE * free_bytes / bytes_per_image)
+    return max(1, min(cap, fits))

@@ -4,6 +4,8 @@ own descriptor as a 1 x 1 grid under ``output: descriptor``)."""
 from __future__ import annotations
 
 import logging
+from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -18,42 +20,158 @@ from vprflow.stages.readers import open_shard
 
 log = logging.getLogger("vprflow")
 
+# ``batch_size: auto`` off a GPU. On the CPU a batch computes the same features as its
+# images one by one, bit for bit (tests/test_vit.py), and is no faster: the matrix
+# products of one image's 1,000-odd tokens already keep the cores busy
+# (benchmarks/bench_backbones.py, batch 1 against 2 and 4).
+CPU_BATCH_SIZE = 1
+
 
 def compute_features(job: Job) -> None:
     """Dense patch descriptors ``features [n, h, w, D]`` of the job's images, ``batch_size``
-    images a model call."""
-    params, batch_size = job.params, job.batch_size
+    images a model call (``auto``: :func:`_batch_sizes`).
+
+    Host threads keep the model busy: ``job.threads`` of them read and resize the
+    images of the next batches while it computes, and the store's writer thread
+    (:class:`~vprflow.core.stores.RowWriter`) writes the features of the last."""
+    params = job.params
     dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
     width, height = params["resolution"]
     store_dtype = np.dtype(params["store_dtype"])
-    extract, patch_size = _feature_extractor(params, job.device, width, height, dataset)
+    read, extract, patch_size, device = _feature_extractor(
+        params, job.device, width, height, dataset
+    )
+    sizes = _batch_sizes(job.batch_size, device, extract)
     attrs = {**stage_attrs("features", job.record, images), "sources": _sources(params)}
-    with stores.atomic_store(job.out, attrs) as group:
-        array = None
-        batches = [images[i : i + batch_size] for i in range(0, len(images), batch_size)]
-        for batch in tqdm(batches, desc="features", unit="batch"):
-            grids = extract(batch)
-            if array is None:
-                h, w, dim = grids.shape[1:]
-                array = group.create_array(
-                    "features",
-                    shape=(len(images), h, w, dim),
-                    chunks=(1, h, w, dim),
-                    dtype=store_dtype,
-                    compressors=stores.CHECKSUM_ONLY,
-                )
-                stores.set_attrs(
-                    group, grid=[h, w], dim=dim, patch_size=patch_size, image_size=[height, width]
-                )
-            elif grids.shape[1:] != array.shape[1:]:
-                raise ValueError(
-                    f"{dataset.paths[batch.start]}: feature grid {grids.shape[1:]} differs from "
-                    f"the first image's {array.shape[1:]}"
-                )
-            start_row = batch.start - images.start
-            stored = grids.astype(store_dtype)
-            stores.check_finite(group, f"features of {dataset.paths[batch.start]}", stored)
-            array[start_row : start_row + len(batch)] = stored
+    with (
+        stores.atomic_store(job.out, attrs) as group,
+        ThreadPoolExecutor(max(1, job.threads), thread_name_prefix="read") as pool,
+        tqdm(total=len(images), desc="features", unit="image") as progress,
+    ):
+        ahead = _ReadAhead(pool, read, images)
+        writer, first = None, images.start
+        try:
+            while first < images.stop:
+                grids, count = sizes.run(ahead, images.stop - first)
+                if writer is None:
+                    h, w, dim = grids.shape[1:]
+                    writer = stores.RowWriter(
+                        group, "features", (h, w, dim), store_dtype, 1, stores.CHECKSUM_ONLY
+                    )
+                    stores.set_attrs(
+                        group,
+                        grid=[h, w],
+                        dim=dim,
+                        patch_size=patch_size,
+                        image_size=[height, width],
+                    )
+                elif grids.shape[1:] != writer.array.shape[1:]:
+                    raise ValueError(
+                        f"{dataset.paths[first]}: feature grid {grids.shape[1:]} differs "
+                        f"from the first image's {writer.array.shape[1:]}"
+                    )
+                writer.append(grids, f"features of {dataset.paths[first]}")
+                first += count
+                progress.update(count)
+        finally:
+            ahead.cancel()
+        if writer is not None:
+            writer.close()
+
+
+class _ReadAhead:
+    """Images read and resized on ``pool``'s threads in order, a window of them ahead
+    of the batch the model computes: :meth:`take` waits for the next ``count`` (stacked
+    ``[count, H, W, 3]``) and keeps ``ahead`` more reading."""
+
+    def __init__(self, pool: ThreadPoolExecutor, read, images: range):
+        self.pool, self.read = pool, read
+        self.queue: deque[Future] = deque()
+        self.next = iter(images)
+
+    def _fill(self, count: int) -> None:
+        while len(self.queue) < count:
+            index = next(self.next, None)
+            if index is None:
+                return
+            self.queue.append(self.pool.submit(self.read, index))
+
+    def take(self, count: int, ahead: int) -> np.ndarray:
+        self._fill(count + ahead)
+        batch = [self.queue.popleft().result() for _ in range(min(count, len(self.queue)))]
+        self._fill(ahead)
+        return np.stack(batch)
+
+    def cancel(self) -> None:
+        """Drop the reads not started (after an error)."""
+        for future in self.queue:
+            future.cancel()
+
+
+class _BatchSizes:
+    """Images a model call: a fixed ``batch_size``, or (``auto`` on a CUDA device) one
+    image first, whose activations' peak memory sets the batch size for the rest
+    (:func:`vprflow.core.devices.batch_for_memory`), halved when a batch runs out of
+    memory nonetheless."""
+
+    def __init__(self, extract, size: int | None, device=None):
+        self.extract, self.size, self.device = extract, size, device
+
+    def run(self, ahead: _ReadAhead, left: int) -> tuple[np.ndarray, int]:
+        """Features of the next batch (at most ``left`` images) and its length."""
+        if self.size is None:
+            return self._probe(ahead.take(1, 1)), 1
+        pixels = ahead.take(min(self.size, left), self.size)
+        return self._extract(pixels), len(pixels)
+
+    def _probe(self, pixels: np.ndarray) -> np.ndarray:
+        import torch
+
+        from vprflow.core.devices import batch_for_memory, free_memory
+
+        # The peak since here is this image's: the stage's reported peak CUDA memory
+        # (the runner's resources line) counts from here on, the weights included.
+        torch.cuda.synchronize(self.device)
+        torch.cuda.reset_peak_memory_stats(self.device)
+        before = torch.cuda.memory_allocated(self.device)
+        grids = self.extract(pixels)
+        per_image = torch.cuda.max_memory_allocated(self.device) - before
+        self.size = batch_for_memory(free_memory(self.device), per_image)
+        log.info(
+            "batch_size auto: %d images a batch (%.0f MiB of activations an image)",
+            self.size,
+            per_image / 2**20,
+        )
+        return grids
+
+    def _extract(self, pixels: np.ndarray) -> np.ndarray:
+        if self.device is None:
+            return self.extract(pixels)
+        import torch
+
+        try:
+            return self.extract(pixels)
+        except torch.cuda.OutOfMemoryError:
+            if len(pixels) == 1:
+                raise
+        # Out of the except clause, so that the error's frames release their tensors.
+        torch.cuda.empty_cache()
+        self.size = max(1, len(pixels) // 2)
+        log.info("batch_size auto: out of memory, %d images a batch", self.size)
+        parts = [pixels[i : i + self.size] for i in range(0, len(pixels), self.size)]
+        return np.concatenate([self._extract(part) for part in parts])
+
+
+def _batch_sizes(batch_size, device, extract) -> _BatchSizes:
+    """The batch sizes of ``batch_size`` (a backbone entry's): a whole number, or
+    ``auto``: :data:`CPU_BATCH_SIZE` unless the model runs on a CUDA ``device``."""
+    if batch_size == "auto":
+        if device is None or device.type != "cuda":
+            return _BatchSizes(extract, CPU_BATCH_SIZE)
+        return _BatchSizes(extract, None, device)
+    if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+        raise ValueError(f"batch_size must be a whole number >= 1 or 'auto', got {batch_size!r}")
+    return _BatchSizes(extract, batch_size)
 
 
 def _sources(params: dict) -> dict[str, str]:
@@ -68,8 +186,10 @@ def _sources(params: dict) -> dict[str, str]:
 
 
 def _feature_extractor(params: dict, device: str, width: int, height: int, dataset):
-    """``(image indices -> float32 [B, h, w, D], patch size)`` for the configured
-    backbone, reading ``dataset``'s images.
+    """``(read, extract, patch size, torch device or None)`` for the configured backbone:
+    ``read(image index)`` gives what ``extract`` takes a stack of (an image resized to
+    ``width`` x ``height``, float32 in [0, 1]), ``extract`` float32 ``[B, h, w, D]``;
+    the device is where the model runs (None: a model without one).
 
     A kind without a loader (``backbone: import``) reads the authors' published HDF5
     features instead of running a model (``<image file name>/ift_dino``).
@@ -79,24 +199,18 @@ def _feature_extractor(params: dict, device: str, width: int, height: int, datas
         from vprflow.core.arrays import l2_normalize
         from vprflow.data.published import read_features_h5
 
-        def read(indices):
-            grids = np.stack(
-                [read_features_h5(params["file"], Path(dataset.paths[i]).name) for i in indices]
-            )
+        def read_grid(index):
+            return read_features_h5(params["file"], Path(dataset.paths[index]).name)
+
+        def normalize(grids):
             return l2_normalize(grids) if params["normalize"] else grids
 
-        return read, params["patch_size"]
+        return read_grid, normalize, params["patch_size"], None
     backbone = load_model("features", params, device)
 
     turn = params["exif_orientation"]  # the method's reader's (plan._exif_orientation)
 
-    def run(indices):
-        pixels = np.stack(
-            [
-                resize_image(dataset.read_image(i, turn), width, height, params["resize"])
-                for i in indices
-            ]
-        )
-        return backbone.features(pixels)
+    def read_image(index):
+        return resize_image(dataset.read_image(index, turn), width, height, params["resize"])
 
-    return run, backbone.patch_size
+    return read_image, backbone.features, backbone.patch_size, getattr(backbone, "device", None)
