@@ -8,7 +8,7 @@ import pytest
 import torch
 from tiny_models import save_tiny_dino
 
-from vprflow.core.devices import resolve_device, resolve_dtype
+from vprflow.core.devices import batch_for_memory, resolve_device, resolve_dtype
 from vprflow.models.hub import ModelNotFoundError, resolve_model_source, weights_fingerprint
 from vprflow.models.vit import load_vit
 
@@ -126,6 +126,15 @@ def test_resolve_device():
             resolve_device("cuda")
         with pytest.raises(RuntimeError, match="CUDA is not available"):
             resolve_device("cuda:1")
+
+
+def test_an_auto_batch_fills_a_share_of_the_free_memory_within_its_bounds():
+    gib = 2**30
+    assert batch_for_memory(10 * gib, gib) == 8  # 80% of 10 GiB
+    assert batch_for_memory(10 * gib, 3 * gib) == 2
+    assert batch_for_memory(gib, 2 * gib) == 1  # too little for one: still one
+    assert batch_for_memory(1000 * gib, gib) == 64
+    assert batch_for_memory(1000 * gib, gib, cap=16) == 16
 
 
 def test_resolve_dtype():

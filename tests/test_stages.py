@@ -4,6 +4,7 @@ weight-free DAISY features and SLIC segments, checked against direct computation
 from __future__ import annotations
 
 import csv
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 
@@ -956,3 +957,43 @@ def _normalised_gem(grid: np.ndarray, options: dict) -> np.ndarray:
     from vprflow.aggregation.snsm import normalize_tokens
 
     return gem(normalize_tokens(grid, options["normalization"]), p=options["p"])
+
+
+def test_an_auto_batch_is_sized_from_the_first_images_memory_and_halved_when_out_of_memory(
+    monkeypatch,
+):
+    """The CUDA path of ``batch_size: auto`` with torch.cuda's memory counters faked: the
+    first image alone takes 1 GiB of activations beside 8 GiB free (so batches of 6 at
+    80%), and a batch of more than 4 runs out of memory (so 6 is halved to 3)."""
+    import torch
+
+    from vprflow.stages import features
+
+    gib, peak = 2**30, {"bytes": 0}
+    monkeypatch.setattr(torch.cuda, "synchronize", lambda device=None: None)
+    monkeypatch.setattr(torch.cuda, "reset_peak_memory_stats", lambda device=None: None)
+    monkeypatch.setattr(torch.cuda, "empty_cache", lambda: None)
+    monkeypatch.setattr(torch.cuda, "memory_allocated", lambda device=None: 0)
+    monkeypatch.setattr(torch.cuda, "memory_reserved", lambda device=None: 0)
+    monkeypatch.setattr(torch.cuda, "max_memory_allocated", lambda device=None: peak["bytes"])
+    monkeypatch.setattr(torch.cuda, "mem_get_info", lambda device=None: (8 * gib, 80 * gib))
+    calls = []
+
+    def extract(pixels):
+        calls.append(len(pixels))
+        if len(pixels) > 4:
+            raise torch.cuda.OutOfMemoryError("CUDA out of memory")
+        peak["bytes"] = len(pixels) * gib
+        return pixels[:, :1, :1, :1] * 2
+
+    sizes = features._batch_sizes("auto", torch.device("cuda"), extract)
+    with ThreadPoolExecutor(2) as pool:
+        ahead = features._ReadAhead(pool, lambda i: np.full((2, 2, 3), i, np.float32), range(14))
+        done, outputs = 0, []
+        while done < 14:
+            grids, count = sizes.run(ahead, 14 - done)
+            outputs.append(grids)
+            done += count
+    assert calls == [1, 6, 3, 3, 3, 3, 1]
+    np.testing.assert_array_equal(np.concatenate(outputs)[:, 0, 0, 0], 2 * np.arange(14))
+    assert sizes.size == 3
