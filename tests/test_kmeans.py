@@ -11,6 +11,9 @@ the tolerance tells a float difference from a different run. The iterations run 
 equal, and the final assignments identical except at near ties: points whose best and
 second-best products under faiss's centroids differ by less than 1e-5 (what a 1e-6
 change of the centroids can reverse at these dimensions); none differ on these inputs.
+A near tie in the middle of a run can take the two runs apart to neighbouring solutions
+(faiss itself parts so from its own run when its SIMD level changes); these inputs,
+fixed, have none, and ``benchmarks/bench_vocabulary.py`` reports it where it happens.
 
 Paths: faiss multiplies one product at a time below ``n * d = 128,000``
 (``distance_compute_blas_threshold``), through BLAS with a SIMD argmax above it; each
