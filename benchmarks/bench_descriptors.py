@@ -62,6 +62,7 @@ from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_workflow import REPO, cycled_config, data_folder, run_snakemake  # noqa: E402
+from revisions import module_at  # noqa: E402
 
 from vprflow.core import stores  # noqa: E402
 from vprflow.planning.config import validate_config  # noqa: E402
@@ -78,26 +79,28 @@ def load_before(rev: str) -> types.ModuleType:
     """``src/vprflow/stages/descriptors.py`` at ``rev`` as a module of its own, its
     ``stores`` being ``src/vprflow/core/stores.py`` at ``rev`` (atomic stores, the row
     reader, RowWriter) and its ``FeatureReader`` that of ``src/vprflow/stages/
-    features.py`` at ``rev``; the rest of the package is imported as it is now."""
-    stores_before = load_module(rev, "src/vprflow/core/stores.py", "stores_before")
-    features_before = load_module(rev, "src/vprflow/stages/features.py", "features_before")
-    features_before.stores = stores_before
-    module = load_module(rev, "src/vprflow/stages/descriptors.py", "descriptors_before")
+    features.py`` at ``rev``; the rest of the package is imported as it is now, but for
+    the modules that have moved since (served from ``rev``: :data:`MOVED_SINCE`)."""
+    stores_before = module_at(rev, "vprflow.core.stores", "stores_before")
+    module = module_at(rev, "vprflow.stages.descriptors", "descriptors_before", MOVED_SINCE)
     module.stores = stores_before
-    module.FeatureReader = features_before.FeatureReader
+    # Its FeatureReader reads through the stores of rev too (the globals of features.py
+    # at rev, which it was loaded with).
+    module.FeatureReader.__init__.__globals__["stores"] = stores_before
     module.aggregator = _with_functions_of(module)
     return module
 
 
-def load_module(rev: str, path: str, name: str) -> types.ModuleType:
-    """The file ``path`` at ``rev`` (``git show``) executed as module ``name``."""
-    source = subprocess.run(
-        ["git", "show", f"{rev}:{path}"], cwd=REPO, capture_output=True, text=True, check=True
-    ).stdout
-    module = types.ModuleType(name)
-    sys.modules[name] = module  # dataclasses look their module up
-    exec(compile(source, f"{rev}:{path}", "exec"), module.__dict__)
-    return module
+# The modules the descriptors stage of BEFORE imports that have moved or gone since, in
+# the order they import each other.
+MOVED_SINCE = (
+    "vprflow.core.registry",
+    "vprflow.stages.dataset",
+    "vprflow.stages.features",
+    "vprflow.stages.segments",
+    "vprflow.stages.pca",
+    "vprflow.stages.vocabulary",
+)
 
 
 # Each aggregator's per-image function in stages/descriptors.py as it was at BEFORE

@@ -45,12 +45,17 @@ from pathlib import Path
 
 import numpy as np
 
+sys.path.insert(0, str(Path(__file__).parent))
+from revisions import module_at  # noqa: E402
+
 SRC = Path(__file__).resolve().parents[1] / "src"
 SEGMENTS_PER_IMAGE = 85
 VOTE_TOP = 50
 CHUNK = 8192
 # exact_knn before its chunked norms and fewer, larger re-scoring steps.
 OLD_EXACT = "d036158"
+# What OLD_EXACT's exact.py imports that has gone since.
+OLD_EXACT_IMPORTS = ("vprflow.core.registry",)
 
 
 def write_unit_vectors(path: Path, n: int, dim: int, seed: int) -> None:
@@ -68,27 +73,14 @@ def max_rss_mib() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
 
 
-def load_old_exact(folder: Path, ref: str):
+def load_old_exact(ref: str):
     """``exact_knn`` as it was at git revision ``ref`` (the baseline the chunked exact
-    search is compared with), loaded from ``git show`` into a module of its own; None
-    without git or ref."""
-    import importlib.util
-
+    search is compared with), loaded from ``git show`` into a module of its own, with the
+    registry of ``ref`` it imported; None without git or ref."""
     try:
-        text = subprocess.run(
-            ["git", "show", f"{ref}:src/vprflow/search/exact.py"],
-            cwd=SRC.parent,
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout
+        module = module_at(ref, "vprflow.search.exact", "vprflow_exact_old", OLD_EXACT_IMPORTS)
     except (OSError, subprocess.CalledProcessError):
         return None
-    path = folder / "exact_old.py"
-    path.write_text(text)
-    spec = importlib.util.spec_from_file_location("vprflow_exact_old", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
     return module.exact_knn
 
 
@@ -130,7 +122,7 @@ def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
     }
     knn = exact_knn
     if method == "exact_old":
-        knn = load_old_exact(folder, args.old_exact)
+        knn = load_old_exact(args.old_exact)
 
     def search(db: np.ndarray, q: np.ndarray, stats: dict) -> tuple[np.ndarray, np.ndarray]:
         if method == "faiss_flat":
@@ -243,7 +235,7 @@ def main() -> None:
         write_unit_vectors(folder / "database.npy", args.ref_segments, args.dim, args.seed)
         write_unit_vectors(folder / "queries.npy", args.query_segments, args.dim, args.seed + 1)
         methods = ["faiss_flat", "bf16_floor", "exact_bf16", "exact_float32"]
-        if args.old_exact and load_old_exact(folder, args.old_exact) is not None:
+        if args.old_exact and load_old_exact(args.old_exact) is not None:
             methods.insert(2, "exact_old")
         if args.shard:
             methods.append("exact_sharded")
