@@ -276,7 +276,8 @@ def with_execution_settings_flipped(config: dict, device: str) -> dict:
     changed.update(device=device, shard_size=3, search_shard_size=4)
     for section in ("backbones", "segmenters"):
         for entry in changed[section].values():
-            entry["batch_size"] = entry.get("batch_size", 1) + 2
+            size = entry.get("batch_size", 1)
+            entry["batch_size"] = 3 if size == "auto" else size + 2
             if "model" in entry:  # the entries that load weights read a cache
                 entry["cache_dir"] = "/elsewhere/models"
     assert {"batch_size", "cache_dir"} == set(EXECUTION_ONLY)
