@@ -536,3 +536,117 @@ def test_shared_post_processing_on_synthetic_logits(
     np.testing.assert_allclose(
         result.points[:, 1], (point // KIND_SIDE + 0.5) / KIND_SIDE * height, atol=1e-4
     )
+
+
+# ------------------------------------------- the generator against its per-batch loop form
+
+
+def loop_generate(segmenter, image: np.ndarray):
+    """The generator as a plain loop over ``points_per_batch`` points: decode, filter by
+    predicted IoU, upscale, filter by stability, binarise, drop empty masks, then one
+    box NMS (the pure-Python float64 one of ``test_sam_masks``) -> ``(candidates, masks)``.
+
+    The same arithmetic as the generator on every candidate, without its pass sizes,
+    chunking or matrix NMS, so the two agree bit for bit on a CPU."""
+    p = segmenter.params
+    adapter = segmenter.adapter
+    with torch.inference_mode():
+        embedding, input_size = segmenter.image_embedding(image)
+        height, width = image.shape[:2]
+        _, model_points = segmenter.prompt_points(height, width, input_size)
+        batch, per_point = int(p["points_per_batch"]), adapter.masks_per_point
+        masks, scores, candidates = [], [], []
+        for start in range(0, len(model_points), batch):
+            low, iou = adapter.decode(
+                embedding, torch.from_numpy(model_points[start : start + batch])
+            )
+            upscale = adapter.upscaler(tuple(low.shape[-2:]), input_size, (height, width))
+            for j, (logits_low, score) in enumerate(
+                zip(low.flatten(0, 1), iou.flatten(), strict=True)
+            ):
+                if p["pred_iou_thresh"] > 0 and not score > p["pred_iou_thresh"]:
+                    continue
+                logits = upscale(logits_low[None])[0]
+                high = int((logits > p["mask_threshold"] + p["stability_score_offset"]).sum())
+                low_count = int((logits > p["mask_threshold"] - p["stability_score_offset"]).sum())
+                stability = np.float32(high) / np.float32(low_count) if low_count else np.nan
+                if p["stability_score_thresh"] > 0 and not stability >= p["stability_score_thresh"]:
+                    continue
+                mask = (logits > p["mask_threshold"]).numpy()
+                if mask.any():
+                    masks.append(mask)
+                    scores.append(float(score))
+                    candidates.append(start * per_point + j)
+    boxes = [mask_box(mask) for mask in masks]
+    keep = reference_nms(boxes, scores, float(p["box_nms_thresh"]))
+    return [candidates[k] for k in keep], [masks[k] for k in keep]
+
+
+@pytest.mark.parametrize(
+    "params",
+    [
+        {"pred_iou_thresh": 0.0, "stability_score_thresh": 0.0},
+        {"pred_iou_thresh": 0.0, "stability_score_thresh": 0.0, "points_per_batch": 10},
+        {"pred_iou_thresh": 0.3, "stability_score_thresh": 0.5, "box_nms_thresh": 0.5},
+    ],
+)
+def test_generator_masks_equal_its_per_batch_loop_bit_for_bit(sam_kind_model, params):
+    kind, path, _ = sam_kind_model
+    # N(0, 1) weights (not the conftest's well-conditioned ones): many distinct masks.
+    segmenter = _load_kind(kind, path, **params)
+    segmenter.adapter.model.load_state_dict(_wild_weights(kind))
+    for image in (sample_image(48, 80, seed=1), sample_image(70, 30, seed=2)):
+        candidates, masks = loop_generate(segmenter, image)
+        result = segmenter.generate(image)
+        assert result.candidate.tolist() == candidates
+        np.testing.assert_array_equal(result.masks, np.array(masks).reshape(result.masks.shape))
+
+
+def test_generator_masks_do_not_depend_on_the_points_per_pass(sam_kind_model, monkeypatch):
+    """An accelerator decodes and post-processes all points in one pass; on a CPU that
+    pass gives the same masks as the default passes of ``points_per_batch`` points."""
+    kind, path, _ = sam_kind_model
+    segmenter = _load_kind(kind, path, pred_iou_thresh=0.0, stability_score_thresh=0.0)
+    segmenter.adapter.model.load_state_dict(_wild_weights(kind))
+    image = sample_image(48, 80, seed=1)
+    default = segmenter.generate(image)
+    monkeypatch.setattr(segmenter, "points_per_pass", lambda total, size: total)
+    monkeypatch.setattr("vprflow.models.sam.generator._UPSCALE_ROWS", 50)
+    one_pass = segmenter.generate(image)
+    assert len(default.masks) > 1
+    assert one_pass.candidate.tolist() == default.candidate.tolist()
+    np.testing.assert_array_equal(one_pass.masks, default.masks)
+    np.testing.assert_array_equal(one_pass.stability_scores, default.stability_scores)
+
+
+@pytest.mark.data
+def test_generator_masks_equal_its_per_batch_loop_on_corridor_images(data_root, sam_kind_model):
+    from PIL import Image
+
+    kind, path, _ = sam_kind_model
+    segmenter = load_segmenter(
+        kind,
+        {
+            "model": str(path),
+            "points_per_side": 6,
+            "pred_iou_thresh": 0.0,
+            "stability_score_thresh": 0.0,
+        },
+        "cpu",
+    )
+    segmenter.adapter.model.load_state_dict(_wild_weights(kind))
+    for name in ("0000000.jpg", "0000050.jpg"):
+        file = data_root / "corridor" / "query" / name
+        image = np.asarray(Image.open(file).convert("RGB"), dtype=np.float32) / 255.0
+        candidates, masks = loop_generate(segmenter, image)
+        result = segmenter.generate(image)
+        assert result.candidate.tolist() == candidates
+        np.testing.assert_array_equal(result.masks, np.array(masks).reshape(result.masks.shape))
+
+
+def _wild_weights(kind: str) -> dict:
+    """State of the same tiny architecture with weights drawn from N(0, 1)."""
+    from tiny_models import tiny_sam2, tiny_sam_hq
+
+    build = {"sam": tiny_sam, "sam_hq": tiny_sam_hq, "sam2": tiny_sam2}[kind]
+    return build(model_size=128, seed=0, scale=1.0).state_dict()

@@ -56,6 +56,26 @@ import torch
 
 from vprflow.models.sam.masks import box_nms, masks_to_boxes, remove_small_regions, stability_score
 
+# Candidates upscaled at once: their image-sized float32 logits and comparisons are the
+# pass's largest intermediates (~5 MB a candidate at 640 x 480).
+_UPSCALE_ROWS = 1024
+
+
+def _free_bytes(device: torch.device) -> int | None:
+    """Free memory of an accelerator in bytes, or ``None`` where torch cannot tell."""
+    if device.type == "cuda":
+        return int(torch.cuda.mem_get_info(device)[0])
+    return None
+
+
+def _bytes_per_point(masks_per_point: int, image_size: tuple[int, int]) -> int:
+    """Working memory of one prompt point in a pass, generously: the decoder's per-prompt
+    intermediates at the published size (~30 MB in float32: 64 x 64 tokens x 256
+    channels, several copies) plus its candidates' low-res logits and image-sized
+    logits and masks."""
+    height, width = image_size
+    return 48 * 2**20 + masks_per_point * (256 * 256 * 4 + height * width * 6)
+
 
 class Adapter(Protocol):
     """What the generator asks of a SAM kind's model (the adapters of
@@ -163,23 +183,42 @@ class SamSegmenter:
             for i, (image, (_, input_size)) in enumerate(zip(images, prepared, strict=True))
         ]
 
+    def points_per_pass(self, total: int, image_size: tuple[int, int]) -> int:
+        """Prompt points decoded and post-processed together.
+
+        On a CPU ``points_per_batch`` (the decoder then works two prompts at a time, for
+        the cache: see the adapters). Elsewhere all the image's points at once, or the
+        largest multiple of ``points_per_batch`` whose estimated working memory fits in
+        half the device's free memory: one large pass, not many small ones that each
+        wait on the host. Results do not depend on it (but for the device's rounding).
+        """
+        batch = int(self.params["points_per_batch"])
+        if self.device.type == "cpu":
+            return batch
+        free = _free_bytes(self.device)
+        if free is None:
+            return max(batch, total)
+        per_point = _bytes_per_point(self.adapter.masks_per_point, image_size)
+        fits = (free // 2) // per_point
+        return max(batch, min(total, fits // batch * batch))
+
     def _generate_one(self, embedding, input_size, image_size) -> SamMaskSet:
         """One image's embedding -> its masks.
 
         Everything stays on the model's device until the NMS survivors are known; only
-        their boxes (for the sequential NMS) and the final masks come to the host.
+        their boxes' suppression matrix (for the sequential NMS) and the final masks
+        come to the host.
         """
         p = self.params
         height, width = image_size
         image_points, model_points = self.prompt_points(height, width, input_size)
         per_point = self.adapter.masks_per_point
         upscale = None
-        mask_threshold = float(p["mask_threshold"])
-        batch = int(p["points_per_batch"])
+        step = self.points_per_pass(len(model_points), image_size)
 
         kept_masks, kept_iou, kept_stab, kept_index = [], [], [], []
-        for start in range(0, len(model_points), batch):
-            points = torch.from_numpy(model_points[start : start + batch])
+        for start in range(0, len(model_points), step):
+            points = torch.from_numpy(model_points[start : start + step])
             low_res, iou_preds = self.decode(embedding, points)
             if upscale is None:
                 upscale = self.adapter.upscaler(
@@ -194,23 +233,14 @@ class SamSegmenter:
             if p["pred_iou_thresh"] > 0.0:
                 keep = iou_preds > p["pred_iou_thresh"]
                 iou_preds, index, low_res = iou_preds[keep], index[keep], low_res[keep]
-            logits = upscale(low_res)  # [N, H, W]
-            stability = stability_score(logits, mask_threshold, float(p["stability_score_offset"]))
-            if p["stability_score_thresh"] > 0.0:
-                keep = stability >= p["stability_score_thresh"]
-                logits, iou_preds, index, stability = (
-                    logits[keep],
-                    iou_preds[keep],
-                    index[keep],
-                    stability[keep],
-                )
-            binary = logits > mask_threshold
-            nonempty = binary.flatten(1).any(1)
-            kept_masks.append(binary[nonempty])
-            kept_iou.append(iou_preds[nonempty])
-            kept_stab.append(stability[nonempty])
-            kept_index.append(index[nonempty])
-            del logits, binary
+            for part in range(0, len(low_res), _UPSCALE_ROWS):
+                rows = slice(part, part + _UPSCALE_ROWS)
+                masks, stability, keep = self._binary_masks(upscale, low_res[rows])
+                kept_masks.append(masks)
+                kept_iou.append(iou_preds[rows][keep])
+                kept_stab.append(stability)
+                kept_index.append(index[rows][keep])
+            del low_res
 
         masks = torch.cat(kept_masks)
         boxes = masks_to_boxes(masks)
@@ -235,6 +265,21 @@ class SamSegmenter:
             boxes=boxes.numpy().astype(np.float32),
             candidate=candidate.numpy().astype(np.int64),
         )
+
+    def _binary_masks(self, upscale, low_res: torch.Tensor):
+        """Low-res logits ``[N, h, w]`` -> the binary masks ``[K, H, W]`` that pass the
+        stability filter and are not empty, their stability ``[K]`` and which of the
+        ``N`` they are (bool ``[N]``)."""
+        p = self.params
+        mask_threshold = float(p["mask_threshold"])
+        logits = upscale(low_res)  # [N, H, W]
+        stability = stability_score(logits, mask_threshold, float(p["stability_score_offset"]))
+        binary = logits > mask_threshold
+        del logits
+        keep = binary.flatten(1).any(1)
+        if p["stability_score_thresh"] > 0.0:
+            keep &= stability >= p["stability_score_thresh"]
+        return binary[keep], stability[keep], keep
 
     def _clean_small_regions(self, masks: np.ndarray):
         """Masks bool ``[S, H, W]`` -> cleaned masks ``[S', H, W]``, their boxes, and the

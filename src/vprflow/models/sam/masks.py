@@ -81,15 +81,19 @@ class LogitUpscaler:
 
 # --------------------------------------------------------------------- mask statistics
 
+# Rows of box NMS's IoU matrix computed at once (float64: 8 bytes x NMS_ROWS x N).
+NMS_ROWS = 4096
+
 
 def stability_score(logits: torch.Tensor, mask_threshold: float, offset: float) -> torch.Tensor:
     """Stability of mask logits ``[N, H, W]`` -> float32 ``[N]``.
 
     ``|logits > t + offset| / |logits > t - offset|``; 0/0 gives NaN (as the original),
-    which fails every threshold.
+    which fails every threshold. The counts are exact, whatever op counts them
+    (``count_nonzero`` is ~4x faster on a CPU than an int64 ``sum`` of booleans).
     """
-    high = (logits > (mask_threshold + offset)).flatten(1).sum(1, dtype=torch.int64)
-    low = (logits > (mask_threshold - offset)).flatten(1).sum(1, dtype=torch.int64)
+    high = torch.count_nonzero((logits > (mask_threshold + offset)).flatten(1), dim=1)
+    low = torch.count_nonzero((logits > (mask_threshold - offset)).flatten(1), dim=1)
     return high.to(torch.float32) / low.to(torch.float32)
 
 
@@ -122,28 +126,38 @@ def box_nms(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> 
     their input order (stable sort), so the result is deterministic. A box is removed
     when its IoU with a kept higher-scored box is ``> iou_threshold``; areas are
     ``(x1 - x0) * (y1 - y0)`` and an IoU of 0/0 (two zero-area boxes) suppresses nothing,
-    as in torchvision's ``nms``. Computed in float64 on the CPU (a sequential loop).
+    as in torchvision's ``nms``.
+
+    The pairwise IoUs are one float64 operation on the boxes' device (mask boxes have
+    integer coordinates, so they are exact up to the correctly rounded division, on any
+    device); only the greedy pass over the ``[N, N]`` "suppresses" matrix is sequential,
+    on the host, in blocks of rows.
     """
     device = boxes.device
     n = boxes.shape[0]
     if n == 0:
         return torch.zeros(0, dtype=torch.long, device=device)
-    order = torch.sort(scores.detach().cpu(), descending=True, stable=True).indices
-    x0, y0, x1, y1 = boxes.detach().cpu().to(torch.float64)[order].unbind(1)
+    order = torch.sort(scores.detach(), descending=True, stable=True).indices
+    x0, y0, x1, y1 = boxes.detach().to(torch.float64)[order].unbind(1)
     areas = (x1 - x0) * (y1 - y0)
-    suppressed = torch.zeros(n, dtype=torch.bool)
-    keep = []
-    for i in range(n):
-        if suppressed[i]:
-            continue
-        keep.append(i)
-        rest = slice(i + 1, n)
-        width = (torch.minimum(x1[i], x1[rest]) - torch.maximum(x0[i], x0[rest])).clamp(min=0)
-        height = (torch.minimum(y1[i], y1[rest]) - torch.maximum(y0[i], y0[rest])).clamp(min=0)
+    suppressed = np.zeros(n, dtype=bool)
+    keep = np.zeros(n, dtype=bool)
+    for first in range(0, n, NMS_ROWS):
+        rows = slice(first, min(first + NMS_ROWS, n))
+        width = (torch.minimum(x1[rows, None], x1) - torch.maximum(x0[rows, None], x0)).clamp(min=0)
+        height = (torch.minimum(y1[rows, None], y1) - torch.maximum(y0[rows, None], y0)).clamp(
+            min=0
+        )
         inter = width * height
-        iou = inter / (areas[i] + areas[rest] - inter)
-        suppressed[rest] |= iou > iou_threshold  # NaN compares False: never suppresses
-    return order[torch.tensor(keep, dtype=torch.long)].to(device)
+        over = (inter / (areas[rows, None] + areas - inter) > iou_threshold).cpu().numpy()
+        for i in range(rows.start, rows.stop):
+            if suppressed[i]:
+                continue
+            keep[i] = True
+            row = over[i - first]
+            suppressed[i + 1 :] |= row[i + 1 :]  # NaN compares False: never suppresses
+    kept = torch.from_numpy(np.flatnonzero(keep)).to(device)
+    return order[kept]
 
 
 def remove_small_regions(
