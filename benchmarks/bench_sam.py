@@ -17,12 +17,15 @@ case).
 
     python benchmarks/bench_sam.py --models sam-vit-h --dtypes bfloat16 --filters library \
         --points-per-side 32 --repeats 0 --image-batches 1 2 4 8
+    python benchmarks/bench_sam.py --device cuda --models sam-vit-h --points-per-side 32 \
+        --dtypes float32 bfloat16 --filters library none --image-batches 1 4 8
     python benchmarks/bench_sam.py --decoders [--prompts 256] [--points-per-batch 64]
     python benchmarks/bench_sam.py --smoke   # both tables at their smallest (tiny-64), CPU
 
 ``--image-batches`` adds, per configuration, the image encoder's time per image on
 batches of B images (``SamSegmenter.generate_batch`` embeds a batch in one pass, then
-decodes prompts image by image): a whole image then costs encoder(B)/B plus the decoding
+decodes prompts image by image, on an accelerator all of an image's points in one pass
+when its free memory allows): a whole image then costs encoder(B)/B plus the decoding
 time measured on the single image, with the process's peak memory after that batch.
 
 ``--decoders`` times prompt decoding alone, at the published decoder sizes (256

@@ -997,3 +997,25 @@ def test_an_auto_batch_is_sized_from_the_first_images_memory_and_halved_when_out
     assert calls == [1, 6, 3, 3, 3, 3, 1]
     np.testing.assert_array_equal(np.concatenate(outputs)[:, 0, 0, 0], 2 * np.arange(14))
     assert sizes.size == 3
+
+
+def test_segments_come_in_image_order_with_the_next_batch_read_while_one_is_segmented():
+    import threading
+
+    from vprflow.stages.segments import _segmented
+
+    second_read = threading.Event()
+
+    def read(indices):
+        if indices[0] == 2:
+            second_read.set()
+        return [np.full((index + 1, 2, 2), True) for index in indices]
+
+    def segment(images):
+        if len(images[0]) == 1:  # the first batch waits until the second is being read
+            assert second_read.wait(timeout=60), "the next batch was not read ahead"
+        return images
+
+    out = list(_segmented(read, segment, [0, 1, 2, 3, 4], batch_size=2))
+    assert [index for index, _ in out] == [0, 1, 2, 3, 4]
+    assert [len(masks) for _, masks in out] == [1, 2, 3, 4, 5]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -23,14 +24,16 @@ def compute_segments(job: Job) -> None:
     (ragged ``masks``).
 
     ``batch_size`` images share one image-encoder pass (SAM kinds; others run one by one).
+    While a batch is segmented, a host thread reads and resizes the next one and another
+    packs and writes the last one's masks, so the segmenter's device never waits on them.
     """
     params = job.params
     dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
-    segment = _mask_source(params, job.device, dataset)
+    read, segment = _mask_source(params, job.device, dataset)
     attrs = {**stage_attrs("segments", job.record, images), "sources": resolved_sources(params)}
-    with stores.atomic_store(job.out, attrs) as group:
-        writer, shape = None, None
-        for i, masks in _segmented(segment, images, job.batch_size):
+    with stores.atomic_store(job.out, attrs) as group, ThreadPoolExecutor(1) as packing:
+        writer, shape, written = None, None, None
+        for i, masks in _segmented(read, segment, images, job.batch_size):
             if shape is None:
                 shape = masks.shape[1:]
                 stores.set_attrs(group, mask_height=shape[0], mask_width=shape[1])
@@ -44,25 +47,44 @@ def compute_segments(job: Job) -> None:
                 )
             if len(masks) == 0:
                 log.warning("%s: the segmenter returned no masks", dataset.paths[i])
-            writer.append(stores.pack_masks(masks))
+            if written is not None:
+                written.result()  # in order, one image ahead at most; re-raises its error
+            written = packing.submit(_append_packed, writer, masks)
+        if written is not None:
+            written.result()
         writer.close()
 
 
-def _segmented(segment, images, batch_size: int):
-    """``(index, masks)`` of each image in order, ``segment`` called on lists of up to
-    ``batch_size`` image indices, with a progress bar over images."""
+def _append_packed(writer: stores.RaggedWriter, masks: np.ndarray) -> None:
+    writer.append(stores.pack_masks(masks))
+
+
+def _segmented(read, segment, images, batch_size: int):
+    """``(index, masks)`` of each image in order: ``segment(read(indices))`` on lists of
+    up to ``batch_size`` image indices, the next batch read on a host thread meanwhile,
+    with a progress bar over images."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
-    with tqdm(total=len(images), desc="segments", unit="image") as progress:
-        for first in range(0, len(images), batch_size):
-            batch = images[first : first + batch_size]
-            yield from zip(batch, segment(list(batch)), strict=True)
+    batches = [
+        list(images[first : first + batch_size]) for first in range(0, len(images), batch_size)
+    ]
+    with (
+        tqdm(total=len(images), desc="segments", unit="image") as progress,
+        ThreadPoolExecutor(1) as reading,
+    ):
+        upcoming = reading.submit(read, batches[0]) if batches else None
+        for number, batch in enumerate(batches):
+            inputs = upcoming.result()
+            if number + 1 < len(batches):
+                upcoming = reading.submit(read, batches[number + 1])
+            yield from zip(batch, segment(inputs), strict=True)
             progress.update(len(batch))
 
 
 def _mask_source(params: dict, device: str, dataset):
-    """``[image index, ...] -> [bool [S, Hm, Wm], ...]`` for the configured segmenter,
-    reading ``dataset``'s images.
+    """``(read, segment)`` for the configured segmenter: ``read([image index, ...])`` ->
+    what ``segment`` takes, ``segment(...)`` -> ``[bool [S, Hm, Wm], ...]``, reading
+    ``dataset``'s images.
 
     ``segmenter: import`` reads the authors' published HDF5 masks
     (``<image file name>/masks/<j>/segmentation``) at their own resolution. Segmenters
@@ -72,9 +94,10 @@ def _mask_source(params: dict, device: str, dataset):
     if kind.reads_file:
         from vprflow.data.published import read_masks_h5
 
-        return lambda indices: [
-            read_masks_h5(params["file"], Path(dataset.paths[i]).name) for i in indices
-        ]
+        def published(indices):
+            return [read_masks_h5(params["file"], Path(dataset.paths[i]).name) for i in indices]
+
+        return published, lambda masks: masks
     segmenter = load_model("segments", params, device)
     width, height = params["resolution"]
 
@@ -87,5 +110,5 @@ def _mask_source(params: dict, device: str, dataset):
         ]
 
     if hasattr(segmenter, "masks_batch"):
-        return lambda indices: segmenter.masks_batch(images(indices))
-    return lambda indices: [segmenter.masks(image) for image in images(indices)]
+        return images, segmenter.masks_batch
+    return images, lambda batch: [segmenter.masks(image) for image in batch]
