@@ -49,11 +49,12 @@ def test_corridor_with_tiny_dinov2_and_tiny_sam(tmp_path, data_root):
     path = write_config(tmp_path, config)
     dry = snakemake(tmp_path, path, "-n", "results/recall_corridor.csv").stdout
     # Model stages ask the scheduler for a GPU (device auto), the others do not: the
-    # matching of model features does; scoring the stored pairs does not.
+    # matching of model features does, and so does the k-means on them; scoring the
+    # stored pairs does not.
     jobs = re.findall(r"rule (\w+):.*?resources: ([^\n]*)", dry, flags=re.DOTALL)
     gpu = {rule: "gpu=1" in resources for rule, resources in jobs}
-    assert gpu["features"] and gpu["segments"] and gpu["matches"]
-    assert not gpu["rerank"] and not gpu["vocabulary"]
+    assert gpu["features"] and gpu["segments"] and gpu["matches"] and gpu["vocabulary"]
+    assert not gpu["rerank"]
     snakemake(tmp_path, path, "results/recall_corridor.csv")
     rows = rows_of(tmp_path / "results" / "recall_corridor.csv")
     assert [r["method"] for r in rows] == expected_rows(config["datasets"]["corridor"])
