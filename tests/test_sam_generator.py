@@ -602,6 +602,13 @@ def test_generator_masks_equal_its_per_batch_loop_bit_for_bit(sam_kind_model, pa
         np.testing.assert_array_equal(result.masks, np.array(masks).reshape(result.masks.shape))
 
 
+def test_no_masks_when_no_candidate_passes_the_iou_filter(sam_kind_model):
+    kind, path, _ = sam_kind_model
+    segmenter = _load_kind(kind, path, pred_iou_thresh=1e6)
+    result = segmenter.generate(sample_image(48, 80))
+    assert result.masks.shape == (0, 48, 80) and result.candidate.shape == (0,)
+
+
 def test_generator_masks_do_not_depend_on_the_points_per_pass(sam_kind_model, monkeypatch):
     """An accelerator decodes and post-processes all points in one pass; on a CPU that
     pass gives the same masks as the default passes of ``points_per_batch`` points."""

@@ -233,7 +233,7 @@ class SamSegmenter:
             if p["pred_iou_thresh"] > 0.0:
                 keep = iou_preds > p["pred_iou_thresh"]
                 iou_preds, index, low_res = iou_preds[keep], index[keep], low_res[keep]
-            for part in range(0, len(low_res), _UPSCALE_ROWS):
+            for part in range(0, max(len(low_res), 1), _UPSCALE_ROWS):  # once if none
                 rows = slice(part, part + _UPSCALE_ROWS)
                 masks, stability, keep = self._binary_masks(upscale, low_res[rows])
                 kept_masks.append(masks)
