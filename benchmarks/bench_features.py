@@ -48,6 +48,7 @@ os.environ.setdefault("TQDM_DISABLE", "1")  # the stage's progress bar, before t
 sys.path[:0] = [str(ROOT / "src"), str(ROOT / "tests"), str(ROOT / "benchmarks")]
 
 from bench_backbones import CASES, build  # noqa: E402
+from bench_published import matmul_rate  # noqa: E402
 
 # The last commit whose features stage read, computed and wrote one batch after another.
 BEFORE = "023a60e"
@@ -68,28 +69,6 @@ def stage_module(before: str) -> types.ModuleType:
     module = types.ModuleType("before_features")
     exec(compile(source, f"{before}:features.py", "exec"), module.__dict__)
     return module
-
-
-def matmul_rate(device, dtype, side: int, repeats: int = 5) -> float:
-    """FLOP/s of the fastest of ``repeats`` ``side x side`` products on ``device``."""
-    import torch
-
-    a = torch.randn(side, side, device=device).to(dtype)
-    b = torch.randn(side, side, device=device).to(dtype)
-
-    def sync():
-        if device.type == "cuda":
-            torch.cuda.synchronize(device)
-
-    (a @ b).sum().item()  # warm-up: kernel choice, clocks
-    best = float("inf")
-    for _ in range(repeats):
-        sync()
-        start = time.perf_counter()
-        a @ b
-        sync()
-        best = min(best, time.perf_counter() - start)
-    return 2 * side**3 / best
 
 
 def forward_flops(backbone, height: int, width: int) -> float:

@@ -193,11 +193,12 @@ def sam_flops(path: Path, prompts: int) -> tuple[float, float]:
     return encoder, decoder
 
 
-def matmul_rate(device, dtype_name: str, side: int, repeats: int = 5) -> float:
-    """FLOP/s of the fastest of ``repeats`` ``side x side`` products on ``device``."""
+def matmul_rate(device, dtype, side: int, repeats: int = 5) -> float:
+    """FLOP/s of the fastest of ``repeats`` ``side x side`` products on ``device``
+    (``dtype``: a torch dtype or its name)."""
     import torch
 
-    dtype = getattr(torch, dtype_name)
+    dtype = getattr(torch, dtype) if isinstance(dtype, str) else dtype
     a = torch.randn(side, side, device=device).to(dtype)
     b = torch.randn(side, side, device=device).to(dtype)
 
