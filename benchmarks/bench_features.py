@@ -34,7 +34,6 @@ import argparse
 import logging
 import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -49,6 +48,7 @@ sys.path[:0] = [str(ROOT / "src"), str(ROOT / "tests"), str(ROOT / "benchmarks")
 
 from bench_backbones import CASES, build  # noqa: E402
 from bench_published import matmul_rate  # noqa: E402
+from revisions import module_at  # noqa: E402
 
 # The last commit whose features stage read, computed and wrote one batch after another.
 BEFORE = "023a60e"
@@ -57,18 +57,7 @@ SCHEMA = ROOT / "workflow" / "schemas" / "config.schema.yaml"
 
 def stage_module(before: str) -> types.ModuleType:
     """The features stage of ``before``: a git revision, or a file holding its source."""
-    if Path(before).is_file():
-        source = Path(before).read_text()
-    else:
-        source = subprocess.run(
-            ["git", "-C", str(ROOT), "show", f"{before}:src/vprflow/stages/features.py"],
-            capture_output=True,
-            text=True,
-            check=True,
-        ).stdout
-    module = types.ModuleType("before_features")
-    exec(compile(source, f"{before}:features.py", "exec"), module.__dict__)
-    return module
+    return module_at(before, "vprflow.stages.features", "before_features")
 
 
 def forward_flops(backbone, height: int, width: int) -> float:

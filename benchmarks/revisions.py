@@ -21,7 +21,11 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def source_at(rev: str, path: str) -> str:
-    """The text of ``path`` (relative to the repository) at ``rev``."""
+    """The text of ``path`` (relative to the repository) at ``rev``, or of the file
+    ``rev`` names: a saved copy, for a machine the checkout reaches without git (a lent
+    GPU: ``git show REV:PATH > FILE``)."""
+    if Path(rev).is_file():
+        return Path(rev).read_text()
     return subprocess.run(
         ["git", "show", f"{rev}:{path}"], cwd=REPO, capture_output=True, text=True, check=True
     ).stdout
