@@ -240,6 +240,88 @@ def test_an_error_message_shows_at_most_a_bounded_part_of_a_value(raw):
     assert "characters)" in message and "config key 'targets'" in message
 
 
+# ------------------------------------------------------------ numbers as the schema means them
+
+
+def with_yaml(raw: dict, text: str) -> dict:
+    """``raw`` with the YAML ``text`` (a mapping of dotted key paths to values, as a
+    user types them: ``.nan``, ``8.0``) set into it."""
+    config = copy.deepcopy(raw)
+    for dotted, value in yaml.safe_load(text).items():
+        *parents, last = dotted.split(".")
+        part = config
+        for name in parents:
+            part = part.setdefault(name, {})
+        part[last] = value
+    return config
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "shown"),
+    [
+        (
+            "datasets.corridor.ground_truth: {kind: coordinates, file: gps.csv, radius_m: .nan}",
+            "datasets.corridor.ground_truth.radius_m",
+            "nan",
+        ),
+        ("methods.gem.pooling: {gem_p: .inf}", "methods.gem.pooling.gem_p", "inf"),
+        ("vocabulary.n_clusters: .nan", "vocabulary.n_clusters", "nan"),
+        ("segmenters.slic.sigma: -.inf", "segmenters.slic.sigma", "-inf"),
+        (
+            "datasets.corridor.defaults: {pca: {dim: 128, whiten: false}, pooling: {gem_p: .nan}}",
+            "datasets.corridor.defaults.pooling.gem_p",
+            "nan",
+        ),
+        ("rerankers.ransac.threshold: .inf", "rerankers.ransac.threshold", "inf"),
+        ("retrieval.params: {nprobe: .nan}", "retrieval.params.nprobe", "nan"),
+    ],
+)
+def test_a_nan_or_infinite_number_is_refused_naming_its_key_and_value(raw, text, key, shown):
+    message = refused(with_yaml(raw, text))
+    assert f"config key '{key}': {shown} is not a finite number" in message
+    # One line for the key, not the schema's type error beside it.
+    assert message.count(f"'{key}'") == 1
+
+
+def test_integers_written_as_floats_are_read_as_the_integers_they_name(raw):
+    text = (
+        "vocabulary.n_clusters: 8.0\n"
+        "pca.dim: 16.0\n"
+        "methods.segvlad: {aggregator: segvlad, segvlad: {order: 2.0}}\n"
+        "datasets.corridor.resolution: [160.0, 120.0]\n"
+        "datasets.corridor.recall_at: [1.0, 5.0]\n"
+        "backbones.daisy.batch_size: 4.0\n"  # a oneOf of an integer and 'auto'
+    )
+    as_floats = validate_config(with_yaml(raw, text), SCHEMA_PATH)
+    as_ints = validate_config(with_yaml(raw, text.replace(".0", "")), SCHEMA_PATH)
+    # Equal as text too (8.0 == 8 in Python), so the store keys hashed from them are equal.
+    assert yaml.safe_dump(as_floats) == yaml.safe_dump(as_ints)
+    assert type(as_floats["vocabulary"]["n_clusters"]) is int
+    assert as_floats["datasets"]["corridor"]["resolution"] == [160, 120]
+    assert type(as_floats["backbones"]["daisy"]["batch_size"]) is int
+    # A number the schema types `number` stays as written.
+    assert raw["pooling"]["gem_p"] == 3.0 and type(as_floats["pooling"]["gem_p"]) is float
+
+
+@pytest.mark.parametrize(
+    ("text", "key", "says"),
+    [
+        ("vocabulary.n_clusters: 8.5", "vocabulary.n_clusters", "8.5 is not of type 'integer'"),
+        ("pca.dim: 16.5", "pca.dim", "16.5 is not of type 'integer'"),
+        ("backbones.daisy.batch_size: 2.5", "backbones.daisy.batch_size", "2.5 is not valid"),
+    ],
+)
+def test_a_fraction_where_an_integer_is_expected_is_refused_naming_the_key(raw, text, key, says):
+    assert f"config key '{key}': {says}" in refused(with_yaml(raw, text))
+
+
+def test_validation_leaves_the_callers_config_as_it_was(raw):
+    config = with_yaml(raw, "vocabulary.n_clusters: 8.0")
+    before = copy.deepcopy(config)
+    validate_config(config, SCHEMA_PATH)
+    assert yaml.safe_dump(config) == yaml.safe_dump(before)
+
+
 # ------------------------------------------------------------ through Snakemake
 
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import copy
 import importlib
+import math
 from pathlib import Path
 
 import yaml
@@ -82,6 +83,9 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     the entry's kind does not read: :func:`unread_keys`). ``files``: the config files
     ``config`` was read from: each is read again to refuse a key given twice
     (:func:`check_config_files`) and named when it is too large (:func:`check_config_size`).
+    A NaN or infinite number is refused wherever it is (:func:`non_finite_numbers`), and
+    an integral float where the schema expects an integer is read as that integer
+    (:func:`integral_floats`), so ``n_clusters: 8.0`` runs, and is keyed, as ``8``.
     """
     import jsonschema
 
@@ -97,23 +101,38 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
             fill_backbone=lambda entry: with_defaults("features", entry),
         )
         config = {**config, "datasets": with_presets(config, components)}
+    # A copy: integral floats are made integers in it, and defaults filled.
+    config = copy.deepcopy(config)
+    non_finite = non_finite_numbers(config)
+    lines = [
+        f"  config key '{_dotted(path)}': {value} is not a finite number; every number "
+        "in the configuration (a distance, radius, threshold, size or count) must be finite"
+        for path, value in non_finite
+    ]
+    refused = {_dotted(path) for path, _ in non_finite}
+    for path in integral_floats(config, schema):
+        _set(config, path, int(_get(config, path)))
     errors = sorted(
-        jsonschema.Draft202012Validator(schema).iter_errors(config),
+        (
+            error
+            for error in jsonschema.Draft202012Validator(schema).iter_errors(config)
+            if _dotted(error.absolute_path) not in refused
+        ),
         key=lambda e: list(map(str, e.absolute_path)),
     )
-    if errors:
-        lines = []
-        for error in errors[:10]:
-            where = ".".join(str(p) for p in error.absolute_path) or "(top level)"
-            message = error.message
-            if error.validator == "pattern" and "x-error" in error.schema:  # a name's
-                message = f"{short_repr(error.instance, MAX_SHOWN)} {error.schema['x-error']}"
-            lines.append(f"  config key '{where}': {short_repr(message, MAX_SHOWN, quote=False)}")
-        raise ConfigError("invalid configuration:\n" + "\n".join(lines))
+    for error in errors[:10]:
+        message = error.message
+        if error.validator == "pattern" and "x-error" in error.schema:  # a name's
+            message = f"{short_repr(error.instance, MAX_SHOWN)} {error.schema['x-error']}"
+        lines.append(
+            f"  config key '{_dotted(error.absolute_path)}': "
+            f"{short_repr(message, MAX_SHOWN, quote=False)}"
+        )
+    if lines:
+        raise ConfigError("invalid configuration:\n" + "\n".join(lines[:10]))
     unread = unread_keys(config, schema)
     if unread:
         raise ConfigError("invalid configuration:\n" + "\n".join(f"  {u}" for u in unread[:10]))
-    config = copy.deepcopy(config)
     for entries, stage in (("backbones", "features"), ("segmenters", "segments")):
         for entry in config[entries].values():
             # Kind-specific defaults (a DINOv2 layer, SAM thresholds, a trained model's
@@ -134,6 +153,68 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
             f"configured; configured: {short_repr(sorted(config['datasets']), MAX_SHOWN)}"
         )
     return config
+
+
+def _dotted(path) -> str:
+    return ".".join(str(p) for p in path) or "(top level)"
+
+
+def _get(config, path: tuple):
+    for part in path:
+        config = config[part]
+    return config
+
+
+def _set(config, path: tuple, value) -> None:
+    _get(config, path[:-1])[path[-1]] = value
+
+
+def non_finite_numbers(config) -> list[tuple[tuple, float]]:
+    """(path, value) of every NaN or infinite number in ``config``, at any depth. YAML
+    reads ``.nan`` and ``.inf`` as numbers, and every bound the schema sets lets NaN
+    through (it compares false), so a ``radius_m: .nan`` would reach a job that finds
+    no positive without naming the key."""
+    found, stack = [], [((), config)]
+    while stack:
+        path, value = stack.pop()
+        if isinstance(value, float) and not math.isfinite(value):
+            found.append((path, value))
+        elif isinstance(value, dict):
+            stack.extend(((*path, k), v) for k, v in value.items())
+        elif isinstance(value, list):
+            stack.extend(((*path, i), v) for i, v in enumerate(value))
+    return sorted(found, key=lambda item: list(map(str, item[0])))
+
+
+def integral_floats(config: dict, schema: dict) -> list[tuple]:
+    """The paths of the integral floats (YAML ``8.0``) in ``config`` where ``schema``
+    expects an integer, to be made integers before anything hashes them: JSON Schema
+    takes ``8.0`` for an integer, so it validates, but it would hash to another store
+    key than ``8`` and reach numpy as a float. A fraction (``8.5``) stays, for the
+    schema to refuse naming the key. Found by validating against a schema whose
+    integers exclude floats: each such type error (in a ``oneOf`` branch too) names
+    one."""
+    import jsonschema
+
+    checker = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine(
+        "integer", lambda _, value: isinstance(value, int) and not isinstance(value, bool)
+    )
+    strict = jsonschema.validators.extend(jsonschema.Draft202012Validator, type_checker=checker)
+    found: list[tuple] = []
+    stack = list(strict(schema).iter_errors(config))
+    while stack:
+        error = stack.pop()
+        types = [error.validator_value] if error.validator == "type" else []
+        types = [t for v in types for t in ([v] if isinstance(v, str) else v)]
+        if (
+            "integer" in types
+            and "number" not in types
+            and isinstance(error.instance, float)
+            and error.instance.is_integer()
+        ):
+            found.append(tuple(error.absolute_path))
+        stack.extend(error.context)
+    return list(dict.fromkeys(found))
 
 
 def count_values(value, limit: int) -> int:
