@@ -251,6 +251,20 @@ def test_missing_vocabulary_file_is_named(config, tmp_path):
         build_plan(config)
 
 
+def test_a_method_row_of_an_unknown_dataset_names_the_dataset_and_the_datasets_there_are():
+    from vprflow.planning.plan import Plan, method_run, method_stores
+
+    plan = Plan(runs={"corridor": [], "roadscene": []})
+    for ask in (method_run, method_stores):
+        with pytest.raises(PlanError) as raised:
+            ask(plan, "corridr", "anyloc_vlad")
+        assert str(raised.value) == (
+            "no dataset named 'corridr'; the datasets are: ['corridor', 'roadscene']"
+        )
+    with pytest.raises(PlanError, match=r"no method 'anylc_vlad' on dataset 'corridor'"):
+        method_run(plan, "corridor", "anylc_vlad")
+
+
 def test_unknown_method_backbone_and_segmenter_are_named(config):
     broken = copy.deepcopy(config)
     broken["datasets"]["corridor"]["methods"] = ["segvald"]

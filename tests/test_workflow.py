@@ -594,6 +594,24 @@ def test_missing_17places_images_say_where_to_put_them(tmp_path):
     assert "ground_truth_new.npy" in text and "preset" in text
 
 
+@pytest.mark.parametrize(
+    "target",
+    [
+        "results/pairs/toyy/anyloc_vlad/pairs.txt",
+        "results/export/toyy/anyloc_vlad.npz",
+        "results/figures/toyy/retrievals/anyloc_vlad.png",
+    ],
+)
+def test_a_target_naming_an_unknown_dataset_names_it_and_the_configured_ones(tmp_path, target):
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config_path = write_config(tmp_path, toy_config(tmp_path / "data"))
+    result = snakemake(tmp_path, config_path, "-n", target, check=False)
+    text = result.stdout + result.stderr
+    assert result.returncode != 0
+    assert "unknown dataset 'toyy'; configured: ['toy']" in text
+    assert "its methods" not in text
+
+
 def test_unused_dataset_is_not_touched(tmp_path):
     make_dataset(tmp_path / "data" / "toy", n_places=4)
     config = toy_config(tmp_path / "data")

@@ -191,7 +191,10 @@ def replan():
 def downloaded(name):
     """First call of an input function that reads dataset ``name``'s stores. A sample
     dataset awaiting its download makes Snakemake schedule the `download` checkpoint
-    (in a dry run: show it) and call again once it ran, with the dataset planned."""
+    (in a dry run: show it) and call again once it ran, with the dataset planned. A name
+    that is no dataset of the config (a mistyped target) is named here, with the datasets
+    there are."""
+    dataset_entry(name)
     if name not in AWAITING_DOWNLOAD:
         return
     entry = dataset_entry(name)

@@ -177,8 +177,11 @@ class Plan:
 
 
 def method_run(plan: Plan, dataset: str, method: str) -> MethodRun:
-    """The row of ``method`` in ``dataset``'s table; an unknown one is named."""
-    runs = {run.method: run for run in plan.runs.get(dataset, [])}
+    """The row of ``method`` in ``dataset``'s table; an unknown dataset or method is
+    named, with the ones there are."""
+    if dataset not in plan.runs:
+        raise PlanError(f"no dataset named {dataset!r}; the datasets are: {sorted(plan.runs)}")
+    runs = {run.method: run for run in plan.runs[dataset]}
     if method not in runs:
         raise PlanError(f"no method {method!r} on dataset {dataset!r}; its methods: {sorted(runs)}")
     return runs[method]
