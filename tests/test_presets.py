@@ -356,6 +356,32 @@ def test_each_presets_ground_truth_is_the_published_rule_on_its_miniature(tmp_pa
     assert any(len(t) for t in truth)
 
 
+@pytest.mark.parametrize(("name", "city"), [("msls_sf", "sf"), ("msls_cph", "cph")])
+def test_an_msls_city_query_with_positives_only_in_the_other_city_is_left_out_and_logged(
+    tmp_path, caplog, name, city
+):
+    from vprflow.evaluation.recall import counted_queries, recall_at
+
+    # The miniature's <city>q3 lists one positive, in the other city: Revisit-Anything's
+    # city split leaves it none, and its calc_recall / get_recall do not count it.
+    MINIATURES[name](tmp_path / name, np.random.default_rng(0))
+    dataset = validate_config(config_with(tmp_path, targets=[name]), SCHEMA)["datasets"][name]
+    files = list_dataset(tmp_path, name, dataset)
+    with caplog.at_level("WARNING", logger="vprflow"):
+        truth = ground_truth(files, dataset["ground_truth"], tmp_path / name)
+    empty = [q.name for q, t in zip(files.query, truth, strict=True) if not len(t)]
+    assert empty == [f"{city}q3.jpg"]
+    assert (
+        f"1 of the 3 kept {city} queries have their listed positives (msls_val_pIdx.npy) "
+        f"only in the other city, so none after the city filter (e.g. {city}q3.jpg)"
+    ) in caplog.text
+    assert dataset["denominator"] == "with_positives"
+    assert counted_queries(truth, dataset["denominator"]).sum() == 2
+    # Every other query found at rank 1: the published Recall@1 is 1, not 2 / 3.
+    ranking = np.array([[t[0] if len(t) else 0] for t in truth])
+    assert recall_at(ranking, truth, [1], dataset["denominator"]) == {1: 1.0}
+
+
 @pytest.mark.workflow
 def test_every_presets_table_comes_from_its_data_alone(tmp_path):
     """One Snakemake run over every miniature: a preset needs only its folder. The
@@ -390,6 +416,14 @@ def test_every_presets_table_comes_from_its_data_alone(tmp_path):
         assert [r["method"] for r in rows] == expected, name
         assert rows[0]["protocol"] == f"preset {name}"
         assert 0 <= float(rows[0]["recall@1"]) <= 1
+        if name.startswith("msls_"):
+            # The city presets leave out <city>q3 (positives only in the other city);
+            # msls_val counts every kept query.
+            counted = ("6", "0") if name == "msls_val" else ("2", "1")
+            assert (rows[0]["n_queries"], rows[0]["n_queries_without_positive"]) == counted
+    logs = "".join(p.read_text() for p in (tmp_path / "logs").rglob("*.log"))
+    for city in ("sf", "cph"):
+        assert f"1 of the 3 kept {city} queries have their listed positives" in logs
 
 
 def trained_config(data_root: Path, **changes) -> dict:

@@ -458,23 +458,52 @@ def test_a_pickle_calling_the_array_class_itself_is_refused(tmp_path):
         read_position_array(path, 2, "ground_truth.reference_positions")
 
 
-@pytest.mark.parametrize("name", ["msls_sf", "msls_cph", "msls_val"])
-def test_the_msls_presets_divide_recall_by_every_kept_query_as_salad(tmp_path, name):
+@pytest.mark.parametrize("name", ["msls_sf", "msls_cph"])
+def test_the_msls_city_presets_leave_out_a_query_whose_positives_lie_in_the_other_city(
+    tmp_path, caplog, name
+):
+    from vprflow.data.presets import presets
+    from vprflow.evaluation.recall import recall_at
+
+    # Revisit-Anything's segregate_data_by_city keeps a query's same-city positives
+    # only, and calc_recall / get_recall skip a query whose gt is then empty (and do not
+    # count it): cq0 below, listed with one San Francisco positive, is not evaluated.
+    lists = write_msls_lists(tmp_path, np.random.default_rng(12))
+    rows = [list(p) for p in lists["positives"]]
+    rows[0] = [13]  # cq0: its one positive is San Francisco's s005
+    _resave(tmp_path, "pIdx", rows)
+    refs = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/cph/" in p]
+    queries = [tmp_path / "query" / f"cq{i}.jpg" for i in (0, 1, 3)]
+    with caplog.at_level("WARNING", logger="vprflow"):
+        truth = msls_ground_truth(tmp_path, "cph", refs, queries)
+    assert len(truth[0]) == 0 and all(len(t) for t in truth[1:])
+    assert (
+        "1 of the 3 kept cph queries have their listed positives (msls_val_pIdx.npy) only "
+        "in the other city, so none after the city filter (e.g. cq0.jpg)" in caplog.text
+    )
+    ranking = np.array([[t[0] if len(t) else 0] for t in truth])  # the others hit at 1
+    denominator = presets()[name].dataset["denominator"]
+    assert recall_at(ranking, truth, [1], denominator) == {1: 2 / 2}
+
+
+def test_msls_val_divides_recall_by_every_kept_query_as_salad(tmp_path, caplog):
     from vprflow.data.presets import presets
     from vprflow.evaluation.recall import recall_at
 
     # SALAD's get_validation_recalls divides the hits by len(predictions): every kept
-    # query, whether or not its pIdx row lists a positive.
+    # query, whether or not its pIdx row lists a positive; no city filter drops one.
     lists = write_msls_lists(tmp_path, np.random.default_rng(12))
     rows = [list(p) for p in lists["positives"]]
     rows[0] = []  # cq0 keeps no positive
     _resave(tmp_path, "pIdx", rows)
-    refs = [tmp_path / "database" / Path(p).name for p in lists["db"] if "/cph/" in p]
-    queries = [tmp_path / "query" / f"cq{i}.jpg" for i in (0, 1, 3)]
-    truth = msls_ground_truth(tmp_path, "cph", refs, queries)
+    refs = [tmp_path / "database" / Path(p).name for p in lists["db"]]
+    queries = [tmp_path / "query" / Path(lists["queries"][q]).name for q in lists["kept"]]
+    with caplog.at_level("WARNING", logger="vprflow"):
+        truth = msls_ground_truth(tmp_path, "all", refs, queries)
+    assert "other city" not in caplog.text
     ranking = np.array([[t[0] if len(t) else 0] for t in truth])  # the others hit at 1
-    denominator = presets()[name].dataset["denominator"]
-    assert recall_at(ranking, truth, [1], denominator) == {1: 2 / 3}
+    denominator = presets()["msls_val"].dataset["denominator"]
+    assert recall_at(ranking, truth, [1], denominator) == {1: 5 / 6}
 
 
 def test_two_listed_msls_paths_of_one_file_name_are_refused_naming_both_rows(tmp_path):

@@ -506,7 +506,9 @@ def msls_ground_truth(
     and SALAD); images are matched by file name. The images must be the listed ones
     (:func:`msls_listed_images`): a query outside the kept list, a reference outside the
     database list (a distractor no published number ranks) or a listed positive missing
-    from the references is an error."""
+    from the references is an error. A kept query whose listed positives all lie in the
+    other city has none left; a warning counts and names those queries (Revisit-Anything
+    leaves them out of Recall@N, the ``with_positives`` denominator)."""
     lists = read_msls_lists(folder)
     db_names = [PurePosixPath(p).name for p in lists.db]
     db_rows = lists.database(city)
@@ -527,8 +529,12 @@ def msls_ground_truth(
             )
     ref_index = {p.name: i for i, p in enumerate(reference)}
     truth = []
+    elsewhere = []
     for q in query:
-        names = [db_names[p] for p in lists.positives[kept_rows[q.name]] if p in in_city]
+        listed = lists.positives[kept_rows[q.name]]
+        names = [db_names[p] for p in listed if p in in_city]
+        if listed and not names:
+            elsewhere.append(q.name)
         absent = [n for n in names if n not in ref_index]
         if absent:
             raise DatasetError(
@@ -536,6 +542,17 @@ def msls_ground_truth(
                 f"from the reference folder (e.g. {', '.join(absent[:5])})"
             )
         truth.append(np.unique(np.array([ref_index[n] for n in names], dtype=np.int64)))
+    if elsewhere:
+        log.warning(
+            "ground_truth (msls, city %s): %d of the %d kept %s queries have their listed "
+            "positives (%s) only in the other city, so none after the city filter (e.g. %s)",
+            city,
+            len(elsewhere),
+            len(query),
+            city,
+            MSLS_FILES["pIdx"],
+            ", ".join(elsewhere[:5]),
+        )
     return truth
 
 
