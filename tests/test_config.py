@@ -371,3 +371,22 @@ def test_a_key_given_twice_in_a_config_file_stops_snakemake_naming_it_and_both_l
         f"config file {path}: key 'datasets' is given twice in one mapping, on line {first} "
         f"and line {last}" in result.stdout + result.stderr
     )
+
+
+def test_every_document_that_states_the_pairs_depth_states_the_schemas_default():
+    """The pairs files' depth is the config key `pairs_depth` (it once was whatever the
+    recall stored, documented as "the deepest Recall@N"): each document that gives its
+    default gives the schema's, and none ties the pairs to the table's Recall@N."""
+    import re
+
+    default = load_schema(SCHEMA_PATH)["properties"]["pairs_depth"]["default"]
+    stated = {}
+    for path in [REPO / "README.md", *sorted((REPO / "docs").glob("*.md"))]:
+        text = " ".join(path.read_text().split())
+        for value in re.findall(r"`pairs_depth`, default (\d+)", text):
+            stated.setdefault(path.name, []).append(int(value))
+        for sentence in re.split(r"(?<=\.) ", text):
+            if "pairs" in sentence and "deepest Recall@N" in sentence:
+                assert "export" not in sentence and "pairs.txt" not in sentence, sentence
+    assert {"README.md", "usage.md"} <= stated.keys()
+    assert all(v == default for values in stated.values() for v in values), stated
