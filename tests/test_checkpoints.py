@@ -17,6 +17,7 @@ import pytest
 import torch
 from tiny_models import tiny_vit
 
+from vprflow.core.errors import PlanError
 from vprflow.models.checkpoints import CheckpointError, load_hub_checkpoint
 from vprflow.models.vit import load_vit
 from vprflow.planning.fingerprints import source_fingerprint
@@ -195,6 +196,8 @@ def test_unreadable_checkpoints_are_refused_by_name(tmp_path):
         load_vit({**params, "checkpoint": str(unsafe)}, "cpu")
     with pytest.raises(CheckpointError, match="does not exist"):
         load_vit({**params, "checkpoint": str(tmp_path / "absent.ckpt")}, "cpu")
+    with pytest.raises(CheckpointError, match="is a folder; it must name a file"):
+        load_vit({**params, "checkpoint": str(tmp_path)}, "cpu")
     garbage = tmp_path / "garbage.ckpt"
     garbage.write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match=r"garbage\.ckpt'?: cannot read it"):
@@ -216,3 +219,23 @@ def test_checkpoint_file_is_hashed_into_the_key(tmp_path):
     assert first["checkpoint_sha256"] != second["checkpoint_sha256"]
     plain = source_fingerprint("features", {**entry, "checkpoint": None}, {}, "b")
     assert "checkpoint_sha256" not in plain
+
+
+@pytest.mark.parametrize(
+    ("stage", "entry", "key"),
+    [
+        ("features", {"backbone": "dinov2", "model": "facebook/dinov2-base"}, "checkpoint"),
+        ("features", {"backbone": "import", "patch_size": 14}, "file"),
+        ("segments", {"segmenter": "import"}, "file"),
+    ],
+)
+def test_a_weights_or_imported_file_key_naming_a_folder_is_an_error_naming_the_key(
+    tmp_path, stage, entry, key
+):
+    (tmp_path / "last.ckpt").write_bytes(b"weights")
+    with pytest.raises(PlanError, match=r"config key where\.(checkpoint|file): .* is a folder"):
+        source_fingerprint(stage, {**entry, key: str(tmp_path)}, {}, "where")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(PlanError, match="the folder is empty"):
+        source_fingerprint(stage, {**entry, key: str(empty)}, {}, "where")

@@ -170,3 +170,20 @@ def test_the_fetch_target_fetches_every_missing_checkpoint_and_refuses_a_wrong_o
     (tmp_path / "models" / "trunk.pth").write_bytes(b"put here by hand")
     done = snakemake(tmp_path, write_config(tmp_path, fixed), FETCH_TARGET)
     assert "Nothing to be done" in done.stdout + done.stderr
+
+
+def test_a_checkpoint_path_naming_a_folder_is_a_plan_error_naming_the_key(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    config = example_config(tmp_path)
+    for entry in config["backbones"].values():
+        if entry["backbone"] in kinds.TRAINED_KINDS:
+            Path(entry["checkpoint"]).parent.mkdir(parents=True, exist_ok=True)
+            Path(entry["checkpoint"]).write_bytes(b"present")
+    config["backbones"]["netvlad"]["checkpoint"] = "models"  # the folder holding it
+    with pytest.raises(PlanError) as error:
+        build_plan(config)
+    message = str(error.value)
+    assert "config key backbones.netvlad.checkpoint: models is a folder; it must name a file" in (
+        message
+    )
+    assert "pitts_WPCA4096.pth.tar" in message  # what the folder holds, to point at it

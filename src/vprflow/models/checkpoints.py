@@ -104,6 +104,8 @@ def read_checkpoint(path: str) -> dict:
             return torch.load(path, map_location="cpu", weights_only=True)
     except FileNotFoundError:
         raise CheckpointError(f"checkpoint {path!r} does not exist") from None
+    except IsADirectoryError:
+        raise CheckpointError(f"checkpoint {path!r} is a folder; it must name a file") from None
     except Exception as error:  # pickle and zip readers raise many types
         unsafe = []
         try:

@@ -67,14 +67,19 @@ def memo_key(path: str | Path, st: os.stat_result | None = None) -> str:
     return f"{os.path.abspath(path)}|{stamp}"
 
 
-def memoised(path: str | Path, memo: dict, digest, where: str) -> str:
-    """``digest(path)`` of a file or a directory's files, memoised by absolute path,
-    size, mtime and ctime (one ``stat`` per file: re-planning 100,000 images is quick).
-    ``where`` is the config key naming ``path``, named when it does not exist."""
+def memoised(path: str | Path, memo: dict, digest, where: str, folder: bool = False) -> str:
+    """``digest(path)`` of a file or (``folder``: a digest that reads one) a directory's
+    files, memoised by absolute path, size, mtime and ctime (one ``stat`` per file:
+    re-planning 100,000 images is quick). ``where`` is the config key naming ``path``,
+    named when it does not exist or is a folder where a file is read."""
     try:
         st = os.stat(path)
     except FileNotFoundError:
         raise PlanError(f"config key {where}: {path} does not exist") from None
+    if stat.S_ISDIR(st.st_mode) and not folder:
+        raise PlanError(
+            f"config key {where}: {path} is a folder; it must name a file{_holding(path)}"
+        )
     if stat.S_ISDIR(st.st_mode):
         entries = sorted(os.scandir(path), key=lambda e: e.name)
         stamps = [(e.name, e.stat()) for e in entries if e.is_file()]
@@ -85,6 +90,18 @@ def memoised(path: str | Path, memo: dict, digest, where: str) -> str:
     if key not in memo:
         memo[key] = digest(str(path))
     return memo[key]
+
+
+def _holding(path: str | Path, shown: int = 5) -> str:
+    """What a folder named where a file was meant holds, to point at the file."""
+    try:
+        names = sorted(e.name for e in os.scandir(path) if not e.name.startswith("."))
+    except OSError:
+        return ""
+    if not names:
+        return " (the folder is empty)"
+    more = f", ... ({len(names)} entries)" if len(names) > shown else ""
+    return f" (the folder holds {', '.join(names[:shown])}{more})"
 
 
 def dataset_contents(
@@ -181,7 +198,7 @@ def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> 
                 f"config key {where}.model: "
                 + str(model_not_found(model, f"local directory {model!r} does not exist", None))
             )
-        weights = memoised(model, memo, weights_fingerprint, f"{where}.model")
+        weights = memoised(model, memo, weights_fingerprint, f"{where}.model", folder=True)
         found = {"model": model, "weights": weights}
         for name in kind.model_files:  # e.g. a DINOv3 directory's preprocessor_config.json
             path = Path(model).expanduser() / name
