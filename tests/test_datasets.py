@@ -200,3 +200,30 @@ def test_a_name_with_two_suffixes_makes_pairs_ambiguous(tmp_path):
     spec = {**SPEC, "reference": "vi", "query": "ir", "paired": True}
     with pytest.raises(DatasetError, match=r"two suffixes.*vi/1\.jpg and .*vi/1\.png"):
         list_dataset(tmp_path, "toy", spec)
+
+
+# "Café" decomposed (NFD, as macOS writes file names) and composed (NFC, as typed).
+CAFE_NFD, CAFE_NFC = "Cafe\u0301", "Caf\u00e9"
+
+
+def test_an_image_list_typed_composed_finds_files_named_decomposed(tmp_path):
+    root = tmp_path / "mine"
+    write_pngs(root, [f"db/{CAFE_NFD}/1.png", f"db/{CAFE_NFD}/2.png", "q/1.png"])
+    (root / "ref.txt").write_text(f"db/{CAFE_NFC}/2.png\ndb/{CAFE_NFC}/1.png\n")
+    (root / "query.txt").write_text("q/1.png\n")
+    spec = dataset_spec(path="mine", reference="ref.txt", query="query.txt")
+    files = list_dataset(tmp_path, "mine", spec)
+    # Read under the files' own (decomposed) names, in the list's order.
+    assert [p.relative_to(root).as_posix() for p in files.reference] == [
+        f"db/{CAFE_NFD}/2.png",
+        f"db/{CAFE_NFD}/1.png",
+    ]
+    assert all(p.is_file() for p in files.reference)
+
+
+def test_pairs_named_in_two_unicode_forms_are_partners(tmp_path):
+    root = tmp_path / "pairs"
+    write_pngs(root, [f"vi/{CAFE_NFC}.png", "vi/b.png", f"ir/{CAFE_NFD}.png", "ir/b.png"])
+    spec = dataset_spec(path="pairs", reference="vi", query="ir", paired=True)
+    files = list_dataset(tmp_path, "pairs", spec)
+    assert [p.name for p in files.query] == [f"{CAFE_NFD}.png", "b.png"]

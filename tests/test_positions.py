@@ -406,3 +406,46 @@ def test_exif_positions_of_one_image_swapped_are_refused_naming_the_image(tmp_pa
         match=r"EXIF GPS: lat and lon look swapped on 1 of 7 rows \(query/0.jpg \(lat 4, lon 50",
     ):
         ground_truth(files, spec, root)
+
+
+# ------------------------------------------------------------------ Unicode forms of names
+# "Café" as macOS writes file names (decomposed, NFD: e + combining acute) and as one
+# types it in a CSV (composed, NFC): the two print alike.
+CAFE_NFD, CAFE_NFC = "Cafe\u0301", "Caf\u00e9"
+
+
+def test_a_csv_typed_composed_matches_files_named_decomposed(tmp_path):
+    root = tmp_path / "walk"
+    for name in (f"ref/{CAFE_NFD}_0.jpg", f"ref/{CAFE_NFD}_1.jpg", f"query/{CAFE_NFD}.jpg"):
+        (root / name).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.zeros((8, 8, 3), np.uint8)).save(root / name)
+    assert {p.name for p in (root / "ref").iterdir()} == {f"{CAFE_NFD}_0.jpg", f"{CAFE_NFD}_1.jpg"}
+    write_coordinates(
+        root / "gps.csv",
+        [
+            [f"ref/{CAFE_NFC}_0.jpg", 50.0, 4.0],
+            [f"ref/{CAFE_NFC}_1.jpg", 50.001, 4.0],  # 111 m north
+            [f"query/{CAFE_NFC}.jpg", 50.00001, 4.0],
+        ],
+    )
+    files = list_dataset(
+        tmp_path, "walk", dataset_spec(path="walk", reference="ref", query="query")
+    )
+    truth = ground_truth(
+        files, {"kind": "coordinates", "source": "file", "file": "gps.csv", "radius_m": 25}, root
+    )
+    assert truth[0].tolist() == [0]
+    # The files keep their own names for reading.
+    assert files.query[0].name == f"{CAFE_NFD}.jpg" and files.query[0].is_file()
+
+
+def test_a_name_twice_in_two_unicode_forms_is_named_as_such(tmp_path):
+    path = write_coordinates(
+        tmp_path / "c.csv", [[f"ref/{CAFE_NFC}.jpg", 1, 2], [f"ref/{CAFE_NFD}.jpg", 1, 2]]
+    )
+    with pytest.raises(DatasetError, match="listed again .*in another Unicode form"):
+        read_positions(path, [f"ref/{CAFE_NFD}.jpg"])
+    # Two files whose names differ only in their form: a typed name would match both.
+    path = write_coordinates(tmp_path / "d.csv", [[f"ref/{CAFE_NFC}.jpg", 1, 2]])
+    with pytest.raises(DatasetError, match="differ only in Unicode normalisation"):
+        read_positions(path, [f"ref/{CAFE_NFC}.jpg", f"ref/{CAFE_NFD}.jpg"])

@@ -12,12 +12,57 @@ What the images are of (the ground truth) is :mod:`vprflow.data.ground_truth`.
 from __future__ import annotations
 
 import os
+import unicodedata
 from dataclasses import dataclass
 from pathlib import Path, PurePath
 
 from vprflow.core.errors import DatasetError
 from vprflow.data.images import IMAGE_SUFFIXES, ImageScan, natural_key, scan_images
 from vprflow.core.paths import dataset_folder, download_hint
+
+
+def nfc(name: str) -> str:
+    """``name`` in Unicode's composed form (NFC), the one form names are compared in:
+    macOS writes file names decomposed (NFD: ``e`` then a combining accent), while a
+    name typed in a CSV or list is composed, and the two print alike."""
+    return unicodedata.normalize("NFC", name)
+
+
+def by_composed_name(names: list[str], what: str) -> dict[str, str]:
+    """Each of ``names`` (a dataset's image names) by its :func:`nfc` form, refusing two
+    that differ only in Unicode normalisation (one file name could not tell them apart)."""
+    found: dict[str, str] = {}
+    for name in names:
+        other = found.setdefault(nfc(name), name)
+        if other != name:
+            raise DatasetError(
+                f"{what}: {other!r} and {name!r} differ only in Unicode normalisation "
+                "(composed and decomposed accents), so a name typed in a file matches "
+                "both; rename one"
+            )
+    return found
+
+
+def existing_path(root: Path, name: str) -> Path | None:
+    """``root / name`` if it exists, else the path whose every part equals ``name``'s up
+    to Unicode normalisation (a list typed composed, files written decomposed), with
+    its real names; None if there is none."""
+    path = root / name
+    if path.exists():
+        return path
+    found = root
+    for part in PurePath(name).parts:
+        if (found / part).exists():
+            found = found / part
+            continue
+        try:
+            matches = [e.name for e in os.scandir(found) if nfc(e.name) == nfc(part)]
+        except OSError:
+            return None
+        if len(matches) != 1:
+            return None
+        found = found / matches[0]
+    return found
 
 
 @dataclass(frozen=True)
@@ -170,6 +215,7 @@ def read_image_list(list_file: Path, root: Path, what: str) -> ImageScan:
         path = root / name
         if path.suffix.lower() not in IMAGE_SUFFIXES:
             raise DatasetError(f"{where}: {name!r} is not an image file name")
+        path = existing_path(root, name) or path  # the file's own spelling
         if not path.is_file():
             raise DatasetError(f"{where}: image {path} does not exist")
         real = os.path.realpath(path)
@@ -198,7 +244,7 @@ def paired_queries(
         by_key: dict[str, Path] = {}
         clashes = []
         for path in paths:
-            key = path.relative_to(base).with_suffix("").as_posix()
+            key = nfc(path.relative_to(base).with_suffix("").as_posix())
             if key in by_key:
                 clashes.append(f"{by_key[key]} and {path}")
             by_key[key] = path
@@ -218,7 +264,9 @@ def paired_queries(
             f"no partner of the same relative path (suffix aside) in the other folder, "
             f"e.g. {', '.join(problems)}"
         )
-    return [queries[path.relative_to(ref_base).with_suffix("").as_posix()] for path in reference]
+    return [
+        queries[nfc(path.relative_to(ref_base).with_suffix("").as_posix())] for path in reference
+    ]
 
 
 def listing_truth(truth: dict) -> dict:

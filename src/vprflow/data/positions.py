@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from vprflow.data.datasets import folder_counts
+from vprflow.data.datasets import by_composed_name, folder_counts, nfc
 from vprflow.core.errors import DatasetError
 
 
@@ -204,13 +204,18 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
                 f"'easting'/'northing' columns; found {columns}"
             )
         with_heading = "heading" in columns
+        # By the composed (NFC) name: a name typed composed matches a file whose name
+        # macOS wrote decomposed.
         rows: dict[str, tuple[int, tuple[float, ...]]] = {}
+        typed: dict[str, str] = {}
         for line, row in enumerate(reader, start=2):
             image = (row.get("image") or "").strip()
-            if image in rows:
+            if nfc(image) in rows:
+                first = typed[nfc(image)]
+                form = "" if first == image else f", as {first!r}, in another Unicode form"
                 raise DatasetError(
                     f"{csv_path} line {line}: image {image!r} is listed again "
-                    f"(first on line {rows[image][0]})"
+                    f"(first on line {rows[nfc(image)][0]}{form})"
                 )
             wanted = (*keys, "heading") if with_heading else keys
             try:
@@ -227,22 +232,24 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
                     f"{csv_path} line {line}: lat {values[0]} / lon {values[1]} of {image!r} "
                     "are outside -90..90 / -180..180"
                 )
-            rows[image] = (line, values)
-    unknown = [(line, image) for image, (line, _) in rows.items() if image not in set(names)]
+            rows[nfc(image)] = (line, values)
+            typed[nfc(image)] = image
+    composed = by_composed_name(names, str(csv_path))
+    unknown = [(line, typed[key]) for key, (line, _) in rows.items() if key not in composed]
     if unknown:
         listing = ", ".join(f"line {line}: {image!r}" for line, image in unknown[:5])
         raise DatasetError(
             f"{csv_path}: {len(unknown)} row(s) name images that are not in the dataset "
             f"({listing}); names are paths relative to the dataset folder, e.g. {names[0]!r}"
         )
-    missing = [name for name in names if name not in rows]
+    missing = [name for name in names if nfc(name) not in rows]
     if missing:
         raise DatasetError(
             f"{csv_path}: {len(missing)} image(s) of the dataset have no row, "
             f"e.g. {', '.join(missing[:5])}{folder_counts(missing, names)}"
         )
-    table = np.array([rows[name][1] for name in names], dtype=np.float64)
-    labels = [f"line {rows[name][0]}: {name!r}" for name in names]
+    table = np.array([rows[nfc(name)][1] for name in names], dtype=np.float64)
+    labels = [f"line {rows[nfc(name)][0]}: {name!r}" for name in names]
     check_one_system(table[:, 0], table[:, 1], geographic, labels, str(csv_path), keys)
     heading = table[:, 2] if with_heading else None
     return Positions(table[:, 0], table[:, 1], heading, geographic)
