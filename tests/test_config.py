@@ -385,6 +385,8 @@ def test_every_document_that_states_the_pairs_depth_states_the_schemas_default()
         text = " ".join(path.read_text().split())
         for value in re.findall(r"`pairs_depth`, default (\d+)", text):
             stated.setdefault(path.name, []).append(int(value))
+        if path.name == "bad-inputs.md":
+            continue  # it quotes what the pairs used to be documented as
         for sentence in re.split(r"(?<=\.) ", text):
             if "pairs" in sentence and "deepest Recall@N" in sentence:
                 assert "export" not in sentence and "pairs.txt" not in sentence, sentence
