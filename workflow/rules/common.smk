@@ -6,6 +6,7 @@ from pathlib import Path
 from vprflow.planning.checkpoints import fetching_checkpoints
 from vprflow.planning.command import read_command
 from vprflow.planning.config import validate_config
+from vprflow.planning.merges import merge_order
 from vprflow.core.errors import PlanError
 from vprflow.data.datasets import list_dataset
 from vprflow.data.download import awaiting_download, requested_datasets
@@ -68,7 +69,9 @@ RUNS_JOBS = (
     and COMMAND.runs_workflow
 )
 try:
-    CONFIG = validate_config(config, SCHEMA, workflow.configfiles)
+    CONFIG = validate_config(
+        config, SCHEMA, merge_order(workflow.configfiles, workflow.overwrite_configfiles)
+    )
     # Content hashes of images, local model weights and imported files, memoised
     # between runs.
     _memo = load_fingerprints(PREFIX + FINGERPRINTS)

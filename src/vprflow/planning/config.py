@@ -83,6 +83,9 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     the entry's kind does not read: :func:`unread_keys`). ``files``: the config files
     ``config`` was read from: each is read again to refuse a key given twice
     (:func:`check_config_files`) and named when it is too large (:func:`check_config_size`).
+    Given in merge order, they also say which keys of a dataset that two files define
+    came from which (:mod:`vprflow.planning.merges`, which also drops a ``download`` that
+    would lay out another file's folder).
     A NaN or infinite number is refused wherever it is (:func:`non_finite_numbers`), and
     an integral float where the schema expects an integer is read as that integer
     (:func:`integral_floats`), so ``n_clusters: 8.0`` runs, and is keyed, as ``8``.
@@ -90,8 +93,12 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     import jsonschema
 
     from vprflow.data.presets import Components, presets, protocol, with_presets
+    from vprflow.planning.merges import dataset_merges, say_merges, without_foreign_downloads
 
     check_config_files(files)
+    merges = dataset_merges(files)
+    say_merges(merges)
+    config = without_foreign_downloads(config, merges)
     check_config_size(config, files)
     schema = load_schema(schema_path)
     if isinstance(config.get("data_root"), str):
