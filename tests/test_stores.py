@@ -942,8 +942,26 @@ def test_only_temporaries_without_a_live_writer_are_removed_at_job_start(tmp_pat
         _write_keyed_store(out, {"params": {}}, 0.0)
     assert live.exists() and elsewhere_fresh.exists() and unrelated.exists()
     assert not dead.exists() and not dead_aside.exists() and not elsewhere_old.exists()
-    assert f"process {os.getppid()} on {host} is writing the same store" in caplog.text
+    said = f"another run is writing {out} (pid {os.getppid()} on {host}, in {live.name})"
+    assert said in caplog.text and "--nolock bypasses it" in caplog.text
     assert open_store(out).attrs["record"] == {"params": {}}
+
+
+def test_a_missing_store_that_another_run_is_writing_names_its_process_and_nolock(tmp_path):
+    from vprflow.core.files import host_name
+
+    out = tmp_path / "key.zarr"
+    with pytest.raises(FileNotFoundError, match=r"has its stage run\?"):
+        open_store(out)
+    live = out.with_name(f"key.{host_name()}-{os.getppid()}-0123abcd.zarr.tmp")
+    live.mkdir()
+    with pytest.raises(FileNotFoundError) as raised:
+        open_store(out)
+    assert str(raised.value) == (
+        f"store {out} does not exist: another run is writing it (pid {os.getppid()} on "
+        f"{host_name()}). Two runs of one folder delete each other's stores; Snakemake's "
+        "lock prevents this, --nolock bypasses it"
+    )
 
 
 def test_a_store_replaced_under_every_rename_names_concurrent_runs_and_nolock(

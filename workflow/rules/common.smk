@@ -1,4 +1,5 @@
 # Config validation, the content-addressed plan, and the input functions every rule uses.
+import atexit
 import sys
 from functools import cache
 from pathlib import Path
@@ -8,6 +9,7 @@ from vprflow.planning.command import read_command
 from vprflow.planning.config import validate_config
 from vprflow.planning.merges import merge_order
 from vprflow.core.errors import PlanError
+from vprflow.core.runs import collision_message, end_run, other_runs, start_run
 from vprflow.data.datasets import list_dataset
 from vprflow.data.download import awaiting_download, requested_datasets
 from vprflow.planning.fingerprints import load_fingerprints, save_fingerprints
@@ -68,6 +70,14 @@ RUNS_JOBS = (
     and not workflow.output_settings.dryrun
     and COMMAND.runs_workflow
 )
+# A run that runs jobs marks the folder while it lasts: another run of it at once
+# (--nolock) is named now and again if this one fails.
+if RUNS_JOBS:
+    RUN_MARKER = start_run(PREFIX, COMMAND.targets)
+    atexit.register(end_run, RUN_MARKER)
+    OTHER_RUNS = other_runs(RUN_MARKER.parent, RUN_MARKER)
+    if OTHER_RUNS:
+        print(f"vprflow: {collision_message(OTHER_RUNS)}", file=sys.stderr)
 try:
     CONFIG = validate_config(
         config, SCHEMA, merge_order(workflow.configfiles, workflow.overwrite_configfiles)

@@ -86,6 +86,10 @@ localrules:
 # A dataset still awaiting its download has no plan its tables could be stale against.
 onerror:
     if RUNS_JOBS:
+        # Another run of this folder deletes this one's stores: say so beside the failure.
+        _others = other_runs(RUN_MARKER.parent, RUN_MARKER) or OTHER_RUNS
+        if _others:
+            print(f"vprflow: {collision_message(_others)}")
         asked = requested_datasets(CONFIG, workflow.dag_settings.targets)
         asked = [name for name in asked if name not in AWAITING_DOWNLOAD]
         for table in withdraw_stale_reports(PLAN, PREFIX, asked):

@@ -119,11 +119,13 @@ def remove_abandoned_temporaries(path: str | Path) -> list[Path]:
             removed.append(tmp)
         else:
             log.warning(
-                "%s: process %s on %s is writing the same store at this moment (two runs "
-                "of one target with --nolock?); whichever finishes first is kept",
-                tmp,
+                "another run is writing %s (pid %s on %s, in %s): two runs of one folder "
+                "at once; Snakemake's lock prevents this, --nolock bypasses it. Whichever "
+                "finishes first is kept",
+                path,
                 match["pid"],
                 match["host"],
+                tmp.name,
             )
     return removed
 
@@ -302,8 +304,25 @@ def open_store(path: str | Path) -> CheckedGroup:
     checked too (see :class:`CheckedArray`)."""
     path = Path(path)
     if not path.exists():
+        writers = live_writers(path)
+        if writers:
+            raise FileNotFoundError(
+                f"store {path} does not exist: another run is writing it ({writers}). "
+                "Two runs of one folder delete each other's stores; Snakemake's lock "
+                "prevents this, --nolock bypasses it"
+            )
         raise FileNotFoundError(f"store {path} does not exist (has its stage run?)")
     return CheckedGroup(path)
+
+
+def live_writers(path: str | Path) -> str:
+    """The processes writing a temporary of ``path`` at this moment, for a message
+    (``pid 123 on host``, ...), or ``""``."""
+    return ", ".join(
+        f"pid {match['pid']} on {match['host']}"
+        for tmp, match in temporary_paths(path)
+        if match is not None and not is_abandoned(tmp, match["host"], int(match["pid"]))
+    )
 
 
 class CheckedGroup:
