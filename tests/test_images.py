@@ -1,10 +1,12 @@
 """Reading, finding and resizing images.
 
-``resize_image``: OpenCV INTER_LINEAR ("linear") and PIL bilinear ("antialias", equal to
-PIL's 8-bit result on 8-bit images); resizing a linear ramp must reproduce the ramp at
-the output pixel centres within 1e-5. ``read_image``: 8-bit values must equal v / 255 and
-16-bit values v / 65535 within 1e-7 (float32 rounding), the EXIF orientation as
-``cv2.imread`` applies it. ``scan_images``: links, unread formats and the order of names.
+``resize_image``: OpenCV INTER_LINEAR ("linear"), PIL bilinear ("antialias", equal to
+PIL's 8-bit result on 8-bit images) and torchvision's antialiased bicubic on a float
+tensor ("bicubic_antialias", against a float64 formula); resizing a linear ramp must
+reproduce the ramp at the output pixel centres within 1e-5. ``read_image``: 8-bit
+values must equal v / 255 and 16-bit values v / 65535 within 1e-7 (float32 rounding),
+the EXIF orientation as ``cv2.imread`` applies it. ``scan_images``: links, unread
+formats and the order of names.
 
 The reference for "linear" is a slow float64 double loop over output pixels written
 from OpenCV's documented rule (``resize.cpp``): source position
@@ -148,6 +150,63 @@ def test_antialias_on_8bit_images_equals_pil_on_the_8bit_image_bit_for_bit():
         published = Image.fromarray(pixels, "RGB").resize((out_w, out_h), Image.Resampling.BILINEAR)
         ours = resize_image(pixels.astype(np.float32) / 255.0, out_w, out_h, method="antialias")
         np.testing.assert_array_equal(ours * 255.0, np.asarray(published, dtype=np.float32))
+
+
+def _keys_cubic(x: float) -> float:
+    """Keys' cubic convolution kernel with a = -0.5."""
+    a, x = -0.5, abs(x)
+    if x < 1:
+        return (a + 2) * x**3 - (a + 3) * x**2 + 1
+    if x < 2:
+        return a * x**3 - 5 * a * x**2 + 8 * a * x - 4 * a
+    return 0.0
+
+
+def _antialiased_bicubic_weights(size_in: int, size_out: int) -> np.ndarray:
+    """float64 ``[size_out, size_in]``: output pixel ``d`` is centred at input coordinate
+    ``c = (d + 0.5) * scale`` (``scale = in / out``, pixel ``j`` covering ``[j, j + 1)``);
+    when shrinking the kernel is stretched by ``scale`` (support ``2 * scale`` pixels each
+    side), taps are the pixels whose centres lie within the support (cut at the borders)
+    and the weights are divided by their sum."""
+    scale = size_in / size_out
+    stretch = max(scale, 1.0)
+    weights = np.zeros((size_out, size_in))
+    for d in range(size_out):
+        centre = (d + 0.5) * scale
+        first = max(int(centre - 2 * stretch + 0.5), 0)
+        stop = min(int(centre + 2 * stretch + 0.5), size_in)
+        for j in range(first, stop):
+            weights[d, j] = _keys_cubic((j + 0.5 - centre) / stretch)
+        weights[d] /= weights[d].sum()
+    return weights
+
+
+BICUBIC_SHAPES = {**SHAPES, "corridor to BoQ-DINOv2's 322 x 322": (120, 160, 322, 322)}
+
+
+@pytest.mark.parametrize("shape", BICUBIC_SHAPES.values(), ids=BICUBIC_SHAPES.keys())
+def test_bicubic_antialias_equals_the_antialiased_keys_cubic_formula(shape):
+    in_h, in_w, out_h, out_w = shape
+    image = np.random.default_rng(in_w + out_w).random((in_h, in_w, 3), dtype=np.float32)
+    out = resize_image(image, out_w, out_h, method="bicubic_antialias")
+    assert out.shape == (out_h, out_w, 3) and out.dtype == np.float32
+    rows = _antialiased_bicubic_weights(in_h, out_h)
+    columns = _antialiased_bicubic_weights(in_w, out_w)
+    expected = np.einsum("yi,ijc,xj->yxc", rows, image.astype(np.float64), columns)
+    # torch computes in float32, tap positions too: a centre near coordinate n is off by
+    # up to n * 2^-24 pixels, which moves the result by that times the kernel's slope
+    # (< 1.5) summed over the taps of random [0, 1] values; measured: 1.4e-5 at 322 px.
+    size = max(shape)
+    np.testing.assert_allclose(out, expected, rtol=0, atol=1e-6 + 2.0**-23 * size * 2)
+
+
+def test_bicubic_antialias_keeps_the_overshoot_torchvision_keeps():
+    # A sharp edge: the cubic's negative lobes ring below 0 and above 1, and torchvision's
+    # tensor Resize does not clamp float images.
+    image = np.zeros((8, 8, 3), np.float32)
+    image[:, 4:] = 1.0
+    out = resize_image(image, 19, 8, method="bicubic_antialias")
+    assert out.min() < -0.01 and out.max() > 1.01
 
 
 def test_resize_image_reproduces_a_linear_ramp():

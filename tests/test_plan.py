@@ -755,6 +755,28 @@ def test_a_trained_models_descriptor_is_read_as_its_published_pipeline_reads(tmp
     assert descriptors.record["params"] == {"aggregator": "model"}
 
 
+def test_boqs_descriptor_is_read_with_torchvisions_bicubic_and_its_tokens_as_their_method_reads(
+    tmp_path,
+):
+    filled = _with_trained(
+        tmp_path,
+        boq={"backbone": "boq_dinov2"},
+        boq50={"backbone": "boq_resnet50"},
+        boq_tokens={"backbone": "boq_dinov2", "output": "features"},
+    )
+    plan = build_plan(filled)
+    read = {}
+    for name in ("boq", "boq50", "boq_tokens"):
+        key = keys_of(filled, method=f"{name}_m")["features"]
+        params = plan.stages["features"][key].record["params"]
+        read[name] = (params["resolution"], params["resize"])
+    assert read == {
+        "boq": ([322, 322], "bicubic_antialias"),
+        "boq50": ([384, 384], "bicubic_antialias"),
+        "boq_tokens": ([322, 322], "linear"),  # AnyLoc's reader, as every dense map
+    }
+
+
 def test_a_trained_models_variant_and_checkpoint_reach_its_features_and_everything_after(
     tmp_path,
 ):

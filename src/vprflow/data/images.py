@@ -6,7 +6,7 @@ alpha channels are dropped. The EXIF Orientation tag is applied by default (as
 ``cv2.imread`` in SegVLAD's and AnyLoc's readers): phone photos store their pixels
 rotated and say so in that tag (``EXIF_ORIENTATIONS``).
 
-``resize_image`` resizes in one of two ways (``RESIZE_METHODS``):
+``resize_image`` resizes in one of three ways (``RESIZE_METHODS``):
 
 - ``"linear"`` (default): OpenCV's ``cv2.resize(..., interpolation=cv2.INTER_LINEAR)``,
   which the published pipelines use for both the DINOv2 and the SAM input. Output pixel
@@ -21,6 +21,13 @@ rotated and say so in that tag (``EXIF_ORIENTATIONS``).
   (antialiasing): SNSM's reader (torchvision ``Resize`` on a PIL image). An image whose
   values are all 8-bit levels (every 8-bit file) is resized as PIL resizes the 8-bit
   image, so the pixels equal the authors' bit for bit; others in float.
+- ``"bicubic_antialias"``: torchvision's ``Resize(..., interpolation=BICUBIC,
+  antialias=True)`` on the float tensor ``ToTensor`` makes, which is torch's
+  ``interpolate(mode="bicubic", antialias=True, align_corners=False)``: Keys' cubic
+  (a = -0.5), its support widened by the scale when shrinking, weights normalised; BoQ's
+  reader. Computed by that torch call in float32, so it equals torchvision's bit for bit.
+  Not clipped: the cubic's negative lobes overshoot [0, 1] at sharp edges (by a few
+  hundredths on photos), and torchvision leaves float tensors as they are.
 """
 
 from __future__ import annotations
@@ -168,7 +175,7 @@ def decode_image(data: bytes, path: str | Path, exif_orientation: str = "apply")
     return np.ascontiguousarray(pixels)
 
 
-RESIZE_METHODS = ("linear", "antialias")
+RESIZE_METHODS = ("linear", "antialias", "bicubic_antialias")
 
 
 # EXIF Orientation values that turn the stored pixels by 90 degrees (swap width and height).
@@ -192,10 +199,12 @@ def image_size(path: str | Path, exif_orientation: str = "apply") -> tuple[int, 
 
 
 def resize_image(image: np.ndarray, width: int, height: int, method: str = "linear") -> np.ndarray:
-    """Resize a float image ``[H, W, C]`` to float32 ``[height, width, C]`` in ``[0, 1]``.
+    """Resize a float image ``[H, W, C]`` to float32 ``[height, width, C]`` in ``[0, 1]``
+    (``"bicubic_antialias"``: as its cubic overshoots, unclipped).
 
-    ``method`` is ``"linear"`` (OpenCV ``INTER_LINEAR``, the default) or ``"antialias"``
-    (PIL bilinear); see the module docstring. Both keep the precision of 16-bit inputs.
+    ``method`` is ``"linear"`` (OpenCV ``INTER_LINEAR``, the default), ``"antialias"``
+    (PIL bilinear) or ``"bicubic_antialias"`` (torchvision's bicubic on a float tensor);
+    see the module docstring. All keep the precision of 16-bit inputs.
     """
     if method not in RESIZE_METHODS:
         raise ValueError(f"unknown resize method {method!r}; expected one of {RESIZE_METHODS}")
@@ -205,6 +214,8 @@ def resize_image(image: np.ndarray, width: int, height: int, method: str = "line
         raise ValueError(f"cannot resize to {width}x{height}: both sides must be >= 1")
     if image.shape[0] == height and image.shape[1] == width:
         return image.astype(np.float32, copy=False)
+    if method == "bicubic_antialias":
+        return _resize_bicubic_antialias(image, width, height)
     if method == "linear":
         resized = _resize_linear(np.asarray(image, dtype=np.float32), width, height)
     else:
@@ -258,6 +269,18 @@ def _resize_antialias(image: np.ndarray, width: int, height: int) -> np.ndarray:
         for c in range(image.shape[2])
     ]
     return np.stack(channels, axis=2)
+
+
+def _resize_bicubic_antialias(image: np.ndarray, width: int, height: int) -> np.ndarray:
+    """torchvision's tensor ``Resize`` (bicubic, antialiased): the same torch call on the
+    same contiguous float32 ``[1, C, H, W]`` tensor that ``ToTensor`` gives."""
+    import torch  # only this method needs it; the module stays importable without
+
+    pixels = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32))
+    resized = torch.nn.functional.interpolate(
+        pixels[None], size=(height, width), mode="bicubic", align_corners=False, antialias=True
+    )
+    return np.ascontiguousarray(resized[0].permute(1, 2, 0).numpy())
 
 
 @dataclass(frozen=True)

@@ -232,8 +232,8 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
         14,
         "DINOv2-B/14 patch tokens after the final LayerNorm, 768-d",
     ),
-    # DINOv2-B/14 (no final norm) + Bag-of-Queries; BoQ resizes bicubically (antialiased),
-    # which vprflow's resize methods lack: bilinear antialiased here.
+    # DINOv2-B/14 (no final norm) + Bag-of-Queries; BoQ's README reads with torchvision's
+    # bicubic antialiased Resize on the float tensor.
     "boq_dinov2": TrainedModel(
         {
             "dinov2_12288": TrainedVariant(
@@ -246,6 +246,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
         (322, 322),
         14,
         "DINOv2-B/14 last-block patch tokens (no final LayerNorm), 768-d",
+        resize="bicubic_antialias",
     ),
     # DINOv2-B/14 + SALAD-style aggregation + linear projection, at the images' own size
     # (VPR-methods-evaluation resizes nothing by default; MegaLoc rounds each side to a
@@ -296,7 +297,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
         "ResNet-50 layer4, 2048-d, stride 32",
         crop=False,
     ),
-    # ResNet-50 cut after layer3 + Bag-of-Queries, 16384-d, 384 x 384.
+    # ResNet-50 cut after layer3 + Bag-of-Queries, 16384-d, 384 x 384, read as BoQ-DINOv2.
     "boq_resnet50": TrainedModel(
         {
             "resnet50_16384": TrainedVariant(
@@ -310,6 +311,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
         16,
         "ResNet-50 layer3, 1024-d, stride 16",
         crop=False,
+        resize="bicubic_antialias",
     ),
     # ResNet trunk + GeM + FC, at the images' own size (their evaluation resizes
     # nothing); one variant per published backbone and length, ResNet50_2048 first.
