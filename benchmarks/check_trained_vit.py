@@ -12,15 +12,19 @@ input size and the checkpoint layout the loader read.
 Folders used: ``pytorch-NetVlad`` (netvlad.py), ``Patch-NetVLAD``
 (patchnetvlad/models), ``salad`` (models/backbones/dinov2.py,
 models/aggregators/salad.py), ``Bag-of-Queries`` (src/backbones.py, src/boq.py),
-``MegaLoc`` (megaloc_model.py) and ``dinov2`` (facebookresearch/dinov2, the backbone
-SALAD and BoQ load through torch.hub; here ``torch.hub.load`` is pointed at it with
+``MegaLoc`` (megaloc_model.py), ``VLAD-BuFF`` (the folder of AnyLoc/Revisit-Anything:
+hubconf.py, vpr_model.py, models/; its ``VPRModel`` is built as ``hubconf.vlad_buff``
+builds it, with stand-ins for the training-only pytorch_lightning, wandb, utils and
+sklearn) and ``dinov2`` (facebookresearch/dinov2, the backbone SALAD, BoQ and VLAD-BuFF
+load through torch.hub; here ``torch.hub.load`` is pointed at it with
 ``pretrained=False``). torchvision must be importable (for VGG16 and the originals),
 e.g. ``PYTHONPATH=/tmp/tv`` after ``bash ../shared/tools/torchvision-for-checks.sh /tmp/tv``.
 
     PYTHONPATH=/tmp/tv python benchmarks/check_trained_vit.py /tmp/originals
 
 Runs on CPU in float32; ``--vit-depth`` reduces the ViT-B/14 depth (default all 12
-blocks), ``--netvlad-size`` the NetVLAD input (default 480 x 640).
+blocks), ``--netvlad-size`` the NetVLAD input (default 480 x 640). VLAD-BuFF's published
+whitening (8192 x 49152) makes its check hold about 8 GB at once.
 """
 
 from __future__ import annotations
@@ -42,6 +46,7 @@ from vprflow.models.trained.boq_dinov2 import load_boq_dinov2
 from vprflow.models.trained.megaloc import load_megaloc
 from vprflow.models.trained.netvlad import load_netvlad
 from vprflow.models.trained.salad import dinov2_config, load_salad
+from vprflow.models.trained.vlad_buff import load_vlad_buff
 from vprflow.models.trunks.vgg import IMAGENET_MEAN, IMAGENET_STD, load_vgg16_trunk
 
 
@@ -343,6 +348,142 @@ def check_megaloc(originals: Path, depth: int, work: Path) -> list:
     return rows
 
 
+def _hub_function(folder: Path, name: str, namespace: dict):
+    """The function ``name`` of VLAD-BuFF's hubconf.py, run as written with the file's
+    constants and functions (its imports pull in the training stack)."""
+    import ast
+
+    source = (folder / "hubconf.py").read_text()
+    body = [n for n in ast.parse(source).body if isinstance(n, (ast.Assign, ast.FunctionDef))]
+    exec(compile(ast.Module(body, []), str(folder / "hubconf.py"), "exec"), namespace)
+    return namespace[name]
+
+
+def _vlad_buff_original(folder: Path, originals: Path, depth: int, nv_pca, num_pcs):
+    """``VPRModel`` as ``hubconf.vlad_buff(antiburst=True, nv_pca, wpca=True, num_pcs)``
+    builds it, its arguments from hubconf's own ``parse_args``."""
+    import argparse
+
+    _stub_sklearn()
+    try:
+        import sklearn.decomposition  # noqa: F401
+    except ImportError:
+        decomposition = types.ModuleType("sklearn.decomposition")
+        decomposition.__spec__ = importlib.machinery.ModuleSpec(decomposition.__name__, None)
+        decomposition.PCA = None  # the NetVLAD initialisation's only
+        sys.modules["sklearn.decomposition"] = decomposition
+    # Training-only imports of vpr_model.py: its module is a LightningModule with a loss.
+    lightning = types.ModuleType("pytorch_lightning")
+
+    class LightningModule(torch.nn.Module):
+        def save_hyperparameters(self, *args, **kwargs):
+            pass
+
+    lightning.LightningModule = LightningModule
+    utils = types.ModuleType("utils")
+    utils.get_loss = utils.get_miner = lambda *args: None
+    for stub in (lightning, utils, types.ModuleType("wandb")):
+        stub.__spec__ = importlib.machinery.ModuleSpec(stub.__name__, None)
+        sys.modules[stub.__name__] = stub
+    if str(folder) not in sys.path:
+        sys.path.insert(0, str(folder))
+    import vpr_model
+
+    parse_args = _hub_function(folder, "parse_args", {"argparse": argparse})
+    argv, sys.argv = sys.argv, ["hubconf.py"]
+    try:
+        args = parse_args(antiburst=True, nv_pca=nv_pca, wpca=True, num_pcs=num_pcs)
+    finally:
+        sys.argv = argv
+    hub_load, torch.hub.load = torch.hub.load, _hub_dinov2(originals, depth)
+    try:
+        return vpr_model.VPRModel(
+            backbone_arch=args.backbone,
+            backbone_config={
+                "num_trainable_blocks": args.num_trainable_blocks,
+                "return_token": False,
+                "norm_layer": args.norm_layer,
+            },
+            agg_arch=args.aggregation,
+            agg_config=args,
+            args=args,
+        ).eval()
+    finally:
+        torch.hub.load = hub_load
+
+
+def check_vlad_buff(originals: Path, depth: int, work: Path) -> list:
+    """Both published VLAD-BuFF models: the original with random weights, saved as
+    ``add_pca.py`` saves it (``{num_pcs, state_dict}``, the whitening as ``WPCA_<n>`` in
+    float64), read back once by hubconf's own key handling into a second original (which
+    must equal the first exactly) and once by vprflow's loader; the whitened descriptor
+    (``eval.py``: ``model.WPCA`` of ``model(images)``) and the VLAD before it."""
+    folder = originals / "VLAD-BuFF"
+    rows = []
+    for seed, (nv_pca, num_pcs) in enumerate(((None, 8192), (192, 4096)), start=13):
+        original = _vlad_buff_original(folder, originals, depth, nv_pca, num_pcs)
+        _randomise(original, seed)
+        with torch.no_grad():
+            # Trained-like: a sharp soft assignment, unit centroids, AntiBurst near its
+            # initial (8, 7, 1).
+            original.aggregator.conv.weight.mul_(20.0)
+            centroids = original.aggregator.centroids
+            centroids.copy_(torch.nn.functional.normalize(centroids, dim=1))
+            noise = torch.randn(3, generator=torch.Generator().manual_seed(seed))
+            original.aggregator.ab_params.copy_(torch.tensor([8.0, 7.0, 1.0]) + 0.1 * noise)
+        images = _images(2, 322, 322, seed=seed)
+        with torch.no_grad():
+            vlad = original(images)
+            whitened = original.WPCA(vlad.unsqueeze(-1).unsqueeze(-1))
+        state = {
+            (f"WPCA_{num_pcs}." + k[len("WPCA.") :] if k.startswith("WPCA.") else k): (
+                v.double() if k.startswith("WPCA.") else v
+            )
+            for k, v in original.state_dict().items()
+        }
+        name = "dnv2_NV_{}AB_wpca{}_last.ckpt".format(f"{nv_pca}PCA_" if nv_pca else "", num_pcs)
+        path = work / name
+        torch.save({"num_pcs": num_pcs, "state_dict": state}, path)
+        del original, state
+        # hubconf.vlad_buff's loading, on a fresh original.
+        replace_key = _hub_function(folder, "replace_key", {})
+        again = _vlad_buff_original(folder, originals, depth, nv_pca, num_pcs)
+        checkpoint = torch.load(path, weights_only=True)
+        renamed = {replace_key(k, num_pcs): v for k, v in checkpoint["state_dict"].items()}
+        own = again.state_dict()
+        again.load_state_dict({k: v for k, v in renamed.items() if k in own})
+        del checkpoint, renamed, own
+        with torch.no_grad():
+            vlad_again = again(images)
+            if not torch.equal(again.WPCA(vlad_again[..., None, None]), whitened):
+                raise AssertionError(f"{name}: hubconf's loading changed the original's output")
+        del again
+        config = dinov2_config(num_hidden_layers=depth)
+        for pcs, theirs in ((num_pcs, whitened), (None, vlad)):
+            ours = load_vlad_buff(str(path), config, nv_pca=nv_pca, num_pcs=pcs)
+            with torch.no_grad():
+                mine = ours(images)
+            del ours
+            variant = (
+                f"whitened to {num_pcs}" if pcs else f"VLAD {vlad.shape[1]}, before the whitening"
+            )
+            rows.append(
+                {
+                    "model": f"VLAD-BuFF {name.rsplit('_wpca', 1)[0]} {variant} "
+                    f"(ViT-B/14, {depth} blocks)",
+                    "source": f"{_commit(folder)}; {_commit(originals / 'dinov2')}",
+                    "diff": _difference(mine, theirs),
+                    "scale": float(theirs.abs().max()),
+                    "dim": mine.shape[1],
+                    "input": (322, 322),
+                    "layout": f"{{num_pcs, state_dict: backbone.model.<hub DINOv2>, "
+                    f"aggregator.*, WPCA_{num_pcs}.0.* (float64)}} ({name})",
+                }
+            )
+        path.unlink()
+    return rows
+
+
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("originals", type=Path, help="folder of the original repositories")
@@ -350,7 +491,9 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--netvlad-size", type=int, nargs=2, default=(480, 640), metavar=("H", "W"))
     parser.add_argument("--pcs", type=int, default=4096, help="Patch-NetVLAD whitening dims")
     parser.add_argument(
-        "--only", nargs="*", default=("vgg", "nanne", "patchnetvlad", "salad", "boq", "megaloc")
+        "--only",
+        nargs="*",
+        default=("vgg", "nanne", "patchnetvlad", "salad", "boq", "megaloc", "vlad_buff"),
     )
     args = parser.parse_args(argv)
     torch.set_grad_enabled(False)
@@ -365,6 +508,7 @@ def main(argv: list[str] | None = None) -> None:
             "salad": lambda: [check_salad(args.originals, args.vit_depth, work)],
             "boq": lambda: [check_boq(args.originals, args.vit_depth, work)],
             "megaloc": lambda: check_megaloc(args.originals, args.vit_depth, work),
+            "vlad_buff": lambda: check_vlad_buff(args.originals, args.vit_depth, work),
         }
         for name in args.only:
             for row in checks[name]():

@@ -191,7 +191,7 @@ def test_each_trained_kind_states_what_its_model_module_states():
         ),
         "megaloc": (megaloc, {"megaloc": (megaloc.MEGALOC_FILE, megaloc.MEGALOC_URL)}),
     }
-    from vprflow.models.trained import boq, convap, cosplace, mixvpr
+    from vprflow.models.trained import boq, convap, cosplace, mixvpr, vlad_buff
     from vprflow.models.trunks import resnet
     from vprflow.models.trunks.resnet import LAYER_STRIDES
 
@@ -215,7 +215,22 @@ def test_each_trained_kind_states_what_its_model_module_states():
             resnet,
             {"imagenet1k_v1": ("resnet50-0676ba61.pth", resnet.TORCHVISION_RESNET_URLS[50])},
         ),
+        vlad_buff=(
+            vlad_buff,
+            {
+                v: (
+                    vlad_buff.vlad_buff_file(p),
+                    vlad_buff.VLAD_BUFF_RELEASE + vlad_buff.vlad_buff_file(p),
+                )
+                for v, (p, _) in vlad_buff.VARIANTS.items()
+            },
+        ),
     )
+    # VLAD-BuFF's variants: each file whitened or its VLAD before the whitening.
+    assert {
+        v: (p.loader_options["nv_pca"], p.loader_options["num_pcs"])
+        for v, p in kinds.BACKBONES["vlad_buff"].spec.variants.items()
+    } == vlad_buff.VARIANTS
     assert set(kinds.TRAINED_KINDS) == set(modules)
     # The ResNet models' maps: the default layer of their feature_map, at its stride.
     for name, model_class in (
@@ -257,7 +272,7 @@ def test_each_trained_kind_states_what_its_model_module_states():
     assert trunk(torch.zeros(1, 3, 64, 48)).shape[-2:] == (64 // 16, 48 // 16)
     assert kinds.BACKBONES["netvlad"].spec.patch_size == 16
     assert salad.VITB14["patch_size"] == 14
-    for name in ("salad", "boq_dinov2", "megaloc"):
+    for name in ("salad", "boq_dinov2", "megaloc", "vlad_buff"):
         assert kinds.BACKBONES[name].spec.patch_size == 14, name
 
 

@@ -157,3 +157,47 @@ def salad_reference(state: dict[str, torch.Tensor], x: torch.Tensor, t: torch.Te
 
 def prefixed(state: dict[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
     return {prefix + k: v.clone() for k, v in state.items()}
+
+
+def vlad_buff_reference(state: dict[str, torch.Tensor], x: torch.Tensor) -> torch.Tensor:
+    """VLAD-BuFF's VLAD in float64 (Khaliq et al., ECCV 2024, eqs. of §3) from its
+    aggregator weights ``state`` (keys without prefix): ``x`` ``[B, C, h, w]`` ->
+    ``[B, K * D]``. Each patch unit-length (then, with ``pca_rot`` ``R`` and
+    ``pca_mean`` ``mu``, ``L2(R (x - mu))``); ``a_ki = softmax_k(W_k . x_i)``; burst
+    weight ``w_i = (sum_j sigmoid(alpha (2 x_i . x_j - 2) + beta)) ** p``;
+    ``V_k = sum_i (a_ki / w_i) (x_i - c_k)``, each ``V_k`` unit-length, flattened
+    ``k * D + d``, unit-length."""
+    w = {k: v.double().numpy() for k, v in state.items()}
+    alpha, beta, power = w["ab_params"]
+    weights, centroids = w["conv.weight"][:, :, 0, 0], w["centroids"]
+    out = []
+    for feats in x.double().numpy():
+        points = feats.reshape(feats.shape[0], -1)  # [C, n]
+        points = points / np.linalg.norm(points, axis=0, keepdims=True)
+        if "pca_rot" in w:
+            points = w["pca_rot"] @ (points - w["pca_mean"][:, None])
+            points = points / np.linalg.norm(points, axis=0, keepdims=True)
+        logits = weights @ points  # [K, n]
+        assign = np.exp(logits - logits.max(axis=0))
+        assign /= assign.sum(axis=0)
+        similarity = 2 * points.T @ points - 2
+        burst = (1 / (1 + np.exp(-(alpha * similarity + beta)))).sum(axis=1) ** power
+        assign = assign / burst[None, :]
+        vlad = np.stack(
+            [
+                (assign[k][None, :] * (points - centroids[k][:, None])).sum(axis=1)
+                for k in range(len(centroids))
+            ]
+        )  # [K, D]
+        vlad = vlad / np.linalg.norm(vlad, axis=1, keepdims=True)
+        vlad = vlad.reshape(-1)
+        out.append(vlad / np.linalg.norm(vlad))
+    return torch.from_numpy(np.stack(out))
+
+
+def whitening_reference(weight: torch.Tensor, bias: torch.Tensor, v: torch.Tensor):
+    """A whitening PCA stored as a 1x1 convolution ``weight`` ``[P, D, 1, 1]``, ``bias``
+    ``[P]``, on descriptors ``v`` ``[B, D]``, in float64: ``L2(U v + b)``."""
+    u = weight.double().numpy()[:, :, 0, 0]
+    out = v.double().numpy() @ u.T + bias.double().numpy()
+    return torch.from_numpy(out / np.linalg.norm(out, axis=1, keepdims=True))

@@ -20,7 +20,7 @@ import numpy as np
 from vprflow.aggregation import pooling
 from vprflow.aggregation.segvlad import image_segvlad, mask_patch_membership
 from vprflow.aggregation.snsm import normalize_tokens, snsm_descriptor
-from vprflow.aggregation.vlad import vlad
+from vprflow.aggregation.vlad import normalize_patches, vlad
 from vprflow.core.arrays import l2_normalize
 
 # The value of a backbone's `resize` and a dataset's `exif_orientation` that defers to
@@ -114,8 +114,11 @@ def prefixed(section: str, values: dict) -> dict:
 
 def vlad_input(grid: np.ndarray, options: dict) -> np.ndarray:
     """Patches as VLAD sees them: L2-normalised per patch unless the method says not
-    (AnyLoc's VLAD ``norm_descs=True``; stored float16 features are only nearly unit)."""
-    return l2_normalize(grid) if options["normalize_descriptors"] else grid
+    (AnyLoc's VLAD ``norm_descs=True``; stored float16 features are only nearly unit),
+    in torch on the authors' layout, as their code normalises them before assigning."""
+    if not options["normalize_descriptors"]:
+        return grid
+    return normalize_patches(grid.reshape(-1, grid.shape[-1])).reshape(grid.shape)
 
 
 def segvlad_descriptors(

@@ -100,7 +100,9 @@ def cluster_means(x: np.ndarray, labels: np.ndarray, fallback: np.ndarray) -> np
 
 
 def assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """Hard assignment ``argmax_c x . normalize(C_c)`` -> labels ``[N]`` (int64)."""
+    """Hard assignment ``argmax_c x . normalize(C_c)`` -> labels ``[N]`` (int64), in
+    numpy: the vocabulary's own (faiss k-means) assignment. VLAD assigns as the
+    published code does, :func:`published_labels`."""
     x = np.asarray(x, dtype=np.float32)
     unit = l2_normalize(np.asarray(centres, dtype=np.float32))
     if len(x) == 0:
@@ -108,11 +110,68 @@ def assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
     return np.argmax(x @ unit.T, axis=1).astype(np.int64)
 
 
+# Which published function assigns the patches of one image to VLAD centres
+# (docs/methods.md §4). Both run in torch float32 on the CPU, on every patch of the image
+# at once, on the authors' layout.
+ASSIGNMENTS = ("anyloc", "segvlad")
+
+
+def _authors_layout(x: np.ndarray):
+    """``x [N, D]`` as the authors hold an image's patches: the ``[N, D]`` view of a
+    ``[D, N]`` tensor (``F.normalize(desc [1, D, N], dim=1).permute(0, 2, 1)``). The
+    layout, like the product's shape, decides how torch rounds a norm or a product."""
+    import torch
+
+    return torch.from_numpy(np.ascontiguousarray(np.asarray(x, dtype=np.float32).T)).T
+
+
+def normalize_patches(x: np.ndarray) -> np.ndarray:
+    """Each row of ``x [N, D]`` L2-normalised as the published code normalises an image's
+    patches: ``torch.nn.functional.normalize(desc [1, D, N], dim=1)`` (eps 1e-12), in
+    float32 -> ``[N, D]`` float32. Its rounding differs from a numpy norm (and from torch
+    on a ``[N, D]`` layout) in the last bit, enough to move an exact tie."""
+    import torch.nn.functional as F
+
+    if len(x) == 0:
+        return np.asarray(x, dtype=np.float32)
+    return F.normalize(_authors_layout(x), dim=1).numpy()
+
+
+def published_labels(x: np.ndarray, centres: np.ndarray, assignment: str = "anyloc") -> np.ndarray:
+    """Hard assignment of one image's patches ``x [N, D]`` to ``centres [K, D]`` as the
+    published code computes it -> labels ``[N]`` int64 (docs/methods.md §4):
+
+    - ``anyloc``: AnyLoc's ``VLAD.generate`` -> ``fast_pytorch_kmeans.KMeans.predict``,
+      cosine mode: ``normalize(x, dim=-1) @ normalize(C, dim=-1).T``, then
+      ``.max(dim=-1)``;
+    - ``segvlad``: Revisit-Anything's ``func_vpr.vlad_single``:
+      ``argmax(x @ normalize(C, dim=1).T, dim=1)`` (``x`` used as given).
+
+    Both in torch float32 on the CPU, all ``N`` patches in one product, ``x`` in the
+    authors' layout (:func:`_authors_layout`), so that an exact float32 tie goes where
+    their code sends it on the same CPU (a numpy product rounds otherwise: OpenBLAS's
+    kernels differ per CPU; torch's go through MKL). Equal maxima: the first centre.
+    """
+    import torch
+    import torch.nn.functional as F
+
+    if assignment not in ASSIGNMENTS:
+        raise ValueError(f"unknown VLAD assignment {assignment!r}; expected one of {ASSIGNMENTS}")
+    if len(x) == 0:
+        return np.zeros(0, dtype=np.int64)
+    patches = _authors_layout(x)
+    unit = F.normalize(torch.from_numpy(np.asarray(centres, dtype=np.float32)), dim=-1)
+    if assignment == "anyloc":
+        return (F.normalize(patches, dim=-1) @ unit.transpose(-2, -1)).max(dim=-1)[1].numpy()
+    return torch.argmax(patches @ unit.T, dim=1).numpy()
+
+
 def vlad_per_region(
     features: np.ndarray,
     regions: np.ndarray,
     centres: np.ndarray,
     labels: np.ndarray | None = None,
+    assignment: str = "segvlad",
 ) -> np.ndarray:
     """VLAD of the patches of every region: ``[S, K * D]`` float32.
 
@@ -121,12 +180,15 @@ def vlad_per_region(
     un-normalised centres, per-cluster sums, intra-normalisation, flatten, L2.
     Patches are sorted by cluster and their centre is subtracted first, so cluster
     ``c``'s residual sums are one product ``regions[:, P_c] @ (x[P_c] - C_c)``:
-    ``S * N * D`` multiply-adds in all (the minimum). Plain numpy: torch multiplied
-    these small products no faster, and importing it cost a descriptors job ~1 s.
+    ``S * N * D`` multiply-adds in all (the minimum). Labels not given are
+    :func:`published_labels` of ``features`` (``assignment``: SegVLAD's by default); the
+    sums are numpy's (torch multiplied these small products no faster).
     """
     features = np.asarray(features, dtype=np.float32)
     centres = np.asarray(centres, dtype=np.float32)
-    labels = assign(features, centres) if labels is None else np.asarray(labels)
+    if labels is None:
+        labels = published_labels(features, centres, assignment)
+    labels = np.asarray(labels)
     k, d = centres.shape
     n_regions = len(regions)
     order = np.argsort(labels, kind="stable")
@@ -148,8 +210,15 @@ def vlad_per_region(
     return sums.reshape(n_regions, k * d)
 
 
-def vlad(x: np.ndarray, centres: np.ndarray, labels: np.ndarray | None = None) -> np.ndarray:
+def vlad(
+    x: np.ndarray,
+    centres: np.ndarray,
+    labels: np.ndarray | None = None,
+    assignment: str = "anyloc",
+) -> np.ndarray:
     """AnyLoc VLAD of descriptors ``x`` ``[N, D]`` -> ``[K * D]`` float32: the one
-    region that holds every patch."""
+    region that holds every patch, assigned as AnyLoc's code does unless ``labels``
+    are given."""
     x = np.asarray(x, dtype=np.float32)
-    return vlad_per_region(x, np.ones((1, len(x)), dtype=bool), centres, labels)[0]
+    regions = np.ones((1, len(x)), dtype=bool)
+    return vlad_per_region(x, regions, centres, labels, assignment)[0]

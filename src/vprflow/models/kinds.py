@@ -190,6 +190,20 @@ def _netvlad(name: str, file: str) -> tuple[str, TrainedVariant]:
     )
 
 
+_VLAD_BUFF = "https://github.com/ahmedest61/VLAD-BuFF/releases/download/v1.0.0/"
+
+
+def _vlad_buff(name: str, nv_pca: int | None, num_pcs: int | None) -> tuple[str, TrainedVariant]:
+    # hubconf.vlad_buff's files: without pre-pool PCA whitened to 8192, with 192 to 4096.
+    file = f"dnv2_NV_{'192PCA_' if nv_pca else ''}AB_wpca{8192 if nv_pca is None else 4096}"
+    return name, TrainedVariant(
+        f"{file}_last.ckpt",
+        f"{_VLAD_BUFF}{file}_last.ckpt",
+        "Ahmedest61/VLAD-BuFF",
+        {"nv_pca": nv_pca, "num_pcs": num_pcs},
+    )
+
+
 # The trained VPR models (docs/methods.md, "Trained models"); each module's own
 # constants (URL, file, input size) are compared with these by tests/test_registry.py.
 _TRAINED_MODELS: dict[str, TrainedModel] = {
@@ -228,6 +242,22 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
                 "serizba/salad",
             )
         },
+        (322, 322),
+        14,
+        "DINOv2-B/14 patch tokens after the final LayerNorm, 768-d",
+    ),
+    # DINOv2-B/14 + NetVLAD with burst-aware weights + whitening PCA, evaluated at
+    # 322 x 322 (PIL bilinear); each file also gives its VLAD before the whitening.
+    "vlad_buff": TrainedModel(
+        dict(
+            _vlad_buff(name, nv_pca, pcs)
+            for name, nv_pca, pcs in (
+                ("dnv2_NV_AB_wpca8192", None, 8192),
+                ("dnv2_NV_AB_vlad49152", None, None),
+                ("dnv2_NV_192PCA_AB_wpca4096", 192, 4096),
+                ("dnv2_NV_192PCA_AB_vlad12288", 192, None),
+            )
+        ),
         (322, 322),
         14,
         "DINOv2-B/14 patch tokens after the final LayerNorm, 768-d",

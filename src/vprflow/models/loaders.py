@@ -66,6 +66,12 @@ def _boq_dinov2(checkpoint: str, **options):
     return load_boq_dinov2(checkpoint, **options)
 
 
+def _vlad_buff(checkpoint: str, **options):
+    from vprflow.models.trained.vlad_buff import load_vlad_buff
+
+    return load_vlad_buff(checkpoint, **options)
+
+
 def _megaloc(checkpoint: str, **options):
     from vprflow.models.trained.megaloc import load_megaloc
 
@@ -113,6 +119,7 @@ TRAINED_MODELS: dict[str, Callable[..., Any]] = {
     "netvlad": _netvlad,
     "salad": _salad,
     "boq_dinov2": _boq_dinov2,
+    "vlad_buff": _vlad_buff,
     "megaloc": _megaloc,
     "mixvpr": _mixvpr,
     "convap": _convap,
