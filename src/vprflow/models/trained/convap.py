@@ -16,6 +16,12 @@ Published dimensions (gsv-cities README): 8192 (``out_channels`` 2048), 4096 (10
 README's loading example, the default here), 2048 (512) and 512 (128). Any input size
 works; the models were trained at 320 x 320 (the README: the 4096-d model with bicubic
 resizing, the 8192-d one with bilinear), RGB normalised with ImageNet's mean / std.
+Evaluated at 320 x 320 on the PIL image: the 4096-d model's MSLS-val and Nordland
+numbers were printed by ``notebooks/evaluate_model.ipynb`` reading bicubic
+(torchvision ``Resize(..., BICUBIC)``, commits 4ef23b2 to 252f6a0); from 5d866a0 on (the
+cited commit 77ffffc too) that notebook reads bilinear, as the training code's
+``valid_transform`` always did and vprflow's ``antialias`` does (docs/methods.md §11,
+Conv-AP).
 
 Checkpoint: e.g. ``resnet50_ConvAP_1024_2x2.ckpt`` (README's Google Drive folder), which
 the README loads with ``model.load_state_dict``: a plain state dict of

@@ -14,9 +14,13 @@ mlp_ratio: 1, out_rows: 4})``, plain torch here):
    ``row_proj`` (``Linear(n, out_rows)``) over positions; flattened channel-major
    (``channel * out_rows + row``) and L2-normalised: ``[B, out_channels * out_rows]``.
 
-The mixers fix ``n``, so the input size is fixed: 320 x 320 for the published models
-(resized with bicubic interpolation, MixVPR's demo.py), RGB normalised with ImageNet's
-mean / std.
+The mixers fix ``n``, so the input size is fixed: 320 x 320 for the published models,
+RGB normalised with ImageNet's mean / std. The repository's only evaluation code,
+``main.py``'s validation (Pittsburgh 30k, MSLS-val) through
+``dataloaders/GSVCitiesDataloader.py``'s ``valid_transform`` (line 83), resizes the PIL
+image with torchvision's ``Resize(..., BILINEAR)`` (PIL's antialiased bilinear), which
+vprflow's ``antialias`` reproduces; ``demo.py``, a contributor's added five months
+after the README's numbers, resizes bicubically (docs/methods.md §11, MixVPR).
 
 Checkpoint: ``resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt`` (README's Google Drive
 link; the README's 512-d and 128-d releases load too, as the loader reads the head's
