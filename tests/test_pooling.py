@@ -214,3 +214,29 @@ def test_segment_gem_is_gem_of_each_segments_tokens():
 def test_segment_gem_rejects_a_membership_of_another_size():
     with pytest.raises(ValueError, match=r"membership must be \[S, 4\]"):
         segment_gem(np.zeros((4, 3)), np.ones((2, 5), bool))
+
+
+def test_the_vlad_aggregator_is_anylocs_vlad_of_channel_normalised_tokens(tmp_path):
+    """SNSM's `--vlad` baseline (aggregator ``vlad``): each channel divided by its L2
+    norm over the image's tokens (+ 1e-10), then each patch L2-normalised, hard-assigned
+    to the most cosine-similar centre, residuals summed, intra- and L2-normalised;
+    float32 vs float64 loops, rtol 1e-4 / atol 1e-5."""
+    from test_vlad import direct_vlad
+
+    from vprflow.core import stores
+
+    rng = np.random.default_rng(7)
+    grid = (rng.standard_normal((3, 4, 8)) * rng.uniform(0.2, 5.0, (1, 1, 8))).astype(np.float32)
+    centres = rng.standard_normal((3, 8)).astype(np.float32)
+    path = str(tmp_path / "vocabulary.zarr")
+    with stores.atomic_store(path, {"stage": "vocabulary"}) as group:
+        stores.write_array(group, "centres", centres)
+    spec = {"aggregator": "vlad", "normalization": "channel", "normalize_descriptors": True}
+    inputs = {"vocabulary": path, "features": features_store(tmp_path, grid)}
+    vector = describe_image(spec, inputs)
+    channel = direct_channel_normalised(grid)
+    unit = channel / np.linalg.norm(channel, axis=1, keepdims=True)
+    np.testing.assert_allclose(vector, direct_vlad(unit, centres), rtol=1e-4, atol=1e-5)
+    flat = grid.reshape(-1, 8).astype(np.float64)
+    per_patch = direct_vlad(flat / np.linalg.norm(flat, axis=1, keepdims=True), centres)
+    assert not np.allclose(vector, per_patch, atol=1e-3)

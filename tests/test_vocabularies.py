@@ -139,3 +139,50 @@ def test_a_mirror_serving_another_file_fails_the_run_and_leaves_nothing(tmp_path
     assert PUBLISHED["indoor"].sha256 in log and "checksum mismatch" in log
     assert not (tmp_path / PUBLISHED_VOCABULARY.format(name="indoor")).exists()
     assert not list((tmp_path / "results" / "cache" / "vocabulary").glob("*.zarr"))
+
+
+def test_the_vlad_aggregators_vocabulary_is_fitted_on_channel_normalised_tokens(
+    tmp_path, monkeypatch
+):
+    """SNSM's `--vlad` baseline (aggregator ``vlad``) fits its centres on the tokens it
+    aggregates: each channel divided by its L2 norm over the image's tokens (+ 1e-10);
+    AnyLoc-VLAD's vocabulary key and sample stay the stored patches."""
+    import vprflow.aggregation.vlad as vlad_module
+    import vprflow.stages.vocabulary as vocabulary_module
+
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    config["data_root"] = str(tmp_path)
+    del config["datasets"]["roadscene"]
+    config["methods"]["snsm_vlad"] = {"aggregator": "vlad"}
+    config["datasets"]["corridor"]["methods"] = ["anyloc_vlad", "snsm_vlad"]
+    snsm = vocabulary_stage(config, method="snsm_vlad").record["params"]
+    anyloc = vocabulary_stage(config).record["params"]
+    assert snsm == {**anyloc, "normalization": "channel"}
+    assert "normalization" not in anyloc
+
+    rng = np.random.default_rng(3)
+    grids = rng.standard_normal((2, 2, 3, 4)) * rng.uniform(0.5, 9.0, (2, 1, 1, 4))
+    path = str(tmp_path / "features.zarr")
+    with stores.atomic_store(path, {"stage": "features", "grid": [2, 3], "dim": 4}) as group:
+        stores.write_array(group, "features", grids.astype(np.float32))
+
+    class TwoReferences:
+        def __init__(self, _path):
+            pass
+
+        def indices(self, _side):
+            return [0, 1]
+
+    seen = []
+    monkeypatch.setattr(vocabulary_module, "Dataset", TwoReferences)
+    monkeypatch.setattr(
+        vlad_module, "fit_spherical_kmeans", lambda x, k, *a, **o: seen.append(x) or x[:k]
+    )
+    for params in (snsm, anyloc):
+        record = {"params": {**params, "n_clusters": 2, "max_descriptors": 12}}
+        inputs = {"images": "unused", "features": path}
+        fit_vocabulary(Job(record, inputs, str(tmp_path / f"v{len(seen)}.zarr")))
+    flat = grids.reshape(2, 6, 4).astype(np.float64)
+    channel = flat / (np.sqrt((flat**2).sum(axis=1, keepdims=True)) + 1e-10)
+    np.testing.assert_allclose(seen[0], channel.reshape(12, 4), rtol=1e-6)
+    np.testing.assert_allclose(seen[1], flat.reshape(12, 4), rtol=1e-6)

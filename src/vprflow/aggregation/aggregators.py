@@ -60,6 +60,11 @@ class Aggregator:
     descriptor, ``output: descriptor``); the plan refuses any other pairing, and for
     ``"descriptor"`` ``resize: method`` is the trained kind's published reader.
 
+    ``vocabulary_input(method)``: for an aggregator that normalises each image's tokens
+    before VLAD, the vocabulary stage's extra params that make its k-means see the
+    patches the same way (``{"normalization": ...}``, :func:`normalize_tokens`); None:
+    the stored patches as they are.
+
     ``sections``: the config sections of its own settings (each a schema definition);
     :data:`vprflow.planning.config.METHOD_DEFAULT_SECTIONS` is derived from them, so a
     new aggregator's section needs no list besides the schema. Left out, ``options`` is
@@ -78,6 +83,7 @@ class Aggregator:
     pca_fit: Callable[[dict, dict], dict] | None = None
     reads: str = "features"
     sections: tuple[str, ...] = ()
+    vocabulary_input: Callable[[dict], dict] | None = None
 
     def __post_init__(self):
         # Left out, ``options`` and ``columns`` are the values of its sections.
@@ -167,6 +173,14 @@ def anyloc_vlad_descriptor(grid: np.ndarray, options: dict, *, centres: np.ndarr
     """AnyLoc VLAD of the whole patch grid (docs/methods.md §4), ``[K * D]``."""
     grid = vlad_input(grid, options)
     return vlad(grid.reshape(-1, grid.shape[-1]), centres)
+
+
+def vlad_descriptor(grid: np.ndarray, options: dict, *, centres: np.ndarray) -> np.ndarray:
+    """VLAD of the pooling baselines' normalised tokens (docs/methods.md §7), ``[K * D]``:
+    SNSM's ``--vlad`` baseline normalises the backbone's tokens as its GeM / average /
+    max do, then runs AnyLoc's VLAD, which L2-normalises each patch again."""
+    tokens = normalize_tokens(grid, options["normalization"])
+    return anyloc_vlad_descriptor(tokens, options, centres=centres)
 
 
 _SNSM_KEYS = ("upscale", "window", "neighbourhood", "similarity", "normalization")
@@ -278,6 +292,23 @@ AGGREGATORS: dict[str, Aggregator] = {
             resize="antialias",
             exif_orientation="ignore",
             sections=("snsm",),
+        ),
+        # SNSM's All-Backbones-VLAD `--vlad` baseline: read and normalised as its pooling
+        # baselines, the vocabulary fitted on the tokens so normalised.
+        Aggregator(
+            "vlad",
+            ("vocabulary",),
+            "global",
+            vlad_descriptor,
+            lambda m: {"normalization": m["pooling"]["normalization"], **m["vlad"]},
+            lambda m: {
+                **prefixed("pooling", {"normalization": m["pooling"]["normalization"]}),
+                **prefixed("vlad", m["vlad"]),
+            },
+            resize="antialias",
+            exif_orientation="ignore",
+            sections=("pooling", "vlad"),
+            vocabulary_input=lambda m: {"normalization": m["pooling"]["normalization"]},
         ),
         _pooling("gem", gem_descriptor),
         _pooling("average", average_descriptor),

@@ -642,6 +642,9 @@ def _plan_vocabulary(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRe
     # Fitting k-means to a model's wide features is GPU work, as matching them is.
     backbone = m.entry("backbones", m.settings["features"])
     fitted = vocabulary["source"] == "map"
+    if fitted and m.aggregator.vocabulary_input is not None:
+        # The patches as the aggregator's VLAD sees them (SNSM's baseline: channel-normalised).
+        params.update(m.aggregator.vocabulary_input(m.settings))
     run_params = {**m.execution, "uses_gpu": fitted and model_kind("features", backbone).uses_gpu}
     store = m.add("vocabulary", params, stores, run_params)
     return store, _prefixed("vocabulary", {k: v for k, v in vocabulary.items() if k != "name"})

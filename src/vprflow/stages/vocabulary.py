@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 from tqdm import tqdm
 
+from vprflow.aggregation.snsm import normalize_tokens
 from vprflow.core import stores
 from vprflow.planning.fingerprints import file_digest
 from vprflow.stages.base import Job, resolved_sources
@@ -71,9 +72,14 @@ def fit_vocabulary(job: Job) -> None:
             rng.choice(total, size=min(total, params["max_descriptors"]), replace=False)
         )
         owner = chosen // per_image
+        # An aggregator that normalises each image's tokens first (the plan's
+        # `normalization`) has its vocabulary fitted on the tokens so normalised.
+        normalization = params.get("normalization")
         sample = []
         for i in tqdm(np.unique(owner), desc="vocabulary sample", unit="image"):
             grid = read_features(features, images[i]).reshape(per_image, -1)
+            if normalization is not None:
+                grid = normalize_tokens(grid, normalization)
             sample.append(grid[chosen[owner == i] % per_image])
         sample = np.concatenate(sample)
         if len(sample) < params["n_clusters"]:
