@@ -856,11 +856,13 @@ STAGES: dict[str, StageSpec] = {
     "segments": StageSpec(3, shards="images", needed=_plan_segments),
     # VLAD centres (plain cluster means by default), points assigned in numpy.
     "vocabulary": StageSpec(3, needed=_plan_vocabulary),
-    # The exact solver by default, capped at the numerical rank, over numpy VLAD.
-    "pca": StageSpec(3, needed=_plan_pca),
-    # VLAD in numpy, one BLAS thread per image, with the input norm and the backbone's
-    # crop offsets (float32 rounding differs from torch's).
-    "descriptors": StageSpec(4, shards="images"),
+    # The exact solver by default, capped at the numerical rank, over VLAD whose patches
+    # are normalised and assigned as the authors' torch code does (ties go their way).
+    "pca": StageSpec(4, needed=_plan_pca),
+    # VLAD sums in numpy, one BLAS thread per image, with the input norm and the
+    # backbone's crop offsets; patches normalised and assigned to centres in torch on the
+    # authors' layout and shapes, so float32 ties go where their code sends them.
+    "descriptors": StageSpec(5, shards="images"),
     # Each query segment's nearest reference segments, a range of reference images per
     # job; the shards' top-k lists are merged, not concatenated.
     "search": StageSpec(1, shards="references"),
