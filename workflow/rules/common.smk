@@ -35,6 +35,7 @@ from vprflow.core.paths import (
     store_pattern,
 )
 from vprflow.planning.plan import build_plan, method_stores, planning_failure
+from vprflow.planning.published import published_changes, published_plan
 from vprflow.data.presets import presets, unknown_dataset
 from vprflow.planning.reports import (
     FIGURES,
@@ -56,6 +57,9 @@ configfile: "config/config.yaml"
 # Found next to this file (not via workflow.basedir), so that a host workflow that
 # imports vprflow as a module validates against vprflow's schema.
 SCHEMA = Path(workflow.current_basedir).parent / "schemas" / "config.schema.yaml"
+# The config shipped beside the workflow: a preset's published setting is made with its
+# components (results/published_<preset>.csv names what a run does otherwise).
+SHIPPED_CONFIG = Path(workflow.current_basedir).parents[1] / "config" / "config.yaml"
 # A host workflow that imports vprflow as a module with a `prefix` finds every output
 # under it; the few paths this file opens itself (not via rules) follow.
 _modifier = getattr(workflow.modifier, "path_modifier", None)
@@ -286,6 +290,20 @@ def published_input(wildcards):
             f"lists the presets)"
         )
     return RECALL_CSV.format(dataset=wildcards.dataset)
+
+
+def published_differences(wildcards):
+    """Params function: by method, how this run makes a preset's published rows otherwise
+    than the published setting (the preset with the config shipped beside the workflow)."""
+    name = wildcards.dataset
+    if name not in presets() or name not in PLAN.runs:
+        return {}
+    methods = [entry["row"] for entry in presets()[name].published if entry.get("row")]
+    try:
+        reference = published_plan(config, SHIPPED_CONFIG, name, SCHEMA, _memo)
+    except Exception as error:  # named in the table, beside each row
+        reference = error
+    return published_changes(PLAN, reference, name, methods)
 
 
 def report_inputs(wildcards):

@@ -69,6 +69,9 @@ rule published:
         "logs/published/{dataset}.log",
     conda:
         "../envs/vprflow.yaml"
+    # How this run's rows differ from the published setting: a change reruns this table.
+    params:
+        changes=published_differences,
     script:
         "../scripts/published_rows.py"
 

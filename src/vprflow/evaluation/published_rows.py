@@ -4,14 +4,16 @@ One row per published row of the preset (``data/presets.yaml``: the papers' and 
 trained models' authors' Recall@1 / @5, in percent), with the vprflow method that
 reproduces it (``row``) and that method's Recall@1 / @5 from the dataset's recall
 table, also in percent. Empty where the row names no vprflow method, or where the table
-has no row of that method (a trained method without ``trained_baselines: true``).
+has no row of that method (a trained method without ``trained_baselines: true``). A row
+this run makes otherwise than the published setting says how in its ``protocol``
+(:mod:`vprflow.planning.published` decides).
 """
 
 from __future__ import annotations
 
 import csv
 import io
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 
 from vprflow.core.files import write_text_atomic
 
@@ -34,16 +36,24 @@ def percent(fraction: str) -> str:
 
 
 def published_rows(
-    published: Sequence[dict], recall_rows: Sequence[dict[str, str]]
+    published: Sequence[dict],
+    recall_rows: Sequence[dict[str, str]],
+    changes: Mapping[str, str] | None = None,
 ) -> list[dict[str, str]]:
     """The published rows, in their order, each with vprflow's Recall@1 / @5 (percent)
     of the method its ``row`` names and that row's ``protocol`` (a preset's recall table
     says whether the config changed the preset's protocol), read from ``recall_rows``
-    (a ``results/recall_<dataset>.csv`` as ``csv.DictReader`` rows)."""
+    (a ``results/recall_<dataset>.csv`` as ``csv.DictReader`` rows). ``changes``: by
+    method, how this run makes the row otherwise than the published setting, appended
+    to its protocol."""
     by_method = {row["method"]: row for row in recall_rows}
+    changes = changes or {}
     out = []
     for entry in published:
         ours = by_method.get(entry.get("row", ""))
+        protocol = (ours or {}).get("protocol", "")
+        if ours and changes.get(entry["row"]):
+            protocol += f"; not the published setting: {changes[entry['row']]}"
         out.append(
             {
                 "method": entry["method"],
@@ -53,16 +63,18 @@ def published_rows(
                 "row": entry.get("row", ""),
                 "recall@1": percent(ours["recall@1"]) if ours else "",
                 "recall@5": percent(ours["recall@5"]) if ours else "",
-                "protocol": (ours or {}).get("protocol", ""),
+                "protocol": protocol,
             }
         )
     return out
 
 
-def write_published_table(dataset: str, recall_csv: str, out: str) -> None:
+def write_published_table(
+    dataset: str, recall_csv: str, out: str, changes: Mapping[str, str] | None = None
+) -> None:
     """``results/published_<dataset>.csv`` of the preset ``dataset`` from its recall
-    table ``recall_csv``; a dataset that is no preset has no published rows: an error
-    that names it."""
+    table ``recall_csv`` (``changes``: :func:`published_rows`'); a dataset that is no
+    preset has no published rows: an error that names it."""
     from vprflow.data.presets import presets
 
     preset = presets().get(dataset)
@@ -76,5 +88,5 @@ def write_published_table(dataset: str, recall_csv: str, out: str) -> None:
     text = io.StringIO()
     writer = csv.DictWriter(text, fieldnames=COLUMNS, lineterminator="\n")
     writer.writeheader()
-    writer.writerows(published_rows(preset.published, recall_rows))
+    writer.writerows(published_rows(preset.published, recall_rows, changes))
     write_text_atomic(out, text.getvalue())
