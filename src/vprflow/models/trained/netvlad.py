@@ -26,12 +26,18 @@ Checkpoints (``torch.load(weights_only=True)``; a dict whose ``state_dict`` hold
 (``nn.DataParallel``) is ignored. The variants (:data:`VARIANTS`):
 
 - ``patchnetvlad-pitts30k-4096`` (default): Patch-NetVLAD's ``pitts_WPCA4096.pth.tar``,
-  4096-d whitened: the descriptor the NetVLAD paper reports, Patch-NetVLAD's tables
-  compare against and gmberton/VPR-methods-evaluation defaults to;
+  4096-d whitened: the NetVLAD Patch-NetVLAD's tables report, a PyTorch model;
 - ``patchnetvlad-pitts30k-32768``: the same file without the whitening (32768-d);
 - ``patchnetvlad-pitts30k-512`` / ``-128``: ``pitts_WPCA512`` / ``pitts_WPCA128``;
 - ``nanne-pitts30k``: Nanne/pytorch-NetVlad's ``vgg16_netvlad_checkpoint``
   (``checkpoints/checkpoint.pth.tar``), 32768-d, no whitening.
+
+Not here: the NetVLAD authors' MATLAB model, which gmberton/VPR-methods-evaluation loads
+for ``--method netvlad`` (hloc's port, ``vpr_models/netvlad.py``): the VGG16 Pittsburgh
+30k network of Relja/netvlad, ``Pitts30K_struct.mat`` converted at load time, read as
+0-255 pixels minus the MATLAB model's ``averageImage`` (std 1), 4096-d through the
+MATLAB model's own whitening by default (32768-d without). Other weights, another input
+normalisation and another whitening: its descriptors and recalls are not these.
 """
 
 from __future__ import annotations
