@@ -25,7 +25,7 @@ from vprflow.core.errors import PlanError
 from vprflow.data.images import read_image, resize_image
 from vprflow.models import kinds
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad
+from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad, vlad_buff
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages.jobs import Job, run_job
@@ -74,6 +74,22 @@ TINY = {
         lambda model: {
             **prefixed(salad.dinov2_hub_state_dict(model.backbone), "backbone.dino."),
             **prefixed(model.aggregator.state_dict(), "aggregator."),
+        },
+    ),
+    # The published default: no pre-pool PCA, whitened to 8192 (from a 4 x 32 VLAD here).
+    "vlad_buff": (
+        vlad_buff,
+        "load_vlad_buff",
+        lambda: {"config": tiny_config(), "num_clusters": 4},
+        lambda: vlad_buff.VladBuff(tiny_config(), num_clusters=4),
+        "dnv2_NV_AB_wpca8192_last.ckpt",
+        lambda model: {
+            "num_pcs": 8192,
+            "state_dict": {
+                **prefixed(salad.dinov2_hub_state_dict(model.backbone), "backbone.model."),
+                **prefixed(model.aggregator.state_dict(), "aggregator."),
+                **prefixed(model.WPCA.state_dict(), "WPCA_8192."),
+            },
         },
     ),
     "megaloc": (
