@@ -2,8 +2,8 @@
 ``resnet50`` trunk's layer3) against SNSM's ``All-Backbones-VLAD_bl.py --vlad
 --backbone=ResNet50 --encoder=3`` (lfovia/SNSM), on the same photos.
 
-``SNSM`` is the repository's folder (e.g. ``git archive HEAD SNSM | tar -x``), holding
-``SNSM/`` and an optional ``COMMIT`` file naming repository and commit. Its modules are
+``SNSM`` is the repository's folder (a clone, or ``git archive HEAD SNSM | tar -x``),
+holding ``SNSM/``; its commit is read from its ``.git`` or a ``COMMIT`` file. Its modules are
 imported as they are; the two its checked functions never call (``pytorch_lightning``,
 ``sklearn``) are stubbed where not installed. Needs torchvision, einops, lpips and
 fast_pytorch_kmeans importable (checks only, never vprflow's dependencies).
@@ -25,10 +25,11 @@ fast_pytorch_kmeans importable (checks only, never vprflow's dependencies).
    max |difference| of the normalised tokens and of the VLAD vectors, now and with
    the row's former reading (``linear`` resize, per-patch L2 only).
 
+    git clone -q https://github.com/lfovia/SNSM /tmp/snsm
     bash ../shared/tools/torchvision-for-checks.sh /tmp/tv
-    pip install --no-deps --target /tmp/snsmdeps einops lpips fast_pytorch_kmeans==0.2.2
-    PYTHONPATH=/tmp/tv:/tmp/snsmdeps python benchmarks/check_snsm_vlad.py /tmp/snsm \\
-        --data ../shared/data
+    pip install -q --no-deps --target /tmp/snsmdeps einops lpips fast_pytorch_kmeans==0.2.2
+    OMP_NUM_THREADS=1 PYTHONPATH=/tmp/tv:/tmp/snsmdeps \\
+        python benchmarks/check_snsm_vlad.py /tmp/snsm --data ../shared/data
 """
 
 from __future__ import annotations
@@ -248,7 +249,15 @@ def main() -> None:
     )
     args = parser.parse_args()
     stamp = args.snsm / "COMMIT"
-    print(stamp.read_text().strip() if stamp.is_file() else f"{args.snsm} (commit unknown)")
+    if stamp.is_file():
+        print(stamp.read_text().strip())
+    else:
+        import subprocess
+
+        head = subprocess.run(
+            ["git", "-C", str(args.snsm), "rev-parse", "HEAD"], capture_output=True, text=True
+        )
+        print(f"lfovia/SNSM {head.stdout.strip() or '(commit unknown)'}")
     datasets_original, vlad_module, script = _snsm_modules(args.snsm)
     torch.set_grad_enabled(False)
     with tempfile.TemporaryDirectory() as tmp:
