@@ -15,8 +15,8 @@ must hold the quoted text), run with torchvision (importable for checks only:
 ``bash ../shared/tools/torchvision-for-checks.sh /tmp/tv``, then ``PYTHONPATH=/tmp/tv``).
 ``ORIGINALS`` holds one folder per repository (``Patch-NetVLAD``, ``salad``,
 ``Bag-of-Queries``, ``MixVPR``, ``gsv-cities``, ``VPR-methods-evaluation``,
-``CosPlace``, ``EigenPlaces``, ``SNSM``), e.g. extracted with ``git archive``, each with
-an optional ``COMMIT`` file naming repository and commit.
+``CosPlace``, ``EigenPlaces``, ``SNSM``, ``VLAD-BuFF``), e.g. extracted with
+``git archive``, each with an optional ``COMMIT`` file naming repository and commit.
 
 Photos: the first two references and the first query of corridor (160 x 120) and of
 roadscene (RGB references and grayscale thermal queries of mixed sizes), as
@@ -55,6 +55,7 @@ IMAGENET = ([0.485, 0.456, 0.406], [0.229, 0.224, 0.225])
 METHODS = (
     "netvlad",
     "salad",
+    "vlad_buff",
     "boq_dinov2",
     "boq_resnet50",
     "megaloc",
@@ -68,6 +69,7 @@ METHODS = (
 MODULES = {
     "netvlad": "netvlad",
     "salad": "salad",
+    "vlad_buff": "vlad_buff",
     "boq_dinov2": "boq_dinov2",
     "boq_resnet50": "boq",
     "megaloc": "megaloc",
@@ -81,6 +83,7 @@ MODULES = {
 NON_DEFAULT = {
     "netvlad": [320, 240],
     "salad": [224, 224],
+    "vlad_buff": [224, 224],
     "boq_dinov2": [224, 224],
     "boq_resnet50": [320, 320],
     "megaloc": [322, 322],
@@ -159,6 +162,20 @@ def authors(method: str, resolution, path: Path):
             ),
             Cite("salad", "README.md", 50, "--image_size 322 322"),
             Cite("salad", "dataloaders/val/PittsburghDataset.py", 45, "Image.open("),
+        ]
+        image, flag = _open(path, convert=False)
+        transform = _pil_resize_then_normalise(size or (322, 322), T.InterpolationMode.BILINEAR)
+        what = f"PIL bilinear to {size or (322, 322)}"
+    elif method == "vlad_buff":
+        cites = [
+            Cite(
+                "VLAD-BuFF",
+                "eval.py",
+                49,
+                "T.Resize(image_size, interpolation=T.InterpolationMode.BILINEAR)",
+            ),
+            Cite("VLAD-BuFF", "eval.py", 240, "default=[322, 322]"),
+            Cite("VLAD-BuFF", "dataloaders/val/PittsburghDataset.py", 48, "Image.open("),
         ]
         image, flag = _open(path, convert=False)
         transform = _pil_resize_then_normalise(size or (322, 322), T.InterpolationMode.BILINEAR)
