@@ -1,7 +1,7 @@
 """Any trained VPR model as a vprflow backbone.
 
-The trained models (:mod:`vprflow.models.trained`: NetVLAD, SALAD, BoQ-DINOv2, MegaLoc,
-MixVPR, Conv-AP, BoQ-ResNet50, CosPlace, EigenPlaces; the kinds of
+The trained models (:mod:`vprflow.models.trained`: NetVLAD, SALAD, VLAD-BuFF, BoQ-DINOv2,
+MegaLoc, MixVPR, Conv-AP, BoQ-ResNet50, CosPlace, EigenPlaces; the kinds of
 :data:`vprflow.models.kinds.TRAINED_KINDS`) are plain torch modules whose ``forward``
 takes ImageNet-normalised ``[B, 3, H, W]`` and returns the model's L2-normalised
 descriptor ``[B, D]``, and whose ``feature_map`` returns the dense map their head reads
