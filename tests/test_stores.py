@@ -947,6 +947,25 @@ def test_only_temporaries_without_a_live_writer_are_removed_at_job_start(tmp_pat
     assert open_store(out).attrs["record"] == {"params": {}}
 
 
+def test_a_missing_store_while_two_runs_of_the_folder_go_on_names_both_and_nolock(
+    tmp_path, monkeypatch
+):
+    """Another run's Snakemake deleted the store before its job began writing it: no
+    temporary names a writer, the two runs' markers do."""
+    from vprflow.core.files import host_name
+    from vprflow.core.runs import RUNS
+
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / RUNS).mkdir(parents=True)
+    for pid in (os.getppid(), os.getpid()):
+        (tmp_path / RUNS / f"{host_name()}-{pid}-0123abcd.json").write_text("{}")
+    with pytest.raises(FileNotFoundError) as raised:
+        open_store("results/cache/x/key.zarr")
+    message = str(raised.value)
+    assert message.startswith("store results/cache/x/key.zarr does not exist: 2 runs of this")
+    assert f"pid {os.getppid()} on {host_name()}" in message and "--nolock bypasses it" in message
+
+
 def test_a_missing_store_that_another_run_is_writing_names_its_process_and_nolock(tmp_path):
     from vprflow.core.files import host_name
 

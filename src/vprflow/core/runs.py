@@ -58,6 +58,12 @@ def other_runs(folder: str | Path, own: Path | None = None) -> list[dict]:
     return found
 
 
+def runs_here() -> list[dict]:
+    """The live runs of the working folder (:func:`other_runs` of its markers), the run of
+    the calling job included."""
+    return other_runs(RUNS)
+
+
 def collision_message(runs: list[dict]) -> str:
     """What to tell a user whose run shares its folder with ``runs`` (:func:`other_runs`)."""
     each = "; ".join(

@@ -42,6 +42,7 @@ import zarr.core.chunk_key_encodings
 import zarr.storage
 
 from vprflow.core.files import TAG, is_abandoned, writer_tag
+from vprflow.core.runs import runs_here
 
 log = logging.getLogger("vprflow")
 
@@ -310,6 +311,14 @@ def open_store(path: str | Path) -> CheckedGroup:
                 f"store {path} does not exist: another run is writing it ({writers}). "
                 "Two runs of one folder delete each other's stores; Snakemake's lock "
                 "prevents this, --nolock bypasses it"
+            )
+        runs = runs_here()  # this job's own run among them
+        if len(runs) > 1:
+            each = ", ".join(f"pid {run['pid']} on {run['host']}" for run in runs)
+            raise FileNotFoundError(
+                f"store {path} does not exist: {len(runs)} runs of this folder are going "
+                f"on at once ({each}), and two runs of one folder delete each other's "
+                "stores; Snakemake's lock prevents this, --nolock bypasses it"
             )
         raise FileNotFoundError(f"store {path} does not exist (has its stage run?)")
     return CheckedGroup(path)
