@@ -745,7 +745,7 @@ def test_a_trained_models_descriptor_is_read_as_its_published_pipeline_reads(tmp
     assert read == {
         "salad": ([322, 322], "antialias", "ignore"),
         "netvlad": ([640, 480], "antialias", "ignore"),
-        "megaloc": ([160, 120], "antialias", "ignore"),  # corridor's resolution
+        "megaloc": ("own", "antialias", "ignore"),  # each image at its own size
         "tokens": ([322, 322], "linear", "apply"),
     }
     # A global method: its recall searches its descriptors, no segment search.

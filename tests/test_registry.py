@@ -252,8 +252,10 @@ def test_each_trained_kind_states_what_its_model_module_states():
         kind = kinds.BACKBONES[name]
         spec = kind.spec
         assert loaders.LOADERS["features"][name] is loaders._load_trained, name
-        if getattr(module, "INPUT_SIZE", None) is None:  # the images' own size: `dataset`
-            assert spec.input_size is None and "resolution" not in kind.defaults, name
+        if getattr(module, "INPUT_SIZE", None) is None:  # `own`, or the dataset's
+            assert spec.input_size is None, name
+            own = {"resolution": kinds.OWN_SIZE} if spec.own_size else {}
+            assert {k: v for k, v in kind.defaults.items() if k == "resolution"} == own, name
         else:
             assert tuple(reversed(spec.input_size)) == module.INPUT_SIZE, name
             assert kind.defaults["resolution"] == list(spec.input_size), name
@@ -274,6 +276,11 @@ def test_each_trained_kind_states_what_its_model_module_states():
     assert salad.VITB14["patch_size"] == 14
     for name in ("salad", "boq_dinov2", "megaloc", "vlad_buff"):
         assert kinds.BACKBONES[name].spec.patch_size == 14, name
+    # The kinds whose evaluations read every image unresized; the schema offers their value.
+    own = {n for n, k in kinds.BACKBONES.items() if k.defaults.get("resolution") == "own"}
+    assert own == {"megaloc", "cosplace", "eigenplaces"}
+    choices = SCHEMA["definitions"]["backbone"]["properties"]["resolution"]["oneOf"]
+    assert {"const": kinds.OWN_SIZE} in choices
 
 
 def test_schema_x_kinds_may_name_the_trained_kinds():

@@ -219,10 +219,10 @@ def test_every_trained_kind_is_a_global_method_whose_descriptor_is_the_models(
         assert run.row_params["aggregator"] == "model"
         assert run.row_params["features.backbone"] == kind
         assert run.row_params["features.output"] == "descriptor"
-        # The published input size, or the images' own (MegaLoc): the dataset's.
+        # The published input size, or the images' own (MegaLoc; here all 64 x 48).
         width, height = kinds.BACKBONES[kind].spec.input_size or (64, 48)
         assert run.row_params["features.resolution"] == (
-            "dataset" if kind == "megaloc" else f"{width} {height}"
+            "own" if kind == "megaloc" else f"{width} {height}"
         )
         recall = plan.get("recall", run.recall_key)
         recall_path = run_stage(
@@ -282,6 +282,96 @@ def test_output_features_is_the_map_the_head_reads_and_feeds_anyloc_vlad(
     assert stored.shape == (height // spec.patch_size, width // spec.patch_size, expected.shape[-1])
     np.testing.assert_allclose(stored, expected, rtol=0, atol=FLOAT32_ATOL)
     assert (tmp_path / "c" / "vocabulary").is_dir()
+
+
+# Images of other sizes than the dataset's 64 x 48 (width, height): sides off the
+# 14-pixel grid (MegaLoc resizes them itself), a run of two equal sizes to batch together.
+MIXED_SIZES = {"ref/0001.png": (70, 50), "ref/0002.png": (57, 43), "ref/0003.png": (57, 43)}
+
+
+def mixed_size_config(root: Path, checkpoints: dict[str, Path], methods: dict) -> dict:
+    """:func:`trained_config`'s toy dataset with :data:`MIXED_SIZES` replacing some of
+    its images."""
+    from PIL import Image
+    from synthetic import place_image
+
+    config = trained_config(root, checkpoints, methods)
+    rng = np.random.default_rng(5)
+    for name, (width, height) in MIXED_SIZES.items():
+        pixels = (place_image(rng, width, height) * 255).astype(np.uint8)
+        Image.fromarray(pixels).save(root / "data" / "toy" / name)
+    return config
+
+
+def test_megaloc_and_cosplace_read_each_image_at_its_own_size_as_their_evaluations_do(
+    tmp_path, tiny_loaders
+):
+    """``resolution: own`` (MegaLoc's, CosPlace's and EigenPlaces' default): each image's
+    stored descriptor is the model's forward on that image alone, unresized (PIL's pixels,
+    ImageNet-normalised), on a dataset of mixed sizes; images of one size share a batch
+    (the stage runs batches of 3 here)."""
+    from vprflow.models.trained import cosplace
+
+    megaloc_model, megaloc_file = save_tiny("megaloc", tmp_path / "weights")
+    torch.manual_seed(0)
+    cosplace_model = cosplace.GeoLocalizationNet("ResNet18", 32).eval()
+    cosplace_file = tmp_path / "weights" / "ResNet18_32_cosplace.pth"
+    torch.save(cosplace_model.state_dict(), cosplace_file)
+    models = {"megaloc": megaloc_model, "cosplace": cosplace_model}
+    methods = {kind: {"aggregator": "model", "features": kind} for kind in models}
+    config = mixed_size_config(
+        tmp_path, {"megaloc": megaloc_file, "cosplace": cosplace_file}, methods
+    )
+    config["backbones"]["cosplace"]["variant"] = "ResNet18_32"
+    plan = _plan(config)
+    done: dict = {}
+    for run in plan.runs["toy"]:
+        model = models[run.method]
+        assert run.row_params["features.resolution"] == "own"
+        key = plan.get("recall", run.recall_key).inputs["descriptors"][1]
+        run_stage(plan, "descriptors", key, tmp_path / "data", tmp_path / "c", done)
+        descriptors = stores.open_store(done["descriptors", key])
+        dataset = Dataset(done["images", plan.images_keys["toy"]])
+        stored = np.asarray(descriptors["descriptors"][...])
+        for index, path in enumerate(dataset.paths):
+            pixels = read_image(tmp_path / "data" / path, "ignore")
+            with torch.no_grad():
+                alone = model(imagenet(pixels, model))[0].numpy()
+            np.testing.assert_allclose(
+                stored[index], alone, rtol=0, atol=FLOAT32_ATOL, err_msg=f"{run.method} {path}"
+            )
+        features_key = plan.get("descriptors", key).inputs["features"][1]
+        # Sizes differ: no one image size to state.
+        assert stores.open_store(done["features", features_key]).attrs["image_size"] is None
+
+
+def test_a_dense_map_at_each_images_own_size_is_refused_naming_the_image_and_its_size(
+    tmp_path, tiny_loaders
+):
+    """The stages after a dense map stack it: under ``resolution: own`` an image whose
+    size differs from the first's is refused before any is computed, naming both files,
+    their sizes and the key; at the dataset's resolution the same entry runs."""
+    _, checkpoint = save_tiny("megaloc", tmp_path / "weights")
+    methods = {"vlad": {"aggregator": "anyloc_vlad", "features": "megaloc"}}
+    config = mixed_size_config(tmp_path, {"megaloc": checkpoint}, methods)
+    config["backbones"]["megaloc"]["output"] = "features"
+    plan = _plan(config)
+    (features_key,) = plan.stages["features"]
+    with pytest.raises(ValueError) as error:
+        run_stage(plan, "features", features_key, tmp_path / "data", tmp_path / "c", {})
+    message = str(error.value)
+    assert "ref/0001.png is 70 x 50" in message and "ref/0000.png is 64 x 48" in message
+    assert "(and 2 more images differ)" in message
+    assert "resolution: own" in message and "`resolution: [width, height]`" in message
+    assert not (tmp_path / "c" / "features" / f"{features_key}.zarr").exists()
+    config["backbones"]["megaloc"]["resolution"] = "dataset"
+    plan = _plan(config)
+    (features_key,) = plan.stages["features"]
+    done: dict = {}
+    run_stage(plan, "features", features_key, tmp_path / "data", tmp_path / "c", done)
+    features = stores.open_store(done["features", features_key])
+    assert features["features"].shape[:3] == (8, 3, 5)  # 64 x 48 rounded to 70 x 42
+    assert features.attrs["image_size"] == [48, 64]
 
 
 def _plan(config: dict):

@@ -112,10 +112,12 @@ class TrainedModel:
     published checkpoints by name (the first is the default). ``input_size``: the
     published input ``(width, height)``, the default of the entry's ``resolution`` (the
     model modules' ``INPUT_SIZE`` is ``(height, width)``; test_registry compares them);
-    ``None``: the published evaluation feeds the images at their own size (the
-    dataset's). ``patch_size``: the stride of ``feature_map``. ``crop``: centre-crop an
-    input to whole patches first, as vprflow's ViT backbones do (DINOv2 needs multiples
-    of 14; MegaLoc resizes to them itself, so False). ``resize``: the published reader's
+    ``None``: the dataset's (``resolution: dataset``), or each image's own where
+    ``own_size``: the published evaluation feeds every image at its own size, so the
+    entry's default ``resolution`` is :data:`OWN_SIZE`. ``patch_size``: the stride of
+    ``feature_map``. ``crop``: centre-crop an input to whole patches first, as
+    vprflow's ViT backbones do (DINOv2 needs multiples of 14; MegaLoc resizes to them
+    itself, so False). ``resize``: the published reader's
     resize (a :data:`vprflow.data.images.RESIZE_METHODS` name), what ``resize: method``
     means under the ``model`` aggregator. ``layer_strides``: for a trunk whose entry
     picks the map with ``layer`` (ResNet-50: 1-4), each layer's stride (``patch_size``
@@ -132,11 +134,17 @@ class TrainedModel:
     resize: str = "antialias"
     layer_strides: dict[int, int] | None = None
     descriptor: bool = True
+    own_size: bool = False
 
     @property
     def default_variant(self) -> str:
         return next(iter(self.variants))
 
+
+# A backbone entry's `resolution` that resizes nothing: each image at its own size (after
+# its EXIF orientation), as MegaLoc's, CosPlace's and EigenPlaces' evaluations read it. A
+# dense map (output: features) then needs one size for every image: later stages stack it.
+OWN_SIZE = "own"
 
 # The ViT backbones' choices: which projection is read, how position embeddings are
 # interpolated (vprflow.models.vit; here so that the schema lists them without torch).
@@ -293,6 +301,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
         14,
         "DINOv2-B/14 patch tokens after the final LayerNorm, 768-d",
         crop=False,
+        own_size=True,
     ),
     # ResNet-50 cut after layer3 + feature mixing (4096-d), GSV-Cities; 320 x 320 (its
     # mixer's 20 x 20 positions fix the input size).
@@ -364,6 +373,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
             32,
             "the ResNet's layer4 (ResNet-50: 2048-d), stride 32",
             crop=False,
+            own_size=True,
         )
         for name, published in (("CosPlace", _COSPLACE_DIMS), ("EigenPlaces", _EIGENPLACES_DIMS))
     },
@@ -402,6 +412,7 @@ def _trained(name: str, spec: TrainedModel) -> ModelKind:
             # A trunk has no descriptor of its own: its dense map.
             "output": TRAINED_OUTPUTS[0] if spec.descriptor else "features",
             **({"resolution": list(spec.input_size)} if spec.input_size else {}),
+            **({"resolution": OWN_SIZE} if spec.own_size else {}),
             # The default layer: the one whose stride is the spec's patch size.
             **(
                 {"layer": next(k for k, v in spec.layer_strides.items() if v == spec.patch_size)}

@@ -41,7 +41,7 @@ if TYPE_CHECKING:
     from vprflow.data.datasets import DatasetFiles
 from vprflow.aggregation.aggregators import Aggregator, aggregator, prefixed
 from vprflow.evaluation.rerank import RERANKERS
-from vprflow.models.kinds import TRAINED_KINDS, TrainedModel, model_kind
+from vprflow.models.kinds import OWN_SIZE, TRAINED_KINDS, TrainedModel, model_kind
 from vprflow.search.indexes import SEARCH_INDEXES, search_settings
 
 # Which dataset settings shape which store. A dataset's settings are split between
@@ -500,7 +500,8 @@ def _plan_features(
         strides = kind.spec.layer_strides
         patch = strides[backbone["layer"]] if strides else kind.spec.patch_size
         patch = patch if backbone["output"] == "features" else None
-    if patch and params["resolution"] != "native" and min(params["resolution"]) < patch:
+    sized = isinstance(params["resolution"], list)  # not native, nor each image's own
+    if patch and sized and min(params["resolution"]) < patch:
         where = (
             f"datasets.{m.dataset_name}.resolution"
             if backbone["resolution"] == "dataset"
@@ -777,6 +778,8 @@ def _hashed(params: dict) -> dict:
 
 
 def _resolution(dataset: dict, profile: dict) -> list[int] | str:
+    if profile["resolution"] == OWN_SIZE:
+        return OWN_SIZE
     if profile["resolution"] != "dataset":
         return list(profile["resolution"])
     if dataset["resolution"] == "native":

@@ -12,8 +12,8 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
-from vprflow.data.images import resize_image
-from vprflow.models.kinds import model_kind
+from vprflow.data.images import image_size, resize_image
+from vprflow.models.kinds import OWN_SIZE, model_kind
 from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
 from vprflow.stages.readers import open_shard
@@ -29,18 +29,19 @@ CPU_BATCH_SIZE = 1
 
 def compute_features(job: Job) -> None:
     """Dense patch descriptors ``features [n, h, w, D]`` of the job's images, ``batch_size``
-    images a model call (``auto``: :func:`_batch_sizes`).
+    images a model call (``auto``: :func:`_batch_sizes`). Under ``resolution: own`` each
+    image keeps its own size, and a batch is cut where the size changes.
 
     Host threads keep the model busy: ``job.threads`` of them read and resize the
     images of the next batches while it computes, and the store's writer thread
     (:class:`~vprflow.core.stores.RowWriter`) writes the features of the last."""
     params = job.params
     dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
-    width, height = params["resolution"]
+    own = params["resolution"] == OWN_SIZE
+    size = None if own else tuple(params["resolution"])
+    image_hw = _own_size(params, dataset) if own else [size[1], size[0]]
     store_dtype = np.dtype(params["store_dtype"])
-    read, extract, patch_size, device = _feature_extractor(
-        params, job.device, width, height, dataset
-    )
+    read, extract, patch_size, device = _feature_extractor(params, job.device, size, dataset)
     sizes = _batch_sizes(job.batch_size, device, extract)
     attrs = {**stage_attrs("features", job.record, images), "sources": _sources(params)}
     with (
@@ -63,7 +64,7 @@ def compute_features(job: Job) -> None:
                         grid=[h, w],
                         dim=dim,
                         patch_size=patch_size,
-                        image_size=[height, width],
+                        image_size=image_hw,
                     )
                 elif grids.shape[1:] != writer.array.shape[1:]:
                     raise ValueError(
@@ -96,11 +97,11 @@ class _ReadAhead:
                 return
             self.queue.append(self.pool.submit(self.read, index))
 
-    def take(self, count: int, ahead: int) -> np.ndarray:
+    def take(self, count: int, ahead: int) -> list[np.ndarray]:
         self._fill(count + ahead)
         batch = [self.queue.popleft().result() for _ in range(min(count, len(self.queue)))]
         self._fill(ahead)
-        return np.stack(batch)
+        return batch
 
     def cancel(self) -> None:
         """Drop the reads not started (after an error)."""
@@ -120,9 +121,10 @@ class _BatchSizes:
     def run(self, ahead: _ReadAhead, left: int) -> tuple[np.ndarray, int]:
         """Features of the next batch (at most ``left`` images) and its length."""
         if self.size is None:
-            return self._probe(ahead.take(1, 1)), 1
-        pixels = ahead.take(min(self.size, left), self.size)
-        return self._extract(pixels), len(pixels)
+            return self._probe(np.stack(ahead.take(1, 1))), 1
+        images = ahead.take(min(self.size, left), self.size)
+        grids = [self._extract(np.stack(run)) for run in equal_size_runs(images)]
+        return (grids[0] if len(grids) == 1 else np.concatenate(grids)), len(images)
 
     def _probe(self, pixels: np.ndarray) -> np.ndarray:
         import torch
@@ -162,6 +164,44 @@ class _BatchSizes:
         return np.concatenate([self._extract(part) for part in parts])
 
 
+def equal_size_runs(images: list[np.ndarray]) -> list[list[np.ndarray]]:
+    """``images`` in order, cut into runs of one shape: what one model call can stack."""
+    runs: list[list[np.ndarray]] = []
+    for image in images:
+        if runs and runs[-1][-1].shape == image.shape:
+            runs[-1].append(image)
+        else:
+            runs.append([image])
+    return runs
+
+
+def _own_size(params: dict, dataset) -> list[int] | None:
+    """``[height, width]`` shared by every image of the dataset as the features stage
+    reads it (its ``exif_orientation``), for the store's ``image_size``; ``None`` where
+    sizes differ, which only a model's own descriptor (``output: descriptor``) allows:
+    a dense map is stacked by the stages after it, so an image of another size is
+    refused, naming it."""
+    turn = params["exif_orientation"]
+    if turn == dataset.exif_orientation:  # the images stage's sizes, read as here
+        sizes = np.asarray(dataset.group["image_sizes"][...])
+    else:
+        sizes = np.array([image_size(path, turn)[::-1] for path in dataset.paths])
+    wrong = np.flatnonzero((sizes != sizes[0]).any(axis=1))
+    if not len(wrong):
+        return [int(v) for v in sizes[0]]
+    if params.get("output", "features") == "descriptor":
+        return None
+    (height, width), (h, w) = sizes[0], sizes[wrong[0]]
+    more = f" (and {len(wrong) - 1} more images differ)" if len(wrong) > 1 else ""
+    raise ValueError(
+        f"{dataset.paths[wrong[0]]} is {w} x {h}, but {dataset.paths[0]} is {width} x "
+        f"{height}{more}: backbone {params['backbone']!r} reads each image at its own size "
+        f"(resolution: {OWN_SIZE}), and its dense map (output: features) needs one size "
+        "for every image, as the stages after it stack the maps; give the backbone entry "
+        "a `resolution: [width, height]` (or `dataset`) to resize them all"
+    )
+
+
 def _batch_sizes(batch_size, device, extract) -> _BatchSizes:
     """The batch sizes of ``batch_size`` (a backbone entry's): a whole number, or
     ``auto``: :data:`CPU_BATCH_SIZE` unless the model runs on a CUDA ``device``."""
@@ -185,11 +225,12 @@ def _sources(params: dict) -> dict[str, str]:
     return sources
 
 
-def _feature_extractor(params: dict, device: str, width: int, height: int, dataset):
+def _feature_extractor(params: dict, device: str, size: tuple[int, int] | None, dataset):
     """``(read, extract, patch size, torch device or None)`` for the configured backbone:
     ``read(image index)`` gives what ``extract`` takes a stack of (an image resized to
-    ``width`` x ``height``, float32 in [0, 1]), ``extract`` float32 ``[B, h, w, D]``;
-    the device is where the model runs (None: a model without one).
+    ``size``, ``(width, height)``, or at its own size where ``size`` is None; float32
+    in [0, 1]), ``extract`` float32 ``[B, h, w, D]``; the device is where the model
+    runs (None: a model without one).
 
     A kind without a loader (``backbone: import``) reads the authors' published HDF5
     features instead of running a model (``<image file name>/ift_dino``).
@@ -211,6 +252,7 @@ def _feature_extractor(params: dict, device: str, width: int, height: int, datas
     turn = params["exif_orientation"]  # the method's reader's (plan._exif_orientation)
 
     def read_image(index):
-        return resize_image(dataset.read_image(index, turn), width, height, params["resize"])
+        image = dataset.read_image(index, turn)
+        return image if size is None else resize_image(image, *size, params["resize"])
 
     return read_image, backbone.features, backbone.patch_size, getattr(backbone, "device", None)
