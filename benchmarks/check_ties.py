@@ -21,7 +21,10 @@ Each code path runs in a child process with its environment (``OPENBLAS_CORETYPE
 ``ATEN_CPU_CAPABILITY``, ``MKL_CBWR``, ``MKL_ENABLE_INSTRUCTIONS``, one thread). Printed:
 per path and input, patches, AnyLoc labels equal / differing, the largest AnyLoc VLAD
 difference, SegVLAD regions equal / differing (a region differs when its vector is more
-than 1e-4 from the authors'), and the numpy labels and regions that differed. Exits 1 if any label
+than 1e-4 from the authors'), the numpy labels and regions that differed, the
+patches whose two best AnyLoc scores tie exactly or within 4 ulps in the authors'
+product, and a digest of the authors' labels (equal digests across code paths: no tie
+moved with the CPU). Exits 1 if any label
 or region differs.
 
     git -C /work/.mirror/AnyLoc+Revisit-Anything/repo show HEAD:utilities.py > /tmp/ra/utilities.py
@@ -37,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import ast
+import hashlib
 import importlib.util
 import json
 import os
@@ -121,8 +125,7 @@ def _inputs(results: Path | None):
     features = {p.stem: p for p in sorted((cache / "features").glob("*.zarr"))}
     for path in sorted((cache / "vocabulary").glob("*.zarr")):
         group = stores.open_store(str(path))
-        record = json.loads(group.attrs["record"]) if "record" in group.attrs else None
-        key = (record or {}).get("inputs", {}).get("features")
+        key = dict(group.attrs.get("record", {})).get("inputs", {}).get("features")
         if key not in features:
             continue
         centres = np.asarray(group["centres"][...], np.float32)
@@ -160,12 +163,19 @@ def child(originals: Path, results: Path | None) -> list[dict]:
         authors.kmeans = fpk.KMeans(k, mode="cosine")
         authors.kmeans.centroids = authors.c_centers = torch.from_numpy(centres)
         names = ("patches", "equal", "differ", "seg_equal", "seg_differ", "numpy", "seg_numpy")
+        names += ("exact_ties", "near_ties")
         counts = dict.fromkeys(names, 0)
-        worst = 0.0
+        worst, labels = 0.0, []
         for raw in images:
             desc = torch.from_numpy(np.ascontiguousarray(raw.T))[None]  # their [1, D, N]
             x = F.normalize(desc, dim=1).permute(0, 2, 1).squeeze(0)
             theirs = authors.kmeans.predict(x).numpy()
+            labels.append(theirs)
+            scores = authors.kmeans.cos_sim(x, authors.kmeans.centroids).numpy()
+            top = np.sort(scores, axis=1)[:, -2:]
+            gap = (top[:, 1] - top[:, 0]) / np.spacing(np.abs(top[:, 1]))
+            counts["exact_ties"] += int((gap == 0).sum())
+            counts["near_ties"] += int(((gap > 0) & (gap <= 4)).sum())
             theirs_vlad = authors.generate(x).numpy()
             mine_x = vlad_input(raw, {"normalize_descriptors": True})
             mine = published_labels(mine_x, centres, "anyloc")
@@ -187,7 +197,8 @@ def child(originals: Path, results: Path | None) -> list[dict]:
             before_regions = vlad_per_region(mine_x, regions, centres, labels=before)
             off = np.abs(before_regions - their_regions.numpy()).max(axis=1) > REGION_ATOL
             counts["seg_numpy"] += int(off.sum())
-        rows.append({"input": name, **counts, "vlad_max_diff": worst})
+        digest = hashlib.sha256(np.concatenate(labels).astype(np.int64).tobytes()).hexdigest()
+        rows.append({"input": name, **counts, "vlad_max_diff": worst, "labels": digest[:12]})
     return rows
 
 
@@ -206,9 +217,9 @@ def main() -> int:
     print(
         "| code path | input | patches | anyloc equal | anyloc differ | anyloc max vlad diff "
         "| segvlad regions equal | segvlad regions differ | before: numpy labels differ "
-        "| before: regions differ |"
+        "| before: regions differ | exact ties | near ties | authors' labels |"
     )
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
+    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---|")
     failed = False
     for path in chosen:
         command = [sys.executable, __file__, str(args.originals), "--child", path]
@@ -226,7 +237,8 @@ def main() -> int:
             print(
                 f"| {path} | {row['input']} | {row['patches']} | {row['equal']} | "
                 f"{row['differ']} | {row['vlad_max_diff']:.1e} | {row['seg_equal']} | "
-                f"{row['seg_differ']} | {row['numpy']} | {row['seg_numpy']} |"
+                f"{row['seg_differ']} | {row['numpy']} | {row['seg_numpy']} | "
+                f"{row['exact_ties']} | {row['near_ties']} | {row['labels']} |"
             )
     return 1 if failed else 0
 
