@@ -178,10 +178,11 @@ def trained_config(root: Path, checkpoints: dict[str, Path], methods: dict, **da
     return config
 
 
-def model_pixels(path: str, width: int, height: int) -> np.ndarray:
+def model_pixels(path: str, width: int, height: int, method: str = "antialias") -> np.ndarray:
     """What the published readers give the model: PIL's pixels (EXIF ignored), resized
-    with antialiasing to the model's input size."""
-    return resize_image(read_image(path, "ignore"), width, height, "antialias")
+    to the model's input size by its reader's ``method`` (PIL bilinear for most; BoQ's
+    bicubic on the float tensor)."""
+    return resize_image(read_image(path, "ignore"), width, height, method)
 
 
 def imagenet(pixels: np.ndarray, model) -> torch.Tensor:
@@ -220,7 +221,8 @@ def test_every_trained_kind_is_a_global_method_whose_descriptor_is_the_models(
         assert run.row_params["features.backbone"] == kind
         assert run.row_params["features.output"] == "descriptor"
         # The published input size, or the images' own (MegaLoc; here all 64 x 48).
-        width, height = kinds.BACKBONES[kind].spec.input_size or (64, 48)
+        spec = kinds.BACKBONES[kind].spec
+        width, height = spec.input_size or (64, 48)
         assert run.row_params["features.resolution"] == (
             "own" if kind == "megaloc" else f"{width} {height}"
         )
@@ -234,7 +236,9 @@ def test_every_trained_kind_is_a_global_method_whose_descriptor_is_the_models(
         with torch.no_grad():
             expected = np.concatenate(
                 [
-                    model(imagenet(model_pixels(root / p, width, height), model)).numpy()
+                    model(
+                        imagenet(model_pixels(root / p, width, height, spec.resize), model)
+                    ).numpy()
                     for p in dataset.paths
                 ]
             )
