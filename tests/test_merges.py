@@ -75,6 +75,8 @@ def test_a_later_file_naming_the_same_folder_keeps_the_download(tmp_path):
 
 def test_a_file_that_only_adjusts_another_files_dataset_goes_unremarked():
     assert dataset_merges([SHIPPED, REPO / "config" / "trained.yaml"]) == []
+    # The same folders restated, with its own methods and resolution: the same images.
+    assert dataset_merges([SHIPPED, REPO / ".test" / "config" / "config.yaml"]) == []
 
 
 def test_the_workflows_own_config_file_merges_first_and_the_command_lines_in_their_order():

@@ -11,8 +11,9 @@ where it still names the folder its file gave (:func:`without_foreign_downloads`
 archive is never unpacked into a folder that another file named for its own images.
 
 An entry that only adjusts another file's dataset (config/trained.yaml's ``corridor``:
-its methods and re-rankers) is what merging is for and goes unremarked: a note is for a
-later file that names the dataset's images (a key of :data:`FOLDER_KEYS`).
+its methods and re-rankers; the `.test` config's, restating its folders) is what merging
+is for and goes unremarked: a note is for a later file that names other images (a key of
+:data:`FOLDER_KEYS` with another value).
 """
 
 from __future__ import annotations
@@ -79,9 +80,9 @@ class DatasetMerge:
 
 def dataset_merges(files: Iterable[str | Path]) -> list[DatasetMerge]:
     """The datasets that two or more of ``files`` (config files, in merge order:
-    :func:`merge_order`) define where a file after the first that defines one gives
-    any of :data:`FOLDER_KEYS`, by name. Files that cannot be read are skipped (Snakemake
-    reports its own errors)."""
+    :func:`merge_order`) define where a file after the first that defines one gives a
+    :data:`FOLDER_KEYS` value other than the earlier files' (:func:`_names_other_images`),
+    by name. Files that cannot be read are skipped (Snakemake reports its own errors)."""
     entries: dict[str, list[tuple[str, dict]]] = {}
     seen: dict[str, str] = {}
     for path in files:
@@ -99,9 +100,7 @@ def dataset_merges(files: Iterable[str | Path]) -> list[DatasetMerge]:
     for name, given in sorted(entries.items()):
         files_in_order = tuple(dict.fromkeys(file for file, _ in given))
         first = files_in_order[0]
-        if len(files_in_order) < 2 or not any(
-            key in entry for file, entry in given if file != first for key in FOLDER_KEYS
-        ):
+        if len(files_in_order) < 2 or not _names_other_images(given, first):
             continue
         merged: dict = {}
         origin: dict = {}
@@ -132,6 +131,21 @@ def dataset_merges(files: Iterable[str | Path]) -> list[DatasetMerge]:
             )
         )
     return merges
+
+
+def _names_other_images(given: list[tuple[str, dict]], first: str) -> bool:
+    """Whether a file after ``first`` gives a :data:`FOLDER_KEYS` value other than the
+    one the files before it gave: other images under the same name. A file restating the
+    same folders (the `.test` config's corridor, at another resolution) adjusts the same
+    dataset, as config/trained.yaml does."""
+    before: dict = {}
+    for file, entry in given:
+        for key in FOLDER_KEYS:
+            if key in entry:
+                if file != first and entry[key] != before.get(key):
+                    return True
+                before[key] = entry[key]
+    return False
 
 
 def without_foreign_downloads(config: dict, merges: Iterable[DatasetMerge]) -> dict:
