@@ -84,7 +84,9 @@ if RUNS_JOBS:
         print(f"vprflow: {collision_message(OTHER_RUNS)}", file=sys.stderr)
 try:
     CONFIG = validate_config(
-        config, SCHEMA, merge_order(workflow.configfiles, workflow.overwrite_configfiles)
+        config,
+        SCHEMA,
+        merge_order(workflow.configfiles, workflow.overwrite_configfiles),
     )
     # Content hashes of images, local model weights and imported files, memoised
     # between runs.
@@ -221,7 +223,9 @@ def downloaded(name):
         # Its folder is gone (or data_root moved): the record no longer holds, and left
         # in place it would stand for a download that has not happened.
         record.unlink()
-        print(f"vprflow: removed {record}: {folder}, where it records a download, is gone")
+        print(
+            f"vprflow: removed {record}: {folder}, where it records a download, is gone"
+        )
     checkpoints.download.get(dataset=name)
     if not folder.is_dir():
         raise PlanError(
@@ -294,7 +298,8 @@ def published_input(wildcards):
 
 def published_differences(wildcards):
     """Params function: by method, how this run makes a preset's published rows otherwise
-    than the published setting (the preset with the config shipped beside the workflow)."""
+    than the published setting (the preset with the config shipped beside the workflow).
+    """
     name = wildcards.dataset
     if name not in presets() or name not in PLAN.runs:
         return {}
