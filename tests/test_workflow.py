@@ -297,6 +297,35 @@ def test_changing_any_execution_setting_after_a_finished_run_plans_nothing(toy_r
     assert "Nothing to be done" in result.stdout + result.stderr, result.stdout[-3000:]
 
 
+def test_a_table_copied_without_snakemakes_records_is_rebuilt_when_its_stores_change(
+    toy_run, tmp_path
+):
+    """Snakemake keeps an existing table whose input stores are missing when it has no
+    record of its job (a results/ folder copied without `.snakemake`): after a change
+    of setting (or of a stage's format version) the old table stood as current, with
+    "Nothing to be done". Changed back, nothing reruns."""
+    source, config = toy_run
+    workdir = tmp_path / "copy"
+    shutil.copytree(source, workdir, symlinks=True, ignore=shutil.ignore_patterns(".snakemake"))
+    changed = copy.deepcopy(config)
+    changed["datasets"]["toy"]["recall_at"] = [1, 2]
+    path = write_config(workdir, changed, "recall_at.yaml")
+    result = subprocess.run(
+        snakemake_command(workdir, path, "-n", TARGET), capture_output=True, text=True,
+        cwd=workdir,
+    )  # fmt: skip
+    output = result.stdout + result.stderr
+    assert result.returncode == 0, output[-3000:]
+    assert f"vprflow: {TARGET}: built from other stores than this plan's" in output
+    assert "rule report:" in output and "Nothing to be done" not in output
+    path = write_config(workdir, config, "as_built.yaml")
+    result = subprocess.run(
+        snakemake_command(workdir, path, "-n", TARGET), capture_output=True, text=True,
+        cwd=workdir,
+    )  # fmt: skip
+    assert "Nothing to be done" in result.stdout + result.stderr, result.stdout[-3000:]
+
+
 def test_changing_a_reranker_reruns_only_its_reranks_and_their_recall(toy_run):
     workdir, config = toy_run
     changed = copy.deepcopy(config)

@@ -44,6 +44,8 @@ from vprflow.planning.reports import (
     dataset_outputs,
     failed_datasets,
     figure_inputs,
+    mark_stale_tables,
+    tables_mark,
     withdraw_reports,
     withdraw_stale_reports,
 )
@@ -121,6 +123,17 @@ if len(_memo) != _memo_size:
 # cluster job steps, which parse this file again.
 if workflow.is_main_process and not PLAN.checkpoint_error:
     write_index(PLAN, PREFIX)
+# A table whose stores this plan no longer has is rebuilt even where Snakemake has no
+# record of its job (a copied results/ folder, `.snakemake` removed), which it would
+# otherwise keep as current: its dataset's mark, an input of the tables, is touched.
+if workflow.is_main_process and not PLAN.checkpoint_error and COMMAND.runs_workflow:
+    _rebuilt = mark_stale_tables(PLAN, PREFIX, COMMAND.targets, CONFIG["targets"])
+    if _rebuilt:
+        print(
+            f"vprflow: {', '.join(map(str, _rebuilt))}: built from other stores than "
+            "this plan's (a setting or a stage's format version changed): rebuilt",
+            file=sys.stderr,
+        )
 # The stages vprflow.planning.plan.STAGES runs in shards: the `gather` rule combines them.
 SHARDED_STAGES = "|".join(SHARDED)
 
@@ -281,6 +294,7 @@ def prediction_inputs(wildcards):
         "recalls": [
             store_path("recall", run.recall_key) for run in PLAN.runs[wildcards.dataset]
         ],
+        "mark": tables_mark(PREFIX, wildcards.dataset),
     }
 
 

@@ -29,6 +29,9 @@ KAPTURE_PAIRS = "results/pairs/{dataset}/{method}/predictions.txt"
 FIGURE = "results/figures/{dataset}/{figure}/{method}.png"
 # Every store of the current config with its stage, datasets, methods and log folder.
 INDEX = f"{CACHE}/index.tsv"
+# An empty file each dataset's tables read, touched when they must be rebuilt
+# (vprflow.planning.reports.mark_stale_tables).
+TABLES_MARK = f"{CACHE}/marks/{{dataset}}"
 # The memo of content hashes (vprflow.planning.fingerprints).
 FINGERPRINTS = f"{CACHE}/fingerprints.json"
 # What `snakemake <DOWNLOAD_RECORD>` builds (vprflow.data.download): the record written once a

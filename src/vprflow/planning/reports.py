@@ -3,6 +3,7 @@ reads, and withdrawing tables that no longer describe the config."""
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -13,6 +14,7 @@ from vprflow.core.paths import (
     RECALL_CSV,
     RECALL_PLOT,
     RECALL_TABLE,
+    TABLES_MARK,
     store_path,
 )
 from vprflow.planning.plan import Plan, method_run, method_stores, planning_failure
@@ -88,6 +90,51 @@ def stale_reports(plan: Plan, root: str = "", datasets: list[str] | None = None)
             if any(not r.exists() or r.stat().st_mtime > built for r in recalls):
                 stale.append(table)
     return stale
+
+
+def tables_mark(root: str, dataset: str) -> str:
+    """The mark a dataset's tables read (:func:`mark_stale_tables`), made under ``root``
+    on first use with the oldest modification time, so that it reruns nothing until
+    touched; its path as rules name it (a module's ``prefix`` is added by Snakemake)."""
+    path = TABLES_MARK.format(dataset=dataset)
+    mark = Path(root) / path
+    if not mark.exists():
+        mark.parent.mkdir(parents=True, exist_ok=True)
+        mark.touch()
+        os.utime(mark, (0, 0))
+    return path
+
+
+def mark_stale_tables(plan: Plan, root: str, targets, default_datasets: list[str]) -> list[Path]:
+    """Set each dataset's tables mark (:func:`tables_mark`): to now where one of its
+    tables the command builds is stale (:func:`stale_reports`), to the oldest time
+    where none of its tables is; returns the stale tables. The tables a command builds:
+    those its ``targets`` name, or, with no target or ``all``, those of
+    ``default_datasets`` (the config's ``targets``).
+
+    Snakemake keeps an existing table whose input stores are missing unless its record
+    of the job says they changed, and a copied results/ folder, or one whose
+    ``.snakemake`` is gone, has none: a table built from an older config's stores, or
+    an older format version's, would stand as current. The mark is an input of the
+    tables' rules: newer than a table, it reruns them on the current plan's stores. A
+    dry run sets it too, so that it shows what a run does; a config changed back before
+    the run sets it back, and nothing reruns."""
+    wanted = {os.path.normpath(t) for t in targets}
+    if not targets or "all" in targets:
+        wanted |= {
+            os.path.normpath(Path(root) / path)
+            for name in default_datasets
+            for path in dataset_outputs(plan, name)
+        }
+    rebuilt = []
+    for dataset in plan.runs:
+        stale = stale_reports(plan, root, [dataset])
+        asked = [t for t in stale if os.path.normpath(t) in wanted]
+        if asked or not stale:
+            mark = Path(root) / tables_mark(root, dataset)
+            os.utime(mark, None if asked else (0, 0))
+        rebuilt += asked
+    return rebuilt
 
 
 def withdraw_stale_reports(
