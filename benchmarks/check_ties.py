@@ -53,35 +53,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 
-# Code paths: environment settings that force each kernel family (tests/test_vlad_ties.py
-# runs the same). OpenBLAS core types this CPU cannot run crash, so AVX-512 is added only
-# where the CPU has it.
-PATHS = {
-    "default": {},
-    "openblas_sandybridge": {"OPENBLAS_CORETYPE": "SandyBridge"},
-    "openblas_prescott": {"OPENBLAS_CORETYPE": "Prescott"},
-    "aten_default": {"ATEN_CPU_CAPABILITY": "default"},
-    "mkl_cbwr_compatible": {"MKL_CBWR": "COMPATIBLE"},
-    "mkl_avx": {"MKL_ENABLE_INSTRUCTIONS": "AVX"},
-    "one_thread_scalar": {
-        "OMP_NUM_THREADS": "1",
-        "OPENBLAS_CORETYPE": "Prescott",
-        "ATEN_CPU_CAPABILITY": "default",
-        "MKL_CBWR": "COMPATIBLE",
-    },
-}
-AVX512_PATHS = {
-    "openblas_skylakex": {"OPENBLAS_CORETYPE": "SkylakeX"},
-    "aten_avx512": {"ATEN_CPU_CAPABILITY": "avx512"},
-}
 REGION_ATOL = 1e-4
-
-
-def _has_avx512() -> bool:
-    try:
-        return " avx512f" in Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return False
 
 
 def _authors(originals: Path):
@@ -212,7 +184,10 @@ def main() -> int:
     if args.child:
         print(json.dumps(child(args.originals, args.results)))
         return 0
-    paths = {**PATHS, **(AVX512_PATHS if _has_avx512() else {})}
+    sys.path.insert(0, str(ROOT / "tests"))
+    from tie_problems import code_paths  # the code paths tests/test_vlad_ties.py runs
+
+    paths = code_paths()
     chosen = args.paths.split(",") if args.paths else list(paths)
     print(
         "| code path | input | patches | anyloc equal | anyloc differ | anyloc max vlad diff "
