@@ -44,16 +44,9 @@ from pathlib import Path
 import numpy as np
 import torch
 import yaml
+from originals import load_module
 
 REPO = Path(__file__).resolve().parents[1]
-
-
-def _module(path: Path, name: str) -> types.ModuleType:
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def _test_dataset(originals: Path) -> types.ModuleType:
@@ -61,7 +54,7 @@ def _test_dataset(originals: Path) -> types.ModuleType:
     for its positives only: a stand-in while it loads, where scikit-learn is missing."""
     path = originals / "VPR-methods-evaluation" / "test_dataset.py"
     if importlib.util.find_spec("sklearn") is not None:
-        return _module(path, "vme_test_dataset")
+        return load_module(path, "vme_test_dataset")
     import torchvision.transforms  # noqa: F401  (before the stand-in: torch reads the specs)
 
     sklearn = types.ModuleType("sklearn")
@@ -69,7 +62,7 @@ def _test_dataset(originals: Path) -> types.ModuleType:
     sklearn.neighbors.NearestNeighbors = None
     sys.modules.update({"sklearn": sklearn, "sklearn.neighbors": sklearn.neighbors})
     try:
-        return _module(path, "vme_test_dataset")
+        return load_module(path, "vme_test_dataset")
     finally:
         del sys.modules["sklearn"], sys.modules["sklearn.neighbors"]
 
@@ -197,7 +190,7 @@ def check(originals: Path, data: Path, pairs: int, depth: int, batch_size: int) 
         original_inputs = _inputs_original(originals, folder)
         sizes = {tuple(x.shape[-2:]) for x in original_inputs.values()}
 
-        megaloc = _module(originals / "MegaLoc" / "megaloc_model.py", "megaloc_original")
+        megaloc = load_module(originals / "MegaLoc" / "megaloc_model.py", "megaloc_original")
         source = megaloc.MegaLoc()
         source.backbone.blocks = source.backbone.blocks[:depth]
         _randomise(source, seed=1)

@@ -32,10 +32,10 @@ import importlib.util
 import math
 import sys
 import tempfile
-import types
 from pathlib import Path
 
 import torch
+from originals import commit_of, load_module
 from torch import nn
 
 from vprflow.models.trained.boq import load_boq_resnet50
@@ -43,19 +43,6 @@ from vprflow.models.trained.convap import load_convap
 from vprflow.models.trained.cosplace import load_cosplace, load_eigenplaces
 from vprflow.models.trained.mixvpr import load_mixvpr
 from vprflow.models.trunks.resnet import LAYERS, load_resnet
-
-
-def _module(path: Path, name: str) -> types.ModuleType:
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def _commit(folder: Path) -> str:
-    stamp = folder / "COMMIT"
-    return stamp.read_text().strip() if stamp.is_file() else f"{folder.name} (commit unknown)"
 
 
 def _randomise(model: nn.Module, images: torch.Tensor, seed: int) -> nn.Module:
@@ -217,7 +204,7 @@ def check_models(originals: Path, size, batch, seed, rows):
                 repo = "CosPlace" if method == "CosPlace" else "EigenPlaces"
                 _compare(
                     f"{method} {backbone}-{dim}",
-                    _commit(originals / repo),
+                    commit_of(originals / repo),
                     reference,
                     ours,
                     images,
@@ -230,8 +217,8 @@ def check_models(originals: Path, size, batch, seed, rows):
             torch.hub.load = hub_load
 
         # MixVPR (README configuration; a smaller head whose sizes the loader infers).
-        backbones = _module(originals / "MixVPR/models/backbones/resnet.py", "mixvpr_resnet")
-        mixvpr = _module(originals / "MixVPR/models/aggregators/mixvpr.py", "mixvpr_agg")
+        backbones = load_module(originals / "MixVPR/models/backbones/resnet.py", "mixvpr_resnet")
+        mixvpr = load_module(originals / "MixVPR/models/aggregators/mixvpr.py", "mixvpr_agg")
         for out_channels, rows_out in ((1024, 4), (128, 4)):
             images = torch.randn(batch, 3, 320, 320, generator=generator)
             reference = _Pair(
@@ -244,7 +231,7 @@ def check_models(originals: Path, size, batch, seed, rows):
             path = _save(reference.state_dict(), folder, "mixvpr.ckpt", "state_dict")
             _compare(
                 f"MixVPR {out_channels * rows_out}",
-                _commit(originals / "MixVPR"),
+                commit_of(originals / "MixVPR"),
                 reference,
                 load_mixvpr(path),
                 images,
@@ -255,8 +242,8 @@ def check_models(originals: Path, size, batch, seed, rows):
             )
 
         # Conv-AP (gsv-cities), 4096-d and 8192-d.
-        backbones = _module(originals / "gsv-cities/models/backbones/resnet.py", "gsv_resnet")
-        convap = _module(originals / "gsv-cities/models/aggregators/convap.py", "gsv_convap")
+        backbones = load_module(originals / "gsv-cities/models/backbones/resnet.py", "gsv_resnet")
+        convap = load_module(originals / "gsv-cities/models/aggregators/convap.py", "gsv_convap")
         for out_channels in (1024, 2048):
             images = torch.randn(batch, 3, 320, 320, generator=generator)
             reference = _Pair(
@@ -267,7 +254,7 @@ def check_models(originals: Path, size, batch, seed, rows):
             path = _save(reference.state_dict(), folder, "convap.ckpt", "state_dict")
             _compare(
                 f"Conv-AP {out_channels * 4}",
-                _commit(originals / "gsv-cities"),
+                commit_of(originals / "gsv-cities"),
                 reference,
                 load_convap(path, out_channels * 4),
                 images,
@@ -278,8 +265,8 @@ def check_models(originals: Path, size, batch, seed, rows):
             )
 
         # BoQ-ResNet50 as hubconf.get_trained_boq builds it.
-        boq_backbones = _module(originals / "Bag-of-Queries/src/backbones.py", "boq_backbones")
-        boq = _module(originals / "Bag-of-Queries/src/boq.py", "boq_boq")
+        boq_backbones = load_module(originals / "Bag-of-Queries/src/backbones.py", "boq_backbones")
+        boq = load_module(originals / "Bag-of-Queries/src/boq.py", "boq_boq")
         images = torch.randn(batch, 3, 384, 384, generator=generator)
         backbone = boq_backbones.ResNet("resnet50", pretrained=False, crop_last_block=True)
         aggregator = boq.BoQ(backbone.out_channels, 512, 64, 2, 32)
@@ -288,7 +275,7 @@ def check_models(originals: Path, size, batch, seed, rows):
         path = _save(reference.state_dict(), folder, "resnet50_16384.pth", None)
         _compare(
             "BoQ-ResNet50 16384",
-            _commit(originals / "Bag-of-Queries"),
+            commit_of(originals / "Bag-of-Queries"),
             reference,
             load_boq_resnet50(path),
             images,

@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from originals import commit_of, load_module
 
 from vprflow.models.trained.boq_dinov2 import load_boq_dinov2
 from vprflow.models.trained.megaloc import load_megaloc
@@ -48,19 +49,6 @@ from vprflow.models.trained.netvlad import load_netvlad
 from vprflow.models.trained.salad import dinov2_config, load_salad
 from vprflow.models.trained.vlad_buff import load_vlad_buff
 from vprflow.models.trunks.vgg import IMAGENET_MEAN, IMAGENET_STD, load_vgg16_trunk
-
-
-def _module(path: Path, name: str) -> types.ModuleType:
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
-
-
-def _commit(folder: Path) -> str:
-    stamp = folder / "COMMIT"
-    return stamp.read_text().strip() if stamp.is_file() else f"{folder.name} (commit unknown)"
 
 
 def _randomise(model: torch.nn.Module, seed: int) -> torch.nn.Module:
@@ -172,7 +160,7 @@ def _netvlad_encoder():
 def check_nanne(originals: Path, size: tuple[int, int], work: Path) -> dict:
     _stub_sklearn()
     folder = originals / "pytorch-NetVlad"
-    netvlad = _module(folder / "netvlad.py", "nanne_netvlad")
+    netvlad = load_module(folder / "netvlad.py", "nanne_netvlad")
     original = torch.nn.Module()
     original.add_module("encoder", _netvlad_encoder())
     original.add_module("pool", netvlad.NetVLAD(num_clusters=64, dim=512, vladv2=False))
@@ -190,7 +178,7 @@ def check_nanne(originals: Path, size: tuple[int, int], work: Path) -> dict:
         mine = ours(images)
     return {
         "model": "NetVLAD nanne-pitts30k",
-        "source": _commit(folder),
+        "source": commit_of(folder),
         "diff": _difference(mine, theirs),
         "scale": float(theirs.abs().max()),
         "dim": mine.shape[1],
@@ -234,7 +222,7 @@ def check_patchnetvlad(originals: Path, size: tuple[int, int], work: Path, pcs: 
         rows.append(
             {
                 "model": f"NetVLAD {variant}",
-                "source": _commit(folder),
+                "source": commit_of(folder),
                 "diff": _difference(mine, theirs),
                 "scale": float(theirs.abs().max()),
                 "dim": mine.shape[1],
@@ -247,8 +235,8 @@ def check_patchnetvlad(originals: Path, size: tuple[int, int], work: Path, pcs: 
 
 def check_salad(originals: Path, depth: int, work: Path) -> dict:
     folder = originals / "salad"
-    backbones = _module(folder / "models/backbones/dinov2.py", "salad_dinov2")
-    aggregators = _module(folder / "models/aggregators/salad.py", "salad_salad")
+    backbones = load_module(folder / "models/backbones/dinov2.py", "salad_dinov2")
+    aggregators = load_module(folder / "models/aggregators/salad.py", "salad_salad")
     hub_load, torch.hub.load = torch.hub.load, _hub_dinov2(originals, depth)
     try:
         original = torch.nn.Module()
@@ -274,7 +262,7 @@ def check_salad(originals: Path, depth: int, work: Path) -> dict:
         mine = ours(images)
     return {
         "model": f"SALAD (ViT-B/14, {depth} blocks)",
-        "source": f"{_commit(folder)}; {_commit(originals / 'dinov2')}",
+        "source": f"{commit_of(folder)}; {commit_of(originals / 'dinov2')}",
         "diff": _difference(mine, theirs),
         "scale": float(theirs.abs().max()),
         "dim": mine.shape[1],
@@ -287,8 +275,8 @@ def check_boq(originals: Path, depth: int, work: Path) -> dict:
     folder = originals / "Bag-of-Queries"
     hub_load, torch.hub.load = torch.hub.load, _hub_dinov2(originals, depth)
     try:
-        backbones = _module(folder / "src/backbones.py", "boq_backbones")
-        boq = _module(folder / "src/boq.py", "boq_boq")
+        backbones = load_module(folder / "src/backbones.py", "boq_backbones")
+        boq = load_module(folder / "src/boq.py", "boq_boq")
         backbone = backbones.DinoV2()
     finally:
         torch.hub.load = hub_load
@@ -308,7 +296,7 @@ def check_boq(originals: Path, depth: int, work: Path) -> dict:
         mine = ours(images)
     return {
         "model": f"BoQ-DINOv2 (ViT-B/14, {depth} blocks)",
-        "source": f"{_commit(folder)}; {_commit(originals / 'dinov2')}",
+        "source": f"{commit_of(folder)}; {commit_of(originals / 'dinov2')}",
         "diff": _difference(mine, theirs),
         "scale": float(theirs.abs().max()),
         "dim": mine.shape[1],
@@ -321,7 +309,7 @@ def check_megaloc(originals: Path, depth: int, work: Path) -> list:
     from safetensors.torch import save_file
 
     folder = originals / "MegaLoc"
-    megaloc = _module(folder / "megaloc_model.py", "megaloc_original")
+    megaloc = load_module(folder / "megaloc_model.py", "megaloc_original")
     original = megaloc.MegaLoc()
     original.backbone.blocks = original.backbone.blocks[:depth]
     _randomise(original, 11)
@@ -337,7 +325,7 @@ def check_megaloc(originals: Path, depth: int, work: Path) -> list:
         rows.append(
             {
                 "model": f"MegaLoc (ViT-B/14, {depth} blocks)",
-                "source": _commit(folder),
+                "source": commit_of(folder),
                 "diff": _difference(mine, theirs),
                 "scale": float(theirs.abs().max()),
                 "dim": mine.shape[1],
@@ -471,7 +459,7 @@ def check_vlad_buff(originals: Path, depth: int, work: Path) -> list:
                 {
                     "model": f"VLAD-BuFF {name.rsplit('_wpca', 1)[0]} {variant} "
                     f"(ViT-B/14, {depth} blocks)",
-                    "source": f"{_commit(folder)}; {_commit(originals / 'dinov2')}",
+                    "source": f"{commit_of(folder)}; {commit_of(originals / 'dinov2')}",
                     "diff": _difference(mine, theirs),
                     "scale": float(theirs.abs().max()),
                     "dim": mine.shape[1],
