@@ -192,7 +192,7 @@ def test_bicubic_antialias_equals_the_antialiased_keys_cubic_formula(shape):
     assert out.shape == (out_h, out_w, 3) and out.dtype == np.float32
     rows = _antialiased_bicubic_weights(in_h, out_h)
     columns = _antialiased_bicubic_weights(in_w, out_w)
-    expected = np.einsum("yi,ijc,xj->yxc", rows, image.astype(np.float64), columns)
+    expected = np.einsum("yi,ijc,xj->yxc", rows, image.astype(np.float64), columns, optimize=True)
     # torch computes in float32, tap positions too: a centre near coordinate n is off by
     # up to n * 2^-24 pixels, which moves the result by that times the kernel's slope
     # (< 1.5) summed over the taps of random [0, 1] values; measured: 1.4e-5 at 322 px.
