@@ -61,6 +61,7 @@ from vprflow.models.trained.salad import (
     load_backbone_and_head,
     read_state_dict,
 )
+from vprflow.models.trunks.resnet import load_matching
 
 INPUT_SIZE = (322, 322)
 VLAD_BUFF_RELEASE = "https://github.com/ahmedest61/VLAD-BuFF/releases/download/v1.0.0/"
@@ -183,23 +184,11 @@ def _load_whitening(model: VladBuff, state: dict, path: str, hint: str) -> None:
             )
             + f"; {hint}"
         )
+    # Under its own name, so that a key at fault is named as the file names it.
     prefix = names[0]
-    own = model.WPCA.state_dict()
-    weights = {k[len(prefix) :]: v for k, v in state.items() if k.startswith(prefix)}
-    missing = [prefix + k for k in own if k not in weights]
-    unexpected = [prefix + k for k in weights if k not in own]
-    if missing or unexpected:
-        raise CheckpointError(
-            f"VLAD-BuFF: checkpoint {path!r} does not fit: missing keys {missing}, "
-            f"unexpected keys {unexpected}; {hint}"
-        )
-    for name, tensor in weights.items():
-        if tuple(tensor.shape) != tuple(own[name].shape):
-            raise CheckpointError(
-                f"VLAD-BuFF: checkpoint {path!r} key {prefix + name!r} has shape "
-                f"{tuple(tensor.shape)}, expected {tuple(own[name].shape)}; {hint}"
-            )
-    model.WPCA.load_state_dict({k: v.float() for k, v in weights.items()})
+    named = nn.ModuleDict({prefix.rstrip("."): model.WPCA})
+    weights = {k: v for k, v in state.items() if k.startswith(prefix)}
+    load_matching(named, weights, path, "VLAD-BuFF", hint)
 
 
 def load_vlad_buff(
