@@ -142,6 +142,16 @@ def features_store(tmp_path, grid: np.ndarray) -> str:
     return path
 
 
+def vocabulary_store(tmp_path, centres: np.ndarray) -> str:
+    """A vocabulary store holding float32 ``centres [K, D]``."""
+    from vprflow.core import stores
+
+    path = str(tmp_path / "vocabulary.zarr")
+    with stores.atomic_store(path, {"stage": "vocabulary"}) as group:
+        stores.write_array(group, "centres", centres)
+    return path
+
+
 def describe_image(spec: dict, inputs: dict) -> np.ndarray:
     """Image 0's descriptor through the aggregator's entry, as the stages compute it."""
     from vprflow.aggregation.aggregators import aggregator
@@ -174,14 +184,10 @@ def test_stage_vlad_normalises_each_patch_first(tmp_path):
     and residuals; float32 vs float64 loops, rtol 1e-4 / atol 1e-5."""
     from test_vlad import direct_vlad
 
-    from vprflow.core import stores
-
     rng = np.random.default_rng(5)
     grid = (rng.standard_normal((3, 4, 8)) * rng.uniform(0.2, 5.0, (3, 4, 1))).astype(np.float32)
     centres = rng.standard_normal((3, 8)).astype(np.float32)
-    path = str(tmp_path / "vocabulary.zarr")
-    with stores.atomic_store(path, {"stage": "vocabulary"}) as group:
-        stores.write_array(group, "centres", centres)
+    path = vocabulary_store(tmp_path, centres)
     spec = {"aggregator": "anyloc_vlad", "normalize_descriptors": True}
     inputs = {"vocabulary": path, "features": features_store(tmp_path, grid)}
     vector = describe_image(spec, inputs)
@@ -223,14 +229,10 @@ def test_the_vlad_aggregator_is_anylocs_vlad_of_channel_normalised_tokens(tmp_pa
     float32 vs float64 loops, rtol 1e-4 / atol 1e-5."""
     from test_vlad import direct_vlad
 
-    from vprflow.core import stores
-
     rng = np.random.default_rng(7)
     grid = (rng.standard_normal((3, 4, 8)) * rng.uniform(0.2, 5.0, (1, 1, 8))).astype(np.float32)
     centres = rng.standard_normal((3, 8)).astype(np.float32)
-    path = str(tmp_path / "vocabulary.zarr")
-    with stores.atomic_store(path, {"stage": "vocabulary"}) as group:
-        stores.write_array(group, "centres", centres)
+    path = vocabulary_store(tmp_path, centres)
     spec = {"aggregator": "vlad", "normalization": "channel", "normalize_descriptors": True}
     inputs = {"vocabulary": path, "features": features_store(tmp_path, grid)}
     vector = describe_image(spec, inputs)
