@@ -51,6 +51,7 @@ from torch import nn
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError, read_checkpoint
+from vprflow.models.trunks.resnet import load_matching
 from vprflow.models.trunks.vgg import IMAGENET_MEAN, IMAGENET_STD, VGG16_DIM, vgg16_features
 
 NUM_CLUSTERS = 64
@@ -236,21 +237,7 @@ def load_netvlad(
             f"NetVLAD {variant!r}: checkpoint {path!r} gives {model.dim}-d descriptors "
             f"('WPCA.0.weight' {tuple(state['WPCA.0.weight'].shape)}), expected {spec.dim}; {hint}"
         )
-    own = model.state_dict()
-    if not spec.whitening:
-        state = {k: v for k, v in state.items() if not k.startswith("WPCA.")}
-    missing = sorted(set(own) - set(state))
-    unexpected = sorted(set(state) - set(own))
-    if missing or unexpected:
-        raise CheckpointError(
-            f"NetVLAD {variant!r}: checkpoint {path!r} does not fit: missing keys {missing[:6]}, "
-            f"unexpected keys {unexpected[:6]}; {hint}"
-        )
-    for key, tensor in state.items():
-        if tuple(tensor.shape) != tuple(own[key].shape):
-            raise CheckpointError(
-                f"NetVLAD {variant!r}: checkpoint {path!r} key {key!r} has shape "
-                f"{tuple(tensor.shape)}, expected {tuple(own[key].shape)}; {hint}"
-            )
-    model.load_state_dict({k: v.float() for k, v in state.items()})
+    # A whitening in the file of an unwhitened variant is left out, not refused.
+    ignore = () if spec.whitening else ("WPCA.",)
+    load_matching(model, state, path, f"NetVLAD {variant!r}", hint, ignore=ignore)
     return model.eval()
