@@ -315,6 +315,54 @@ def test_a_fraction_where_an_integer_is_expected_is_refused_naming_the_key(raw, 
     assert f"config key '{key}': {says}" in refused(with_yaml(raw, text))
 
 
+def with_snakemake_config(raw: dict, *entries: str) -> dict:
+    """``raw`` with ``entries`` (``key=value``) merged over it as Snakemake's ``--config``
+    merges them: through Snakemake's own parser, which keeps each value inside a mapping
+    or a list a string."""
+    from snakemake.cli import parse_config
+    from snakemake.utils import update_config
+
+    config = copy.deepcopy(raw)
+    update_config(config, parse_config(list(entries)))
+    return config
+
+
+@pytest.mark.parametrize(
+    ("entry", "key"),
+    [
+        ("backbones={daisy: {batch_size: 4}}", "backbones.daisy.batch_size"),
+        ("backbones={daisy: {normalize: false}}", "backbones.daisy.normalize"),
+        ("pca={dim: 16}", "pca.dim"),
+        ("datasets={corridor: {resolution: [160, 120]}}", "datasets.corridor.resolution"),
+        ("backbones=daisy", "backbones"),
+        ("targets=corridor", "targets"),
+    ],
+)
+def test_a_nested_config_value_snakemake_passes_as_a_string_is_refused_naming_configfile(
+    raw, entry, key
+):
+    """A newcomer's `--config "backbones={daisy: {batch_size: 4}}"` was refused with
+    "'4' is not valid under any of the given schemas" and no word of why it is a string."""
+    message = refused(with_snakemake_config(raw, entry))
+    line = next(line for line in message.splitlines() if f"config key '{key}'" in line)
+    assert "Snakemake's --config keeps each value inside a mapping or list a string" in line
+    assert line.endswith("give nested settings in a YAML file with --configfile")
+
+
+@pytest.mark.parametrize(
+    "config",
+    [
+        # A string that read as YAML would be refused as well: the value is at fault.
+        lambda raw: with_snakemake_config(raw, "backbones={daisy: {batch_size: 0}}"),
+        # Not a string at all.
+        lambda raw: with_yaml(raw, "vocabulary.n_clusters: 8.5"),
+    ],
+)
+def test_a_value_refused_for_itself_gets_no_word_of_snakemakes_strings(raw, config):
+    message = refused(config(raw))
+    assert "invalid configuration" in message and "--configfile" not in message
+
+
 def test_validation_leaves_the_callers_config_as_it_was(raw):
     config = with_yaml(raw, "vocabulary.n_clusters: 8.0")
     before = copy.deepcopy(config)

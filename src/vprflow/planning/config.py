@@ -133,7 +133,7 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
             message = f"{short_repr(error.instance, MAX_SHOWN)} {error.schema['x-error']}"
         lines.append(
             f"  config key '{_dotted(error.absolute_path)}': "
-            f"{short_repr(message, MAX_SHOWN, quote=False)}"
+            f"{short_repr(message, MAX_SHOWN, quote=False)}{string_hint(error, schema)}"
         )
     if lines:
         raise ConfigError("invalid configuration:\n" + "\n".join(lines[:10]))
@@ -160,6 +160,55 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
             f"configured; configured: {short_repr(sorted(config['datasets']), MAX_SHOWN)}"
         )
     return config
+
+
+# Said after an error at a string where the schema expects another type: how a
+# `--config` value reaches the config (Snakemake reads each `key=value` with YAML's base
+# loader, which keeps every scalar inside a mapping or list a string).
+CONFIG_STRING_HINT = (
+    "; a string where the schema expects another type: Snakemake's --config keeps each "
+    'value inside a mapping or list a string (--config "backbones={daisy: {batch_size: 4}}" '
+    "sets batch_size to '4'), so write a list as [a, b] and give nested settings in a YAML "
+    "file with --configfile"
+)
+
+
+def string_hint(error, schema: dict) -> str:
+    """:data:`CONFIG_STRING_HINT` when ``error`` refused a string where the schema
+    expects a mapping or a list, or a value whose strings, read as YAML, would be valid
+    (``'4'`` for an integer, ``['160', '120']`` for a size); else nothing."""
+    import jsonschema
+
+    if not isinstance(error.schema, dict):
+        return ""
+    types = error.schema.get("type", [])
+    if isinstance(error.instance, str) and {"object", "array"} & set(
+        [types] if isinstance(types, str) else types
+    ):
+        return CONFIG_STRING_HINT
+    value = _strings_read_as_yaml(error.instance)
+    if value == error.instance:
+        return ""
+    # Against the part of the schema that refused it, its `$ref`s read in the whole.
+    part = {**error.schema, "definitions": schema.get("definitions", {})}
+    valid = not any(jsonschema.Draft202012Validator(part).iter_errors(value))
+    return CONFIG_STRING_HINT if valid else ""
+
+
+def _strings_read_as_yaml(value):
+    """``value`` with each string, at any depth, that YAML reads as another scalar
+    (a number, a boolean) replaced by it."""
+    if isinstance(value, dict):
+        return {k: _strings_read_as_yaml(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_strings_read_as_yaml(v) for v in value]
+    if isinstance(value, str):
+        try:
+            read = yaml.safe_load(value)
+        except yaml.YAMLError:
+            return value
+        return read if isinstance(read, (bool, int, float)) else value
+    return value
 
 
 def _dotted(path) -> str:
