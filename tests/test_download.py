@@ -572,6 +572,10 @@ def test_a_failed_download_says_on_the_console_which_dataset_and_what_to_do(tmp_
     assert "dataset toy: downloading into" in console
     assert "dataset 'toy'" in console and "HTTP 404" in console
     assert "put the dataset at" in console and "data_root" in console
+    # The message, then its log, and no traceback under it: that is in the log.
+    log = Path("logs", "download", "toy.log")
+    assert f"(log: {log})" in console and "Traceback" not in console, console
+    assert "Traceback" in (workdir / log).read_text()
     assert not (workdir / "data" / "toy").exists()
 
 

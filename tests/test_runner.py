@@ -54,6 +54,40 @@ def test_stage_libraries_imported_inside_keep_the_thread_budget(tmp_path, fail):
         assert "CUDA" not in line  # the stage ran on the CPU
 
 
+FAILING = """
+import sys
+from vprflow.core.errors import DatasetError
+from vprflow.stages.runner import run_stage
+
+def stage():
+    raise {error}("folder data/x does not exist")
+
+run_stage({log!r}, stage, 1)
+"""
+
+
+@pytest.mark.parametrize("error", ["DatasetError", "KeyError"])
+def test_an_error_raised_on_purpose_shows_its_message_and_log_without_a_traceback(tmp_path, error):
+    """The console shows a deliberate error's message and the log's path, and nothing
+    under it; a bug (a built-in exception) keeps its traceback there. The log holds the
+    traceback either way."""
+    log = tmp_path / "stage.log"
+    result = subprocess.run(
+        [sys.executable, "-c", FAILING.format(error=error, log=str(log))],
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == 1
+    message = "folder data/x does not exist"
+    shown = repr(message) if error == "KeyError" else message  # str(KeyError) quotes
+    assert f"vprflow: {error}: {shown} (log: {log})" in result.stderr
+    assert ("Traceback" in result.stderr) == (error == "KeyError"), result.stderr
+    if error == "DatasetError":
+        assert result.stderr.strip().splitlines()[-1].endswith(f"(log: {log})")
+    assert "Traceback" in log.read_text()
+    assert "folder data/x does not exist" in log.read_text()
+
+
 class _FakeCuda:
     """torch.cuda as the runner sees it after a stage used two devices."""
 

@@ -28,8 +28,12 @@ def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> 
     """Run ``function`` with stderr and the ``vprflow`` logger writing to ``log_path``
     and at most ``threads`` threads in BLAS, torch and faiss.
 
-    A failure is written to the log (with traceback) and re-raised, so Snakemake
-    reports it and the log says why.
+    A failure is written to the log (with traceback) and named on stderr in one line
+    with the log's path. An error vprflow raises on purpose (:func:`deliberate`) then
+    ends the process with exit status 1: its message says what is wrong and what to do,
+    and a traceback under it on the console would bury it. Any other exception (a bug)
+    is re-raised, traceback and all. Call it as a workflow script's whole work: a
+    deliberate error leaves by ``SystemExit``.
     """
     from threadpoolctl import threadpool_limits
 
@@ -66,9 +70,19 @@ def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> 
             print(
                 f"vprflow: {type(error).__name__}: {error} (log: {log_path})", file=sys.__stderr__
             )
+            if deliberate(error):
+                raise SystemExit(1) from None
             raise
         finally:
             logger.removeHandler(handler)
+
+
+def deliberate(error: BaseException) -> bool:
+    """Whether vprflow raised ``error`` on purpose: its class is one of vprflow's own
+    (``DatasetError``, ``DownloadError``, ``CheckpointError``, ...), each raised where a
+    message names the fault. A built-in exception is a bug or a fault no check foresaw,
+    and its traceback is what tells where."""
+    return type(error).__module__.split(".")[0] == "vprflow"
 
 
 # The job's last log line: exact CPU and peak memory of its process (all its threads, and
