@@ -9,6 +9,7 @@ from vprflow.planning.command import read_command
 from vprflow.planning.config import validate_config
 from vprflow.planning.merges import merge_order
 from vprflow.core.errors import PlanError
+from vprflow.core.files import check_writable
 from vprflow.core.runs import collision_message, end_run, other_runs, start_run
 from vprflow.data.datasets import list_dataset
 from vprflow.data.download import awaiting_download, requested_datasets
@@ -25,6 +26,7 @@ from vprflow.core.paths import (
     RECALL_CSV,
     RECALL_PLOT,
     NAME_PATTERN,
+    OUTPUT_ROOTS,
     RECALL_TABLE,
     benchmark_pattern,
     check_inside_outputs,
@@ -69,6 +71,10 @@ PREFIX = getattr(_modifier, "prefix", None) or ""
 # The targets and whether the command runs the workflow, as Snakemake's parser reads them:
 # Snakemake decides both only after it has read this file.
 COMMAND = read_command(sys.argv)
+# Planning writes under results/ and logs/ from here on, a dry run too: a folder that
+# cannot be written is named now, not by the first write's bare OSError.
+for _root in OUTPUT_ROOTS:
+    check_writable(PREFIX + _root)
 # Only the process that may run jobs withdraws or clears tables: never a dry run (Snakemake
 # knows it already), a summary, a lint, a report or a cluster job.
 RUNS_JOBS = (

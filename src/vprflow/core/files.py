@@ -10,6 +10,7 @@ nothing in it changed for :data:`ABANDONED_AFTER_S`.
 
 from __future__ import annotations
 
+import errno
 import os
 import re
 import secrets
@@ -18,6 +19,8 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
+
+from vprflow.core.errors import PlanError
 
 # A temporary written on another host (a shared file system under a cluster) counts as
 # abandoned once nothing in it changed for this long: its process cannot be asked.
@@ -92,3 +95,30 @@ def write_text_atomic(path: str | Path, text: str) -> None:
     """Write ``text`` to ``path`` via :func:`atomic_path`."""
     with atomic_path(path) as tmp:
         tmp.write_text(text)
+
+
+def check_writable(folder: str | Path) -> None:
+    """Raise :class:`PlanError` naming ``folder`` unless a file can be created in it (it
+    is made if missing). Planning writes there before any job runs, even for a dry run
+    (the content-hash memo, the store index, the tables' marks), and a read-only file
+    system or a folder of another user's otherwise stops it with a bare ``OSError``. A
+    file is really created: ``os.access`` answers yes to root over any mode bits."""
+    folder = Path(folder)
+    probe = folder / f".write-probe.{writer_tag()}.tmp"
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
+        os.unlink(probe)
+    except OSError as error:
+        why = error.strerror or str(error)
+        remedy = {
+            errno.EROFS: "remount it read-write, or ",
+            errno.EACCES: "give this user write permission on it (chmod, chown), or ",
+            errno.EPERM: "give this user write permission on it (chmod, chown), or ",
+        }.get(error.errno, "")
+        raise PlanError(
+            f"{folder.absolute()}: cannot write there ({why}). vprflow writes in it from "
+            "planning on, a dry run too (the content-hash cache, the store index): "
+            f"{remedy}run from a copy of this working folder where you can write "
+            "(copy results/ along to keep what is built)"
+        ) from None
