@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import argparse
 import fractions
+import re
 
 import numpy as np
 import pytest
@@ -239,3 +240,21 @@ def test_a_weights_or_imported_file_key_naming_a_folder_is_an_error_naming_the_k
     empty.mkdir()
     with pytest.raises(PlanError, match="the folder is empty"):
         source_fingerprint(stage, {**entry, key: str(empty)}, {}, "where")
+
+
+def test_a_weights_file_or_model_folder_holding_a_link_in_a_loop_names_the_key_and_loop(
+    tmp_path,
+):
+    (tmp_path / "last.ckpt").symlink_to("best.ckpt")
+    (tmp_path / "best.ckpt").symlink_to("last.ckpt")
+    entry = {"backbone": "dinov2", "model": "facebook/dinov2-base"}
+    loop = re.escape(f"{tmp_path / 'last.ckpt'} is a link in a loop (last.ckpt -> best.ckpt")
+    with pytest.raises(PlanError, match=rf"config key where\.checkpoint: {loop} -> last.ckpt\)"):
+        source_fingerprint(
+            "features", {**entry, "checkpoint": str(tmp_path / "last.ckpt")}, {}, "where"
+        )
+    model = {"backbone": "dinov2", "model": str(tmp_path)}
+    with pytest.raises(
+        PlanError, match=r"config key where\.model: .*best.ckpt is a link in a loop"
+    ):
+        source_fingerprint("features", model, {}, "where")

@@ -53,6 +53,41 @@ def test_broken_link_or_folder_with_an_image_name_is_an_error_naming_it(tmp_path
         list_dataset(tmp_path, "toy", SPEC)
 
 
+@pytest.mark.parametrize("recursive", [False, True])
+def test_a_loop_of_links_among_the_images_is_an_error_naming_the_loop(tmp_path, recursive):
+    """``a.jpg -> b.jpg -> a.jpg`` leads to no file (os.stat: ELOOP); named like images,
+    the links are refused as a broken link is, naming the loop. Links in a loop named
+    otherwise are passed over and counted, as a broken link is."""
+    touch_images(tmp_path / "ds/ref", ["1.jpg", "3.jpg"])
+    touch_images(tmp_path / "ds/query", ["1.jpg"])
+    ref = tmp_path / "ds/ref"
+    (ref / "notes").symlink_to("notes2")
+    (ref / "notes2").symlink_to("notes")
+    assert scan_images(ref, recursive=recursive).skipped_other == 2
+    (ref / "a.jpg").symlink_to("b.jpg")
+    (ref / "b.jpg").symlink_to("a.jpg")
+    spec = {**SPEC, "recursive": recursive}
+    with pytest.raises(ImageReadError) as error:
+        list_dataset(tmp_path, "toy", spec)
+    message = str(error.value)
+    assert f"{ref / 'a.jpg'} is a link in a loop (a.jpg -> b.jpg -> a.jpg)" in message
+    assert f"{ref / 'b.jpg'} is a link in a loop (b.jpg -> a.jpg -> b.jpg)" in message
+    assert "which leads to no file: remove the links, or point one at the image" in message
+
+
+def test_an_image_list_naming_a_link_in_a_loop_names_the_loop(tmp_path):
+    root = tmp_path / "mine"
+    write_pngs(root, ["db/1.png", "q/1.png"])
+    (root / "db/2.png").symlink_to("3.png")
+    (root / "db/3.png").symlink_to("2.png")
+    (root / "ref.txt").write_text("db/1.png\ndb/2.png\n")
+    (root / "query.txt").write_text("q/1.png\n")
+    spec = dataset_spec(path="mine", reference="ref.txt", query="query.txt")
+    loop = re.escape(f"image {root / 'db/2.png'} is a link in a loop (2.png -> 3.png -> 2.png)")
+    with pytest.raises(DatasetError, match=rf"ref.txt line 2: {loop}, which leads to no file"):
+        list_dataset(tmp_path, "mine", spec)
+
+
 def test_listing_a_dataset_whose_defaults_were_not_filled_fails_with_key_error(tmp_path):
     touch_images(tmp_path / "ds/ref", ["1.jpg"])
     touch_images(tmp_path / "ds/query", ["2.jpg"])

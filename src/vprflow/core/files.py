@@ -97,6 +97,31 @@ def write_text_atomic(path: str | Path, text: str) -> None:
         tmp.write_text(text)
 
 
+def link_loop(path: str | Path, shown: int = 8) -> str | None:
+    """Where following the links from ``path`` goes round (``a.jpg -> b.jpg -> a.jpg``:
+    its name, then each link's target as written) when it never reaches a file (``ELOOP``),
+    for an error naming the loop; None when ``path`` does not loop."""
+    try:
+        os.stat(path)
+        return None
+    except OSError as error:
+        if error.errno != errno.ELOOP:
+            return None
+    chain, seen, current = [os.path.basename(path)], set(), os.path.abspath(path)
+    while current not in seen:
+        if len(chain) > shown:
+            chain.append("...")
+            break
+        seen.add(current)
+        try:
+            target = os.readlink(current)
+        except OSError:  # a folder on the way loops, not a link named here
+            break
+        chain.append(target)
+        current = os.path.normpath(os.path.join(os.path.dirname(current), target))
+    return " -> ".join(chain)
+
+
 def check_writable(folder: str | Path) -> None:
     """Raise :class:`PlanError` naming ``folder`` unless a file can be created in it (it
     is made if missing). Planning writes there before any job runs, even for a dry run

@@ -17,8 +17,9 @@ from dataclasses import dataclass
 from pathlib import Path, PurePath
 
 from vprflow.core.errors import DatasetError
-from vprflow.data.images import IMAGE_SUFFIXES, ImageScan, natural_key, scan_images
+from vprflow.core.files import link_loop
 from vprflow.core.paths import dataset_folder, download_hint
+from vprflow.data.images import IMAGE_SUFFIXES, ImageScan, natural_key, scan_images
 
 
 def nfc(name: str) -> str:
@@ -217,6 +218,12 @@ def read_image_list(list_file: Path, root: Path, what: str) -> ImageScan:
             raise DatasetError(f"{where}: {name!r} is not an image file name")
         path = existing_path(root, name) or path  # the file's own spelling
         if not path.is_file():
+            loop = link_loop(path)
+            if loop:
+                raise DatasetError(
+                    f"{where}: image {path} is a link in a loop ({loop}), which leads to "
+                    "no file: remove the links, or point one at the image"
+                )
             raise DatasetError(f"{where}: image {path} does not exist")
         real = os.path.realpath(path)
         if real in seen:

@@ -44,6 +44,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
+from vprflow.core.files import link_loop
+
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp")
 # apply = rotate/flip the pixels as the EXIF Orientation tag says (cv2.imread, published
 # SegVLAD/AnyLoc); ignore = the stored pixels (PIL without exif_transpose, SNSM's reader).
@@ -363,7 +365,7 @@ def scan_images(
     each is an :class:`ImageReadError` naming it:
 
     - an entry with an image suffix that is not a readable file (a broken link, a
-      folder named ``x.jpg``);
+      link in a loop, a folder named ``x.jpg``);
     - a file whose content is an image in a format not read here (a ``.gif``), or an
       image under another suffix;
     - a symbolic link to a folder out of ``folder`` (unless ``follow_links``), and a
@@ -400,6 +402,18 @@ def scan_images(
             path = current / name
             is_image = os.path.splitext(name)[1].lower() in IMAGE_SUFFIXES
             is_link = entry.is_symlink()
+            loop = link_loop(path) if is_link else None
+            if loop:
+                # Leads to no file (and os.stat raises ELOOP): an image name is refused
+                # as a broken link is; another name is passed over, as one is.
+                if is_image:
+                    refused.append(
+                        f"{path} is a link in a loop ({loop}), which leads to no file: "
+                        "remove the links, or point one at the image"
+                    )
+                else:
+                    other += 1
+                continue
             followed = is_image or (recursive and entry.is_dir())
             if not _utf8(name) and (followed or _sniff(path)):
                 refused.append(

@@ -17,7 +17,7 @@ from pathlib import Path, PurePath
 from typing import TYPE_CHECKING
 
 from vprflow.core.errors import PlanError
-from vprflow.core.files import write_text_atomic
+from vprflow.core.files import link_loop, write_text_atomic
 from vprflow.core.paths import FINGERPRINTS
 from vprflow.models.kinds import model_kind
 
@@ -76,12 +76,18 @@ def memoised(path: str | Path, memo: dict, digest, where: str, folder: bool = Fa
         st = os.stat(path)
     except FileNotFoundError:
         raise PlanError(f"config key {where}: {path} does not exist") from None
+    except OSError:
+        _refuse_a_loop(path, where)
+        raise
     if stat.S_ISDIR(st.st_mode) and not folder:
         raise PlanError(
             f"config key {where}: {path} is a folder; it must name a file{_holding(path)}"
         )
     if stat.S_ISDIR(st.st_mode):
         entries = sorted(os.scandir(path), key=lambda e: e.name)
+        for entry in entries:
+            if entry.is_symlink():
+                _refuse_a_loop(entry.path, where)
         stamps = [(e.name, e.stat()) for e in entries if e.is_file()]
         stamp = "|".join(f"{n}:{s.st_size}:{s.st_mtime_ns}:{s.st_ctime_ns}" for n, s in stamps)
         key = f"{os.path.abspath(path)}|{stamp}"
@@ -90,6 +96,17 @@ def memoised(path: str | Path, memo: dict, digest, where: str, folder: bool = Fa
     if key not in memo:
         memo[key] = digest(str(path))
     return memo[key]
+
+
+def _refuse_a_loop(path: str | Path, where: str) -> None:
+    """A :class:`PlanError` naming ``path`` and ``where`` if ``path`` is a link in a loop
+    (``os.stat`` would raise ``ELOOP``, naming no config key)."""
+    loop = link_loop(path)
+    if loop is not None:
+        raise PlanError(
+            f"config key {where}: {path} is a link in a loop ({loop}), which leads to no "
+            "file: remove the links, or point one at the file"
+        )
 
 
 def _holding(path: str | Path, shown: int = 5) -> str:
