@@ -195,7 +195,7 @@ def test_the_recall_store_and_table_count_queries_without_positive_and_the_log_n
     from vprflow.planning.plan import RECALL_DEPTH
     from vprflow.stages.jobs import Job
     from vprflow.stages.recall import evaluate
-    from vprflow.stages.report import write_report
+    from vprflow.stages.report import write_recall_csv
 
     dataset, descriptors = toy_stores(tmp_path, [[0], [], [2], [], [1]])
     record = {"params": {"denominator": denominator, RECALL_DEPTH: 3, "recall_at": [1, 2]}}
@@ -210,7 +210,7 @@ def test_the_recall_store_and_table_count_queries_without_positive_and_the_log_n
         "1 query/q1.jpg, 3 query/q3.jpg" in caplog.text
     )
     table = tmp_path / "recall.csv"
-    write_report("toy", [{"method": "m", "params": {}}], [str(out)], str(table))
+    write_recall_csv("toy", [{"method": "m", "params": {}}], [str(out)], str(table))
     with open(table) as f:
         (row,) = list(csv.DictReader(f))
     assert row["n_queries"] == str(counted) and row["n_queries_without_positive"] == "2"

@@ -59,7 +59,7 @@ SECTION = "## Partition, account, GPU type and CPUs on the command line"
 DATASET = "17places"  # the dataset the docs' command lines name
 TARGET = f"results/recall_{DATASET}.csv"
 # Rules that run on the submitting machine (`localrules:` / the default target).
-LOCAL_RULES = {"report", "all"}
+LOCAL_RULES = {"recall_csv", "all"}
 # Memory (MB) and time (min) that each rule sets in its own `resources:`, at attempt 1
 # (workflow/rules/*.smk). A command-line --default-resources / --set-resources must not
 # take them away.

@@ -41,7 +41,7 @@ from vprflow.stages.readers import (
     read_search,
 )
 from vprflow.stages.recall import evaluate
-from vprflow.stages.report import write_predictions, write_report
+from vprflow.stages.report import write_predictions, write_recall_csv
 from vprflow.stages.retrieval import retrieve
 from vprflow.stages.search import search_shard
 
@@ -490,7 +490,7 @@ def test_report_writes_one_row_per_method_and_every_prediction(pipeline, tmp_pat
     runs = [{"method": r.method, "params": r.row_params} for r in plan.runs["toy"]]
     csv_out, predictions_out = tmp_path / "recall.csv", tmp_path / "predictions.csv"
     dataset = stage_path(pipeline, "dataset")
-    write_report("toy", runs, recalls, str(csv_out))
+    write_recall_csv("toy", runs, recalls, str(csv_out))
     write_predictions(dataset, runs, recalls, str(predictions_out))
     with open(csv_out) as f:
         rows = list(csv.DictReader(f))
@@ -516,7 +516,7 @@ def test_report_writes_one_row_per_method_and_every_prediction(pipeline, tmp_pat
     assert len(predictions) == len(rows_expected) * N_PLACES
     # Same inputs, same bytes.
     again = tmp_path / "again.csv"
-    write_report("toy", runs, recalls, str(again))
+    write_recall_csv("toy", runs, recalls, str(again))
     assert again.read_bytes() == csv_out.read_bytes()
 
 

@@ -153,7 +153,7 @@ def test_every_rule_wrote_a_log(toy_run):
     for stage in (*stages, "recall"):
         logs = list((workdir / "logs" / stage).glob("*/*.log"))
         assert logs, f"no log for {stage}"
-    assert (workdir / "logs" / "report" / "toy.log").exists()
+    assert (workdir / "logs" / "recall_csv" / "toy.log").exists()
 
 
 def test_index_and_log_links_name_the_dataset_and_methods(toy_run):
@@ -222,7 +222,7 @@ def test_changing_order_rebuilds_pca_descriptors_and_recall_only(toy_run):
         "matches",
         "rerank",
         "recall",
-        "report",
+        "recall_csv",
     }
     changed["pca"]["fit_order"] = 3  # a fixed fit order keeps the order-3 PCA
     path = write_config(workdir, changed, "order2_fit3.yaml")
@@ -232,7 +232,7 @@ def test_changing_order_rebuilds_pca_descriptors_and_recall_only(toy_run):
         "matches",
         "rerank",
         "recall",
-        "report",
+        "recall_csv",
     }
 
 
@@ -249,7 +249,7 @@ def test_changing_segmenter_rebuilds_segments_pca_descriptors_not_features(toy_r
         "matches",
         "rerank",
         "recall",
-        "report",
+        "recall_csv",
     }
 
 
@@ -318,7 +318,7 @@ def test_a_table_copied_without_snakemakes_records_is_rebuilt_when_its_stores_ch
     output = result.stdout + result.stderr
     assert result.returncode == 0, output[-3000:]
     assert f"vprflow: {TARGET}: built from other stores than this plan's" in output
-    assert "rule report:" in output and "Nothing to be done" not in output
+    assert "rule recall_csv:" in output and "Nothing to be done" not in output
     path = write_config(workdir, config, "as_built.yaml")
     result = subprocess.run(
         snakemake_command(workdir, path, "-n", TARGET), capture_output=True, text=True,
@@ -333,7 +333,7 @@ def test_changing_a_reranker_reruns_only_its_reranks_and_their_recall(toy_run):
     changed["rerankers"]["mnn"]["min_similarity"] = 0.5
     path = write_config(workdir, changed, "mnn_min_similarity.yaml")
     outputs = scheduled_outputs(workdir, path, TARGET)
-    assert scheduled_stages(workdir, path, TARGET) == {"rerank", "recall", "report"}
+    assert scheduled_stages(workdir, path, TARGET) == {"rerank", "recall", "recall_csv"}
     # anyloc_vlad+mnn and segvlad+mnn: one rerank and one recall each; ransac's stay.
     assert sum("results/cache/rerank/" in line for line in outputs) == 2
     assert sum("results/cache/recall/" in line for line in outputs) == 2
@@ -347,10 +347,10 @@ def test_changing_the_ground_truth_reruns_the_truth_store_and_recall_but_no_mode
     changed = copy.deepcopy(config)
     changed["datasets"]["toy"]["ground_truth"] = {"kind": "frame_window", "radius": 1}
     path = write_config(workdir, changed, "frame_window.yaml")
-    assert scheduled_stages(workdir, path, TARGET) == {"dataset", "recall", "report"}
+    assert scheduled_stages(workdir, path, TARGET) == {"dataset", "recall", "recall_csv"}
     changed["datasets"]["toy"]["denominator"] = "all"
     path = write_config(workdir, changed, "frame_window_all.yaml")
-    assert scheduled_stages(workdir, path, TARGET) == {"dataset", "recall", "report"}
+    assert scheduled_stages(workdir, path, TARGET) == {"dataset", "recall", "recall_csv"}
 
 
 def test_changing_a_value_and_back_schedules_at_most_the_csv(toy_run):
@@ -363,7 +363,7 @@ def test_changing_a_value_and_back_schedules_at_most_the_csv(toy_run):
     assert {r["segvlad.order"] for r in rows if r["method"] in ("segvlad", "segvlad_nopca")} == {
         "1"
     }
-    assert scheduled_stages(workdir, original, TARGET) <= {"report"}
+    assert scheduled_stages(workdir, original, TARGET) <= {"recall_csv"}
     snakemake(workdir, original, TARGET)
     assert scheduled_stages(workdir, original, TARGET) == set()
 
@@ -696,7 +696,7 @@ def test_moved_data_reruns_nothing_and_a_replaced_image_reruns_everything(tmp_pa
         "vocabulary",
         "descriptors",
         "recall",
-        "report",
+        "recall_csv",
     }
 
 

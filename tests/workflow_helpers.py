@@ -123,12 +123,13 @@ def scheduled_outputs(workdir: Path, config_path: Path, target: str) -> list[str
 
 
 def scheduled_stages(workdir: Path, config_path: Path, target: str) -> set[str]:
-    """Stage names (``results/cache/<stage>/...``, or ``report``) a dry run schedules."""
+    """Stage names (``results/cache/<stage>/...``), and ``recall_csv`` for the table, that
+    a dry run schedules."""
     stages = set()
     for line in scheduled_outputs(workdir, config_path, target):
         for output in line.split(", "):
             match = re.match(r"results/cache/([a-z]+)/", output.strip())
-            stages.add(match.group(1) if match else "report")
+            stages.add(match.group(1) if match else "recall_csv")
     return stages
 
 

@@ -19,7 +19,7 @@ rule recall:
         "../scripts/stage.py"
 
 
-rule report:
+rule recall_csv:
     input:
         unpack(report_inputs),
     output:
@@ -34,13 +34,13 @@ rule report:
             },
         ),
     log:
-        "logs/report/{dataset}.log",
+        "logs/recall_csv/{dataset}.log",
     conda:
         "../envs/vprflow.yaml"
     params:
         runs=report_runs,
     script:
-        "../scripts/report.py"
+        "../scripts/recall_csv.py"
 
 
 rule predictions:
@@ -78,7 +78,7 @@ rule published:
 
 # Writing small CSV files is not worth a cluster job.
 localrules:
-    report,
+    recall_csv,
     predictions,
     published,
 

@@ -12,7 +12,7 @@ import re
 from pathlib import Path
 
 CACHE = "results/cache"
-# Per-dataset tables written by the report rule.
+# Per-dataset tables, written by the recall_csv and predictions rules.
 RECALL_CSV = "results/recall_{dataset}.csv"
 PREDICTIONS_CSV = "results/predictions_{dataset}.csv"
 # A preset's published recall beside the run's (the `published` rule).

@@ -1,4 +1,4 @@
-"""The ``report`` and ``predictions`` rules: a dataset's results table and its
+"""The ``recall_csv`` and ``predictions`` rules: a dataset's results table and its
 per-query top references with scores."""
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from vprflow.stages.readers import Dataset
 # bytes are exact; milliseconds are this run's, not a result).
 
 
-def write_report(
+def write_recall_csv(
     dataset_name: str, runs: list[dict], recall_paths: list[str], csv_out: str
 ) -> None:
     """The results table: one row per method (``runs[i]`` is ``{"method": name,
