@@ -53,10 +53,13 @@ def test_an_output_folder_that_cannot_be_written_is_named_with_what_to_do(
     message = str(caught.value)
     assert message.startswith(f"{results}: cannot write there ({os.strerror(code)})"), message
     assert "a dry run too" in message and remedy in message
+    with pytest.raises(PlanError) as caught:
+        check_writable(results / "logs")  # missing: the folder it would be made in
+    assert str(caught.value).startswith(f"{results} (where logs/ is to be made): cannot write")
     monkeypatch.undo()
     check_writable(results)
-    check_writable(tmp_path / "logs")  # made where missing
-    assert list(results.iterdir()) == [] and (tmp_path / "logs").is_dir()
+    check_writable(results / "logs")
+    assert list(results.iterdir()) == []  # no probe left, no folder made
 
 
 CHECK_READ_ONLY = """

@@ -123,15 +123,18 @@ def link_loop(path: str | Path, shown: int = 8) -> str | None:
 
 
 def check_writable(folder: str | Path) -> None:
-    """Raise :class:`PlanError` naming ``folder`` unless a file can be created in it (it
-    is made if missing). Planning writes there before any job runs, even for a dry run
-    (the content-hash memo, the store index, the tables' marks), and a read-only file
-    system or a folder of another user's otherwise stops it with a bare ``OSError``. A
-    file is really created: ``os.access`` answers yes to root over any mode bits."""
+    """Raise :class:`PlanError` naming ``folder`` unless a file can be created in it (or,
+    while it is missing, in the folder it would be made in; nothing is left behind).
+    Planning writes there before any job runs, even for a dry run (the content-hash memo,
+    the store index, the tables' marks), and a read-only file system or a folder of
+    another user's otherwise stops it with a bare ``OSError``. A file is really created:
+    ``os.access`` answers yes to root over any mode bits."""
     folder = Path(folder)
-    probe = folder / f".write-probe.{writer_tag()}.tmp"
+    where = folder.absolute()
+    while not where.is_dir() and where.parent != where:
+        where = where.parent
+    probe = where / f".write-probe.{writer_tag()}.tmp"
     try:
-        folder.mkdir(parents=True, exist_ok=True)
         os.close(os.open(probe, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600))
         os.unlink(probe)
     except OSError as error:
@@ -141,8 +144,9 @@ def check_writable(folder: str | Path) -> None:
             errno.EACCES: "give this user write permission on it (chmod, chown), or ",
             errno.EPERM: "give this user write permission on it (chmod, chown), or ",
         }.get(error.errno, "")
+        made = "" if where == folder.absolute() else f" (where {folder.name}/ is to be made)"
         raise PlanError(
-            f"{folder.absolute()}: cannot write there ({why}). vprflow writes in it from "
+            f"{where}{made}: cannot write there ({why}). vprflow writes in {folder.name}/ from "
             "planning on, a dry run too (the content-hash cache, the store index): "
             f"{remedy}run from a copy of this working folder where you can write "
             "(copy results/ along to keep what is built)"
