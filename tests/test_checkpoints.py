@@ -203,6 +203,10 @@ def test_unreadable_checkpoints_are_refused_by_name(tmp_path):
     garbage.write_bytes(b"not a checkpoint")
     with pytest.raises(CheckpointError, match=r"garbage\.ckpt'?: cannot read it"):
         load_vit({**params, "checkpoint": str(garbage)}, "cpu")
+    empty = tmp_path / "empty.ckpt"
+    empty.write_bytes(b"")  # torch.load says only "EOFError"
+    with pytest.raises(CheckpointError, match=r"empty\.ckpt' is empty \(0 bytes"):
+        load_vit({**params, "checkpoint": str(empty)}, "cpu")
     nothing = tmp_path / "nothing.ckpt"
     torch.save({"state_dict": {"aggregator.centroids": torch.zeros(2)}}, nothing)
     with pytest.raises(CheckpointError, match="no DINOv2 weights"):

@@ -77,6 +77,35 @@ def test_every_missing_checkpoint_of_the_example_config_is_named_in_one_error(
     )
 
 
+def test_an_empty_checkpoint_is_refused_at_planning_naming_it_and_the_fetch(tmp_path, monkeypatch):
+    """A 0-byte file (an interrupted copy) was hashed into a key, and the features job
+    failed with torch's bare "EOFError"."""
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv(URL_ENV, raising=False)
+    config = example_config(tmp_path)
+    for entry in config["backbones"].values():
+        if entry["backbone"] in kinds.TRAINED_KINDS:
+            Path(entry["checkpoint"]).parent.mkdir(parents=True, exist_ok=True)
+            Path(entry["checkpoint"]).write_bytes(b"present")
+    Path("models/dino_salad.ckpt").write_bytes(b"")
+    with pytest.raises(PlanError) as error:
+        build_plan(config, configfiles=["config/config.yaml", "config/trained.yaml"])
+    message = str(error.value)
+    assert message.startswith("1 trained-model checkpoint file(s) the plan reads are empty:")
+    assert "  models/dino_salad.ckpt (empty: 0 bytes, an interrupted download or copy?; " in (
+        message
+    )
+    # Snakemake fetches no file that exists: the empty one goes first.
+    assert (
+        f"rm models/dino_salad.ckpt && snakemake --cores 2 {FETCH_TARGET} --configfile "
+        "config/config.yaml config/trained.yaml" in message
+    )
+    Path("models/dino_salad.ckpt").unlink()
+    with pytest.raises(PlanError, match="are missing:") as error:
+        build_plan(config)
+    assert "rm " not in str(error.value)
+
+
 def test_a_plan_built_to_fetch_checkpoints_refuses_every_stage(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
     plan = build_plan(example_config(tmp_path), allow_missing_checkpoints=True)

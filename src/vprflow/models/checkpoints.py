@@ -25,6 +25,7 @@ is a :class:`CheckpointError` naming the file and the keys.
 
 from __future__ import annotations
 
+import os
 import re
 
 import torch
@@ -99,6 +100,11 @@ _METADATA_GLOBALS = [
 
 def read_checkpoint(path: str) -> dict:
     """The object in ``path``, read with ``torch.load(weights_only=True)``."""
+    if os.path.isfile(path) and os.path.getsize(path) == 0:  # torch says only "EOFError"
+        raise CheckpointError(
+            f"checkpoint {path!r} is empty (0 bytes: an interrupted download or copy?): "
+            "put the checkpoint there again"
+        )
     try:
         with torch.serialization.safe_globals(_METADATA_GLOBALS):
             return torch.load(path, map_location="cpu", weights_only=True)

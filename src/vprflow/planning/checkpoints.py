@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import os
 import re
+import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -78,6 +79,17 @@ def fetch_command(configfiles=()) -> str:
     return f"snakemake --cores 2 {FETCH_TARGET}{files}"
 
 
+def absent(path: str) -> bool:
+    """Whether the checkpoint at ``path`` is still to be put there: missing, or empty (0
+    bytes: an interrupted copy, a ``touch``; no checkpoint is), which planning would hash
+    into a key and the features job fail to read."""
+    return not os.path.exists(path) or _empty(path)
+
+
+def _empty(path: str) -> bool:
+    return os.path.isfile(path) and os.path.getsize(path) == 0
+
+
 def _sha256_text(published: TrainedVariant) -> str:
     if published.sha256 is None:
         return "no published SHA-256 on record"
@@ -87,30 +99,41 @@ def _sha256_text(published: TrainedVariant) -> str:
 
 
 def describe(checkpoint: PlannedCheckpoint) -> str:
-    """One line on a checkpoint: the file, its config key, the variant, who publishes
-    it, where from, what is known of its hash."""
+    """One line on a checkpoint: the file (and that it is empty, where it is), its config
+    key, the variant, who publishes it, where from, what is known of its hash."""
     published = checkpoint.published
     url = checkpoint_url(published)
     renamed = "" if Path(checkpoint.path).name == published.file else f" {published.file}"
     how = url if url else f"by hand, from the page {published.url}"
+    empty = "empty: 0 bytes, an interrupted download or copy?; " if _empty(checkpoint.path) else ""
     return (
-        f"{checkpoint.path} ({checkpoint.where}; {checkpoint.kind} variant "
+        f"{checkpoint.path} ({empty}{checkpoint.where}; {checkpoint.kind} variant "
         f"{checkpoint.variant!r}, {published.repository}{renamed}): {how}; "
         f"{_sha256_text(published)}"
     )
 
 
 def missing_message(missing: list[PlannedCheckpoint], configfiles=()) -> str:
-    """The error for every missing checkpoint of a plan, with the command that fetches
-    them and the files that command cannot fetch."""
-    lines = [f"{len(missing)} trained-model checkpoint file(s) the plan reads are missing:"]
+    """The error for every missing (or empty: :func:`absent`) checkpoint of a plan, with
+    the command that fetches them and the files that command cannot fetch."""
+    empty = [c.path for c in missing if _empty(c.path)]
+    if not empty:
+        state = "are missing"
+    elif len(empty) == len(missing):
+        state = "are empty"
+    else:
+        state = "are missing or empty"
+    lines = [f"{len(missing)} trained-model checkpoint file(s) the plan reads {state}:"]
     lines += [f"  {describe(c)}" for c in missing]
     fetchable = [c for c in missing if checkpoint_url(c.published)]
     if fetchable:
         which = "them all" if len(fetchable) == len(missing) else f"the {len(fetchable)} with a URL"
+        # Snakemake fetches no file that exists, an empty one included.
+        remove = [shlex.quote(c.path) for c in fetchable if c.path in empty]
+        first = f"rm {' '.join(remove)} && " if remove else ""
         lines.append(
             f"Fetch {which} (each kept only if its SHA-256 matches, where one is published) "
-            f"with:\n  {fetch_command(configfiles)}"
+            f"with:\n  {first}{fetch_command(configfiles)}"
         )
     if len(fetchable) < len(missing):
         lines.append(
@@ -137,7 +160,7 @@ def by_hand(checkpoints: dict[str, PlannedCheckpoint]) -> list[str]:
     return [
         f"{describe(c)}: not fetched, put it there yourself"
         for p, c in sorted(checkpoints.items())
-        if not checkpoint_url(c.published) and not os.path.exists(p)
+        if not checkpoint_url(c.published) and absent(p)
     ]
 
 

@@ -18,7 +18,6 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
-import os
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Literal
@@ -28,7 +27,7 @@ from vprflow.core.errors import PlanError
 from vprflow.core.paths import PUBLISHED_VOCABULARY, store_path
 from vprflow.data.datasets import listing_truth
 from vprflow.data.images import ImageReadError, dataset_orientation, image_size
-from vprflow.planning.checkpoints import PlannedCheckpoint, missing_message
+from vprflow.planning.checkpoints import PlannedCheckpoint, absent, missing_message
 from vprflow.planning.config import METHOD_DEFAULT_SECTIONS
 from vprflow.planning.fingerprints import (
     dataset_contents,
@@ -269,7 +268,7 @@ def build_plan(
             # (vprflow.planning.reports.failed_datasets): say whose they were.
             error.planning_failure = PlanningFailure((dataset_name,), method_name)
             raise
-    missing = [c for c in plan.checkpoints.values() if not os.path.exists(c.path)]
+    missing = [c for c in plan.checkpoints.values() if absent(c.path)]
     if missing:
         plan.checkpoint_error = missing_message(missing, configfiles)
         if not allow_missing_checkpoints:
@@ -582,7 +581,7 @@ def _trained_weights(m: _Method, name: str, backbone: dict, spec: TrainedModel) 
         path,
         PlannedCheckpoint(path, f"{where}.checkpoint", backbone["backbone"], variant, published),
     )
-    if not os.path.exists(path):  # named with every other missing one, after planning
+    if absent(path):  # named with every other missing or empty one, after planning
         return {"checkpoint_sha256": None}
     try:
         return {"checkpoint_sha256": memoised(path, m.memo, file_digest, f"{where}.checkpoint")}
