@@ -222,8 +222,27 @@ def test_every_curve_of_a_crowded_figure_has_its_own_style_and_rows_stay_with_th
     figure = figures.recall_curve_figure({m: np.linspace(0.1, 1, 20) for m in methods}, "t")
     (axes,) = figure.axes
     assert axes.get_legend() is None and len(figure.legends) == 1  # beside, not on, the data
+    figure.draw_without_rendering()  # the layout is made when the figure is drawn
     legend_box = figure.legends[0].get_window_extent()
     assert legend_box.x0 >= axes.get_window_extent().x1
+    figures._pyplot().close("all")
+
+
+def test_the_recall_figures_legend_reads_as_large_as_its_axis_labels_inside_the_figure():
+    """The report shows the figure at about its own size, where the legend's 8-point
+    names were 7-pixel letters beside 10-point axis labels."""
+    methods = ["anyloc_vlad", "anyloc_vlad+mnn", "anyloc_vlad+ransac", "segvlad_o0_nopca"]
+    methods += [f"snsm_{i}" for i in range(13)]  # roadscene's 17 rows
+    curves = {m: np.linspace(0.1, 1, 20) for m in methods}
+    pr = {m: (np.linspace(1, 0.5, 5), np.linspace(0.2, 1, 5)) for m in methods}
+    figure = figures.recall_curve_figure(curves, "t", [1, 5], precision_recall=pr)
+    figure.draw_without_rendering()
+    (legend,) = figure.legends
+    label_size = figure.axes[0].xaxis.label.get_fontsize()
+    assert all(text.get_fontsize() >= label_size for text in legend.get_texts())
+    box, whole = legend.get_window_extent(), figure.bbox
+    assert box.x0 >= figure.axes[1].get_window_extent().x1  # beside the panels
+    assert whole.x0 <= box.x0 and box.x1 <= whole.x1 and whole.y0 <= box.y0 and box.y1 <= whole.y1
     figures._pyplot().close("all")
 
 

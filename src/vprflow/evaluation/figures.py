@@ -193,6 +193,13 @@ _MARKERS = ("o", "s", "^", "D", "v", "P", "X")
 _DASHES = ("-", "--", ":", "-.", (0, (5, 1, 1, 1, 1, 1)), (0, (1, 3)))
 
 
+# The recall figure's legend: its names in points (the axes' labels are 10; the report
+# shows the figure at about its own size, where 8 points read as 7-pixel letters) and
+# its line samples in font sizes, long enough to tell the re-rankers' dashes apart.
+LEGEND_FONT = 11
+LEGEND_HANDLE = 4
+
+
 def curve_styles(methods: Sequence[str]) -> dict[str, dict]:
     """``{method: {"color", "marker", "linestyle"}}`` for the rows of a recall figure, in
     legend order: each method (the part of a row's name before ``+``) in order of first
@@ -232,9 +239,13 @@ def recall_curve_figure(
     plt = _pyplot()
     panels = 2 if precision_recall is not None else 1
     styles = curve_styles(list(curves))
-    legend_width = 0.6 + 0.075 * max((len(m) for m in curves), default=0)
+    # The legend's width in inches (a line sample and the longest name), added to the
+    # panels' 6 inches each so they keep their size; constrained layout places it.
+    legend_width = (LEGEND_HANDLE + 2 + 0.6 * max((len(m) for m in curves), default=0)) * (
+        LEGEND_FONT / 72
+    )
     figure, all_axes = plt.subplots(
-        1, panels, figsize=(6 * panels + legend_width, 4.5), squeeze=False
+        1, panels, figsize=(6 * panels + legend_width, 4.5), squeeze=False, layout="constrained"
     )
     axes = all_axes[0, 0]
     handles = {}
@@ -272,15 +283,13 @@ def recall_curve_figure(
         axes.grid(alpha=0.3)
         axes.set_title("top-1 precision-recall over a score threshold", fontsize=10)
     figure.suptitle(title, fontsize=11)
-    width = figure.get_figwidth()
-    figure.tight_layout(rect=(0, 0, 1 - legend_width / width, 1))
     ordered = [handles[m] for m in styles]
     figure.legend(
         ordered,
         list(styles),
-        loc="upper left",
-        bbox_to_anchor=(1 - legend_width / width, 0.93),
-        fontsize=8,
+        loc="outside right upper",
+        fontsize=LEGEND_FONT,
+        handlelength=LEGEND_HANDLE,
         frameon=False,
     )
     return figure
