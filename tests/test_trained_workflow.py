@@ -26,6 +26,7 @@ from vprflow.data.images import read_image, resize_image
 from vprflow.models import kinds
 from vprflow.models.checkpoints import CheckpointError
 from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad, vlad_buff
+from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages.jobs import Job, run_job
@@ -583,6 +584,41 @@ def test_the_imagenet_resnet50_gives_the_map_of_its_layer(tmp_path):
         expected = expected / np.linalg.norm(expected, axis=-1, keepdims=True)
         assert backbone.patch_size == stride
         np.testing.assert_allclose(backbone.features(pixels), expected, rtol=0, atol=FLOAT32_ATOL)
+
+
+def test_a_trained_model_reads_contiguous_channels_first_pixels_as_to_tensor_gives_them(
+    tmp_path, monkeypatch
+):
+    """The adapter fed the trunk a permuted view of ``[B, H, W, 3]``, channels-last in
+    memory, where torchvision's ``ToTensor`` and ``Normalize`` give the authors' models a
+    contiguous tensor: a ResNet's convolutions take other kernels on it (published
+    weights, layer 3: 2.4e-4 apart). The input is now the contiguous one, value for
+    value, and so is the map."""
+    from vprflow.models.loaders import load_model
+    from vprflow.models.trunks.resnet import ResNet
+
+    torch.manual_seed(0)
+    source = ResNet(50, "layer3").eval()
+    path = tmp_path / "resnet50-0676ba61.pth"
+    torch.save(source.state_dict(), path)
+    entry = {"backbone": "resnet50", "checkpoint": str(path), "normalize": False}
+    backbone = load_model("features", entry, "cpu")
+    fed = []
+    feature_map = backbone.model.feature_map
+    monkeypatch.setattr(
+        backbone.model, "feature_map", lambda x, **kw: fed.append(x) or feature_map(x, **kw)
+    )
+    pixels = np.random.default_rng(0).random((2, 64, 96, 3), dtype=np.float32)
+    got = backbone.features(pixels)
+    mean = torch.tensor(IMAGENET_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(IMAGENET_STD).view(1, 3, 1, 1)
+    # ToTensor: the image's channels first, contiguous; Normalize: (x - mean) / std.
+    reference = (torch.from_numpy(pixels).permute(0, 3, 1, 2).contiguous() - mean) / std
+    (x,) = fed
+    assert x.is_contiguous() and torch.equal(x, reference)
+    with torch.no_grad():
+        expected = source.feature_map(reference, "layer3").permute(0, 2, 3, 1).numpy()
+    np.testing.assert_array_equal(got, expected)
 
 
 def test_the_resnet50_trunk_plans_its_layer_and_refuses_a_descriptor(tmp_path):
