@@ -28,6 +28,21 @@ class Backbone(Protocol):
     def features(self, batch: np.ndarray) -> np.ndarray: ...
 
 
+# skimage's rgb2gray weights (ITU-R BT.709 luma).
+GREY_WEIGHTS = (0.2125, 0.7154, 0.0721)
+
+
+def grey_image(image: np.ndarray) -> np.ndarray:
+    """``image`` ``[H, W, 3]`` -> its grey levels ``[H, W]`` float64, as skimage's
+    ``rgb2gray`` weighs the channels but in float64 and elementwise: rgb2gray takes a
+    matrix product in the image's dtype through BLAS, whose rounding changes with the
+    kernel (float32 images differed by up to 1e-7 between two kernels of one CPU, and
+    DAISY and the vocabulary after them)."""
+    rgb = np.asarray(image, dtype=np.float64)
+    r, g, b = GREY_WEIGHTS
+    return r * rgb[..., 0] + g * rgb[..., 1] + b * rgb[..., 2]
+
+
 class DaisyBackbone:
     """Dense DAISY descriptors, one per ``patch_size`` x ``patch_size`` patch.
 
@@ -58,13 +73,12 @@ class DaisyBackbone:
         return (self.rings * self.histograms + 1) * self.orientations
 
     def _one(self, image: np.ndarray) -> np.ndarray:
-        from skimage.color import rgb2gray
         from skimage.feature import daisy
 
         p, r = self.patch_size, self.radius
         top, left, crop_h, crop_w = center_crop_box(image.shape[0], image.shape[1], p)
         h, w = crop_h // p, crop_w // p
-        grey = rgb2gray(image[top : top + crop_h, left : left + crop_w])
+        grey = grey_image(image[top : top + crop_h, left : left + crop_w])
         # skimage samples at radius + k * step of its input; this padding puts sample
         # (i, j) at the centre of patch (i, j). The extra `p` after keeps the last row.
         before = r - p // 2
@@ -77,8 +91,8 @@ class DaisyBackbone:
             histograms=self.histograms,
             orientations=self.orientations,
         )[:h, :w]
-        grid = grid.astype(np.float32)
-        return l2_normalize(grid) if self.normalize else grid
+        # Normalised in float64, then rounded once.
+        return (l2_normalize(grid) if self.normalize else grid).astype(np.float32)
 
     def features(self, batch: np.ndarray) -> np.ndarray:
         return np.stack([self._one(image) for image in batch])

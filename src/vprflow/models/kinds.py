@@ -24,7 +24,8 @@ class ModelKind:
     ``"file"`` (the imported file, hashed), ``"checkpoint"`` (a trained model's
     ``checkpoint`` file, hashed by the plan, which names the expected file and where to
     get it when the entry has none or it is missing) or ``"none"`` (weight-free);
-    ``"file"`` kinds (``import``) load no model. ``model_files``: files of a local
+    ``"file"`` kinds (``import``) load no model. ``version``: the kind's format version.
+    ``model_files``: files of a local
     model directory besides ``config.json`` and the weights that change the output
     (hashed into the key when present). ``spec``: what the kind's loader needs beyond
     the config entry (a :class:`VitFamily`, a :class:`SamKind`, a
@@ -39,6 +40,9 @@ class ModelKind:
     uses_gpu: bool = False
     model_files: tuple[str, ...] = ()
     spec: VitFamily | SamKind | TrainedModel | None = None
+    # The kind's own format version, in its stores' keys from 2 on (so that the keys of
+    # the kinds at 1 stand): bump it when the kind's output changes (reasons by kind).
+    version: int = 1
 
     @property
     def reads_file(self) -> bool:
@@ -429,10 +433,13 @@ def _trained(name: str, spec: TrainedModel) -> ModelKind:
 BACKBONES: dict[str, ModelKind] = {
     kind.name: kind
     for kind in (
+        # 2: the grey image in float64, elementwise (skimage's rgb2gray is a float32
+        # BLAS product whose rounding moved with the kernel), DAISY in float64.
         ModelKind(
             "daisy",
             "backbone",
             {"patch_size": 8, "radius": 12, "rings": 2, "histograms": 6, "orientations": 8},
+            version=2,
         ),
         # AnyLoc / SegVLAD: value facet of block 31 (0-based) of ViT-G/14's 40.
         ModelKind(

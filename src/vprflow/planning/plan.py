@@ -494,6 +494,7 @@ def _plan_features(
         "resolution": _resolution(m.dataset, backbone),
         "exif_orientation": _exif_orientation(m),
     }
+    params.update(_kind_version(kind))
     patch = backbone.get("patch_size")
     if isinstance(kind.spec, TrainedModel):
         strides = kind.spec.layer_strides
@@ -597,6 +598,12 @@ def _exif_orientation(m: _Method) -> str:
     return m.aggregator.exif_orientation if orientation == "method" else orientation
 
 
+def _kind_version(kind) -> dict:
+    """A model kind's format version for its stores' params: none while it is 1, so that
+    those keys stand as they were before kinds had versions."""
+    return {"kind_version": kind.version} if kind.version > 1 else {}
+
+
 def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
     name = m.settings["segmenter"]
     segmenter = m.entry("segmenters", name)
@@ -605,6 +612,7 @@ def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef,
         **source_fingerprint("segments", segmenter, m.memo, f"segmenters.{name}"),
         "resolution": _segment_resolution(m.dataset, segmenter),
         "exif_orientation": _exif_orientation(m),  # as its features: masks on the same pixels
+        **_kind_version(model_kind("segments", segmenter)),
     }
     run_params = m.model_run_params("segments", segmenter)
     store = m.add("segments", params, {"images": m.images_store}, run_params)
