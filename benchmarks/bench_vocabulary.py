@@ -1,35 +1,26 @@
-"""The vocabulary's spherical k-means: faiss on the CPU against the torch k-means on each
-device, beside the arithmetic floor.
+"""The vocabulary's spherical k-means: vprflow's (float64 decisions, fixed-order sums; the
+same centres on every machine) against faiss's float32 ``Kmeans`` (what the CPU ran
+before vocabulary format 4), beside the arithmetic floor.
 
     python benchmarks/bench_vocabulary.py                  # 50,000 x 1536 -> 32, 100 iterations
     python benchmarks/bench_vocabulary.py --n 200000       # the stage's default max_descriptors
     python benchmarks/bench_vocabulary.py --smoke          # 2,000 x 64 -> 8, seconds
 
-Rows: ``faiss`` (what the stage runs on the CPU), ``before``: the stage's call as it was
-at ``--before`` (``src/vprflow/aggregation/vlad.py`` from ``git show``; default
-``0223a6d``, before the k-means ran on the stage's device; its ``fit ms`` only), then
-``torch`` on the CPU and, where ``--device`` (default ``auto``) finds an accelerator,
-on it (what the stage runs there).
-Columns:
+Rows: ``faiss`` (float32, its bundled OpenBLAS), ``vprflow`` on the CPU (numpy
+products) and, where ``--device`` (default ``auto``) finds an accelerator, with the
+products taken there (torch). Columns:
 
-- ``iters``: iterations run (both stop when the objective stops changing);
-- ``k-means ms``: the k-means alone (``vlad.spherical_centroids`` for faiss,
-  ``kmeans.spherical_kmeans`` for torch), fastest of ``--repeats``;
-- ``fit ms``: the stage's whole call with the ``mean`` centres (one more assignment and
-  the float64 means): ``vlad.fit_spherical_kmeans`` for faiss, and what it calls off
-  the CPU, ``kmeans.fit_on_device``, for torch (on the CPU too);
+- ``iters``: iterations run (faiss stops when its objective repeats, vprflow when no
+  point moves);
+- ``k-means ms``: the k-means alone, fastest of ``--repeats``; ``fit ms``: the stage's
+  whole call (``vlad.fit_spherical_kmeans``, the ``mean`` centres);
 - ``floor ms``: ``N * K * D * 2 * iters`` flops (the assignment products) over the
-  device's float32 matrix-product rate, measured here on a square product
-  (``--gemm``); ``x floor``: ``k-means ms`` over it. The torch k-means does a second
-  product of that size per iteration (the one-hot sums), so 2x is its arithmetic;
-- ``max |dc|``: largest difference of a unit centroid's entry from faiss's;
-  ``differ``: final assignments (argmax under the centroids) unlike faiss's, and
-  ``near ties``: points whose two best products under faiss's centroids are within
-  1e-5. A large ``max |dc|`` (1e-3 and more) with other ``iters`` means the runs
-  parted: float32 k-means follows one course until a point's two best products come
-  within rounding (~1e-6) of each other, and either may win there; faiss itself parts
-  so from its own run when its SIMD level changes (AVX2 against none: 1 of 10 runs of
-  20,000 x 384 -> 32 on the CPU). A row then says ``parted``; it is not an error.
+  device's matrix-product rate in the precision the row computes in (float32 for
+  faiss, float64 for vprflow), measured here on a square product; ``x floor``:
+  ``k-means ms`` over it;
+- ``max |dc|``: largest difference of a unit centroid's entry from the CPU vprflow row's
+  (0 on another device: the same decisions and sums); faiss's may part from it by 1e-3
+  and more where a mid-run near tie sends it to a neighbouring solution.
 
 Data: unit points around 64 random directions under 6x as much isotropic noise (a
 mixture that k-means takes tens of iterations to settle), seed 0.
@@ -38,31 +29,14 @@ mixture that k-means takes tens of iterations to settle), seed 0.
 from __future__ import annotations
 
 import argparse
-import subprocess
 import sys
 import time
-import types
 from pathlib import Path
 
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "src"))
-
-NEAR_TIE = 1e-5
-# The commit whose vocabulary k-means was faiss's on every device.
-BEFORE = "0223a6d"
-
-
-def load_before(rev: str) -> types.ModuleType:
-    """``src/vprflow/aggregation/vlad.py`` at ``rev`` as a module of its own."""
-    path = "src/vprflow/aggregation/vlad.py"
-    source = subprocess.run(
-        ["git", "show", f"{rev}:{path}"], cwd=REPO, capture_output=True, text=True, check=True
-    ).stdout
-    module = types.ModuleType("vlad_before")
-    exec(compile(source, f"{rev}:{path}", "exec"), module.__dict__)
-    return module
 
 
 def make_points(n: int, d: int, seed: int = 0) -> np.ndarray:
@@ -79,12 +53,12 @@ def synchronise(device) -> None:
         torch.cuda.synchronize(device)
 
 
-def gemm_rate(device, size: int) -> float:
-    """float32 flops per second of a ``size``-cube product on ``device``, best of 3."""
+def gemm_rate(device, size: int, dtype) -> float:
+    """flops per second of a ``size``-cube product in ``dtype`` on ``device``, best of 3."""
     import torch
 
-    a = torch.randn(size, size, device=device)
-    b = torch.randn(size, size, device=device)
+    a = torch.randn(size, size, device=device, dtype=dtype)
+    b = torch.randn(size, size, device=device, dtype=dtype)
     precision = torch.get_float32_matmul_precision()
     torch.set_float32_matmul_precision("highest")
     try:
@@ -114,9 +88,10 @@ def fastest(function, repeats: int, device=None):
     return best, result
 
 
-def row(path, device, iterations, seconds, fit, floor, gap, differ, near) -> None:
-    times = f"{seconds * 1e3:.1f} | {fit * 1e3:.1f} | {floor * 1e3:.1f} | {seconds / floor:.2f}"
-    print(f"| {path} | {device} | {iterations} | {times} | {gap} | {differ} | {near} |")
+def row(path, device, iterations, seconds, fit, floor, gap) -> None:
+    fit = "-" if fit is None else f"{fit * 1e3:.1f}"
+    times = f"{seconds * 1e3:.1f} | {fit} | {floor * 1e3:.1f} | {seconds / floor:.2f}"
+    print(f"| {path} | {device} | {iterations} | {times} | {gap} |")
 
 
 def main() -> int:
@@ -128,7 +103,6 @@ def main() -> int:
     parser.add_argument("--device", default="auto", help="the accelerator row's device")
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--gemm", type=int, default=0, help="rate product size (0: by device)")
-    parser.add_argument("--before", default=BEFORE, help="the commit of the 'before' row")
     parser.add_argument("--smoke", action="store_true", help="tiny sizes, CPU only")
     args = parser.parse_args()
     if args.smoke:
@@ -137,82 +111,62 @@ def main() -> int:
     import faiss
     import torch
 
-    from vprflow.aggregation.kmeans import fit_on_device, spherical_kmeans
-    from vprflow.aggregation.vlad import fit_spherical_kmeans, l2_normalize, spherical_centroids
+    from vprflow.aggregation.kmeans import spherical_kmeans
+    from vprflow.aggregation.vlad import fit_spherical_kmeans
     from vprflow.core.devices import resolve_device
 
     n, d, k, seed = args.n, args.dim, args.clusters, 0
     x = make_points(n, d)
-    unit = np.ascontiguousarray(l2_normalize(x))  # as fit_spherical_kmeans normalises
-    devices = [torch.device("cpu")]
+    cpu = torch.device("cpu")
+    devices = [cpu]
     accelerator = resolve_device(args.device)
     if accelerator.type != "cpu":
         devices.append(accelerator)
     rates = {}
     for device in devices:
         size = args.gemm or (256 if args.smoke else 2048 if device.type == "cpu" else 8192)
-        rates[device] = gemm_rate(device, size)
+        for dtype in (torch.float32, torch.float64):
+            rates[device, dtype] = gemm_rate(device, size, dtype)
 
     print(
-        f"# N = {n:,}, D = {d}, K = {k}, n_iter = {args.iters}; torch {torch.__version__} "
-        f"({torch.get_num_threads()} threads), faiss {faiss.__version__} "
-        f"({faiss.omp_get_max_threads()} threads); float32 GEMM rate: "
-        + ", ".join(f"{device} {rate / 1e9:.0f} GFLOP/s" for device, rate in rates.items())
-    )
-    header = (
-        "| path | device | iters | k-means ms | fit ms | floor ms | x floor "
-        "| max abs dc | differ | near ties |"
-    )
-    print(header)
-    print("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|")
-
-    cpu = torch.device("cpu")
-    seconds, (reference, iterations) = fastest(
-        lambda: spherical_centroids(x, k, args.iters, seed), args.repeats
-    )
-    before = load_before(args.before)
-    # Interleaved, so that a load change on a shared machine hits both alike.
-    fit = previous = float("inf")
-    for _ in range(args.repeats):
-        previous = min(
-            previous, fastest(lambda: before.fit_spherical_kmeans(x, k, args.iters), 1)[0]
+        f"# N = {n:,}, D = {d}, K = {k}, n_iter = {args.iters}; numpy {np.__version__}, "
+        f"torch {torch.__version__} ({torch.get_num_threads()} threads), faiss "
+        f"{faiss.__version__} ({faiss.omp_get_max_threads()} threads); GEMM rate: "
+        + ", ".join(
+            f"{device} {str(dtype).removeprefix('torch.')} {rate / 1e9:.0f} GFLOP/s"
+            for (device, dtype), rate in rates.items()
         )
-        fit = min(fit, fastest(lambda: fit_spherical_kmeans(x, k, args.iters, device="cpu"), 1)[0])
-    floor = n * k * d * 2.0 * iterations / rates[cpu]
-    products = x.astype(np.float64) @ reference.T.astype(np.float64)
-    ranked = np.sort(products, axis=1)
-    near = ranked[:, -1] - ranked[:, -2] < NEAR_TIE
-    labels = np.argmax(products, axis=1)
-    row("faiss", "cpu", iterations, seconds, fit, floor, "-", "-", int(near.sum()))
-    print(f"| before ({args.before}) | cpu | - | - | {previous * 1e3:.1f} | - | - | - | - | - |")
-    parted = []
+    )
+    print("| k-means | device | iters | k-means ms | fit ms | floor ms | x floor | max abs dc |")
+    print("|---|---|---:|---:|---:|---:|---:|---:|")
+
+    def faiss_run():
+        km = faiss.Kmeans(
+            d, k, niter=args.iters, spherical=True, seed=seed, max_points_per_centroid=n // k + 1
+        )
+        km.train(x)
+        return km.centroids, len(km.iteration_stats)
+
+    seconds, (centroids, iterations) = fastest(faiss_run, args.repeats)
+    fit, (reference, _, runs) = fastest(lambda: spherical_kmeans(x, k, args.iters, seed), 1)
+    gap = float(np.abs(centroids.astype(np.float64) - reference).max())
+    floor = n * k * d * 2.0 * iterations / rates[cpu, torch.float32]
+    row("faiss", "cpu", iterations, seconds, None, floor, f"{gap:.1e}")
     for device in devices:
-        points = torch.from_numpy(x).to(device)
-
-        def run(points=points):
-            precision = torch.get_float32_matmul_precision()
-            torch.set_float32_matmul_precision("highest")  # as fit_on_device runs it
-            try:
-                return spherical_kmeans(points, k, args.iters, seed)
-            finally:
-                torch.set_float32_matmul_precision(precision)
-
-        seconds, (centroids, runs) = fastest(run, args.repeats, device)
-        # What fit_spherical_kmeans runs off the CPU (on the CPU it runs faiss instead).
+        where = None if device == cpu else device
+        seconds, (centroids, _, runs) = fastest(
+            lambda where=where: spherical_kmeans(x, k, args.iters, seed, where),
+            args.repeats,
+            device,
+        )
         fit, _ = fastest(
-            lambda device=device: fit_on_device(unit, k, args.iters, seed, "mean", str(device)),
+            lambda device=device: fit_spherical_kmeans(x, k, args.iters, seed, device=str(device)),
             1,
             device,
         )
-        centroids = centroids.cpu().numpy().astype(np.float32)
-        floor = n * k * d * 2.0 * runs / rates[device]
-        gap = float(np.abs(centroids.astype(np.float64) - reference).max())
-        differ = int((np.argmax(x @ centroids.T, axis=1) != labels).sum())
-        row("torch", device, runs, seconds, fit, floor, f"{gap:.1e}", differ, int(near.sum()))
-        if runs != iterations or gap > 1e-4:
-            parted.append(str(device))
-    for device in parted:
-        print(f"parted: torch on {device} ended in another k-means solution than faiss's")
+        floor = n * k * d * 2.0 * runs / rates[device, torch.float64]
+        gap = float(np.abs(centroids - reference).max())
+        row("vprflow", device, runs, seconds, fit, floor, f"{gap:.1e}")
     return 0
 
 

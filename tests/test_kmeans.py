@@ -1,23 +1,12 @@
-"""The vocabulary's k-means in torch (vprflow.aggregation.kmeans) against faiss's own
-``faiss.Kmeans(spherical=True)``, on the CPU in float64 and float32.
+"""vprflow's spherical k-means (vprflow.aggregation.kmeans) against Lloyd's iterations
+written out in float64 here, and against faiss's ``Kmeans(spherical=True)``, whose start
+and empty-cluster splits it takes.
 
-Tolerance: 1e-6 absolute on the entries of the unit centroids (about 8 float32 ulps of
-1). faiss sums a cluster's points one after another in float32 and multiplies by the
-float32 reciprocal of its count; torch sums them in a matrix product (another order in
-float32, nearly exact in float64), so the centroids differ in the last bits (measured
-here: at most 3e-7). A point moving to another cluster anywhere in the run would move
-its centroids by about one over the cluster's size (1e-3 and more at these sizes), so
-the tolerance tells a float difference from a different run. The iterations run must be
-equal, and the final assignments identical except at near ties: points whose best and
-second-best products under faiss's centroids differ by less than 1e-5 (what a 1e-6
-change of the centroids can reverse at these dimensions); none differ on these inputs.
-A near tie in the middle of a run can take the two runs apart to neighbouring solutions
-(faiss itself parts so from its own run when its SIMD level changes); these inputs,
-fixed, have none, and ``benchmarks/bench_vocabulary.py`` reports it where it happens.
-
-Paths: faiss multiplies one product at a time below ``n * d = 128,000``
-(``distance_compute_blas_threshold``), through BLAS with a SIMD argmax above it; each
-test covers both.
+Tolerances: the centroids within 1e-12 of the formula's (both float64; the sums differ
+only in their order: the module adds a cluster's points one after another, numpy's
+``sum`` pairwise), the labels and iterations equal. Against faiss (float32 sums in
+another order), 1e-6 after one iteration on points whose products are exact.
+tests/test_code_paths.py runs the k-means on the shipped data under every code path.
 """
 
 from __future__ import annotations
@@ -32,8 +21,8 @@ from synthetic import make_dataset
 from workflow_helpers import SCHEMA, repo_config, toy_config
 
 from vprflow.aggregation import kmeans, vlad
-from vprflow.aggregation.kmeans import spherical_kmeans, tie_order
-from vprflow.aggregation.vlad import fit_spherical_kmeans, spherical_centroids
+from vprflow.aggregation.kmeans import TIE, spherical_kmeans
+from vprflow.aggregation.vlad import fit_spherical_kmeans
 from vprflow.core import stores
 from vprflow.models.kinds import model_kind
 from vprflow.planning.config import validate_config
@@ -41,11 +30,7 @@ from vprflow.planning.plan import build_plan
 from vprflow.stages.jobs import Job, run_job
 from vprflow.stages.readers import read_centres
 
-ATOL = 1e-6
-NEAR_TIE = 1e-5
-# (points, dimensions, clusters): below and above faiss's BLAS threshold.
-SHAPES = [(2000, 16, 8), (2500, 64, 32)]
-DTYPES = [torch.float64, torch.float32]
+EXACT = 1e-12
 
 
 def unit_points(n, d, seed):
@@ -56,8 +41,8 @@ def unit_points(n, d, seed):
 
 def repeated_patterns(n, d, pool, seed):
     """``n`` points drawn from ``pool`` distinct unit patterns of four +-1/2 entries:
-    repeated points (so repeated initial centroids, then empty clusters) and products
-    that are exact in float32 (so ties are exact, and broken by the tie rule)."""
+    repeated points (so repeated initial centroids, exact ties, then empty clusters)
+    and products that are exact in float32 and float64."""
     rng = np.random.default_rng(seed)
     patterns = np.zeros((pool, d), dtype=np.float32)
     for row in patterns:
@@ -65,115 +50,137 @@ def repeated_patterns(n, d, pool, seed):
     return patterns[rng.integers(0, pool, n)]
 
 
-def faiss_kmeans(x, k, n_iter, seed):
-    km = faiss.Kmeans(
-        x.shape[1],
-        k,
-        niter=n_iter,
-        spherical=True,
-        seed=seed,
-        max_points_per_centroid=max(256, len(x) // k + 1),
-    )
-    km.train(x)
-    return km.centroids, km.iteration_stats
+def lloyd(x, k, n_iter, seed):
+    """The k-means written out: faiss's first points, then per iteration each point to
+    the lowest-index centroid within TIE of its best float64 product, a centroid the
+    float64 mean of its points (an empty one split as faiss splits it), normalised;
+    stop when no point moves -> (centroids, labels, iterations)."""
+    x = x.astype(np.float64)
+    perm = np.empty(len(x), dtype=np.int32)
+    faiss.rand_perm(faiss.swig_ptr(perm), len(x), seed + 1)
+    c = x[perm[:k]] / np.linalg.norm(x[perm[:k]], axis=1, keepdims=True)
+
+    def labels_of(c):
+        products = np.einsum("nd,kd->nk", x, c)
+        tied = products >= products.max(axis=1, keepdims=True) - TIE
+        return np.array([np.flatnonzero(row)[0] for row in tied])
+
+    labels = None
+    for iteration in range(1, n_iter + 1):
+        moved = labels_of(c)
+        if labels is not None and (moved == labels).all():
+            return c, labels, iteration
+        labels = moved
+        counts = np.array([(labels == j).sum() for j in range(k)])
+        c = np.stack([x[labels == j].sum(axis=0) / max(counts[j], 1) for j in range(k)])
+        for ci, cj in kmeans.split_clusters(counts.astype(np.float32), len(x)):
+            c[ci] = c[cj] * np.resize([1 + 1 / 1024, 1 - 1 / 1024], x.shape[1])
+            c[cj] = c[cj] * np.resize([1 - 1 / 1024, 1 + 1 / 1024], x.shape[1])
+        norms = np.linalg.norm(c, axis=1, keepdims=True)
+        c = np.where(norms > 0, c / np.where(norms > 0, norms, 1), 0)
+    return c, labels_of(c), n_iter
 
 
-def assert_same_kmeans(x, k, n_iter, seed, dtype):
-    """torch's run equals faiss's: iterations, centroids within ATOL, assignments but for
-    near ties. Returns faiss's iteration statistics."""
-    expected, stats = faiss_kmeans(x, k, n_iter, seed)
-    centroids, iterations = spherical_kmeans(torch.from_numpy(x).to(dtype), k, n_iter, seed)
-    assert centroids.dtype == dtype
-    assert iterations == len(stats)
-    centroids = centroids.to(torch.float64).numpy()
-    np.testing.assert_allclose(centroids, expected, rtol=0, atol=ATOL)
-    products = x.astype(np.float64) @ expected.T.astype(np.float64)
-    ranked = np.sort(products, axis=1)
-    near = ranked[:, -1] - ranked[:, -2] < NEAR_TIE
-    differ = np.argmax(products, axis=1) != np.argmax(x @ centroids.T.astype(np.float32), axis=1)
-    assert not (differ & ~near).any(), f"{(differ & ~near).sum()} assignments differ, no near tie"
-    assert differ.sum() == 0  # on these inputs: not one, near ties included
-    return stats
+def assert_is_lloyd(x, k, n_iter, seed, device=None):
+    expected, labels, iterations = lloyd(x, k, n_iter, seed)
+    centroids, actual_labels, actual_iterations = spherical_kmeans(x, k, n_iter, seed, device)
+    assert centroids.dtype == np.float64
+    assert actual_iterations == iterations
+    np.testing.assert_array_equal(actual_labels, labels)
+    np.testing.assert_allclose(centroids, expected, rtol=0, atol=EXACT)
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=str)
-@pytest.mark.parametrize(("n", "d", "k"), SHAPES)
+@pytest.mark.parametrize(("n", "d", "k"), [(2000, 16, 8), (2500, 64, 32)])
 @pytest.mark.parametrize("seed", [0, 1])
-def test_torch_kmeans_gives_faiss_centroids_on_random_points(n, d, k, seed, dtype):
-    assert_same_kmeans(unit_points(n, d, seed), k, 100, seed, dtype)
+def test_the_kmeans_is_lloyds_iterations_written_in_float64(n, d, k, seed):
+    assert_is_lloyd(unit_points(n, d, seed), k, 100, seed)
 
 
-@pytest.mark.parametrize("dtype", DTYPES, ids=str)
 @pytest.mark.parametrize(("n", "d", "k", "pool"), [(400, 16, 8, 40), (2000, 64, 20, 60)])
-def test_torch_kmeans_splits_empty_clusters_and_breaks_ties_as_faiss(n, d, k, pool, dtype):
-    """Repeated points: two initial centroids on one point tie exactly for every point,
-    the one faiss's tie rule passes over ends empty and is split off a donor drawn by
-    faiss's generator, and perturbed by faiss's EPS."""
+def test_repeated_points_tie_to_the_lowest_index_and_empty_clusters_are_split(n, d, k, pool):
+    """Two initial centroids on one point tie exactly for every point: the lowest index
+    takes them all, the other ends empty and is split off a donor."""
+    splits = []
+    original = kmeans.split_clusters
+
+    def counting(counts, n):
+        done = original(counts, n)
+        splits.extend(done)
+        return done
+
     for seed in (0, 2):
-        stats = assert_same_kmeans(repeated_patterns(n, d, pool, seed), k, 50, seed, dtype)
-        assert sum(s["nsplit"] for s in stats) > 0  # the inputs do force empty clusters
+        x = repeated_patterns(n, d, pool, seed)
+        expected = lloyd(x, k, 50, seed)
+        kmeans.split_clusters = counting
+        try:
+            centroids, labels, iterations = spherical_kmeans(x, k, 50, seed)
+        finally:
+            kmeans.split_clusters = original
+        assert iterations == expected[2]
+        np.testing.assert_array_equal(labels, expected[1])
+        np.testing.assert_allclose(centroids, expected[0], rtol=0, atol=EXACT)
+    assert splits  # the inputs do force empty clusters
 
 
-@pytest.mark.parametrize(("n", "d"), [(200, 64), (100, 2048)])
-def test_the_tie_order_is_the_one_faiss_search_applies(n, d):
-    """Integer points and centroids: exact products with many equal maxima. faiss's top-1
-    search picks, in every row, the first of the tied centroids in ``tie_order``."""
-    rng = np.random.default_rng(0)
-    k = 37  # beyond a multiple of the SIMD width: a scalar tail after the lanes
-    x = rng.integers(0, 2, (n, d)).astype(np.float32)
-    centroids = rng.integers(0, 2, (k, d)).astype(np.float32)
-    centroids[5:30:3] = centroids[4]  # whole groups of equal centroids
-    index = faiss.IndexFlatIP(d)
-    index.add(centroids)
-    _, labels = index.search(x, 1)
-    order = np.array(tie_order(k, d, n))
-    products = x @ centroids.T
-    assert (products == products.max(axis=1, keepdims=True)).sum(axis=1).max() > 1
-    np.testing.assert_array_equal(labels[:, 0], order[np.argmax(products[:, order], axis=1)])
-    assert sorted(order) == list(range(k))
+@pytest.mark.parametrize(("n", "d", "k", "pool"), [(400, 16, 8, 40), (1500, 64, 20, 60)])
+def test_the_start_and_the_splits_are_faiss_own(n, d, k, pool):
+    """One iteration on points with exact products, below faiss's BLAS threshold (where
+    it takes the lowest index of equal products, as here): faiss's centroids, splits
+    included, within float32 rounding of its sums."""
+    assert n * d < faiss.cvar.distance_compute_blas_threshold
+    for seed in (0, 2):
+        x = repeated_patterns(n, d, pool, seed)
+        km = faiss.Kmeans(
+            d, k, niter=1, spherical=True, seed=seed, max_points_per_centroid=n // k + 1
+        )
+        km.train(x)
+        assert km.iteration_stats[0]["nsplit"] > 0
+        centroids, _, _ = spherical_kmeans(x, k, 1, seed)
+        np.testing.assert_allclose(centroids, km.centroids, rtol=0, atol=1e-6)
+
+
+def test_products_taken_by_torch_give_the_same_run():
+    """Another device takes the products in torch (played here by torch on the CPU): the
+    labels are decided alike, so the centroids are equal, bit for bit."""
+    x = unit_points(2500, 64, 3)
+    numpy_run = spherical_kmeans(x, 16, 40, 3)
+    torch_run = spherical_kmeans(x, 16, 40, 3, torch.device("cpu"))
+    np.testing.assert_array_equal(torch_run[0], numpy_run[0])
+    np.testing.assert_array_equal(torch_run[1], numpy_run[1])
+    assert torch_run[2] == numpy_run[2]
 
 
 def test_as_many_points_as_clusters_are_the_centroids_as_faiss_copies_them():
     x = unit_points(8, 16, 3)
-    centroids, iterations = spherical_kmeans(torch.from_numpy(x), 8, 10, 0)
-    np.testing.assert_array_equal(centroids.numpy(), faiss_kmeans(x, 8, 10, 0)[0])
+    centroids, labels, iterations = spherical_kmeans(x, 8, 10, 0)
+    np.testing.assert_array_equal(centroids, x.astype(np.float64))
+    np.testing.assert_array_equal(labels, np.arange(8))
     assert iterations == 0
 
 
 @pytest.mark.parametrize("centres", vlad.CENTRES)
-def test_off_the_cpu_the_vocabulary_k_means_is_torchs_and_gives_faiss_centres(monkeypatch, centres):
-    """A non-CPU device (played here by the CPU) takes the torch path: the same centres
-    as faiss's, within ATOL ("mean": float64 means of the same members)."""
-    x = unit_points(2500, 64, 5) * 3.0  # not unit: normalised first on both paths
-    expected = fit_spherical_kmeans(x, 16, 50, 5, centres=centres, device="cpu")
-    calls = []
-    monkeypatch.setattr(vlad, "on_cpu", lambda device: False)
-    original = kmeans.fit_on_device
-    monkeypatch.setattr(
-        kmeans, "fit_on_device", lambda *args: calls.append(args) or original(*args)
-    )
-    actual = fit_spherical_kmeans(x, 16, 50, 5, centres=centres, device="cpu")
-    assert len(calls) == 1
-    assert actual.dtype == np.float32 and actual.shape == expected.shape
-    np.testing.assert_allclose(actual, expected, rtol=0, atol=ATOL)
+def test_the_vocabulary_centres_are_the_unit_centroids_or_their_members_means(centres):
+    """``unit``: the centroids rounded to float32; ``mean``: the float64 mean of each
+    centroid's members (points normalised first), an empty cluster's unit centroid."""
+    x = unit_points(2500, 32, 5) * 3.0  # not unit: normalised first
+    x[:40] = x[40]  # repeated points: an empty cluster to fall back on
+    unit = x.astype(np.float64) / np.linalg.norm(x.astype(np.float64), axis=1, keepdims=True)
+    unit = unit.astype(np.float32)
+    centroids, labels, _ = spherical_kmeans(unit, 16, 50, 5)
+    actual = fit_spherical_kmeans(x, 16, 50, 5, centres=centres)
+    assert actual.dtype == np.float32 and actual.shape == (16, 32)
+    if centres == "unit":
+        np.testing.assert_array_equal(actual, centroids.astype(np.float32))
+        return
+    for c in range(16):
+        members = unit[labels == c].astype(np.float64)
+        expected = members.mean(axis=0) if len(members) else centroids[c]
+        np.testing.assert_allclose(actual[c], expected, rtol=0, atol=1e-7)
 
 
-def test_on_the_cpu_the_vocabulary_k_means_is_faiss_itself(monkeypatch):
-    def refuse(*args):
-        raise AssertionError("the torch k-means ran on the CPU")
-
-    monkeypatch.setattr(kmeans, "fit_on_device", refuse)
-    x = unit_points(2000, 16, 1)
-    unit = vlad.l2_normalize(spherical_centroids(vlad.l2_normalize(x), 8, 30, 1)[0])
-    np.testing.assert_array_equal(fit_spherical_kmeans(x, 8, 30, 1, "unit", device="cpu"), unit)
-
-
-def test_kmeans_refuses_non_finite_points_on_either_path(monkeypatch):
+def test_kmeans_refuses_non_finite_points():
     x = unit_points(100, 8, 0)
     x[3, 2] = np.nan
-    with pytest.raises(RuntimeError, match="NaN"):  # faiss's own check
-        fit_spherical_kmeans(x, 4, 10, 0)
-    monkeypatch.setattr(vlad, "on_cpu", lambda device: False)
     with pytest.raises(ValueError, match="NaN or infinite"):
         fit_spherical_kmeans(x, 4, 10, 0)
 
@@ -181,11 +188,9 @@ def test_kmeans_refuses_non_finite_points_on_either_path(monkeypatch):
 # ------------------------------------------------------------------ the vocabulary stage
 
 
-def test_the_vocabulary_stage_fits_with_faiss_on_the_cpu_whatever_names_it(tmp_path, monkeypatch):
-    """``device: cpu`` and ``auto`` on a machine without a GPU store the same centres,
-    from faiss (the torch k-means is refused)."""
-    if not vlad.on_cpu("auto"):
-        pytest.skip("auto finds an accelerator here")
+def test_the_vocabulary_stage_stores_the_same_centres_on_cpu_and_auto(tmp_path):
+    """``device: cpu`` and ``auto`` store the same centres under the same record (on a
+    GPU, ``auto`` takes the products there: the same decisions)."""
     make_dataset(tmp_path / "data" / "toy", n_places=4, width=64, height=48)
     config = toy_config(tmp_path / "data", resolution=[64, 48], methods=["anyloc_vlad"])
     config["vocabulary"].update(n_clusters=3, n_iter=5)
@@ -200,10 +205,6 @@ def test_the_vocabulary_stage_fits_with_faiss_on_the_cpu_whatever_names_it(tmp_p
         run_job(replace(job, run={"device": device}))
         return path
 
-    def refuse(*args):
-        raise AssertionError("the torch k-means ran on the CPU")
-
-    monkeypatch.setattr(kmeans, "fit_on_device", refuse)
     cpu, auto = (run(stage, device, tmp_path / device) for device in ("cpu", "auto"))
     np.testing.assert_array_equal(read_centres(auto), read_centres(cpu))
     assert stores.open_store(auto).attrs["record"] == stores.open_store(cpu).attrs["record"]

@@ -1,40 +1,47 @@
-"""Spherical k-means as faiss trains it (``faiss.Kmeans(spherical=True)``), in torch on
-any device (docs/methods.md §3).
+"""vprflow's spherical k-means: one result on every CPU, BLAS kernel and thread count
+(docs/methods.md §3).
 
-faiss 1.15's ``Clustering::train`` with an ``IndexFlatIP``, one run (``nredo = 1``), no
-weights and no subsampling (the caller sets ``max_points_per_centroid`` above
-``N / K``), step by step:
+The map vocabulary is vprflow's own step (the authors fit theirs on a GPU with another
+library; the published setting uses their published centres), so it is free to be
+robust. It follows faiss's ``Kmeans(spherical=True)`` in its start and its handling of
+empty clusters, but decides in float64 with a fixed tie order and sums in a fixed order:
 
-- initialisation: ``rand_perm(N, seed + 1)``; centroid ``c`` is point ``perm[c]``, then
-  L2-normalised. The permutation is drawn by faiss itself, so the start is the same.
-- each iteration: every point goes to the centroid of largest inner product (ties broken
-  in the order faiss's top-1 search breaks them, :func:`tie_order`); the objective is the
-  sum of those products; each centroid becomes the mean of its points (the sum times
-  ``1 / count``), an empty one is split off a donor drawn with faiss's generator
-  (:func:`split_clusters`), and every centroid is L2-normalised.
-- stop after ``n_iter`` iterations, or as soon as the objective, in float32, equals the
-  previous iteration's.
+- start: ``rand_perm(N, seed + 1)`` drawn by faiss itself; centroid ``c`` is point
+  ``perm[c]``, L2-normalised;
+- each iteration: every point goes to the centroid of largest inner product, the
+  products in float64; centroids whose products come within :data:`TIE` of the best
+  tie, and the lowest index among them wins (:func:`nearest`);
+- each centroid becomes the float64 mean of its points, summed one point after another
+  in index order (:func:`cluster_sums`), an empty one is split off a donor drawn with
+  faiss's generator (:func:`split_clusters`) and perturbed by ``1 +- 1/1024``, and every
+  centroid is L2-normalised in float64;
+- stop after ``n_iter`` iterations, or as soon as no point changed its cluster.
 
-What cannot be the same: faiss sums each centroid's points one after another in float32
-and takes products through its BLAS; here they are two matrix products per iteration
-(assignment, then a one-hot product for the sums) in the input's dtype. The centroids
-therefore differ in the last bits, and a point whose two best centroids are that close
-may go to the other one (the tests count those). faiss adds the objective's terms one
-after another, here in a reduction: when centroids still move but so little that
-faiss's float32 objective repeats exactly, one run may stop an iteration before the
-other (not seen in the tests and benchmarks).
+Why this gives one result: the only step whose rounding depends on the BLAS kernel,
+the thread count or the device is the product ``x @ C.T``, and only through its float64
+rounding (~1e-16 relative, at most ``D * 2**-53`` for unit rows). A decision can follow
+that rounding only where a product lies within it of ``best - TIE``; everything else
+(sums, means, norms) is elementwise or numpy's own fixed-order reduction. faiss
+decides in float32 through its bundled OpenBLAS, where a point whose two best products
+are 1e-7 apart goes one way or the other with the kernel, and from such a point in
+mid-run a whole run can end in a neighbouring solution (centres 1e-2 apart).
 """
 
 from __future__ import annotations
 
-from functools import cache
-
 import numpy as np
-import torch
+
+# Products within this of the best are one tie (far above float64 rounding, ~1e-16 a
+# product of unit rows; far below any gap that float32 data can carry, ~1e-7).
+TIE = 2.0**-30
 
 # faiss's split perturbation (impl/ClusteringHelpers.cpp): "a bit above machine epsilon
 # for float16".
-_EPS = np.float32(1.0 / 1024.0)
+_EPS = 1.0 / 1024.0
+
+# Points per block of the products and sums: [rows, K] float64 products and a float64
+# copy of [rows, D] stay near the caches.
+_BLOCK = 1 << 20
 
 
 def initial_indices(n: int, k: int, seed: int) -> np.ndarray:
@@ -45,49 +52,6 @@ def initial_indices(n: int, k: int, seed: int) -> np.ndarray:
     perm = np.empty(n, dtype=np.int32)
     faiss.rand_perm(faiss.swig_ptr(perm), n, seed + 1)
     return perm[:k].astype(np.int64)
-
-
-def tie_order(k: int, d: int, n: int) -> tuple[int, ...]:
-    """The ``k`` centroid indices in the order faiss's top-1 inner-product search prefers
-    them when their products are equal, for ``n`` points of ``d`` dimensions.
-
-    Not always the lowest index: at or above ``n * d = distance_compute_blas_threshold``
-    faiss multiplies through BLAS and takes each row's best with a SIMD argmax that keeps
-    one best per lane (index mod 8 with AVX2, 16 with AVX-512) before scanning the lanes;
-    below it, one product at a time, the lowest index. Read off the installed faiss on
-    this machine rather than restated.
-    """
-    import faiss
-
-    blas = n * d >= faiss.cvar.distance_compute_blas_threshold
-    return _read_tie_order(k, blas)
-
-
-@cache
-def _read_tie_order(k: int, blas: bool) -> tuple[int, ...]:
-    import faiss
-
-    # One dimension and products of exactly 1 or -1: every remaining centroid ties, the
-    # winner is removed each time. Queries outnumber faiss's threads, so the search splits
-    # them, not the centroids, as training does.
-    queries = np.ones((faiss.omp_get_max_threads() + 1, 1), dtype=np.float32)
-    centroids = np.ones((k, 1), dtype=np.float32)
-    threshold = faiss.cvar.distance_compute_blas_threshold
-    faiss.cvar.distance_compute_blas_threshold = 0 if blas else len(queries) + 1
-    try:
-        order = []
-        for _ in range(k):
-            index = faiss.IndexFlatIP(1)
-            index.add(centroids)
-            _, labels = index.search(queries, 1)
-            winner = int(labels[0, 0])
-            if centroids[winner, 0] != 1.0 or (labels != winner).any():
-                raise RuntimeError(f"faiss's tie order among {k} centroids could not be read")
-            order.append(winner)
-            centroids[winner, 0] = -1.0
-    finally:
-        faiss.cvar.distance_compute_blas_threshold = threshold
-    return tuple(order)
 
 
 def split_clusters(counts: np.ndarray, n: int) -> list[tuple[int, int]]:
@@ -123,111 +87,105 @@ def split_clusters(counts: np.ndarray, n: int) -> list[tuple[int, int]]:
     return splits
 
 
-def _normalise_rows(c: torch.Tensor) -> torch.Tensor:
-    """faiss's ``fvec_renorm_L2``: rows times ``1 / sqrt(|row|^2)``; zero rows stay zero."""
-    norm2 = (c * c).sum(dim=1, keepdim=True)
-    inverse = torch.where(norm2 > 0, 1.0 / torch.sqrt(norm2), torch.zeros_like(norm2))
-    return c * inverse
+def nearest(products: np.ndarray) -> np.ndarray:
+    """Each row's centroid: the lowest index among those whose product ``[n, K]`` comes
+    within :data:`TIE` of the row's best -> ``[n]`` int64."""
+    best = products.max(axis=1, keepdims=True)
+    return np.argmax(products >= best - TIE, axis=1)
 
 
-def _chunk_rows(width: int, device: torch.device) -> int:
-    # Rows of a chunk whose blocks are ``width`` wide (the [rows, K] products and one-hot,
-    # or a float64 copy of [rows, D]): 16 M elements on a GPU, 1 M on a CPU (near its
-    # caches); never fewer than 1,024 rows.
-    budget = 1 << 24 if device.type != "cpu" else 1 << 20
-    return max(1024, budget // max(width, 1))
+def cluster_sums(x: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
+    """The float64 sum of the rows of ``x`` ``[N, D]`` per label ``[N]`` -> ``[K, D]``:
+    each cluster's rows added one after another in index order, so the same on every
+    machine (a BLAS product's order is the kernel's)."""
+    order = np.argsort(labels, kind="stable")
+    sums = np.zeros((k, x.shape[1]), dtype=np.float64)
+    step = _block_rows(x.shape[1])
+    for start in range(0, len(order), step):
+        rows = order[start : start + step]
+        owners = labels[rows]
+        first = np.flatnonzero(np.r_[True, owners[1:] != owners[:-1]])
+        sums[owners[first]] += np.add.reduceat(np.asarray(x[rows], dtype=np.float64), first, axis=0)
+    return sums
 
 
-def spherical_kmeans(x: torch.Tensor, k: int, n_iter: int, seed: int) -> tuple[torch.Tensor, int]:
-    """faiss's spherical k-means of the rows of ``x`` ``[N, D]`` (unit rows, any float
-    dtype, any device) -> ``(centroids [K, D], iterations run)``, the centroids unit
-    rows in ``x``'s dtype on ``x``'s device."""
+def normalise_rows(c: np.ndarray) -> np.ndarray:
+    """Rows of ``c`` ``[K, D]`` float64 over their L2 norm; zero rows stay zero."""
+    norms = np.sqrt((c * c).sum(axis=1))[:, None]
+    return np.divide(c, norms, out=np.zeros_like(c), where=norms > 0)
+
+
+def _block_rows(width: int) -> int:
+    return max(1024, _BLOCK // max(width, 1))
+
+
+class _Products:
+    """``x @ C.T`` in float64 for blocks of the rows of ``x`` ``[N, D]``: numpy on the
+    CPU, torch on another device (``x`` is copied there once). ``device``: None, a
+    config device name, or a torch device (torch there, the CPU included)."""
+
+    def __init__(self, x: np.ndarray, device):
+        self.x, self.device = x, None
+        if device is None or str(device) == "cpu" and isinstance(device, str):
+            return
+        import torch
+
+        from vprflow.core.devices import resolve_device
+
+        if not isinstance(device, torch.device):
+            device = resolve_device(str(device))
+            if device.type == "cpu":
+                return
+        self.device = device
+        self.resident = torch.from_numpy(x).to(device)
+
+    def labels(self, centroids: np.ndarray) -> np.ndarray:
+        """:func:`nearest` centroid ``[K, D]`` float64 of every row -> ``[N]`` int64."""
+        n, d = self.x.shape
+        step = _block_rows(max(d, len(centroids)))
+        out = np.empty(n, dtype=np.int64)
+        if self.device is None:
+            for start in range(0, n, step):
+                rows = np.asarray(self.x[start : start + step], dtype=np.float64)
+                out[start : start + step] = nearest(rows @ centroids.T)
+            return out
+        import torch
+
+        c = torch.from_numpy(centroids).to(self.device)
+        for start in range(0, n, step):
+            products = self.resident[start : start + step].to(torch.float64) @ c.T
+            out[start : start + step] = nearest(products.cpu().numpy())
+        return out
+
+
+def spherical_kmeans(
+    x: np.ndarray, k: int, n_iter: int, seed: int, device=None
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Spherical k-means of the unit rows of ``x`` ``[N, D]`` (float32 or float64) ->
+    ``(centroids [K, D] float64 unit rows, labels [N] int64, iterations run)``, the
+    labels each row's :func:`nearest` of the returned centroids. ``device``: where the
+    products are taken (a config device name or a torch device; None or ``"cpu"``:
+    numpy); the result is the same on any."""
     n, d = x.shape
     if n < k:
         raise ValueError(f"k-means needs at least {k} points, got {n}")
-    device, dtype = x.device, x.dtype
-    if n == k:  # faiss copies the points, unnormalised, and runs no iteration
-        return x.clone(), 0
-    centroids = _normalise_rows(x[torch.as_tensor(initial_indices(n, k, seed), device=device)])
-    order = torch.as_tensor(tie_order(k, d, n), device=device)
-    step = _chunk_rows(k, device)
-    # faiss's perturbation factors, in faiss's float32 (exact in float64 too).
-    plus = torch.tensor([1 + _EPS, 1 - _EPS], dtype=dtype, device=device).repeat(d // 2 + 1)[:d]
-    minus = torch.tensor([1 - _EPS, 1 + _EPS], dtype=dtype, device=device).repeat(d // 2 + 1)[:d]
-    previous = None
+    if n == k:  # faiss copies the points and runs no iteration
+        return np.asarray(x, dtype=np.float64).copy(), np.arange(k), 0
+    products = _Products(x, device)
+    centroids = normalise_rows(np.asarray(x[initial_indices(n, k, seed)], dtype=np.float64))
+    plus = np.resize([1 + _EPS, 1 - _EPS], d)
+    minus = np.resize([1 - _EPS, 1 + _EPS], d)
+    labels = None
     iterations = 0
-    for i in range(n_iter):
-        iterations = i + 1
-        ranked = centroids[order]
-        sums = torch.zeros((k, d), dtype=dtype, device=device)
-        counts = torch.zeros(k, dtype=torch.int64, device=device)
-        objective = torch.zeros((), dtype=torch.float32, device=device)
-        for start in range(0, n, step):
-            rows = x[start : start + step]
-            products = rows @ ranked.T
-            rank = torch.argmax(products, dim=1)  # the first of equal maxima
-            best = products.gather(1, rank[:, None])[:, 0]
-            labels = order[rank]
-            objective += best.to(torch.float32).sum(dtype=torch.float32)
-            one_hot = torch.zeros((len(rows), k), dtype=dtype, device=device)
-            one_hot[torch.arange(len(rows), device=device), labels] = 1
-            sums += one_hot.T @ rows
-            counts += torch.bincount(labels, minlength=k)
-        host_counts = counts.cpu().numpy().astype(np.float32)
-        # faiss multiplies by the float reciprocal of the count (in float32).
-        reciprocal = np.divide(
-            np.float32(1), host_counts, out=np.zeros_like(host_counts), where=host_counts > 0
-        )
-        if dtype == torch.float64:
-            reciprocal = np.divide(
-                1.0, host_counts.astype(np.float64), out=np.zeros(k), where=host_counts > 0
-            )
-        centroids = sums * torch.as_tensor(reciprocal, dtype=dtype, device=device)[:, None]
-        for ci, cj in split_clusters(host_counts, n):
+    for iterations in range(1, n_iter + 1):
+        moved = products.labels(centroids)
+        if labels is not None and np.array_equal(moved, labels):
+            return centroids, labels, iterations
+        labels = moved
+        counts = np.bincount(labels, minlength=k)
+        centroids = cluster_sums(x, labels, k) / np.maximum(counts, 1)[:, None]
+        for ci, cj in split_clusters(counts.astype(np.float32), n):
             centroids[ci] = centroids[cj] * plus
             centroids[cj] = centroids[cj] * minus
-        centroids = _normalise_rows(centroids)
-        value = float(objective)
-        if previous is not None and previous != 0 and value == previous:  # faiss: 0 never stops
-            break
-        previous = value
-    return centroids, iterations
-
-
-def fit_on_device(
-    x: np.ndarray, k: int, n_iter: int, seed: int, centres: str, device
-) -> np.ndarray:
-    """:func:`vprflow.aggregation.vlad.fit_spherical_kmeans` on torch device ``device``
-    for unit rows ``x`` ``[N, D]`` float32: the k-means, then the returned centres
-    (``unit``, or ``mean``: the float64 means of the points under the unit centres,
-    assigned to the first of equal maxima as numpy's ``argmax``) -> ``[K, D]`` float32."""
-    from vprflow.core.devices import resolve_device
-
-    device = resolve_device(str(device))
-    precision = torch.get_float32_matmul_precision()
-    torch.set_float32_matmul_precision("highest")  # no TF32: float32 products throughout
-    try:
-        points = torch.from_numpy(x).to(device)
-        centroids, _ = spherical_kmeans(points, k, n_iter, seed)
-        # vlad's l2_normalize: norms below 1e-12 count as 1e-12.
-        unit = centroids / torch.linalg.vector_norm(centroids, dim=1, keepdim=True).clamp_min(1e-12)
-        if centres == "unit":
-            return unit.cpu().numpy().astype(np.float32)
-        d = x.shape[1]
-        sums = torch.zeros((k, d), dtype=torch.float64, device=device)
-        counts = torch.zeros(k, dtype=torch.int64, device=device)
-        step = _chunk_rows(d, device)
-        for start in range(0, len(x), step):
-            rows = points[start : start + step]
-            labels = torch.argmax(rows @ unit.T, dim=1)
-            one_hot = torch.zeros((len(rows), k), dtype=torch.float64, device=device)
-            one_hot[torch.arange(len(rows), device=device), labels] = 1
-            sums += one_hot.T @ rows.to(torch.float64)
-            counts += torch.bincount(labels, minlength=k)
-        filled = counts > 0
-        means = torch.where(
-            filled[:, None], sums / counts.clamp_min(1)[:, None].to(torch.float64), unit.double()
-        )
-        return means.cpu().numpy().astype(np.float32)
-    finally:
-        torch.set_float32_matmul_precision(precision)
+        centroids = normalise_rows(centroids)
+    return centroids, products.labels(centroids), iterations

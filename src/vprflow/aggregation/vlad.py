@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from vprflow.aggregation.kmeans import cluster_sums, spherical_kmeans
 from vprflow.core.arrays import l2_normalize
 
 CENTRES = ("mean", "unit")
@@ -21,88 +22,44 @@ def fit_spherical_kmeans(
     centres: str = "mean",
     device: str = "cpu",
 ) -> np.ndarray:
-    """Spherical (cosine) k-means as faiss trains it -> centres ``[K, D]`` float32.
+    """vprflow's spherical (cosine) k-means (:mod:`vprflow.aggregation.kmeans`) ->
+    centres ``[K, D]`` float32, the same on every CPU, BLAS kernel and thread count.
 
-    ``x`` is L2-normalised first. faiss's own subsampling is disabled: the caller
-    decides how many descriptors to use. ``device`` (a config device name): on the CPU
-    faiss itself trains (:func:`spherical_centroids`); on any other device the same
-    algorithm in torch does, there (:mod:`vprflow.aggregation.kmeans`).
+    ``x`` is L2-normalised first (in float64, then rounded to float32). No subsampling:
+    the caller decides how many descriptors to use. ``device`` (a config device name)
+    is where the products are taken; it changes no result.
 
     ``centres="mean"`` (default, as AnyLoc's cosine k-means): each centre is the plain
-    mean of the unit descriptors assigned to it (by cosine to the faiss centroids), NOT
+    mean of the unit descriptors assigned to it by the k-means' own rule, NOT
     re-normalised, so its norm is below 1 and shrinks with the cluster's spread (the
     published 17places ``c_centers.pt`` has norms 0.36-0.99). VLAD assigns with the
     normalised centres and takes residuals to these un-normalised ones, so the norms
-    matter. A cluster that receives no descriptor keeps its unit faiss centroid.
-    ``centres="unit"``: the unit-norm faiss centroids.
+    matter. A cluster that receives no descriptor keeps its unit centroid.
+    ``centres="unit"``: the unit-norm centroids.
     """
     if centres not in CENTRES:
         raise ValueError(f"unknown vocabulary centres {centres!r}; expected one of {CENTRES}")
-    x = np.ascontiguousarray(l2_normalize(np.asarray(x, dtype=np.float32)))
+    x = np.asarray(x, dtype=np.float32)
     if len(x) < n_clusters:
         raise ValueError(f"k-means needs at least {n_clusters} descriptors, got {len(x)}")
-    if not on_cpu(device):
-        from vprflow.aggregation.kmeans import fit_on_device
-
-        if not np.isfinite(x).all():  # faiss refuses them itself
-            raise ValueError("k-means input contains NaN or infinite values")
-        return fit_on_device(x, n_clusters, n_iter, seed, centres, device)
-    unit = l2_normalize(spherical_centroids(x, n_clusters, n_iter, seed)[0])
+    if not np.isfinite(x).all():
+        raise ValueError("k-means input contains NaN or infinite values")
+    x64 = x.astype(np.float64)
+    unit = (x64 / np.maximum(np.sqrt((x64 * x64).sum(axis=1)), 1e-12)[:, None]).astype(np.float32)
+    del x64
+    centroids, labels, _ = spherical_kmeans(unit, n_clusters, n_iter, seed, device)
     if centres == "unit":
-        return unit
-    return cluster_means(x, assign(x, unit), unit)
-
-
-def on_cpu(device) -> bool:
-    """Whether config device ``device`` (``auto`` included) is the CPU: where the
-    vocabulary's k-means is faiss's own."""
-    if str(device) == "cpu":  # without importing torch
-        return True
-    from vprflow.core.devices import resolve_device
-
-    return resolve_device(str(device)).type == "cpu"
-
-
-def spherical_centroids(
-    x: np.ndarray, n_clusters: int, n_iter: int, seed: int
-) -> tuple[np.ndarray, int]:
-    """faiss's spherical k-means of unit rows ``x`` ``[N, D]`` float32 on the CPU ->
-    ``(unit centroids [K, D] float32, iterations run)``; no subsampling."""
-    import faiss
-
-    kmeans = faiss.Kmeans(
-        x.shape[1],
-        n_clusters,
-        niter=n_iter,
-        spherical=True,
-        seed=seed,
-        max_points_per_centroid=max(256, len(x) // n_clusters + 1),
-        verbose=False,
-    )
-    kmeans.train(x)
-    return kmeans.centroids.astype(np.float32), len(kmeans.iteration_stats)
-
-
-def cluster_means(x: np.ndarray, labels: np.ndarray, fallback: np.ndarray) -> np.ndarray:
-    """Mean of the rows of ``x`` ``[N, D]`` per label ``[N]`` -> ``[K, D]`` float32
-    (summed in float64); a label with no rows takes its row of ``fallback`` ``[K, D]``."""
-    k = len(fallback)
-    sums = np.zeros((k, x.shape[1]), dtype=np.float64)
-    for start in range(0, len(x), 16384):  # one-hot products, float64 a chunk at a time
-        chunk = slice(start, start + 16384)
-        one_hot = labels[chunk, None] == np.arange(k)
-        sums += one_hot.T.astype(np.float64) @ np.asarray(x[chunk], dtype=np.float64)
-    counts = np.bincount(labels, minlength=k)
-    means = np.array(fallback, dtype=np.float64)
-    filled = counts > 0
-    means[filled] = sums[filled] / counts[filled, None]
-    return means.astype(np.float32)
+        return centroids.astype(np.float32)
+    counts = np.bincount(labels, minlength=n_clusters)
+    means = cluster_sums(unit, labels, n_clusters) / np.maximum(counts, 1)[:, None]
+    return np.where(counts[:, None] > 0, means, centroids).astype(np.float32)
 
 
 def assign(x: np.ndarray, centres: np.ndarray) -> np.ndarray:
-    """Hard assignment ``argmax_c x . normalize(C_c)`` -> labels ``[N]`` (int64), in
-    numpy: the vocabulary's own (faiss k-means) assignment. VLAD assigns as the
-    published code does, :func:`published_labels`."""
+    """Hard assignment ``argmax_c x . normalize(C_c)`` -> labels ``[N]`` (int64), a numpy
+    float32 product through the BLAS kernel of the machine: the assignment VLAD used
+    before it followed the authors' torch (:func:`published_labels`), which
+    ``benchmarks/check_ties.py`` compares with it."""
     x = np.asarray(x, dtype=np.float32)
     unit = l2_normalize(np.asarray(centres, dtype=np.float32))
     if len(x) == 0:

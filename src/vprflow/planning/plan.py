@@ -864,8 +864,9 @@ STAGES: dict[str, StageSpec] = {
     # Masks after the published (OpenCV INTER_LINEAR) resize; SAM's prompts decoded by
     # models/sam/decoder.py, SAM-HQ's masks upscaled from its transformer's output.
     "segments": StageSpec(3, shards="images", needed=_plan_segments),
-    # VLAD centres (plain cluster means by default), points assigned in numpy.
-    "vocabulary": StageSpec(3, needed=_plan_vocabulary),
+    # VLAD centres (plain cluster means by default) from vprflow's k-means, decided in
+    # float64 with a fixed tie order and summed in a fixed order: one result on every CPU.
+    "vocabulary": StageSpec(4, needed=_plan_vocabulary),
     # The exact solver by default, capped at the numerical rank, over VLAD whose patches
     # are normalised and assigned as the authors' torch code does (ties go their way).
     "pca": StageSpec(4, needed=_plan_pca),
