@@ -43,7 +43,6 @@ import ast
 import hashlib
 import importlib.util
 import json
-import os
 import subprocess
 import sys
 import time
@@ -185,7 +184,7 @@ def main() -> int:
         print(json.dumps(child(args.originals, args.results)))
         return 0
     sys.path.insert(0, str(ROOT / "tests"))
-    from tie_problems import code_paths  # the code paths tests/test_vlad_ties.py runs
+    from code_paths import code_paths, path_environment  # as tests/test_vlad_ties.py
 
     paths = code_paths()
     chosen = args.paths.split(",") if args.paths else list(paths)
@@ -201,7 +200,7 @@ def main() -> int:
         if args.results:
             command += ["--results", str(args.results)]
         done = subprocess.run(
-            command, env={**os.environ, **paths[path]}, capture_output=True, text=True
+            command, env=path_environment(paths[path]), capture_output=True, text=True
         )
         if done.returncode:
             print(f"| {path} | failed: {done.stderr.strip().splitlines()[-1:]} |")

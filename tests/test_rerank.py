@@ -10,13 +10,12 @@ correspondences from a known homography plus uniform outliers.
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 from synthetic import make_dataset
-from workflow_helpers import REPO, toy_config
+from workflow_helpers import REPO, run_stage, toy_config
 
 from vprflow.core import stores
 from vprflow.evaluation import rerank as rerank_module
@@ -33,7 +32,6 @@ from vprflow.evaluation.rerank import (
 )
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
-from vprflow.stages.jobs import Job, run_job
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
@@ -648,21 +646,6 @@ def test_non_finite_descriptors_score_as_the_per_candidate_path():
 
 
 # ------------------------------------------------------------ a re-ranker shallower than the table
-
-
-def run_stage(plan, stage: str, key: str, data_root: Path, out: Path, done: dict) -> str:
-    """Run ``(stage, key)`` of ``plan`` and its inputs, unsharded, through the rules'
-    own runners; the store's path."""
-    if (stage, key) not in done:
-        planned = plan.get(stage, key)
-        inputs = {
-            n: run_stage(plan, *ref, data_root, out, done) for n, ref in planned.inputs.items()
-        }
-        path = str(out / stage / f"{key}.zarr")
-        job = Job(planned.record, inputs, path, data_root=str(data_root), run={"device": "cpu"})
-        run_job(job)
-        done[stage, key] = path
-    return done[stage, key]
 
 
 def test_a_reranked_rows_recall_beyond_its_top_k_is_its_retrievals(tmp_path):

@@ -18,6 +18,7 @@ import pytest
 import torch
 from synthetic import make_dataset
 from trained_references import prefixed, randomise, tiny_config
+from workflow_helpers import run_stage as run_planned_stage
 from workflow_helpers import toy_config
 
 from vprflow.core import stores
@@ -29,7 +30,6 @@ from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad, vlad_buf
 from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
-from vprflow.stages.jobs import Job, run_job
 from vprflow.stages.readers import Dataset
 
 REPO = Path(__file__).resolve().parents[1]
@@ -150,23 +150,10 @@ def tiny_loaders(monkeypatch):
 
 
 def run_stage(plan, stage: str, key: str, data_root: Path, out: Path, done: dict) -> str:
-    """Run ``(stage, key)`` and its inputs, unsharded, through the rules' own runners."""
-    if (stage, key) not in done:
-        planned = plan.get(stage, key)
-        inputs = {
-            n: run_stage(plan, *ref, data_root, out, done) for n, ref in planned.inputs.items()
-        }
-        path = str(out / stage / f"{key}.zarr")
-        job = Job(
-            planned.record,
-            inputs,
-            path,
-            data_root=str(data_root),
-            run={"device": "cpu", "batch_size": 3},
-        )
-        run_job(job)
-        done[stage, key] = path
-    return done[stage, key]
+    """:func:`workflow_helpers.run_stage` in batches of 3 (the models' batching runs)."""
+    return run_planned_stage(
+        plan, stage, key, data_root, out, done, run={"device": "cpu", "batch_size": 3}
+    )
 
 
 def trained_config(root: Path, checkpoints: dict[str, Path], methods: dict, **dataset) -> dict:

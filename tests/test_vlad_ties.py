@@ -14,13 +14,12 @@ ties, where a numpy product assigns 80-150 of 600 patches otherwise.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
 
 import pytest
-from tie_problems import code_paths
+from code_paths import code_paths, path_environment
 
 SCRIPT = Path(__file__).with_name("tie_problems.py")
 
@@ -35,7 +34,7 @@ def results() -> dict[str, list[dict]]:
     running = {
         name: subprocess.Popen(
             [sys.executable, str(SCRIPT), *map(str, SEEDS)],
-            env={**os.environ, **env},
+            env=path_environment(env),
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,

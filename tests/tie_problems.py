@@ -10,43 +10,8 @@ from __future__ import annotations
 
 import json
 import sys
-from pathlib import Path
 
 import numpy as np
-
-
-def _cpu_flags() -> set[str]:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("flags"):
-                return set(line.split(":", 1)[1].split())
-    except OSError:
-        pass
-    return set()
-
-
-def code_paths() -> dict[str, dict[str, str]]:
-    """Environment settings that force each kernel family this CPU can run (the BLAS
-    code paths tests/test_vlad_ties.py and benchmarks/check_ties.py compare under)."""
-    flags = _cpu_flags()
-    paths = {
-        "default": {},
-        "openblas_sandybridge": {"OPENBLAS_CORETYPE": "SandyBridge"},
-        "openblas_prescott": {"OPENBLAS_CORETYPE": "Prescott"},
-        "aten_default": {"ATEN_CPU_CAPABILITY": "default"},
-        "mkl_cbwr_compatible": {"MKL_CBWR": "COMPATIBLE"},
-        "mkl_avx": {"MKL_ENABLE_INSTRUCTIONS": "AVX"},
-        "one_thread_scalar": {
-            "OMP_NUM_THREADS": "1",
-            "OPENBLAS_CORETYPE": "Prescott",
-            "ATEN_CPU_CAPABILITY": "default",
-            "MKL_CBWR": "COMPATIBLE",
-        },
-    }
-    if "avx512f" in flags:
-        paths["openblas_skylakex"] = {"OPENBLAS_CORETYPE": "SkylakeX"}
-        paths["aten_avx512"] = {"ATEN_CPU_CAPABILITY": "avx512"}
-    return paths
 
 
 def tie_problem(seed: int, n: int = 600, d: int = 384, k: int = 32):

@@ -160,3 +160,25 @@ def untimed_table(path: Path) -> tuple[list[str], list[dict]]:
         for column in TIMED_COLUMNS:
             row[column] = ""
     return list(reader.fieldnames), rows
+
+
+def run_stage(
+    plan, stage: str, key: str, data_root: Path, out: Path, done: dict, run: dict | None = None
+) -> str:
+    """Run ``(stage, key)`` of ``plan`` and its inputs, unsharded, through the rules' own
+    runners in this process (``run``: the run params, default the CPU); the store's
+    path. ``done`` maps the ``(stage, key)`` already run to their stores."""
+    from vprflow.stages.jobs import Job, run_job
+
+    if (stage, key) not in done:
+        planned = plan.get(stage, key)
+        inputs = {
+            n: run_stage(plan, *ref, data_root, out, done, run) for n, ref in planned.inputs.items()
+        }
+        path = str(out / stage / f"{key}.zarr")
+        job = Job(
+            planned.record, inputs, path, data_root=str(data_root), run=run or {"device": "cpu"}
+        )
+        run_job(job)
+        done[stage, key] = path
+    return done[stage, key]

@@ -1,0 +1,122 @@
+"""The x86-64 code paths this machine can force, and a child-process entry point that runs
+a shipped dataset's stages under one of them and prints a digest of every store.
+
+Each path is a set of environment changes (``None``: the variable unset) that picks
+another kernel family or thread count for OpenBLAS (numpy's and faiss's BLAS), MKL and
+ATen (torch's), or numpy's own SIMD loops. tests/test_vlad_ties.py,
+tests/test_code_paths.py and benchmarks/check_ties.py run under them.
+
+Run as ``python tests/code_paths.py DATA_ROOT OUT DATASET [LAST_STAGE]``: runs every
+stage of DATASET in the shipped config (``config/config.yaml``) up to LAST_STAGE (in
+plan order; default: all, the recall stores included) in this process, unsharded, into
+OUT, and prints a JSON object ``{"<stage> <method or key>": sha256 of its arrays}``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def _cpu_flags() -> set[str]:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("flags"):
+                return set(line.split(":", 1)[1].split())
+    except OSError:
+        pass
+    return set()
+
+
+def code_paths() -> dict[str, dict[str, str | None]]:
+    """Environment changes that force each kernel family this CPU can run."""
+    threads = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+    flags = _cpu_flags()
+    paths: dict[str, dict[str, str | None]] = {
+        "default": {},
+        # The machine's own kernel, as a CPU without the environment's setting picks it.
+        "openblas_unset": {"OPENBLAS_CORETYPE": None, "OPENBLAS_L2_SIZE": None},
+        "openblas_haswell": {"OPENBLAS_CORETYPE": "Haswell"},
+        "openblas_sandybridge": {"OPENBLAS_CORETYPE": "SandyBridge"},
+        "openblas_prescott": {"OPENBLAS_CORETYPE": "Prescott"},
+        "aten_default": {"ATEN_CPU_CAPABILITY": "default"},
+        "mkl_cbwr_compatible": {"MKL_CBWR": "COMPATIBLE"},
+        "mkl_avx": {"MKL_ENABLE_INSTRUCTIONS": "AVX"},
+        "two_threads": dict.fromkeys(threads, "2"),
+        "one_thread_scalar": {
+            **dict.fromkeys(threads, "1"),
+            "OPENBLAS_CORETYPE": "Prescott",
+            "ATEN_CPU_CAPABILITY": "default",
+            "MKL_CBWR": "COMPATIBLE",
+        },
+    }
+    if "avx512f" in flags:
+        paths["openblas_skylakex"] = {"OPENBLAS_CORETYPE": "SkylakeX"}
+        paths["aten_avx512"] = {"ATEN_CPU_CAPABILITY": "avx512"}
+        # numpy's own loops as on a CPU without AVX-512.
+        paths["numpy_avx2"] = {"NPY_DISABLE_CPU_FEATURES": "AVX512F AVX512CD AVX512_SKX"}
+    return paths
+
+
+def path_environment(changes: dict[str, str | None]) -> dict[str, str]:
+    """This process's environment with ``changes`` applied (``None`` removes)."""
+    env = dict(os.environ)
+    for name, value in changes.items():
+        if value is None:
+            env.pop(name, None)
+        else:
+            env[name] = value
+    return env
+
+
+def store_digest(path: str) -> str:
+    """sha256 of every array of the store at ``path`` (names, shapes, dtypes, bytes), the
+    per-query timings excluded."""
+    from vprflow.core.stores import array_items, open_store
+
+    digest = hashlib.sha256()
+    for name, array in array_items(open_store(path)):
+        data = np.ascontiguousarray(array[...])
+        digest.update(f"{name} {data.dtype} {data.shape}".encode())
+        digest.update(data.tobytes())
+    return digest.hexdigest()
+
+
+def run_dataset(data_root: Path, out: Path, dataset: str, last: str | None = None) -> dict:
+    """Run ``dataset``'s stages of the shipped config up to ``last`` into ``out`` ->
+    ``{"<stage> <method or key>": digest}``."""
+    import yaml
+    from workflow_helpers import SCHEMA, run_stage
+
+    from vprflow.planning.config import validate_config
+    from vprflow.planning.plan import STAGES, build_plan
+
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    config["data_root"] = str(data_root)
+    config["targets"] = [dataset]
+    config["datasets"] = {dataset: config["datasets"][dataset]}
+    plan = build_plan(validate_config(config, SCHEMA))
+    order = list(STAGES)
+    wanted = order[: order.index(last) + 1] if last else order
+    done: dict = {}
+    digests = {}
+    for stage in wanted:
+        for key, planned in sorted(plan.stages.get(stage, {}).items()):
+            if planned.dataset != dataset:
+                continue
+            path = run_stage(plan, stage, key, data_root, out, done)
+            digests[f"{stage} {key}"] = store_digest(path)
+    return digests
+
+
+if __name__ == "__main__":
+    sys.path.insert(0, str(Path(__file__).parent))
+    root, out, name = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
+    print(json.dumps(run_dataset(root, out, name, sys.argv[4] if len(sys.argv) > 4 else None)))
