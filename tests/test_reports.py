@@ -6,17 +6,17 @@ from __future__ import annotations
 import copy
 from types import SimpleNamespace
 
-import pytest
 import yaml
-from workflow_helpers import REPO
+from synthetic import make_dataset
+from workflow_helpers import REPO, toy_config
 
-from vprflow.core.errors import ConfigError
+from vprflow.core.paths import RECALL_CSV, TABLES_MARK
 from vprflow.planning.config import validate_config
-from vprflow.planning.plan import MethodRun, build_plan, planning_failure
+from vprflow.planning.plan import MethodRun, build_plan
 from vprflow.planning.reports import (
     clear_superseded,
     closing_lines,
-    failed_datasets,
+    mark_stale_tables,
     report_error,
     report_gaps,
     stale_reports,
@@ -68,61 +68,44 @@ def shipped_config(**extra_datasets) -> dict:
     return raw
 
 
-def test_a_config_that_does_not_validate_withdraws_no_table():
-    raw = shipped_config()
-    raw["targets"] = ["corridr"]
-    with pytest.raises(ConfigError, match="corridr") as caught:
-        validate_config(raw, SCHEMA)
-    assert planning_failure(caught.value) is None
-    assert failed_datasets(caught.value, {"datasets": {}}, ["corridor"]) == []
-
-
-def test_a_dataset_that_cannot_be_planned_withdraws_its_own_tables_only_if_asked_for():
-    config = validate_config(shipped_config(alley={"methods": ["segvald"], "rerank": {}}), SCHEMA)
-    with pytest.raises(Exception, match="segvald") as caught:
-        build_plan(config)
-    assert failed_datasets(caught.value, config, ["corridor"]) == []
-    assert failed_datasets(caught.value, config, ["alley", "corridor"]) == ["alley"]
-
-
-def test_a_method_that_cannot_be_planned_withdraws_every_asked_for_dataset_listing_it(
-    tmp_path,
-):
-    raw = shipped_config(alley={"methods": ["anyloc_vlad", "mine"], "rerank": {}})
-    raw["backbones"]["mine"] = {"backbone": "dinov2", "model": str(tmp_path / "no-model")}
-    raw["methods"]["mine"] = {"aggregator": "anyloc_vlad", "features": "mine"}
-    raw["datasets"]["corridor"]["methods"].append("mine")
-    config = validate_config(raw, SCHEMA)
-    with pytest.raises(Exception, match="backbones.mine.model") as caught:
-        build_plan(config)
-    # Planned under alley (first in name order), and corridor reads it too.
-    assert failed_datasets(caught.value, config, ["corridor"]) == ["corridor"]
-    config["datasets"]["corridor"]["methods"].remove("mine")
-    with pytest.raises(Exception, match="backbones.mine.model") as caught:
-        build_plan(config)
-    assert failed_datasets(caught.value, config, ["corridor"]) == []
-
-
-def test_a_missing_trained_checkpoint_withdraws_the_datasets_that_read_it(tmp_path):
-    raw = shipped_config(alley={"methods": ["anyloc_vlad", "nv"], "rerank": {}})
-    raw["backbones"]["nv"] = {"backbone": "netvlad", "checkpoint": str(tmp_path / "nv.ckpt")}
-    raw["methods"]["nv"] = {"aggregator": "model", "features": "nv"}
-    config = validate_config(raw, SCHEMA)
-    with pytest.raises(Exception, match="nv.ckpt") as caught:
-        build_plan(config)
-    assert failed_datasets(caught.value, config, ["alley", "corridor"]) == ["alley"]
-
-
 def test_a_failed_run_finds_stale_tables_only_among_the_datasets_it_asked_for(tmp_path):
     results = tmp_path / "results"
     results.mkdir()
     run = MethodRun("m", "0123456789abcdef", {}, "anyloc_vlad", reranked=True)
-    plan = SimpleNamespace(runs={"a": [run], "b": [run]})
+    plan = SimpleNamespace(runs={"a": [run], "b": [run]}, dataset_files={"a": [], "b": []})
     for name in ("a", "b"):  # the recall store is missing: both tables are stale
         (results / f"recall_{name}.csv").write_text("table")
     root = str(tmp_path) + "/"
     assert stale_reports(plan, root, ["b"]) == [results / "recall_b.csv"]
     assert len(stale_reports(plan, root)) == 2
+
+
+def test_a_dataset_the_plan_cannot_list_has_no_table_told_stale_or_marked_for_rebuilding(
+    tmp_path,
+):
+    """Tables built under another data_root (the README's run with ../shared/data), then
+    a plain `snakemake`, whose data_root has no corridor until it is downloaded: planned
+    without its images, the dataset's stores have keys no job builds. Their absence
+    made its tables "built from other stores than this plan's (...): rebuilt", then
+    Snakemake said "Nothing to be done" (it rebuilt nothing)."""
+    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = validate_config(toy_config(tmp_path / "data", methods=["anyloc_vlad"]), SCHEMA)
+    root = str(tmp_path) + "/"
+    table = tmp_path / RECALL_CSV.format(dataset="toy")
+    table.parent.mkdir()
+    table.write_text("built from stores this plan does not have")
+    mark = tmp_path / TABLES_MARK.format(dataset="toy")
+    # Listed, the dataset's recall store is missing: the table is stale, marked to rebuild.
+    listed = build_plan(config)
+    assert stale_reports(listed, root) == [table]
+    assert mark_stale_tables(listed, root, [], ["toy"]) == [table]
+    marked = mark.stat().st_mtime
+    assert marked > 0
+    (tmp_path / "data" / "toy").rename(tmp_path / "elsewhere")
+    unlisted = build_plan(config)
+    assert stale_reports(unlisted, root) == []
+    assert mark_stale_tables(unlisted, root, [], ["toy"]) == []
+    assert mark.stat().st_mtime == marked  # neither told stale nor current: kept
 
 
 def test_a_report_that_cannot_list_a_dataset_names_the_data_root_and_the_remedy(tmp_path):

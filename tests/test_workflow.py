@@ -750,35 +750,44 @@ def test_queries_stored_rotated_with_an_exif_tag_give_the_upright_table(tmp_path
     assert tables[0] == tables[1]
 
 
-def test_a_config_that_cannot_be_planned_withdraws_the_previous_tables(tmp_path):
-    """... when the run would run jobs: a dry run changes no file, and a good run after
-    the failure removes the withdrawn copy."""
+def test_a_config_that_cannot_be_planned_withdraws_no_table(tmp_path):
+    """A trained model whose checkpoint is not fetched yet (the first run of
+    config/trained.yaml, as documented) or a local model that is missing stops the plan
+    before any job ran: the tables built before still describe the stores they were
+    built from, so none is withdrawn (they were renamed to *.stale), a dry run or not,
+    and the config that built them has nothing to do."""
     make_dataset(tmp_path / "data" / "toy", n_places=4)
-    config = toy_config(tmp_path / "data")
-    config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
-    good = copy.deepcopy(config)
-    snakemake(tmp_path, write_config(tmp_path, config), TARGET)
-    # A local model directory that does not exist fails while common.smk plans.
-    config["backbones"]["mine"] = {"backbone": "dinov2", "model": str(tmp_path / "no-model")}
-    config["methods"]["mine"] = {"aggregator": "anyloc_vlad", "features": "mine"}
-    config["datasets"]["toy"]["methods"] = ["anyloc_vlad", "mine"]
-    broken = write_config(tmp_path, config)
-    dry = snakemake(tmp_path, broken, "-n", TARGET, check=False)
-    assert dry.returncode != 0 and "backbones.mine.model" in dry.stdout + dry.stderr
-    assert (tmp_path / TARGET).exists() and not (tmp_path / (TARGET + ".stale")).exists()
-    result = snakemake(tmp_path, broken, TARGET, check=False)
-    assert result.returncode != 0
-    assert "backbones.mine.model" in result.stdout + result.stderr
-    assert not (tmp_path / TARGET).exists()
-    assert (tmp_path / (TARGET + ".stale")).exists()
-    snakemake(tmp_path, write_config(tmp_path, good), TARGET)
-    assert (tmp_path / TARGET).exists() and not (tmp_path / (TARGET + ".stale")).exists()
+    config = toy_config(tmp_path / "data", methods=["anyloc_vlad"])
+    good = write_config(tmp_path, config, "good.yaml")
+    snakemake(tmp_path, good, TARGET)
+    tables = [tmp_path / t.format(dataset="toy") for t in (RECALL_CSV, PREDICTIONS_CSV)]
+    built = [(t.read_bytes(), t.stat().st_mtime_ns) for t in tables]
+    trained = copy.deepcopy(config)
+    trained["backbones"]["nv"] = {"backbone": "netvlad", "checkpoint": str(tmp_path / "nv.ckpt")}
+    trained["methods"]["nv"] = {"aggregator": "model", "features": "nv"}
+    trained["datasets"]["toy"]["methods"] = ["anyloc_vlad", "nv"]
+    local = copy.deepcopy(config)
+    local["backbones"]["mine"] = {"backbone": "dinov2", "model": str(tmp_path / "no-model")}
+    local["methods"]["mine"] = {"aggregator": "anyloc_vlad", "features": "mine"}
+    local["datasets"]["toy"]["methods"] = ["anyloc_vlad", "mine"]
+    named = {"trained.yaml": ("nv.ckpt", "trained_checkpoints"), "local.yaml": ("no-model",)}
+    for name, broken in (("trained.yaml", trained), ("local.yaml", local)):
+        path = write_config(tmp_path, broken, name)
+        for args in (("-n", TARGET), (TARGET,)):
+            result = snakemake(tmp_path, path, *args, check=False)
+            output = result.stdout + result.stderr
+            assert result.returncode != 0, output[-3000:]
+            assert all(text in output for text in named[name]), output[-3000:]
+            assert "withdrawn" not in output and not list(tmp_path.glob("results/**/*.stale"))
+            assert [(t.read_bytes(), t.stat().st_mtime_ns) for t in tables] == built
+    assert scheduled_outputs(tmp_path, good, TARGET) == []
 
 
 def test_a_failure_withdraws_only_the_tables_of_the_datasets_it_asked_for(tmp_path):
-    """toy and mine are finished; runs for mine alone then fail (a mistyped target, a
-    method that cannot be planned, a ground-truth file that cannot be read, with toy's
-    folder gone from data_root): toy's tables stay, and a good run names only mine's."""
+    """toy and mine are finished; runs for mine alone then fail (a mistyped target or a
+    method that cannot be planned: no table is withdrawn; a ground-truth file that cannot
+    be read, with toy's folder gone from data_root: mine's only): toy's tables stay, and
+    a good run names only mine's."""
     make_dataset(tmp_path / "data" / "toy", n_places=4)
     make_dataset(tmp_path / "data" / "mine", n_places=4, seed=1)
     config = toy_config(tmp_path / "data", methods=["anyloc_vlad"])
@@ -803,13 +812,9 @@ def test_a_failure_withdraws_only_the_tables_of_the_datasets_it_asked_for(tmp_pa
     broken["datasets"]["mine"]["methods"] = ["anyloc_vlad", "gone"]
     result = snakemake(tmp_path, write_config(tmp_path, broken, "broken.yaml"), mine, check=False)
     assert result.returncode != 0 and "backbones.gone.model" in result.stderr
-    assert f"{mine}.stale withdrawn: dataset 'mine' cannot be planned" in result.stdout
-    assert (tmp_path / (mine + ".stale")).exists() and not (tmp_path / mine).exists()
-    for stale in tmp_path.glob("results/**/*.stale"):
-        stale.rename(stale.with_suffix(""))
-    assert toy_tables_stand()
-    # toy cannot be listed (every key of it differs: its tables look stale), and mine's
-    # ground truth cannot be read: the run asked for mine fails in mine's dataset job.
+    assert toy_tables_stand() and (tmp_path / mine).exists()
+    # toy cannot be listed (the plan cannot tell its tables stale), and mine's ground
+    # truth cannot be read: the run asked for mine fails in mine's dataset job.
     (tmp_path / "data" / "toy").rename(tmp_path / "toy-elsewhere")
     (tmp_path / "data" / "mine" / "ground_truth_new.npy").write_bytes(b"not an array")
     result = snakemake(tmp_path, path, mine, check=False)

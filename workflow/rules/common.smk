@@ -36,7 +36,7 @@ from vprflow.core.paths import (
     store_path,
     store_pattern,
 )
-from vprflow.planning.plan import build_plan, method_stores, planning_failure
+from vprflow.planning.plan import build_plan, method_stores
 from vprflow.planning.published import published_changes, published_plan
 from vprflow.data.presets import presets, unknown_dataset
 from vprflow.planning.reports import (
@@ -44,7 +44,6 @@ from vprflow.planning.reports import (
     clear_superseded,
     closing_lines,
     dataset_outputs,
-    failed_datasets,
     figure_inputs,
     mark_stale_tables,
     tables_mark,
@@ -90,38 +89,29 @@ if RUNS_JOBS:
     OTHER_RUNS = other_runs(RUN_MARKER.parent, RUN_MARKER)
     if OTHER_RUNS:
         print(f"vprflow: {collision_message(OTHER_RUNS)}", file=sys.stderr)
-try:
-    CONFIG = validate_config(
-        config,
-        SCHEMA,
-        merge_order(workflow.configfiles, workflow.overwrite_configfiles),
-    )
-    # Content hashes of images, local model weights and imported files, memoised
-    # between runs.
-    _memo = load_fingerprints(PREFIX + FINGERPRINTS)
-    _memo_size = len(_memo)
-    # Sample datasets whose folder is missing: planned without their images (keys no
-    # job builds) until the `download` checkpoint has laid them out (`downloaded`).
-    AWAITING_DOWNLOAD = set(awaiting_download(CONFIG))
-    # Missing checkpoints are one error naming them all, unless this run fetches them.
-    _allow_missing = fetching_checkpoints(COMMAND.targets)
-    PLAN = build_plan(
-        CONFIG,
-        _memo,
-        allow_missing_checkpoints=_allow_missing,
-        configfiles=workflow.configfiles,
-    )
-except Exception as _error:
-    # `onerror` does not run for a failure here: withdraw now the tables of the datasets
-    # the run asked for whose own inputs failed. A config that does not validate makes
-    # no finished table untrue (docs/usage.md).
-    if RUNS_JOBS and planning_failure(_error):
-        _asked = requested_datasets(CONFIG, COMMAND.targets)
-        for _name in failed_datasets(_error, CONFIG, _asked):
-            _why = f"dataset {_name!r} cannot be planned"
-            for _table in withdraw_reports(PREFIX, _name):
-                print(f"vprflow: {_table} withdrawn: {_why}")
-    raise
+# A failure from here to the plan (a config that does not validate or cannot be planned, a
+# trained checkpoint not yet fetched) withdraws no table: no job ran, and each finished
+# table still describes the stores it was built from (docs/usage.md).
+CONFIG = validate_config(
+    config,
+    SCHEMA,
+    merge_order(workflow.configfiles, workflow.overwrite_configfiles),
+)
+# Content hashes of images, local model weights and imported files, memoised
+# between runs.
+_memo = load_fingerprints(PREFIX + FINGERPRINTS)
+_memo_size = len(_memo)
+# Sample datasets whose folder is missing: planned without their images (keys no
+# job builds) until the `download` checkpoint has laid them out (`downloaded`).
+AWAITING_DOWNLOAD = set(awaiting_download(CONFIG))
+# Missing checkpoints are one error naming them all, unless this run fetches them.
+_allow_missing = fetching_checkpoints(COMMAND.targets)
+PLAN = build_plan(
+    CONFIG,
+    _memo,
+    allow_missing_checkpoints=_allow_missing,
+    configfiles=workflow.configfiles,
+)
 if len(_memo) != _memo_size:
     save_fingerprints(_memo, PREFIX + FINGERPRINTS)
 # A map of every store to its dataset and methods, and log links by method. Written

@@ -86,7 +86,6 @@ localrules:
 # A failed run must not leave a results table that looks current (e.g. one method of
 # several failed): the tables of the datasets it asked for that are older than their
 # recall stores are renamed to *.stale. Other datasets' tables are no business of this run.
-# A dataset still awaiting its download has no plan its tables could be stale against.
 onerror:
     if RUNS_JOBS:
         # Another run of this folder deletes this one's stores: say so beside the failure.
@@ -94,7 +93,6 @@ onerror:
         if _others:
             print(f"vprflow: {collision_message(_others)}")
         asked = requested_datasets(CONFIG, workflow.dag_settings.targets)
-        asked = [name for name in asked if name not in AWAITING_DOWNLOAD]
         for table in withdraw_stale_reports(PLAN, PREFIX, asked):
             print(f"vprflow: {table} is out of date after the failure (renamed)")
 

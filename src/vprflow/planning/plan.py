@@ -242,72 +242,30 @@ def build_plan(
     # Native resolutions become sizes here; the caller's config stays as given.
     config = {**config, "datasets": dict(config["datasets"])}
     for dataset_name, dataset in sorted(config["datasets"].items()):
-        method_name = None
-        try:
-            images_key, dataset_key = _plan_dataset(plan, config, dataset_name, dataset, memo)
-            dataset = config["datasets"][dataset_name]
-            plan.images_keys[dataset_name] = images_key
-            plan.dataset_keys[dataset_name] = dataset_key
-            plan.has_ground_truth[dataset_name] = dataset["ground_truth"]["kind"] != "none"
-            plan.runs[dataset_name] = []
-            for method_name in dataset["methods"]:
-                plan.runs[dataset_name] += _plan_method(
-                    plan, config, memo, dataset_name, (images_key, dataset_key), method_name
-                )
-            method_name = None
-            # A preset re-ranks methods a config may drop from its list: only a name that
-            # is no method at all is a mistake.
-            unknown = sorted(set(dataset["rerank"]) - set(config["methods"]))
-            if unknown:
-                raise PlanError(
-                    f"datasets.{dataset_name}.rerank names {unknown}, which are not defined "
-                    f"under methods: {sorted(config['methods'])}"
-                )
-        except Exception as error:
-            # A failed run withdraws the tables of the datasets whose own inputs failed
-            # (vprflow.planning.reports.failed_datasets): say whose they were.
-            error.planning_failure = PlanningFailure((dataset_name,), method_name)
-            raise
+        images_key, dataset_key = _plan_dataset(plan, config, dataset_name, dataset, memo)
+        dataset = config["datasets"][dataset_name]
+        plan.images_keys[dataset_name] = images_key
+        plan.dataset_keys[dataset_name] = dataset_key
+        plan.has_ground_truth[dataset_name] = dataset["ground_truth"]["kind"] != "none"
+        plan.runs[dataset_name] = []
+        for method_name in dataset["methods"]:
+            plan.runs[dataset_name] += _plan_method(
+                plan, config, memo, dataset_name, (images_key, dataset_key), method_name
+            )
+        # A preset re-ranks methods a config may drop from its list: only a name that
+        # is no method at all is a mistake.
+        unknown = sorted(set(dataset["rerank"]) - set(config["methods"]))
+        if unknown:
+            raise PlanError(
+                f"datasets.{dataset_name}.rerank names {unknown}, which are not defined "
+                f"under methods: {sorted(config['methods'])}"
+            )
     missing = [c for c in plan.checkpoints.values() if absent(c.path)]
     if missing:
         plan.checkpoint_error = missing_message(missing, configfiles)
         if not allow_missing_checkpoints:
-            error = PlanError(plan.checkpoint_error)
-            error.planning_failure = PlanningFailure(_reading_missing_checkpoints(plan))
-            raise error
+            raise PlanError(plan.checkpoint_error)
     return plan
-
-
-@dataclass(frozen=True)
-class PlanningFailure:
-    """Whose inputs a :func:`build_plan` error is about: the dataset it was planning
-    (every dataset that reads a missing checkpoint) and, while it planned one of that
-    dataset's methods, the method (a method shared by several datasets is planned under
-    the first of them). Set on the error as ``planning_failure``."""
-
-    datasets: tuple[str, ...]
-    method: str | None = None
-
-
-def _reading_missing_checkpoints(plan: Plan) -> tuple[str, ...]:
-    """The datasets with a stage that reads a checkpoint file that does not exist."""
-    return tuple(
-        sorted(
-            {
-                stage.dataset
-                for stages in plan.stages.values()
-                for stage in stages.values()
-                if "checkpoint_sha256" in stage.record["params"]
-                and stage.record["params"]["checkpoint_sha256"] is None
-            }
-        )
-    )
-
-
-def planning_failure(error: BaseException) -> PlanningFailure | None:
-    """Where planning stopped with ``error``; ``None`` for an error raised before or
-    outside any dataset's planning (a config that does not validate)."""
-    return getattr(error, "planning_failure", None)
 
 
 def _plan_dataset(

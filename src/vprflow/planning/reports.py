@@ -17,7 +17,7 @@ from vprflow.core.paths import (
     TABLES_MARK,
     store_path,
 )
-from vprflow.planning.plan import Plan, method_run, method_stores, planning_failure
+from vprflow.planning.plan import Plan, method_run, method_stores
 
 
 @dataclass(frozen=True)
@@ -76,20 +76,32 @@ def stale_reports(plan: Plan, root: str = "", datasets: list[str] | None = None)
     """Results tables on disk that do not describe the current config: one of the
     dataset's recall stores is missing or newer than the table. ``root`` is the
     prefix of every path (a host workflow's module ``prefix``); ``datasets`` limits the
-    search to those datasets (all planned ones by default)."""
+    search to those datasets (all planned ones by default). Only the tables of the
+    datasets the plan listed (:func:`judged_datasets`) are judged."""
     stale = []
-    for dataset, runs in plan.runs.items():
-        if datasets is not None and dataset not in datasets:
-            continue
+    for dataset in judged_datasets(plan, datasets):
         tables = [Path(root) / t.format(dataset=dataset) for t in _SHOWN]
+        recalls = [Path(root) / store_path("recall", run.recall_key) for run in plan.runs[dataset]]
         for table in tables:
             if not table.exists():
                 continue
             built = table.stat().st_mtime
-            recalls = [Path(root) / store_path("recall", run.recall_key) for run in runs]
             if any(not r.exists() or r.stat().st_mtime > built for r in recalls):
                 stale.append(table)
     return stale
+
+
+def judged_datasets(plan: Plan, datasets: list[str] | None = None) -> list[str]:
+    """Of ``datasets`` (every planned one by default), those whose tables the plan can
+    tell stale: the ones it listed. A dataset it could not list (a sample awaiting its
+    download, a folder missing under ``data_root``) is planned without its images, so
+    its stores' keys are of no images and their absence says nothing of its tables:
+    built elsewhere from the same images (another ``data_root``) they may be current."""
+    return [
+        name
+        for name in plan.runs
+        if name in plan.dataset_files and (datasets is None or name in datasets)
+    ]
 
 
 def tables_mark(root: str, dataset: str) -> str:
@@ -127,7 +139,9 @@ def mark_stale_tables(plan: Plan, root: str, targets, default_datasets: list[str
             for path in dataset_outputs(plan, name)
         }
     rebuilt = []
-    for dataset in plan.runs:
+    # A dataset the plan could not list keeps its mark: nothing here tells its tables
+    # stale or current.
+    for dataset in judged_datasets(plan):
         stale = stale_reports(plan, root, [dataset])
         asked = [t for t in stale if os.path.normpath(t) in wanted]
         if asked or not stale:
@@ -148,24 +162,10 @@ def withdraw_stale_reports(
 
 def withdraw_reports(root: str = "", dataset: str = "*") -> list[Path]:
     """Withdraw every table of ``dataset`` (all datasets by default) regardless of age:
-    for failures before a plan exists (a dataset that cannot be planned or listed),
-    where none of its tables describes the current config."""
+    for a dataset whose images cannot be listed while the jobs are planned, which none of
+    its tables describes any more. A config that fails to plan withdraws none: no job
+    ran, and each table still describes the stores it was built from."""
     return _withdraw([t for p in _SHOWN for t in Path(root or ".").glob(p.format(dataset=dataset))])
-
-
-def failed_datasets(error: BaseException, config: dict, requested: list[str]) -> list[str]:
-    """Of the datasets a run asked for (``requested``), those whose own inputs ``error``
-    (raised while planning) is about: the dataset being planned and, when a method failed,
-    every one that lists the method. None for an error of no dataset's (a config that
-    does not validate, a mistyped dataset name): it makes no finished table untrue."""
-    failure = planning_failure(error)
-    if failure is None:
-        return []
-    return [
-        name
-        for name in requested
-        if name in failure.datasets or failure.method in config["datasets"][name]["methods"]
-    ]
 
 
 def closing_lines(plan: Plan, root: str = "", datasets: list[str] | None = None) -> list[str]:
