@@ -487,10 +487,13 @@ TRAINED_KINDS = tuple(n for n, k in BACKBONES.items() if isinstance(k.spec, Trai
 SEGMENTERS: dict[str, ModelKind] = {
     kind.name: kind
     for kind in (
+        # 2: the image's Lab conversion with its RGB -> XYZ product elementwise in
+        # float64 (skimage's float32 BLAS product moved with the kernel).
         ModelKind(
             "slic",
             "segmenter",
             {"n_segments": 50, "compactness": 10.0, "sigma": 1.0},
+            version=2,
         ),
         ModelKind(
             "felzenszwalb",

@@ -38,17 +38,43 @@ class SlicSegmenter:
         self.n_segments, self.compactness, self.sigma = n_segments, compactness, sigma
 
     def masks(self, image: np.ndarray) -> np.ndarray:
-        from skimage.segmentation import slic
+        from skimage.segmentation import slic, slic_superpixels
 
-        labels = slic(
-            image,
-            n_segments=self.n_segments,
-            compactness=self.compactness,
-            sigma=self.sigma,
-            start_label=0,
-            channel_axis=-1,
-        )
+        # slic converts to Lab inside, after rescaling the image: its conversion is
+        # replaced for the call, there being no argument for it.
+        published = slic_superpixels.rgb2lab
+        slic_superpixels.rgb2lab = rgb_to_lab
+        try:
+            labels = slic(
+                image,
+                n_segments=self.n_segments,
+                compactness=self.compactness,
+                sigma=self.sigma,
+                start_label=0,
+                channel_axis=-1,
+            )
+        finally:
+            slic_superpixels.rgb2lab = published
         return labels_to_masks(labels)
+
+
+def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
+    """scikit-image's ``rgb2lab`` (D65, 2 degrees) of ``rgb`` ``[..., 3]`` in its dtype,
+    but the RGB -> XYZ product taken elementwise in float64 and rounded once: rgb2lab
+    takes it as a matrix product in the image's dtype through BLAS, whose rounding moves
+    with the kernel (SLIC's segments of roadscene's thermal queries moved with it)."""
+    from skimage.color import xyz2lab
+    from skimage.color.colorconv import xyz_from_rgb
+
+    arr = np.array(rgb, dtype=np.result_type(rgb, np.float32))
+    # rgb2xyz's sRGB linearisation, in the image's dtype as there.
+    bright = arr > 0.04045
+    arr[bright] = np.power((arr[bright] + 0.055) / 1.055, 2.4)
+    arr[~bright] /= 12.92
+    linear = arr.astype(np.float64)
+    r, g, b = linear[..., 0], linear[..., 1], linear[..., 2]
+    xyz = np.stack([m[0] * r + m[1] * g + m[2] * b for m in xyz_from_rgb], axis=-1)
+    return xyz2lab(xyz.astype(arr.dtype))
 
 
 class FelzenszwalbSegmenter:
