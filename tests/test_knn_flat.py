@@ -56,3 +56,23 @@ def test_search_caps_k_at_database_size_and_finds_exact_copies():
     np.testing.assert_array_equal(indices[:, 0], np.arange(6)[::-1])
     np.testing.assert_allclose(distances[:, 0], 0.0, atol=1e-4)
     assert (indices >= 0).all()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ranked_distances_are_each_pairs_float64_distance_rounded_once(seed):
+    """Any ranking (a shuffled one, and faiss's own; long vectors of large values, as
+    SNSM's): each entry is the float64 distance of its pair, rounded to float32."""
+    from vprflow.search.flat import ranked_distances
+
+    rng = np.random.default_rng(seed)
+    database = (rng.standard_normal((30, 3136)) * 10).astype(np.float32)
+    queries = (rng.standard_normal((7, 3136)) * 10).astype(np.float32)
+    ranking = np.stack([rng.permutation(30)[:12] for _ in range(7)])
+    exact = brute_force(database, queries)
+    expected = np.take_along_axis(exact, ranking, axis=1).astype(np.float32)
+    np.testing.assert_array_equal(ranked_distances(database, queries, ranking), expected)
+    _, found = flat_knn(database, queries, 12)
+    np.testing.assert_array_equal(
+        ranked_distances(database, queries, found),
+        np.take_along_axis(exact, found, 1).astype(np.float32),
+    )

@@ -841,9 +841,11 @@ STAGES: dict[str, StageSpec] = {
     # A re-ranker's scores from a matches store's pairs: the top K re-ordered, then the
     # rest of the retrieval to the recall's depth.
     "rerank": StageSpec(3),
-    # The ranking (the published vote ranking for segments), its scores, Recall@N, mAP,
-    # the precision-recall summary, the cost per query and the queries without a positive.
-    "recall": StageSpec(6),
+    # The ranking (the published vote ranking for segments), its scores (a global
+    # method's: each ranked pair's distance in float64, the same on every machine),
+    # Recall@N, mAP, the precision-recall summary, the cost per query and the queries
+    # without a positive.
+    "recall": StageSpec(7),
 }
 
 # The table by column: what the keys hash, and the stages run in shards.

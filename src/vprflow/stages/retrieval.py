@@ -23,9 +23,11 @@ def retrieve(
     """Each query's first ``depth`` references: ``(ranking [Nq, d], scores [Nq, d],
     score kind)``, ``d`` = ``depth`` capped at the references. Per-segment descriptors
     are ranked by voting over the segment lists of the ``search`` stage
-    (``search_path``); scores are votes (higher is better). Global ones by exact search;
-    scores are squared L2 distances (lower is better)."""
-    from vprflow.search.flat import flat_knn
+    (``search_path``); scores are votes (higher is better). Global ones by faiss's exact
+    search (the published one, whose float32 order decides the ranking); scores are each
+    ranked pair's squared L2 distance in float64 (lower is better), the same on every
+    machine for the same ranking."""
+    from vprflow.search.flat import flat_knn, ranked_distances
     from vprflow.search.voting import image_of_segment, scored_vote_ranking
 
     group = stores.open_store(descriptors_path)
@@ -33,8 +35,8 @@ def retrieve(
     depth = min(depth, n_ref)
     if group.attrs["kind"] != "segments":
         vectors = np.asarray(group["descriptors"][...])
-        scores, ranking = flat_knn(vectors[:n_ref], vectors[n_ref:], depth)
-        return ranking, scores, "squared_l2"
+        _, ranking = flat_knn(vectors[:n_ref], vectors[n_ref:], depth)
+        return ranking, ranked_distances(vectors[:n_ref], vectors[n_ref:], ranking), "squared_l2"
     if search_path is None:
         raise ValueError(f"{descriptors_path}: per-segment descriptors need a search input")
     offsets = np.asarray(group["descriptors_offsets"][...])
