@@ -6,10 +6,11 @@ another kernel family or thread count for OpenBLAS (numpy's and faiss's BLAS), M
 ATen (torch's), or numpy's own SIMD loops. tests/test_vlad_ties.py,
 tests/test_code_paths.py and benchmarks/check_ties.py run under them.
 
-Run as ``python tests/code_paths.py DATA_ROOT OUT DATASET [LAST_STAGE]``: runs every
-stage of DATASET in the shipped config (``config/config.yaml``) up to LAST_STAGE (in
-plan order; default: all, the recall stores included) in this process, unsharded, into
-OUT, and prints a JSON object ``{"<stage> <method or key>": sha256 of its arrays}``.
+Run as ``python tests/code_paths.py DATA_ROOT OUT DATASET [STAGE,...]``: runs the
+STAGEs of DATASET in the shipped config (``config/config.yaml``; default: every stage,
+the recall stores included) and what they read, in this process, unsharded, into OUT,
+and prints :func:`run_dataset`'s JSON: each store's digest (sha256 of its arrays) and
+each recall store's table values.
 """
 
 from __future__ import annotations
@@ -89,12 +90,28 @@ def store_digest(path: str) -> str:
     return digest.hexdigest()
 
 
-def run_dataset(data_root: Path, out: Path, dataset: str, last: str | None = None) -> dict:
-    """Run ``dataset``'s stages of the shipped config up to ``last`` into ``out`` ->
-    ``{"<stage> <method or key>": digest}``."""
+# What a recall store holds of its table (its attributes but the cost, which is timed).
+TABLE_ATTRIBUTES = (
+    "recall",
+    "map",
+    "precision_recall",
+    "recall_exact",
+    "n_queries",
+    "n_queries_without_positive",
+    "n_short_rankings",
+    "denominator",
+    "descriptor_dim",
+)
+
+
+def run_dataset(data_root: Path, out: Path, dataset: str, stages: list[str] | None = None) -> dict:
+    """Run ``dataset``'s ``stages`` (default: all) of the shipped config, and what they
+    read, into ``out`` -> ``{"stores": {"<stage> <key>": digest}, "tables": {"<recall
+    key>": its table's values}}`` (the stores of ``stages`` only)."""
     import yaml
     from workflow_helpers import SCHEMA, run_stage
 
+    from vprflow.core.stores import open_store
     from vprflow.planning.config import validate_config
     from vprflow.planning.plan import STAGES, build_plan
 
@@ -103,20 +120,22 @@ def run_dataset(data_root: Path, out: Path, dataset: str, last: str | None = Non
     config["targets"] = [dataset]
     config["datasets"] = {dataset: config["datasets"][dataset]}
     plan = build_plan(validate_config(config, SCHEMA))
-    order = list(STAGES)
-    wanted = order[: order.index(last) + 1] if last else order
     done: dict = {}
-    digests = {}
-    for stage in wanted:
+    result: dict = {"stores": {}, "tables": {}}
+    for stage in [s for s in STAGES if stages is None or s in stages]:
         for key, planned in sorted(plan.stages.get(stage, {}).items()):
-            if planned.dataset != dataset:
+            if planned.dataset != dataset:  # a preset whose folder data_root holds
                 continue
             path = run_stage(plan, stage, key, data_root, out, done)
-            digests[f"{stage} {key}"] = store_digest(path)
-    return digests
+            result["stores"][f"{stage} {key}"] = store_digest(path)
+            if stage == "recall":
+                attrs = open_store(path).attrs
+                result["tables"][key] = {name: attrs.get(name) for name in TABLE_ATTRIBUTES}
+    return result
 
 
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).parent))
     root, out, name = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
-    print(json.dumps(run_dataset(root, out, name, sys.argv[4] if len(sys.argv) > 4 else None)))
+    stages = sys.argv[4].split(",") if sys.argv[4:] else None
+    print(json.dumps(run_dataset(root, out, name, stages)))

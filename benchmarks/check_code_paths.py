@@ -1,0 +1,113 @@
+"""The shipped datasets' stores and tables under every code path this CPU can force
+(tests/code_paths.py: OpenBLAS core types, the environment's setting unset, ATen
+capabilities, MKL's conditional reproducibility and instruction sets, one and two threads,
+numpy's loops without AVX-512), each path's run beside the environment's own.
+
+    python benchmarks/check_code_paths.py --data ../shared/data [--datasets corridor,roadscene]
+        [--paths openblas_unset,mkl_cbwr_compatible] [--stages features,vocabulary]
+
+Each path runs the dataset's stages of the shipped config in a child process of its own
+(``tests/code_paths.py``, every stage in one process, unsharded, on the CPU). Rows: per
+dataset and path, the stages whose stores differ from the ``default`` path's (count of
+stores), the largest difference of a float array there, and whether every table value
+(recall, mAP, precision-recall, counts) is equal. ``tests/test_code_paths.py`` asserts
+what must hold; this prints where the rest moves (docs/methods.md §3, "One table on every
+machine").
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from collections import Counter
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "tests"))
+sys.path.insert(0, str(REPO / "src"))
+
+from code_paths import code_paths, path_environment  # noqa: E402
+
+
+def run_path(data: Path, out: Path, dataset: str, changes: dict, stages: str | None) -> dict:
+    command = [sys.executable, str(REPO / "tests" / "code_paths.py"), str(data), str(out), dataset]
+    done = subprocess.run(
+        command + ([stages] if stages else []),
+        env=path_environment(changes),
+        capture_output=True,
+        text=True,
+        cwd=REPO,
+    )
+    if done.returncode:
+        raise RuntimeError(done.stderr[-3000:])
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def largest_difference(a: Path, b: Path) -> float:
+    from vprflow.core.stores import array_items, open_store
+
+    largest = 0.0
+    other = dict(array_items(open_store(b)))
+    for name, array in array_items(open_store(a)):
+        x, y = array[...], other[name][...]
+        if x.dtype.kind == "f" and x.shape == y.shape and x.size:
+            largest = max(largest, float(np.nanmax(np.abs(x.astype(float) - y.astype(float)))))
+    return largest
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, required=True, help="the shared datasets")
+    parser.add_argument("--datasets", default="corridor,roadscene")
+    parser.add_argument("--paths", help="comma-separated code paths (default: all)")
+    parser.add_argument("--stages", help="comma-separated stages run (default: all)")
+    args = parser.parse_args()
+    paths = code_paths()
+    chosen = ["default"] + [p for p in (args.paths or ",".join(paths)).split(",") if p != "default"]
+    print("| dataset | path | seconds | stores differ (by stage) | largest diff | tables equal |")
+    print("|---|---|---:|---|---:|---|")
+    failed = False
+    with tempfile.TemporaryDirectory() as scratch:
+        for dataset in args.datasets.split(","):
+            runs = {}
+            for path in chosen:
+                out = Path(scratch) / dataset / path
+                start = time.perf_counter()
+                runs[path] = run_path(args.data, out, dataset, paths[path], args.stages)
+                seconds = time.perf_counter() - start
+                base, run = runs["default"], runs[path]
+                differ = [k for k, v in run["stores"].items() if base["stores"].get(k) != v]
+                stages = Counter(k.split()[0] for k in differ)
+                largest = max(
+                    (
+                        largest_difference(
+                            Path(scratch)
+                            / dataset
+                            / "default"
+                            / k.split()[0]
+                            / f"{k.split()[1]}.zarr",
+                            out / k.split()[0] / f"{k.split()[1]}.zarr",
+                        )
+                        for k in differ
+                    ),
+                    default=0.0,
+                )
+                equal = run["tables"] == base["tables"]
+                failed |= not equal
+                by_stage = ", ".join(f"{s} {n}" for s, n in stages.items()) or "none"
+                print(
+                    f"| {dataset} | {path} | {seconds:.0f} | {by_stage} | {largest:.1e} | "
+                    f"{'yes' if equal else 'NO'} |",
+                    flush=True,
+                )
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

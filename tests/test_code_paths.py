@@ -1,0 +1,112 @@
+"""One table on every machine: the shipped corridor and roadscene runs under x86-64 code
+paths this CPU can force (tests/code_paths.py), each in a process of its own.
+
+- the whole tables (every recall, mAP and precision-recall value and count of every row)
+  and vprflow's own steps' stores, the weight-free DAISY features, SLIC segments and
+  the map vocabulary's k-means (docs/methods.md §3), are equal under the environment's path and
+  two that differ from it in every variable at once: the machine's own kernels
+  (OPENBLAS_CORETYPE and OPENBLAS_L2_SIZE unset, two threads, ATen's AVX-512 where the
+  CPU has it, MKL's AVX kernels), and scalar-most kernels on one thread (OpenBLAS
+  Prescott, ATen's default capability, MKL's conditional reproducibility, numpy's loops
+  without AVX-512);
+- the own steps of corridor give the same stores under the other OpenBLAS core types.
+
+``benchmarks/check_code_paths.py`` runs the whole tables under every single path of
+code_paths() and names the stores that move where the authors' code moves (VLAD sums,
+PCA, faiss's segment search, the re-rankers' float32 matches); no table value moves
+(benchmarks/README.md).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from code_paths import code_paths, path_environment
+
+pytestmark = pytest.mark.data
+
+SCRIPT = Path(__file__).with_name("code_paths.py")
+SINGLE = code_paths()
+
+
+def merged(*names: str) -> dict:
+    """The changes of the named single paths that this CPU has, together."""
+    return {k: v for name in names if name in SINGLE for k, v in SINGLE[name].items()}
+
+
+WHOLE_TABLES = {
+    "default": {},
+    "machine_kernels": merged("openblas_unset", "two_threads", "aten_avx512", "mkl_avx"),
+    "scalar_one_thread": merged("one_thread_scalar", "numpy_avx2"),
+}
+OWN_STEPS = {
+    name: SINGLE[name]
+    for name in ("openblas_haswell", "openblas_sandybridge", "openblas_skylakex")
+    if name in SINGLE
+}
+DATASETS = ("corridor", "roadscene")
+OWN = ("features", "segments", "vocabulary")
+
+
+@pytest.fixture(scope="module")
+def runs(data_root, tmp_path_factory) -> dict[tuple[str, str], dict]:
+    """``{(dataset, path): run_dataset's result}``: every stage under WHOLE_TABLES, the
+    own steps of corridor under OWN_STEPS; two processes at a time."""
+    out = tmp_path_factory.mktemp("code_paths")
+    jobs = [(d, p, changes, None) for d in DATASETS for p, changes in WHOLE_TABLES.items()]
+    jobs += [("corridor", p, changes, ",".join(OWN)) for p, changes in OWN_STEPS.items()]
+    results, running = {}, []
+
+    def finish(entry):
+        (dataset, path), process = entry
+        stdout, stderr = process.communicate(timeout=900)
+        assert process.returncode == 0, f"{dataset} under {path}: {stderr[-3000:]}"
+        results[dataset, path] = json.loads(stdout.strip().splitlines()[-1])
+
+    for dataset, path, changes, stages in jobs:
+        command = [sys.executable, str(SCRIPT), str(data_root), str(out / dataset / path), dataset]
+        process = subprocess.Popen(
+            command + ([stages] if stages else []),
+            env=path_environment(changes),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        running.append(((dataset, path), process))
+        if len(running) == 2:
+            finish(running.pop(0))
+    for entry in running:
+        finish(entry)
+    return results
+
+
+def own_stores(result: dict) -> dict[str, str]:
+    return {k: v for k, v in result["stores"].items() if k.split()[0] in OWN}
+
+
+@pytest.mark.parametrize(
+    ("dataset", "path"),
+    [(d, p) for d in DATASETS for p in WHOLE_TABLES if p != "default"]
+    + [("corridor", p) for p in OWN_STEPS],
+)
+def test_daisy_features_slic_segments_and_the_map_vocabulary_are_the_same_bits_under(
+    path, dataset, runs
+):
+    ours = own_stores(runs[dataset, path])
+    default = own_stores(runs[dataset, "default"])
+    assert {name.split()[0] for name in ours} == set(OWN) and set(ours) == set(default)
+    differ = sorted(name for name, digest in ours.items() if default[name] != digest)
+    assert not differ, f"{dataset} under {path}: {differ} differ from the environment's"
+
+
+@pytest.mark.parametrize("dataset", DATASETS)
+@pytest.mark.parametrize("path", [p for p in WHOLE_TABLES if p != "default"])
+def test_every_table_value_is_the_same_under(path, dataset, runs):
+    tables, default = runs[dataset, path]["tables"], runs[dataset, "default"]["tables"]
+    assert len(default) >= 9 and set(tables) == set(default)  # every row of the table
+    differ = sorted(key for key in default if tables[key] != default[key])
+    assert not differ, f"{dataset} under {path}: rows {differ} differ from the environment's"
