@@ -39,9 +39,8 @@ TIE = 2.0**-30
 # for float16".
 _EPS = 1.0 / 1024.0
 
-# Points per block of the products and sums: [rows, K] float64 products and a float64
-# copy of [rows, D] stay near the caches.
-_BLOCK = 1 << 20
+# Points per block of the products: a float64 copy of [rows, D] of about 64 MiB.
+_BLOCK = 1 << 23
 
 
 def initial_indices(n: int, k: int, seed: int) -> np.ndarray:
@@ -96,16 +95,16 @@ def nearest(products: np.ndarray) -> np.ndarray:
 
 def cluster_sums(x: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
     """The float64 sum of the rows of ``x`` ``[N, D]`` per label ``[N]`` -> ``[K, D]``:
-    each cluster's rows added one after another in index order, so the same on every
-    machine (a BLAS product's order is the kernel's)."""
+    each cluster's rows added one after another in index order (numpy's reduction over
+    the first axis adds row after row), so the same on every machine (a BLAS product's
+    order is the kernel's)."""
     order = np.argsort(labels, kind="stable")
+    counts = np.bincount(labels, minlength=k)
+    ends = np.cumsum(counts)
     sums = np.zeros((k, x.shape[1]), dtype=np.float64)
-    step = _block_rows(x.shape[1])
-    for start in range(0, len(order), step):
-        rows = order[start : start + step]
-        owners = labels[rows]
-        first = np.flatnonzero(np.r_[True, owners[1:] != owners[:-1]])
-        sums[owners[first]] += np.add.reduceat(np.asarray(x[rows], dtype=np.float64), first, axis=0)
+    for c in np.flatnonzero(counts):
+        members = order[ends[c] - counts[c] : ends[c]]
+        sums[c] = x[members].sum(axis=0, dtype=np.float64)
     return sums
 
 
