@@ -14,7 +14,7 @@ empty clusters, but decides in float64 with a fixed tie order and sums in a fixe
 - each centroid becomes the float64 mean of its points, summed one point after another
   in index order (:func:`cluster_sums`), an empty one is split off a donor drawn with
   faiss's generator (:func:`split_clusters`) and perturbed by ``1 +- 1/1024``, and every
-  centroid is L2-normalised in float64;
+  centroid is L2-normalised in float64 (a zero row stays zero);
 - stop after ``n_iter`` iterations, or as soon as no point changed its cluster.
 
 Why this gives one result: the only step whose rounding depends on the BLAS kernel,
@@ -30,6 +30,8 @@ mid-run a whole run can end in a neighbouring solution (centres 1e-2 apart).
 from __future__ import annotations
 
 import numpy as np
+
+from vprflow.core.arrays import l2_normalize
 
 # Products within this of the best are one tie (far above float64 rounding, ~1e-16 a
 # product of unit rows; far below any gap that float32 data can carry, ~1e-7).
@@ -108,12 +110,6 @@ def cluster_sums(x: np.ndarray, labels: np.ndarray, k: int) -> np.ndarray:
     return sums
 
 
-def normalise_rows(c: np.ndarray) -> np.ndarray:
-    """Rows of ``c`` ``[K, D]`` float64 over their L2 norm; zero rows stay zero."""
-    norms = np.sqrt((c * c).sum(axis=1))[:, None]
-    return np.divide(c, norms, out=np.zeros_like(c), where=norms > 0)
-
-
 def _block_rows(width: int) -> int:
     return max(1024, _BLOCK // max(width, 1))
 
@@ -125,7 +121,7 @@ class _Products:
 
     def __init__(self, x: np.ndarray, device):
         self.x, self.device = x, None
-        if device is None or str(device) == "cpu" and isinstance(device, str):
+        if device is None or (isinstance(device, str) and device == "cpu"):
             return
         import torch
 
@@ -171,7 +167,7 @@ def spherical_kmeans(
     if n == k:  # faiss copies the points and runs no iteration
         return np.asarray(x, dtype=np.float64).copy(), np.arange(k), 0
     products = _Products(x, device)
-    centroids = normalise_rows(np.asarray(x[initial_indices(n, k, seed)], dtype=np.float64))
+    centroids = l2_normalize(np.asarray(x[initial_indices(n, k, seed)], dtype=np.float64))
     plus = np.resize([1 + _EPS, 1 - _EPS], d)
     minus = np.resize([1 - _EPS, 1 + _EPS], d)
     labels = None
@@ -186,5 +182,5 @@ def spherical_kmeans(
         for ci, cj in split_clusters(counts.astype(np.float32), n):
             centroids[ci] = centroids[cj] * plus
             centroids[cj] = centroids[cj] * minus
-        centroids = normalise_rows(centroids)
+        centroids = l2_normalize(centroids)
     return centroids, products.labels(centroids), iterations

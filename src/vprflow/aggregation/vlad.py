@@ -44,9 +44,7 @@ def fit_spherical_kmeans(
         raise ValueError(f"k-means needs at least {n_clusters} descriptors, got {len(x)}")
     if not np.isfinite(x).all():
         raise ValueError("k-means input contains NaN or infinite values")
-    x64 = x.astype(np.float64)
-    unit = (x64 / np.maximum(np.sqrt((x64 * x64).sum(axis=1)), 1e-12)[:, None]).astype(np.float32)
-    del x64
+    unit = l2_normalize(x.astype(np.float64)).astype(np.float32)
     centroids, labels, _ = spherical_kmeans(unit, n_clusters, n_iter, seed, device)
     if centres == "unit":
         return centroids.astype(np.float32)
