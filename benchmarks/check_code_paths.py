@@ -18,8 +18,6 @@ machine").
 from __future__ import annotations
 
 import argparse
-import json
-import subprocess
 import sys
 import tempfile
 import time
@@ -32,21 +30,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "tests"))
 sys.path.insert(0, str(REPO / "src"))
 
-from code_paths import code_paths, path_environment  # noqa: E402
-
-
-def run_path(data: Path, out: Path, dataset: str, changes: dict, stages: str | None) -> dict:
-    command = [sys.executable, str(REPO / "tests" / "code_paths.py"), str(data), str(out), dataset]
-    done = subprocess.run(
-        command + ([stages] if stages else []),
-        env=path_environment(changes),
-        capture_output=True,
-        text=True,
-        cwd=REPO,
-    )
-    if done.returncode:
-        raise RuntimeError(done.stderr[-3000:])
-    return json.loads(done.stdout.strip().splitlines()[-1])
+from code_paths import child_result, code_paths, start_child  # noqa: E402
 
 
 def largest_difference(a: Path, b: Path) -> float:
@@ -79,7 +63,8 @@ def main() -> int:
             for path in chosen:
                 out = Path(scratch) / dataset / path
                 start = time.perf_counter()
-                runs[path] = run_path(args.data, out, dataset, paths[path], args.stages)
+                child = start_child(args.data, out, dataset, paths[path], args.stages)
+                runs[path] = child_result(child, f"{dataset} under {path}")
                 seconds = time.perf_counter() - start
                 base, run = runs["default"], runs[path]
                 differ = [k for k, v in run["stores"].items() if base["stores"].get(k) != v]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import subprocess
 import sys
 from pathlib import Path
 
@@ -75,6 +76,30 @@ def path_environment(changes: dict[str, str | None]) -> dict[str, str]:
         else:
             env[name] = value
     return env
+
+
+def start_child(
+    data_root: Path, out: Path, dataset: str, changes: dict, stages: str | None = None
+) -> subprocess.Popen:
+    """This file's entry point for ``dataset`` (``stages``: comma-separated, default all)
+    in a process of its own under code path ``changes``; :func:`child_result` reads it."""
+    command = [sys.executable, __file__, str(data_root), str(out), dataset]
+    return subprocess.Popen(
+        command + ([stages] if stages else []),
+        env=path_environment(changes),
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+
+
+def child_result(process: subprocess.Popen, what: str) -> dict:
+    """What :func:`start_child`'s process printed (:func:`run_dataset`'s result);
+    ``RuntimeError`` naming ``what`` ran, with the end of its stderr, when it failed."""
+    stdout, stderr = process.communicate(timeout=900)
+    if process.returncode:
+        raise RuntimeError(f"{what}: {stderr[-3000:]}")
+    return json.loads(stdout.strip().splitlines()[-1])
 
 
 def store_digest(path: str) -> str:

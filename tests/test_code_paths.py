@@ -19,17 +19,11 @@ PCA, faiss's segment search, the re-rankers' float32 matches); no table value mo
 
 from __future__ import annotations
 
-import json
-import subprocess
-import sys
-from pathlib import Path
-
 import pytest
-from code_paths import code_paths, path_environment
+from code_paths import child_result, code_paths, start_child
 
 pytestmark = pytest.mark.data
 
-SCRIPT = Path(__file__).with_name("code_paths.py")
 SINGLE = code_paths()
 
 
@@ -60,27 +54,14 @@ def runs(data_root, tmp_path_factory) -> dict[tuple[str, str], dict]:
     jobs = [(d, p, changes, None) for d in DATASETS for p, changes in WHOLE_TABLES.items()]
     jobs += [("corridor", p, changes, ",".join(OWN)) for p, changes in OWN_STEPS.items()]
     results, running = {}, []
-
-    def finish(entry):
-        (dataset, path), process = entry
-        stdout, stderr = process.communicate(timeout=900)
-        assert process.returncode == 0, f"{dataset} under {path}: {stderr[-3000:]}"
-        results[dataset, path] = json.loads(stdout.strip().splitlines()[-1])
-
     for dataset, path, changes, stages in jobs:
-        command = [sys.executable, str(SCRIPT), str(data_root), str(out / dataset / path), dataset]
-        process = subprocess.Popen(
-            command + ([stages] if stages else []),
-            env=path_environment(changes),
-            stdout=subprocess.PIPE,
-            stderr=subprocess.PIPE,
-            text=True,
-        )
+        process = start_child(data_root, out / dataset / path, dataset, changes, stages)
         running.append(((dataset, path), process))
-        if len(running) == 2:
-            finish(running.pop(0))
-    for entry in running:
-        finish(entry)
+        if len(running) == 2:  # two processes at a time: this machine's cores
+            key, process = running.pop(0)
+            results[key] = child_result(process, "{} under {}".format(*key))
+    for key, process in running:
+        results[key] = child_result(process, "{} under {}".format(*key))
     return results
 
 
