@@ -8,8 +8,10 @@ timed per stage from Snakemake's ``benchmark:`` files.
 Half the images are references, half queries (query i = reference i's corridor image
 with another index, so every query has one positive by construction: VPR-Bench ground
 truth listing reference i). The corridor config's five methods (or ``--methods``) run
-at the corridor resolution. Prints, per stage: jobs, total seconds, seconds per image
-and the largest peak memory (max RSS) of any of its jobs; and the whole run's wall time.
+at the corridor resolution, ``--shard`` images a job of features, segments and search,
+descriptors in the shipped config's ``descriptors_shard_size``. Prints, per stage: jobs,
+total seconds, seconds per image and the largest peak memory (max RSS) of any of its
+jobs; and the whole run's wall time.
 
 ``--data`` defaults to ``$VPRFLOW_DATA``; with neither, ``--smoke`` exits with status 77
 (skipped, as automake and meson count it), anything else with an error.
@@ -157,7 +159,7 @@ def run_snakemake(command: list[str]) -> None:
 def run(args: argparse.Namespace, data: Path) -> None:
     if args.workdir.exists():
         shutil.rmtree(args.workdir)
-    _, config_path = cycled_config(
+    config, config_path = cycled_config(
         data,
         args.workdir,
         args.images,
@@ -171,7 +173,8 @@ def run(args: argparse.Namespace, data: Path) -> None:
     wall = time.perf_counter() - start
 
     stats = benchmark_rows(args.workdir)
-    print(f"{args.images} images (shard {args.shard}, {args.cores} cores): {wall:.0f} s wall")
+    shards = f"shard {args.shard}, descriptors {config['descriptors_shard_size']}"
+    print(f"{args.images} images ({shards}, {args.cores} cores): {wall:.0f} s wall")
     header = f"{'stage':<12} {'jobs':>5} {'seconds':>9} {'s/image':>9} {'peak MiB':>9}"
     print(header)
     print("-" * len(header))

@@ -7,13 +7,19 @@ import ast
 import importlib
 import inspect
 import textwrap
+from pathlib import Path
 
 import pytest
+import yaml
 
+from vprflow.planning.config import validate_config
 from vprflow.planning.plan import STAGES
 from vprflow.stages import jobs
 from vprflow.stages.base import Job as BaseJob
 from vprflow.stages.jobs import Job, combine_shards, run_job, shard_ranges
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 
 def _runner_function(stage: str):
@@ -40,29 +46,63 @@ def test_every_stage_runs_by_one_function_of_one_job_in_its_stage_module(stage):
     assert list(inspect.signature(function).parameters) == ["job"], function
 
 
+def _sizes(shard_size: int = 0, descriptors: int = 0, search: int = 0) -> dict[str, int]:
+    return {
+        "shard_size": shard_size,
+        "descriptors_shard_size": descriptors,
+        "search_shard_size": search,
+    }
+
+
 @pytest.mark.parametrize("size", [1, 3, 4, 7, 100])
 def test_per_image_shards_cover_references_then_queries_once_in_order(size):
-    ranges = shard_ranges(
-        "features", n_reference=4, n_query=3, shard_size=size, search_shard_size=2
-    )
+    ranges = shard_ranges("features", n_reference=4, n_query=3, sizes=_sizes(size, 2, 2))
     covered = [i for start, stop in ranges for i in range(start, stop)]
     assert covered == list(range(7))
     assert all(0 < stop - start <= size for start, stop in ranges)
 
 
 def test_search_shards_cover_the_reference_images_only():
-    ranges = shard_ranges("search", n_reference=5, n_query=9, shard_size=1, search_shard_size=2)
+    ranges = shard_ranges("search", n_reference=5, n_query=9, sizes=_sizes(1, 1, 2))
     assert ranges == [(0, 2), (2, 4), (4, 5)]
 
 
-def test_a_shard_size_of_zero_is_one_job():
-    assert shard_ranges("segments", 4, 3, shard_size=0, search_shard_size=0) == [(0, 7)]
-    assert shard_ranges("search", 4, 3, shard_size=0, search_shard_size=0) == [(0, 4)]
+def test_descriptors_shards_take_their_own_size_over_every_image():
+    sizes = _sizes(shard_size=2, descriptors=4, search=1)
+    assert shard_ranges("descriptors", 5, 4, sizes) == [(0, 4), (4, 8), (8, 9)]
+    assert shard_ranges("features", 5, 4, sizes) == [(0, 2), (2, 4), (4, 6), (6, 8), (8, 9)]
+    assert shard_ranges("segments", 5, 4, sizes) == shard_ranges("features", 5, 4, sizes)
+
+
+def test_descriptors_shards_of_the_schema_default_are_one_job_up_to_4000_images():
+    shipped = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    config = validate_config(
+        {key: value for key, value in shipped.items() if not key.endswith("shard_size")}, SCHEMA
+    )
+    assert config["descriptors_shard_size"] == 4000
+    assert shard_ranges("descriptors", 2000, 2000, config) == [(0, 4000)]
+    assert shard_ranges("descriptors", 2000, 2001, config) == [(0, 4000), (4000, 4001)]
+    # The model stages' size stays the schema's own (one job), unaffected.
+    assert shard_ranges("features", 2000, 2001, config) == [(0, 4001)]
+
+
+@pytest.mark.parametrize("stage", ["features", "segments", "descriptors", "search"])
+def test_a_shard_size_of_zero_is_one_job(stage):
+    n_images = 4 if stage == "search" else 7
+    assert shard_ranges(stage, 4, 3, _sizes()) == [(0, n_images)]
+
+
+def test_every_sharded_stage_names_a_shard_size_key_of_the_schema():
+    schema = yaml.safe_load(SCHEMA.read_text())
+    for stage in jobs.SHARDED:
+        key = STAGES[stage].shard_size
+        assert schema["properties"][key]["type"] == "integer", stage
+    assert all(STAGES[stage].shard_size is None for stage in STAGES if stage not in jobs.SHARDED)
 
 
 def test_an_unsharded_stage_has_no_shard_ranges():
     with pytest.raises(ValueError, match="'recall' is not sharded"):
-        shard_ranges("recall", 4, 3, 2, 2)
+        shard_ranges("recall", 4, 3, _sizes(2, 2, 2))
 
 
 SEEN: list[Job] = []

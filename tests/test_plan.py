@@ -161,6 +161,7 @@ def test_execution_settings_are_not_in_keys(config):
     changed["backbones"]["daisy"]["batch_size"] = 8
     changed["device"] = "cpu"
     changed["shard_size"] = 16
+    changed["descriptors_shard_size"] = 5
     changed["search_shard_size"] = 3
     changed["data_root"] = "/somewhere/else"
     assert changed_stages(config, changed) == set()

@@ -58,6 +58,7 @@ EXPECTED = {
     "pairs_depth": (),  # the pairs files rank past the recall from the stored retrieval
     "device": (),
     "shard_size": (),
+    "descriptors_shard_size": (),
     "search_shard_size": (),
     "backbones.daisy.batch_size": (),
 }

@@ -26,7 +26,8 @@ def test_sharded_workflow_on_slurm_matches_local_run(slurm_cluster, tmp_path):
     snakemake(local_dir, write_config(local_dir, config), TARGET)
 
     config["data_root"] = str(cluster_dir / "data")
-    config["shard_size"] = 10  # 20 images -> 2 shards per per-image stage
+    # 20 images -> 2 shards per per-image stage
+    config["shard_size"] = config["descriptors_shard_size"] = 10
     config["search_shard_size"] = 4  # 10 references -> 3 segment-search jobs, merged
     config_path = write_config(cluster_dir, config)
     command = snakemake_slurm_command(

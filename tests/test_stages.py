@@ -57,7 +57,9 @@ class Runner:
     the segment search in uneven shards of 4 references, then combined; segments in
     batches of 4 (a ragged last batch in each shard)."""
 
-    SHARD_SIZE, SEARCH_SHARD_SIZE = N_PLACES, 4
+    # The top-level config's shard sizes: every per-image stage in shards of N_PLACES.
+    SHARD_SIZES = {"shard_size": N_PLACES, "descriptors_shard_size": N_PLACES}
+    SHARD_SIZES["search_shard_size"] = 4
 
     def __init__(self, plan, data_root: Path, out: Path):
         self.plan, self.data_root, self.out = plan, str(data_root), out
@@ -83,13 +85,7 @@ class Runner:
             run_job(job)
             return out
         dataset = Dataset(inputs["images"])
-        ranges = shard_ranges(
-            stage.stage,
-            dataset.n_reference,
-            dataset.n_query,
-            self.SHARD_SIZE,
-            self.SEARCH_SHARD_SIZE,
-        )
+        ranges = shard_ranges(stage.stage, dataset.n_reference, dataset.n_query, self.SHARD_SIZES)
         shards = [f"{out}.shards/{start}-{stop}.zarr" for start, stop in ranges]
         for (start, stop), shard in zip(ranges, shards, strict=True):
             run_job(replace(job, out=shard, start=start, stop=stop))

@@ -274,7 +274,7 @@ def with_execution_settings_flipped(config: dict, device: str) -> dict:
     """``config`` with every setting that shapes no result changed: the device, the shard
     sizes and each model entry's execution-only keys (:data:`EXECUTION_ONLY`)."""
     changed = copy.deepcopy(config)
-    changed.update(device=device, shard_size=3, search_shard_size=4)
+    changed.update(device=device, shard_size=3, descriptors_shard_size=5, search_shard_size=4)
     for section in ("backbones", "segmenters"):
         for entry in changed[section].values():
             size = entry.get("batch_size", 1)
@@ -504,7 +504,7 @@ def test_same_inputs_give_a_byte_identical_csv_and_sharding_changes_nothing(toy_
     sharded["data_root"] = str(tmp_path / "data")
     # 20 images in shards of 7, 7 and 6 (a short last one); 10 references: segment
     # search in 3 jobs, merged.
-    sharded["shard_size"] = 7
+    sharded["shard_size"] = sharded["descriptors_shard_size"] = 7
     sharded["search_shard_size"] = 4
     snakemake(tmp_path, write_config(tmp_path, sharded), TARGET)
     # Byte for byte but the milliseconds a query, which time this run's stores.

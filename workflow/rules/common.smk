@@ -255,13 +255,7 @@ def data_root_param(wildcards, output):
 def dataset_shard_ranges(name, stage):
     """``(start, stop)`` image ranges of a sharded stage's jobs on dataset ``name``."""
     files = dataset_files(name)
-    return shard_ranges(
-        stage,
-        len(files.reference),
-        len(files.query),
-        CONFIG["shard_size"],
-        CONFIG["search_shard_size"],
-    )
+    return shard_ranges(stage, len(files.reference), len(files.query), CONFIG)
 
 
 def shard_inputs(wildcards):

@@ -796,11 +796,12 @@ class StageSpec:
     # The format version, in every key of the stage: bump it when what the stage writes
     # changes (reasons below, by stage).
     version: int
-    # Whose ranges the stage's jobs take: "images" (references then queries,
-    # `shard_size` a job) or "references" (`search_shard_size` a job); None: one job.
-    # A sharded stage's rule writes shards; its `gather` rule combines them
-    # (vprflow.stages.jobs.combine_shards).
+    # Whose ranges the stage's jobs take: "images" (references then queries) or
+    # "references"; None: one job. A sharded stage's rule writes shards; its `gather`
+    # rule combines them (vprflow.stages.jobs.combine_shards).
     shards: Literal["images", "references"] | None = None
+    # The top-level config key that holds a sharded stage's images a job (0: one job).
+    shard_size: str | None = None
     # For a stage an aggregator may need (``Aggregator.needs``): how it is planned,
     # between the features and the descriptors.
     needed: _NeededPlanner | None = None
@@ -818,10 +819,10 @@ STAGES: dict[str, StageSpec] = {
     "dataset": StageSpec(3),
     # Patch features after the published reader's resize (crop offsets rounded as
     # torchvision, position embeddings interpolated as the authors do).
-    "features": StageSpec(3, shards="images"),
+    "features": StageSpec(3, shards="images", shard_size="shard_size"),
     # Masks after the published (OpenCV INTER_LINEAR) resize; SAM's prompts decoded by
     # models/sam/decoder.py, SAM-HQ's masks upscaled from its transformer's output.
-    "segments": StageSpec(3, shards="images", needed=_plan_segments),
+    "segments": StageSpec(3, shards="images", shard_size="shard_size", needed=_plan_segments),
     # VLAD centres (plain cluster means by default) from vprflow's k-means, decided in
     # float64 with a fixed tie order and summed in a fixed order: one result on every CPU.
     "vocabulary": StageSpec(4, needed=_plan_vocabulary),
@@ -830,11 +831,13 @@ STAGES: dict[str, StageSpec] = {
     "pca": StageSpec(4, needed=_plan_pca),
     # VLAD sums in numpy, one BLAS thread per image, with the input norm and the
     # backbone's crop offsets; patches normalised and assigned to centres in torch on the
-    # authors' layout and shapes, so float32 ties go where their code sends them.
-    "descriptors": StageSpec(5, shards="images"),
+    # authors' layout and shapes, so float32 ties go where their code sends them. Jobs of
+    # their own size: each imports torch (~1.2 s), ~1 ms of work an image at the shipped
+    # settings.
+    "descriptors": StageSpec(5, shards="images", shard_size="descriptors_shard_size"),
     # Each query segment's nearest reference segments, a range of reference images per
     # job; the shards' top-k lists are merged, not concatenated.
-    "search": StageSpec(1, shards="references"),
+    "search": StageSpec(1, shards="references", shard_size="search_shard_size"),
     # Each re-ranked candidate's mutual nearest neighbour patch pairs, computed once for
     # all the re-rankers of a method on the same features and top_k.
     "matches": StageSpec(1),

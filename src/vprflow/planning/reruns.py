@@ -212,6 +212,13 @@ CHANGES: tuple[Change, ...] = (
     Change("device", "auto -> cpu", _set("device", value="cpu"), top=True, note=EXECUTION),
     Change("shard_size", "0 -> 256", _set("shard_size", value=256), top=True, note=EXECUTION),
     Change(
+        "descriptors_shard_size",
+        "4000 -> 256",
+        _set("descriptors_shard_size", value=256),
+        top=True,
+        note=EXECUTION,
+    ),
+    Change(
         "search_shard_size",
         "2000 -> 1",
         _set("search_shard_size", value=1),

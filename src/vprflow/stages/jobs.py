@@ -11,7 +11,7 @@ image ranges (:func:`shard_ranges`); how shards become one store is
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 
 from vprflow.planning.plan import SHARDED, STAGES
@@ -118,18 +118,18 @@ def run_job(job: Job) -> None:
 
 
 def shard_ranges(
-    stage: str, n_reference: int, n_query: int, shard_size: int, search_shard_size: int
+    stage: str, n_reference: int, n_query: int, sizes: Mapping[str, int]
 ) -> list[tuple[int, int]]:
     """``(start, stop)`` image ranges of a sharded stage's jobs, in order: all images
-    for a stage sharded over images (``shard_size`` each), the reference images for one
-    sharded over references (``search_shard_size`` each); a size of 0 is one job."""
+    (references then queries) for a stage sharded over images, the reference images for
+    one sharded over references, ``sizes[STAGES[stage].shard_size]`` a job (``sizes``:
+    the validated config, or any mapping of its shard-size keys); a size of 0 is one
+    job."""
     if stage not in SHARDED:
         raise ValueError(f"stage {stage!r} is not sharded; sharded stages: {SHARDED}")
-    if STAGES[stage].shards == "references":
-        n_images, size = n_reference, search_shard_size
-    else:
-        n_images, size = n_reference + n_query, shard_size
-    size = size or n_images
+    spec = STAGES[stage]
+    n_images = n_reference if spec.shards == "references" else n_reference + n_query
+    size = sizes[spec.shard_size] or n_images
     return [(start, min(start + size, n_images)) for start in range(0, n_images, size)]
 
 
