@@ -190,7 +190,8 @@ def test_kmeans_refuses_non_finite_points():
 
 def test_the_vocabulary_stage_stores_the_same_centres_on_cpu_and_auto(tmp_path):
     """``device: cpu`` and ``auto`` store the same centres under the same record (on a
-    GPU, ``auto`` takes the products there: the same decisions)."""
+    GPU, ``auto`` takes the products there, where the plan gives the stage a GPU
+    (``uses_gpu``, a model's features): the same decisions)."""
     make_dataset(tmp_path / "data" / "toy", n_places=4, width=64, height=48)
     config = toy_config(tmp_path / "data", resolution=[64, 48], methods=["anyloc_vlad"])
     config["vocabulary"].update(n_clusters=3, n_iter=5)
@@ -202,7 +203,7 @@ def test_the_vocabulary_stage_stores_the_same_centres_on_cpu_and_auto(tmp_path):
         inputs = {name: run(plan.get(*ref), device, out) for name, ref in stage.inputs.items()}
         path = str(out / f"{stage.stage}.zarr")
         job = Job(stage.record, inputs, path, data_root=str(tmp_path / "data"))
-        run_job(replace(job, run={"device": device}))
+        run_job(replace(job, run={"device": device, "uses_gpu": True}))
         return path
 
     cpu, auto = (run(stage, device, tmp_path / device) for device in ("cpu", "auto"))

@@ -95,7 +95,10 @@ def fit_vocabulary(job: Job) -> None:
             params["n_iter"],
             params["seed"],
             centres=params["centres"],
-            device=job.device,
+            # The device only where the plan gives the stage one (a model's features, as
+            # a cluster's GPU request): elsewhere the products run in numpy, the same
+            # centres, and the job never imports torch (~1.2 s) to resolve `auto`.
+            device=job.device if job.run.get("uses_gpu") else "cpu",
         )
     attrs = {"stage": "vocabulary", "record": record, "sources": resolved_sources(params)}
     with stores.atomic_store(job.out, attrs) as group:
