@@ -127,3 +127,17 @@ def test_each_stage_that_computes_with_torch_imports_it(toy_jobs, stage):
     jobs = [job for job in toy_jobs[stage] if stage == "matches" or "vocabulary" in job["inputs"]]
     assert jobs, stage
     assert all("torch" in imported([job]) for job in jobs)
+
+
+def test_the_rules_scripts_import_neither_the_planner_nor_a_stage_before_a_job_runs():
+    """What ``workflow/scripts/stage.py`` and ``gather.py`` import before their job: the
+    runners, not the planner (~50 ms a job) nor any stage's module."""
+    code = (
+        "import sys, vprflow.stages.jobs, vprflow.stages.runner; "
+        "print(sorted(m for m in sys.modules if m.startswith(('vprflow.planning', "
+        "'vprflow.stages.')) and m not in ('vprflow.stages.base', 'vprflow.stages.jobs', "
+        "'vprflow.stages.runner')))"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.strip() == "[]"

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from vprflow.planning.config import validate_config
-from vprflow.planning.plan import STAGES
+from vprflow.planning.plan import SHARDED, STAGES
 from vprflow.stages import jobs
 from vprflow.stages.base import Job as BaseJob
 from vprflow.stages.jobs import Job, combine_shards, run_job, shard_ranges
@@ -33,7 +33,7 @@ def _runner_function(stage: str):
 
 def test_every_stage_of_the_plan_has_a_runner():
     assert list(jobs.RUNNERS) == list(STAGES)
-    assert jobs.SHARDED == ("features", "segments", "descriptors", "search")
+    assert SHARDED == ("features", "segments", "descriptors", "search")
     assert Job is BaseJob
 
 
@@ -94,10 +94,10 @@ def test_a_shard_size_of_zero_is_one_job(stage):
 
 def test_every_sharded_stage_names_a_shard_size_key_of_the_schema():
     schema = yaml.safe_load(SCHEMA.read_text())
-    for stage in jobs.SHARDED:
+    for stage in SHARDED:
         key = STAGES[stage].shard_size
         assert schema["properties"][key]["type"] == "integer", stage
-    assert all(STAGES[stage].shard_size is None for stage in STAGES if stage not in jobs.SHARDED)
+    assert all(STAGES[stage].shard_size is None for stage in STAGES if stage not in SHARDED)
 
 
 def test_an_unsharded_stage_has_no_shard_ranges():

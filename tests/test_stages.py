@@ -18,14 +18,13 @@ from vprflow.core.errors import DatasetError
 from vprflow.data.images import read_image, resize_image
 from vprflow.evaluation.rerank import reranker
 from vprflow.planning.config import validate_config
-from vprflow.planning.plan import build_plan
+from vprflow.planning.plan import SHARDED, build_plan
 from vprflow.stages.dataset import build_images
 from vprflow.stages.descriptors import compute_descriptors
 from vprflow.stages.export import ranking_at_depth, write_pairs
 from vprflow.stages.features import compute_features
 from vprflow.stages.gather import gather
 from vprflow.stages.jobs import (
-    SHARDED,
     Job,
     built_shard_ranges,
     combine_shards,

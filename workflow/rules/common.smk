@@ -36,7 +36,7 @@ from vprflow.core.paths import (
     store_path,
     store_pattern,
 )
-from vprflow.planning.plan import build_plan, method_stores
+from vprflow.planning.plan import SHARDED, build_plan, method_stores
 from vprflow.planning.published import published_changes, published_plan
 from vprflow.data.presets import presets, unknown_dataset
 from vprflow.planning.reports import (
@@ -50,7 +50,7 @@ from vprflow.planning.reports import (
     withdraw_reports,
     withdraw_stale_reports,
 )
-from vprflow.stages.jobs import SHARDED, built_shard_ranges, shard_ranges
+from vprflow.stages.jobs import built_shard_ranges, shard_ranges
 from vprflow.planning.store_index import write_index
 
 

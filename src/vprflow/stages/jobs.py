@@ -14,12 +14,10 @@ import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
-from vprflow.planning.plan import SHARDED, STAGES
 from vprflow.stages.base import Job
 
 __all__ = [
     "RUNNERS",
-    "SHARDED",
     "Job",
     "built_shard_ranges",
     "combine_shards",
@@ -125,6 +123,10 @@ def shard_ranges(
     one sharded over references, ``sizes[STAGES[stage].shard_size]`` a job (``sizes``:
     the validated config, or any mapping of its shard-size keys); a size of 0 is one
     job."""
+    # Here, not at the top: a job's process (the rules' scripts) needs the runners only,
+    # and the planner's imports cost ~50 ms a job.
+    from vprflow.planning.plan import SHARDED, STAGES
+
     if stage not in SHARDED:
         raise ValueError(f"stage {stage!r} is not sharded; sharded stages: {SHARDED}")
     spec = STAGES[stage]
