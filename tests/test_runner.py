@@ -54,6 +54,35 @@ def test_stage_libraries_imported_inside_keep_the_thread_budget(tmp_path, fail):
         assert "CUDA" not in line  # the stage ran on the CPU
 
 
+AT_EXIT = """
+import atexit, gc, sys
+from vprflow.stages.runner import run_stage
+
+# Registered first, so it runs after anything run_stage registers.
+atexit.register(lambda: print("frozen", gc.get_freeze_count() > 0, file=sys.__stdout__))
+
+def stage():
+    if {fail}:
+        raise ValueError("bad input x.png")
+
+run_stage({log!r}, stage, 1)
+"""
+
+
+@pytest.mark.parametrize("fail", [False, True])
+def test_a_finished_stage_leaves_its_objects_to_the_os_at_exit(tmp_path, fail):
+    """No last garbage collection once the job's output is whole (a process that imported
+    torch spent ~0.35 s in it); a failed job's process ends as Python ends it."""
+    log = tmp_path / "stage.log"
+    result = subprocess.run(
+        [sys.executable, "-c", AT_EXIT.format(fail=fail, log=str(log))],
+        capture_output=True,
+        text=True,
+    )
+    assert result.returncode == (1 if fail else 0), result.stderr
+    assert f"frozen {not fail}" in result.stdout, result.stdout + result.stderr
+
+
 FAILING = """
 import sys
 from vprflow.core.errors import DatasetError

@@ -8,7 +8,9 @@ which slows small matrix products by an order of magnitude.
 
 from __future__ import annotations
 
+import atexit
 import contextlib
+import gc
 import logging
 import os
 import resource
@@ -63,6 +65,10 @@ def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> 
                 logger.info(RESOURCES, *_resources(started))
             else:
                 logger.info(RESOURCES + CUDA_PEAK, *_resources(started), cuda)
+            # The job is done and its output whole: at the process's exit, no last
+            # collection over every object alive (~0.35 s after torch's import; the memory
+            # goes back to the OS all the same). Registered last, it runs first at exit.
+            atexit.register(gc.freeze)
         except BaseException as error:
             traceback.print_exc(file=log_file)
             log_file.flush()
