@@ -129,14 +129,26 @@ TABLE_ATTRIBUTES = (
 )
 
 
+def digests(stores: dict[tuple[str, str], str]) -> dict:
+    """``{"stores": {"<stage> <key>": digest}, "tables": {"<recall key>": its table's
+    values}}`` of ``stores`` (``(stage, key)`` -> path)."""
+    from vprflow.core.stores import open_store
+
+    result: dict = {"stores": {}, "tables": {}}
+    for (stage, key), path in stores.items():
+        result["stores"][f"{stage} {key}"] = store_digest(path)
+        if stage == "recall":
+            attrs = open_store(path).attrs
+            result["tables"][key] = {name: attrs.get(name) for name in TABLE_ATTRIBUTES}
+    return result
+
+
 def run_dataset(data_root: Path, out: Path, dataset: str, stages: list[str] | None = None) -> dict:
     """Run ``dataset``'s ``stages`` (default: all) of the shipped config, and what they
-    read, into ``out`` -> ``{"stores": {"<stage> <key>": digest}, "tables": {"<recall
-    key>": its table's values}}`` (the stores of ``stages`` only)."""
+    read, into ``out`` -> their stores' :func:`digests`."""
     import yaml
     from workflow_helpers import SCHEMA, run_stage
 
-    from vprflow.core.stores import open_store
     from vprflow.planning.config import validate_config
     from vprflow.planning.plan import STAGES, build_plan
 
@@ -146,17 +158,25 @@ def run_dataset(data_root: Path, out: Path, dataset: str, stages: list[str] | No
     config["datasets"] = {dataset: config["datasets"][dataset]}
     plan = build_plan(validate_config(config, SCHEMA))
     done: dict = {}
-    result: dict = {"stores": {}, "tables": {}}
     for stage in [s for s in STAGES if stages is None or s in stages]:
         for key, planned in sorted(plan.stages.get(stage, {}).items()):
-            if planned.dataset != dataset:  # a preset whose folder data_root holds
-                continue
-            path = run_stage(plan, stage, key, data_root, out, done)
-            result["stores"][f"{stage} {key}"] = store_digest(path)
-            if stage == "recall":
-                attrs = open_store(path).attrs
-                result["tables"][key] = {name: attrs.get(name) for name in TABLE_ATTRIBUTES}
-    return result
+            if planned.dataset == dataset:  # not a preset whose folder data_root holds
+                run_stage(plan, stage, key, data_root, out, done)
+    wanted = {ref: path for ref, path in done.items() if stages is None or ref[0] in stages}
+    return digests(wanted)
+
+
+def workflow_digests(workdir: Path) -> dict:
+    """The :func:`digests` of every store a finished Snakemake run left in ``workdir``."""
+    from vprflow.core.paths import CACHE
+    from vprflow.planning.plan import STAGES
+
+    stores = {
+        (stage, path.name.removesuffix(".zarr")): str(path)
+        for stage in STAGES
+        for path in sorted((workdir / CACHE / stage).glob("*.zarr"))
+    }
+    return digests(stores)
 
 
 if __name__ == "__main__":

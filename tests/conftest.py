@@ -3,10 +3,14 @@ model of each SAM kind."""
 
 from __future__ import annotations
 
+import json
 import os
+import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
+from filelock import FileLock
 from slurm_fixtures import slurm_cluster  # noqa: F401  (re-exported fixture)
 
 # The SLURM executor plugin, where installed (the `slurm` extra), runs `scontrol show
@@ -40,24 +44,57 @@ def data_root() -> Path:
     return Path(value).resolve()
 
 
-@pytest.fixture(scope="session")
-def corridor_run(tmp_path_factory, data_root):
-    """The shipped config's default run (`snakemake` with no target: corridor, tables and
-    figures), then `snakemake --report report.html`; shared by the tests that read them.
-    Returns ``(workdir, report path)``."""
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> tuple[Path, object]:
+    """``(folder, build(folder))`` with ``build`` run once per pytest run, however many
+    pytest-xdist workers ask: the first builds it under a file lock while the others
+    wait, then read its result (JSON) from the folder. A build that raised leaves no
+    result, so the next worker to ask builds again (and reports its own failure)."""
+    root = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        root = root.parent  # the run's folder, above each worker's own
+    folder, done = root / name, root / f"{name}.json"
+    with FileLock(root / f"{name}.lock"):
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            # A session fixture is set up before the function-scoped no_cluster_probe.
+            with pytest.MonkeyPatch.context() as patch:
+                for variable, value in NO_CLUSTER.items():
+                    patch.setenv(variable, value)
+                result = build(folder)
+            done.write_text(json.dumps(result))
+    return folder, json.loads(done.read_text())
+
+
+def shipped_run(tmp_path_factory, data_root: Path, dataset: str, *extra: list[str]) -> Path:
+    """The shipped config's default run (`snakemake` with no target: the dataset's tables
+    and figures) with ``targets: [dataset]``, then each of ``extra``'s Snakemake
+    arguments; built once for all pytest-xdist workers. Returns the working directory."""
     from workflow_helpers import repo_config, snakemake, write_config
 
-    workdir = tmp_path_factory.mktemp("corridor")
-    config = repo_config()
-    config["data_root"] = str(data_root)
-    config_path = write_config(workdir, config)
-    # A session fixture is set up before the function-scoped no_cluster_probe.
-    with pytest.MonkeyPatch.context() as patch:
-        for name, value in NO_CLUSTER.items():
-            patch.setenv(name, value)
-        snakemake(workdir, config_path)
-        snakemake(workdir, config_path, "--report", "report.html")
+    def build(workdir: Path) -> None:
+        config = repo_config()
+        config["data_root"] = str(data_root)
+        config["targets"] = [dataset]
+        config_path = write_config(workdir, config)
+        for arguments in ([], *extra):
+            snakemake(workdir, config_path, *arguments)
+
+    return built_once(tmp_path_factory, dataset, build)[0]
+
+
+@pytest.fixture(scope="session")
+def corridor_run(tmp_path_factory, data_root):
+    """The shipped corridor run, then `snakemake --report report.html`, shared by the
+    tests that read them. Returns ``(workdir, report path)``."""
+    workdir = shipped_run(tmp_path_factory, data_root, "corridor", ["--report", "report.html"])
     return workdir, workdir / "report.html"
+
+
+@pytest.fixture(scope="session")
+def roadscene_run(tmp_path_factory, data_root) -> Path:
+    """The shipped roadscene run (RGB references, thermal queries); its working directory."""
+    return shipped_run(tmp_path_factory, data_root, "roadscene")
 
 
 @pytest.fixture(scope="module", params=("sam", "sam_hq", "sam2"))
@@ -74,3 +111,45 @@ def sam_kind_model(request, tmp_path_factory):
     path = tmp_path_factory.mktemp(kind)
     model.save_pretrained(path)
     return kind, path, model
+
+
+# How pytest-xdist shares the suite between its workers (pyproject.toml's addopts): whole
+# modules to a worker, as `--dist loadscope` does, so that a module's fixtures (such as
+# test_workflow.py's toy run) are built once; the SLURM modules together, because they
+# share one local SLURM cluster, which a second worker could not start beside it. The
+# end-to-end modules (Snakemake runs, the shared data, SLURM, the benchmarks' smoke runs)
+# take most of the suite's time: they are collected first and so handed out first, and the
+# many quick modules fill the workers' time around them.
+SLOW_MARKERS = ("workflow", "data", "slurm", "benchmark")
+
+
+def work_unit(nodeid: str) -> str:
+    """The unit of work pytest-xdist hands to one worker: a test's module, or ``slurm``."""
+    module = nodeid.split("::", 1)[0]
+    return "slurm" if Path(module).name.startswith("test_slurm") else module
+
+
+def pytest_collection_modifyitems(items):
+    slow = {
+        work_unit(item.nodeid) for item in items if any(map(item.get_closest_marker, SLOW_MARKERS))
+    }
+    items.sort(key=lambda item: work_unit(item.nodeid) not in slow)
+
+
+class WorkUnits:
+    """pytest-xdist's hook, registered where the plugin is (`-p no:xdist` leaves it out)."""
+
+    @staticmethod
+    def pytest_xdist_make_scheduler(config, log):
+        from xdist.scheduler import LoadScopeScheduling
+
+        class WorkUnitScheduling(LoadScopeScheduling):
+            def _split_scope(self, nodeid: str) -> str:
+                return work_unit(nodeid)
+
+        return WorkUnitScheduling(config, log)
+
+
+def pytest_configure(config):
+    if config.pluginmanager.hasplugin("xdist"):
+        config.pluginmanager.register(WorkUnits())

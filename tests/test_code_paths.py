@@ -20,7 +20,7 @@ PCA, faiss's segment search, the re-rankers' float32 matches); no table value mo
 from __future__ import annotations
 
 import pytest
-from code_paths import child_result, code_paths, start_child
+from code_paths import child_result, code_paths, start_child, workflow_digests
 
 pytestmark = pytest.mark.data
 
@@ -47,13 +47,23 @@ OWN = ("features", "segments", "vocabulary")
 
 
 @pytest.fixture(scope="module")
-def runs(data_root, tmp_path_factory) -> dict[tuple[str, str], dict]:
+def runs(data_root, tmp_path_factory, corridor_run, roadscene_run) -> dict[tuple[str, str], dict]:
     """``{(dataset, path): run_dataset's result}``: every stage under WHOLE_TABLES, the
-    own steps of corridor under OWN_STEPS; two processes at a time."""
+    own steps of corridor under OWN_STEPS, two processes at a time; the environment's
+    path is the shipped Snakemake runs the other tests read (conftest.py)."""
     out = tmp_path_factory.mktemp("code_paths")
-    jobs = [(d, p, changes, None) for d in DATASETS for p, changes in WHOLE_TABLES.items()]
+    results = {
+        ("corridor", "default"): workflow_digests(corridor_run[0]),
+        ("roadscene", "default"): workflow_digests(roadscene_run),
+    }
+    jobs = [
+        (d, p, changes, None)
+        for d in DATASETS
+        for p, changes in WHOLE_TABLES.items()
+        if p != "default"
+    ]
     jobs += [("corridor", p, changes, ",".join(OWN)) for p, changes in OWN_STEPS.items()]
-    results, running = {}, []
+    running = []
     for dataset, path, changes, stages in jobs:
         process = start_child(data_root, out / dataset / path, dataset, changes, stages)
         running.append(((dataset, path), process))
