@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import copy
+import csv
 import re
 import subprocess
 import sys
@@ -131,6 +132,12 @@ def scheduled_stages(workdir: Path, config_path: Path, target: str) -> set[str]:
             match = re.match(r"results/cache/([a-z]+)/", output.strip())
             stages.add(match.group(1) if match else "recall_csv")
     return stages
+
+
+def read_rows(path: Path) -> list[dict]:
+    """A CSV table's rows."""
+    with open(path) as f:
+        return list(csv.DictReader(f))
 
 
 def expected_rows(dataset: dict) -> list[str]:
