@@ -47,15 +47,12 @@ OWN = ("features", "segments", "vocabulary")
 
 
 @pytest.fixture(scope="module")
-def runs(data_root, tmp_path_factory, corridor_run, roadscene_run) -> dict[tuple[str, str], dict]:
+def runs(request, data_root, tmp_path_factory) -> dict[tuple[str, str], dict]:
     """``{(dataset, path): run_dataset's result}``: every stage under WHOLE_TABLES, the
     own steps of corridor under OWN_STEPS, two processes at a time; the environment's
-    path is the shipped Snakemake runs the other tests read (conftest.py)."""
+    path is the shipped Snakemake runs the other tests read (conftest.py), asked for
+    once the children are done, so that another worker may have built them meanwhile."""
     out = tmp_path_factory.mktemp("code_paths")
-    results = {
-        ("corridor", "default"): workflow_digests(corridor_run[0]),
-        ("roadscene", "default"): workflow_digests(roadscene_run),
-    }
     jobs = [
         (d, p, changes, None)
         for d in DATASETS
@@ -63,7 +60,7 @@ def runs(data_root, tmp_path_factory, corridor_run, roadscene_run) -> dict[tuple
         if p != "default"
     ]
     jobs += [("corridor", p, changes, ",".join(OWN)) for p, changes in OWN_STEPS.items()]
-    running = []
+    results, running = {}, []
     for dataset, path, changes, stages in jobs:
         process = start_child(data_root, out / dataset / path, dataset, changes, stages)
         running.append(((dataset, path), process))
@@ -72,6 +69,8 @@ def runs(data_root, tmp_path_factory, corridor_run, roadscene_run) -> dict[tuple
             results[key] = child_result(process, "{} under {}".format(*key))
     for key, process in running:
         results[key] = child_result(process, "{} under {}".format(*key))
+    results["corridor", "default"] = workflow_digests(request.getfixturevalue("corridor_run")[0])
+    results["roadscene", "default"] = workflow_digests(request.getfixturevalue("roadscene_run"))
     return results
 
 
