@@ -189,3 +189,25 @@ def run_stage(
         run_job(job)
         done[stage, key] = path
     return done[stage, key]
+
+
+def table_in_process(config: dict, workdir: Path, dataset: str) -> Path:
+    """``dataset``'s recall table (``results/recall_<dataset>.csv`` under ``workdir``)
+    of ``config``, planned as the Snakefile plans it and computed through the rules' own
+    runners in this process (stores under ``workdir/results/cache``): for tests of what a
+    table holds, where a Snakemake run's job starts would cost more than the work."""
+    from vprflow.core.paths import CACHE, RECALL_CSV
+    from vprflow.planning.config import validate_config
+    from vprflow.planning.plan import build_plan
+    from vprflow.stages.report import write_recall_csv
+
+    plan = build_plan(validate_config(copy.deepcopy(config), SCHEMA))
+    runs, done = plan.runs[dataset], {}
+    data_root = Path(config["data_root"])
+    cache = workdir / CACHE
+    recalls = [run_stage(plan, "recall", run.recall_key, data_root, cache, done) for run in runs]
+    table = workdir / RECALL_CSV.format(dataset=dataset)
+    table.parent.mkdir(parents=True, exist_ok=True)
+    rows = [{"method": run.method, "params": run.row_params} for run in runs]
+    write_recall_csv(dataset, rows, recalls, str(table))
+    return table
