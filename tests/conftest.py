@@ -93,8 +93,20 @@ def corridor_run(tmp_path_factory, data_root):
 
 @pytest.fixture(scope="session")
 def roadscene_run(tmp_path_factory, data_root) -> Path:
-    """The shipped roadscene run (RGB references, thermal queries); its working directory."""
-    return shipped_run(tmp_path_factory, data_root, "roadscene")
+    """The shipped roadscene table (RGB references, thermal queries) planned as the
+    Snakefile plans it and computed in this process (workflow_helpers.table_in_process:
+    a third of a Snakemake run's CPU, its jobs' starts the rest); the working directory,
+    stores under ``results/cache``. The corridor run is the suite's Snakemake run of the
+    shipped data."""
+    from workflow_helpers import repo_config, table_in_process
+
+    def build(workdir: Path) -> None:
+        config = repo_config()
+        config["data_root"] = str(data_root)
+        config["targets"] = ["roadscene"]
+        table_in_process(config, workdir, "roadscene")
+
+    return built_once(tmp_path_factory, "roadscene", build)[0]
 
 
 @pytest.fixture(scope="module", params=("sam", "sam_hq", "sam2"))
@@ -123,9 +135,17 @@ def sam_kind_model(request, tmp_path_factory):
 SLOW_MARKERS = ("workflow", "data", "slurm", "benchmark")
 
 
+# Modules whose tests share nothing but are each a long process of their own: one test
+# is one unit of work, so that both workers take them.
+ONE_TEST_A_UNIT = ("test_benchmarks.py",)
+
+
 def work_unit(nodeid: str) -> str:
-    """The unit of work pytest-xdist hands to one worker: a test's module, or ``slurm``."""
+    """The unit of work pytest-xdist hands to one worker: a test's module, the test itself
+    in :data:`ONE_TEST_A_UNIT`, or ``slurm``."""
     module = nodeid.split("::", 1)[0]
+    if Path(module).name in ONE_TEST_A_UNIT:
+        return nodeid
     return "slurm" if Path(module).name.startswith("test_slurm") else module
 
 
