@@ -42,7 +42,9 @@ def test_corridor_with_tiny_dinov2_and_tiny_sam(tmp_path, data_root):
         "segmenter": "sam_vith",
         "pca": {"dim": 32},
     }
-    # One re-ranked row, on the same (model) features.
+    # A global and a per-segment method (every model stage: features, segments, the
+    # vocabulary on model features) and one re-ranked row, on the same (model) features.
+    config["datasets"]["corridor"]["methods"] = ["anyloc_vlad", "segvlad"]
     config["rerankers"]["mnn"]["features"] = "dinov2_vitg14"
     config["datasets"]["corridor"]["rerank"] = {"anyloc_vlad": ["mnn"]}
     config["vocabulary"]["n_clusters"] = 8
