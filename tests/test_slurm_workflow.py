@@ -1,5 +1,5 @@
 """The real vprflow workflow through a real local SLURM scheduler, sharded, compared
-with a local run. Needs root and scripts/install_slurm.sh; fails under CI=true
+with the same stages run locally. Needs root and scripts/install_slurm.sh; fails under CI=true
 when SLURM cannot start."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from slurm_fixtures import (
     submitted_job_ids,
 )
 from synthetic import make_dataset
-from workflow_helpers import SNAKEFILE, snakemake, toy_config, untimed_table, write_config
+from workflow_helpers import SNAKEFILE, table_in_process, toy_config, untimed_table, write_config
 
 pytestmark = pytest.mark.slurm
 TARGET = "results/recall_toy.csv"
@@ -23,7 +23,8 @@ def test_sharded_workflow_on_slurm_matches_local_run(slurm_cluster, tmp_path):
     for workdir in (local_dir, cluster_dir):
         make_dataset(workdir / "data" / "toy")
     config = toy_config(local_dir / "data", methods=["anyloc_vlad", "segvlad"])
-    snakemake(local_dir, write_config(local_dir, config), TARGET)
+    # The local table through the same stages, unsharded, in this process.
+    local_table = table_in_process(config, local_dir, "toy")
 
     config["data_root"] = str(cluster_dir / "data")
     # 20 images -> 2 shards per per-image stage
@@ -48,5 +49,5 @@ def test_sharded_workflow_on_slurm_matches_local_run(slurm_cluster, tmp_path):
     search_jobs = {p.stem for p in logs if p.relative_to(cluster_dir).parts[2] == "rule_search"}
     assert len(search_jobs) == 3, sorted(str(p) for p in logs)
     # Byte for byte but the milliseconds a query, which time each run's stores.
-    assert untimed_table(cluster_dir / TARGET) == untimed_table(local_dir / TARGET)
+    assert untimed_table(cluster_dir / TARGET) == untimed_table(local_table)
     print(f"SLURM run: {len(job_ids)} jobs in {seconds:.0f} s")
