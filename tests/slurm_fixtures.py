@@ -178,8 +178,8 @@ def snakemake_slurm_command(
     ]  # fmt: skip
     if fast_status_checks:
         cmd += [
-            "--slurm-init-seconds-before-status-checks", "2",
-            "--seconds-between-status-checks", "2",
+            "--slurm-init-seconds-before-status-checks", "1",
+            "--seconds-between-status-checks", "1",
         ]  # fmt: skip
     return cmd + list(extra)
 
