@@ -4,7 +4,7 @@ and how each grows with the number of images.
 
     python benchmarks/bench_city.py --data ../shared/data [--images 2000 8000 16816]
         [--cores 2] [--workdir /tmp/vprflow-city] [--cache /tmp/vprflow-city-data] [--reuse]
-    python benchmarks/bench_city.py --smoke     # 16 images, segvlad only, temporary folders
+    python benchmarks/bench_city.py --smoke     # 16 images, segvlad + mnn only, temporary folders
 
 The images (weight-free, generated once per N and kept under ``--cache``): N_ref =
 round(N * 10,000 / 16,816) references, the rest queries, laid out and named as the
@@ -59,6 +59,8 @@ from PIL import Image
 sys.path.insert(0, str(Path(__file__).parent))
 from bench_workflow import (  # noqa: E402
     REPO,
+    SMOKE_METHODS,
+    SMOKE_RERANK,
     benchmark_rows,
     data_folder,
     one_dataset_config,
@@ -215,14 +217,19 @@ def make_city(
     return target
 
 
-def city_config(workdir: Path, city: Path, methods: list[str] | None) -> Path:
-    """The shipped config over ``city``: corridor's entry with the pitts30k preset's
-    layout and ground truth (the preset's, not restated), shipped shard settings."""
+def city_config(
+    workdir: Path, city: Path, methods: list[str] | None, rerank: dict | None = None
+) -> Path:
+    """The shipped config over ``city``: corridor's entry (or its ``methods`` and
+    ``rerank``) with the pitts30k preset's layout and ground truth (the preset's, not
+    restated), shipped shard settings."""
     preset = presets()["pitts30k"].dataset
     changes = {key: preset[key] for key in ("reference", "query", "ground_truth", "denominator")}
     changes |= {"path": city.name, "source": "synthetic: benchmarks/bench_city.py"}
     if methods:
         changes |= {"methods": methods}
+    if rerank:
+        changes |= {"rerank": rerank}
     _, config_path = one_dataset_config(workdir, city.parent, "city", changes)
     config = yaml.safe_load(config_path.read_text())
     del config["datasets"]["city"]["download"]  # corridor's archive, not this set's
@@ -347,7 +354,7 @@ def run_size(args: argparse.Namespace, data: Path, n_images: int) -> dict:
     start = time.perf_counter()
     city = make_city(data, args.cache, n_images, size)
     generate = time.perf_counter() - start
-    config_path = city_config(workdir, city, args.methods)
+    config_path = city_config(workdir, city, args.methods, args.rerank)
     command = snakemake_command(workdir, config_path, args.cores, "results/recall_city.csv")
     with LoadSampler() as load:
         if args.stop_after:
@@ -546,13 +553,13 @@ def main() -> None:
         "--summarise", action="store_true", help="summarise existing work folders, run nothing"
     )
     parser.add_argument(
-        "--smoke", action="store_true", help=f"{SMOKE_IMAGES} images, segvlad only, temporary"
+        "--smoke", action="store_true", help=f"{SMOKE_IMAGES} images, segvlad + mnn only, temporary"
     )
+    parser.set_defaults(rerank=None)  # corridor's
     args = parser.parse_args()
     data = data_folder(parser, args)
     if args.smoke:
-        # One method that runs every stage, re-rankers included; each job is a Python start.
-        args.images, args.methods = [SMOKE_IMAGES], ["segvlad"]
+        args.images, args.methods, args.rerank = [SMOKE_IMAGES], SMOKE_METHODS, SMOKE_RERANK
         with tempfile.TemporaryDirectory(prefix="vprflow-city-smoke-") as folder:
             args.workdir, args.cache = Path(folder) / "work", Path(folder) / "data"
             summaries = [run_size(args, data, SMOKE_IMAGES)]

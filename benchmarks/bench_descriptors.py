@@ -5,7 +5,7 @@ start-up.
     python benchmarks/bench_descriptors.py --data ../shared/data [--images 256]
         [--threads 2] [--repeats 3] [--workdir /tmp/vprflow-bench-descriptors]
         [--before 2cc3dee]
-    python benchmarks/bench_descriptors.py --smoke   # 8 images, anyloc_vlad and segvlad
+    python benchmarks/bench_descriptors.py --smoke   # 4 images, anyloc_vlad and segvlad
 
 ``--data`` defaults to ``$VPRFLOW_DATA`` (a smoke run without either is skipped, status
 77, as in bench_workflow.py).
@@ -388,7 +388,7 @@ def main() -> None:
     parser.add_argument(
         "--smoke",
         action="store_true",
-        help="8 images, one repeat, anyloc_vlad and segvlad, a temporary workdir",
+        help="4 images, one repeat, anyloc_vlad and segvlad, a temporary workdir",
     )
     args = parser.parse_args()
     data = data_folder(parser, args)
@@ -398,7 +398,7 @@ def main() -> None:
         run(args, data, workdir)
         return
     # A global and a per-segment method: the stage's two kinds of output.
-    args.images, args.repeats = 8, 1
+    args.images, args.repeats = 4, 1
     with tempfile.TemporaryDirectory(prefix="vprflow-bench-smoke-") as workdir:
         run(args, data, Path(workdir), ["anyloc_vlad", "segvlad"])
 

@@ -141,7 +141,9 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=2, help="torch and host threads")
     parser.add_argument("--repeats", type=int, default=2, help="runs of each (best kept)")
     parser.add_argument("--before", default=BEFORE, help="old stage: git revision or file")
-    parser.add_argument("--smoke", action="store_true", help="tiny-dinov2, 4 images, once")
+    parser.add_argument(
+        "--smoke", action="store_true", help="tiny-dinov2, 4 images, once, a 256-side matmul"
+    )
     args = parser.parse_args()
     if args.smoke:
         args.cases, args.images, args.repeats = "tiny-dinov2", 4, 1
@@ -179,7 +181,7 @@ def main() -> None:
             height, width = CASES[case][1]
             flops = forward_flops(backbone, height, width)
             del backbone
-            side = 4096 if device.type == "cuda" else 1024
+            side = 256 if args.smoke else 4096 if device.type == "cuda" else 1024
             rate = matmul_rate(device, resolve_dtype(dtype, device), side)
             floor_ms = 1000 * flops / rate
             best: dict[tuple, tuple] = {}

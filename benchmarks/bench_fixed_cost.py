@@ -3,7 +3,7 @@
 
     python benchmarks/bench_fixed_cost.py --data ../shared/data [--images 2] [--repeats 3]
         [--workdir /tmp/vprflow-fixed-cost] [--methods NAME ...]
-    python benchmarks/bench_fixed_cost.py --smoke     # segvlad only, one repeat
+    python benchmarks/bench_fixed_cost.py --smoke     # segvlad + mnn only, one repeat
 
 The workflow runs on ``--images`` corridor images (half references, half queries: the
 ``bench_workflow.py`` set), corridor's methods and re-rankers, on one core, so that no
@@ -56,6 +56,8 @@ from vprflow.stages.jobs import RUNNERS
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_workflow import (  # noqa: E402
     RESOURCES,
+    SMOKE_METHODS,
+    SMOKE_RERANK,
     cycled_config,
     data_folder,
     run_snakemake,
@@ -145,7 +147,7 @@ def run_jobs(args: argparse.Namespace, data: Path) -> list[dict]:
     with its ``job`` and ``stage`` seconds added."""
     if args.workdir.exists():
         shutil.rmtree(args.workdir)
-    _, config_path = cycled_config(data, args.workdir, args.images, args.methods)
+    _, config_path = cycled_config(data, args.workdir, args.images, args.methods, args.rerank)
     site, jobs_file = args.workdir / "site", args.workdir / "jobs.jsonl"
     site.mkdir()
     (site / "sitecustomize.py").write_text(
@@ -213,15 +215,15 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/vprflow-fixed-cost"))
     parser.add_argument("--methods", nargs="+", help="of the config (default: corridor's)")
     parser.add_argument(
-        "--smoke", action="store_true", help="segvlad only, one repeat, a temporary workdir"
+        "--smoke", action="store_true", help="segvlad + mnn only, one repeat, a temporary workdir"
     )
+    parser.set_defaults(rerank=None)  # corridor's
     args = parser.parse_args()
     data = data_folder(parser, args)
     if not args.smoke:
         report(args, run_jobs(args, data))
         return
-    # One method that runs every stage (as bench_workflow.py --smoke).
-    args.repeats, args.methods = 1, ["segvlad"]
+    args.repeats, args.methods, args.rerank = 1, SMOKE_METHODS, SMOKE_RERANK
     with tempfile.TemporaryDirectory(prefix="vprflow-fixed-cost-smoke-") as workdir:
         args.workdir = Path(workdir)
         report(args, run_jobs(args, data))

@@ -5,7 +5,7 @@ beside its arithmetic floor on the device.
     python benchmarks/bench_published.py --data ../shared/data [--device auto]
         [--dtype float32|bfloat16] [--images N] [--size published|tiny]
         [--weights DIR] [--workdir DIR] [--cores 16] [--timeout S]
-    python benchmarks/bench_published.py --smoke    # tiny models, 16 images, CPU, ~1-2 min
+    python benchmarks/bench_published.py --smoke    # tiny models, 4 images, segvlad, CPU
     python benchmarks/bench_published.py --wheels [--image-freeze FILE]
 
 What runs: random-weight checkpoints saved like the hub's (``--size published``: DINOv2
@@ -268,8 +268,8 @@ def dataset(args: argparse.Namespace, data: Path) -> tuple[dict, Path, str, int,
     reference and query counts."""
     changes = {
         "resolution": list(RESOLUTION),
-        "methods": METHODS,
-        "rerank": {method: [RERANKER] for method in METHODS},
+        "methods": args.methods,
+        "rerank": {method: [RERANKER] for method in args.methods},
         "defaults": {"features": BACKBONE, "segmenter": SEGMENTER, "pca": args.pca},
     }
     settings = {"device": args.device}
@@ -558,21 +558,24 @@ def main() -> None:
     parser.add_argument("--points-per-side", type=int, default=32)
     parser.add_argument("--clusters", type=int, default=32)
     parser.add_argument("--matmul-side", type=int, default=8192)
-    parser.add_argument("--smoke", action="store_true", help="tiny models, 16 images, CPU")
+    parser.add_argument("--smoke", action="store_true", help="tiny models, 4 images, segvlad, CPU")
     parser.add_argument("--wheels", action="store_true", help="print the wheels to carry")
     parser.add_argument(
         "--image-freeze", type=Path, help="with --wheels: the GPU machine's `pip freeze`"
     )
     args = parser.parse_args()
-    args.pca = {"dim": 128, "whiten": False}
+    args.pca, args.methods = {"dim": 128, "whiten": False}, METHODS
     if args.wheels:
         wheels(args.image_freeze)
         return
     data = data_folder(parser, args)
     if not args.smoke:
         sys.exit(run(args, data))
-    # Every stage at its smallest: 8 references, 8 queries, 16 prompts an image.
-    args.size, args.device, args.images, args.cores = "tiny", "cpu", 16, 2
+    # Every stage at its smallest: 2 references, 2 queries (one reference leaves the PCA
+    # too few segments), 16 prompts an image; segvlad alone, whose DAG holds anyloc_vlad's
+    # stages and the segments. An image costs ~1 s of CPU (features and segments).
+    args.size, args.device, args.images, args.cores = "tiny", "cpu", 4, 2
+    args.methods = ["segvlad"]
     args.points_per_side, args.clusters, args.matmul_side = 4, 8, 512
     args.pca = {"dim": 8, "whiten": False}
     with tempfile.TemporaryDirectory(prefix="vprflow-bench-published-smoke-") as folder:

@@ -423,11 +423,12 @@ def main() -> None:
         print(json.dumps(row))
         return
     if args.smoke:
-        # Both tables, each at its smallest: the tiniest SAM (all filters off, so the box
-        # NMS has candidates; a batch of 2 images), then decoding 4 prompts.
-        args.device, args.models, args.sides = "cpu", [SMOKE_MODEL], [4]
+        # Both tables, each at its smallest: the tiniest SAM on 2 x 2 prompts (all filters
+        # off, so the box NMS has candidates; a batch of 2 images), then decoding one batch
+        # of 2 prompts. Each row is a process that imports transformers (~4 s of CPU).
+        args.device, args.models, args.sides = "cpu", [SMOKE_MODEL], [2]
         args.dtypes, args.filters, args.repeats, args.image_batches = ["float32"], ["none"], 1, [2]
-        args.kinds, args.prompts, args.points_per_batch = ["sam"], 4, [4]
+        args.kinds, args.prompts, args.points_per_batch = ["sam"], 2, [2]
         failed = masks_table(args)
         print()
         failed += decoders_table(args)

@@ -3,7 +3,7 @@ timed per stage from Snakemake's ``benchmark:`` files.
 
     python benchmarks/bench_workflow.py --data ../shared/data [--images 2000]
         [--shard 256] [--cores 2] [--workdir /tmp/vprflow-bench] [--methods NAME ...]
-    python benchmarks/bench_workflow.py --smoke     # 8 images, shard 4, segvlad only
+    python benchmarks/bench_workflow.py --smoke     # 4 images, shard 2, segvlad + mnn only
 
 Half the images are references, half queries (query i = reference i's corridor image
 with another index, so every query has one positive by construction: VPR-Bench ground
@@ -38,6 +38,9 @@ from vprflow.stages import runner
 
 REPO = Path(__file__).resolve().parents[1]
 SKIPPED = 77  # the exit status test harnesses (automake, meson, tests/test_benchmarks.py) skip
+# The smoke runs' methods (this script's, bench_fixed_cost.py's, bench_city.py's): one that
+# runs every stage, re-ranked by one re-ranker; each job costs a Python start-up.
+SMOKE_METHODS, SMOKE_RERANK = ["segvlad"], {"segvlad": ["mnn"]}
 
 
 def make_set(source: Path, target: Path, n_images: int) -> None:
@@ -61,14 +64,20 @@ def make_set(source: Path, target: Path, n_images: int) -> None:
 
 
 def cycled_config(
-    data: Path, workdir: Path, n_images: int, methods: list[str] | None = None, **settings
+    data: Path,
+    workdir: Path,
+    n_images: int,
+    methods: list[str] | None = None,
+    rerank: dict | None = None,
+    **settings,
 ) -> tuple[dict, Path]:
     """The shipped config with its corridor entry as the only dataset, ``cycled``, over
     ``n_images`` corridor images cycled under ``workdir/data``, with corridor's methods
-    or ``methods``; written to ``workdir/config.yaml``. ``settings`` are further
-    top-level keys."""
+    and re-rankers or ``methods`` and ``rerank``; written to ``workdir/config.yaml``.
+    ``settings`` are further top-level keys."""
     make_set(data / "corridor", workdir / "data" / "cycled", n_images)
     changes = {"path": "cycled"} | ({"methods": methods} if methods else {})
+    changes |= {"rerank": rerank} if rerank else {}
     return one_dataset_config(workdir, workdir / "data", "cycled", changes, **settings)
 
 
@@ -164,6 +173,7 @@ def run(args: argparse.Namespace, data: Path) -> None:
         args.workdir,
         args.images,
         args.methods,
+        args.rerank,
         shard_size=args.shard,
         search_shard_size=args.shard,
     )
@@ -193,15 +203,16 @@ def main() -> None:
     parser.add_argument("--workdir", type=Path, default=Path("/tmp/vprflow-bench"))
     parser.add_argument("--methods", nargs="+", help="of the config (default: corridor's)")
     parser.add_argument(
-        "--smoke", action="store_true", help="8 images, shard 4, segvlad only, a temporary workdir"
+        "--smoke", action="store_true", help="4 images, shard 2, segvlad + mnn, a temporary workdir"
     )
+    parser.set_defaults(rerank=None)  # corridor's
     args = parser.parse_args()
     data = data_folder(parser, args)
     if not args.smoke:
         run(args, data)
         return
-    # One method that runs every stage; each job costs a Python start-up.
-    args.images, args.shard, args.methods = 8, 4, ["segvlad"]
+    # Two shards a sharded stage, as the full run has many.
+    args.images, args.shard, args.methods, args.rerank = 4, 2, SMOKE_METHODS, SMOKE_RERANK
     with tempfile.TemporaryDirectory(prefix="vprflow-bench-smoke-") as workdir:
         args.workdir = Path(workdir)
         run(args, data)
