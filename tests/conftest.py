@@ -149,11 +149,21 @@ def work_unit(nodeid: str) -> str:
     return "slurm" if Path(module).name.startswith("test_slurm") else module
 
 
+# The longest units, first of all: the SLURM tests wait on the scheduler for minutes, the
+# code paths' runs and the corridor run take a worker's CPU for minutes.
+LONGEST = ("slurm", "tests/test_code_paths.py", "tests/test_real_data.py")
+
+
 def pytest_collection_modifyitems(items):
     slow = {
         work_unit(item.nodeid) for item in items if any(map(item.get_closest_marker, SLOW_MARKERS))
     }
-    items.sort(key=lambda item: work_unit(item.nodeid) not in slow)
+
+    def order(item) -> tuple[bool, int]:
+        unit = work_unit(item.nodeid)
+        return unit not in slow, LONGEST.index(unit) if unit in LONGEST else len(LONGEST)
+
+    items.sort(key=order)
 
 
 class WorkUnits:
