@@ -13,6 +13,13 @@ import pytest
 from filelock import FileLock
 from slurm_fixtures import slurm_cluster  # noqa: F401  (re-exported fixture)
 
+# Idle OpenMP threads (torch's) sleep instead of spinning, as in the workflow's jobs
+# (vprflow.stages.runner): beside the other xdist workers, spinning threads took a fifth
+# of the CPU the model tests used (60 against 49 CPU s for test_sam_generator, test_vit
+# and test_trunks on three workers, the same wall time). Set before a test imports torch;
+# a user's own value wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 # The SLURM executor plugin, where installed (the `slurm` extra), runs `scontrol show
 # config` when Snakemake imports it, at every start: 9 s where a slurm.conf names a
 # controller that does not answer (or its DNS look-up hangs). Local runs need no cluster,
