@@ -46,7 +46,6 @@ or faiss came with them; the first row is ``python -c pass``, the floor.
 from __future__ import annotations
 
 import argparse
-import inspect
 import json
 import os
 import shutil
@@ -61,13 +60,13 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_fixed_cost import fastest, stage_module  # noqa: E402
 from bench_workflow import REPO, cycled_config, data_folder, run_snakemake  # noqa: E402
 from revisions import module_at  # noqa: E402
 
 from vprflow.core import stores  # noqa: E402
 from vprflow.planning.config import validate_config  # noqa: E402
 from vprflow.planning.plan import STAGES, build_plan  # noqa: E402
-from vprflow.stages.jobs import RUNNERS  # noqa: E402
 from vprflow.stages.runner import run_stage  # noqa: E402
 
 # The commit this benchmark's comparison starts from: before the
@@ -307,23 +306,9 @@ def startup(repeats: int) -> list[tuple]:
     """``(stage, process s, imports s, torch, faiss)`` per stage of ``plan.STAGES``, each
     the fastest of ``repeats`` fresh processes; first ``python -c pass``."""
 
-    def process(code: str) -> tuple[float, str]:
-        best, out = float("inf"), ""
-        for _ in range(repeats):
-            start = time.perf_counter()
-            result = subprocess.run(
-                [sys.executable, "-c", code], check=True, capture_output=True, text=True
-            )
-            seconds = time.perf_counter() - start
-            if seconds < best:
-                best, out = seconds, result.stdout
-        return best, out
-
-    rows = [("(python -c pass)", process("pass")[0], 0.0, False, False)]
+    rows = [("(python -c pass)", fastest("pass", repeats)[0], 0.0, False, False)]
     for name in STAGES:
-        # The module the stage's runner imports (its first line).
-        module = inspect.getsource(RUNNERS[name]).split("from ", 2)[1].split()[0]
-        seconds, out = process(STARTUP.format(module=module))
+        seconds, out = fastest(STARTUP.format(module=stage_module(name)), repeats)
         imports, torch, faiss = out.split()
         rows.append((name, seconds, float(imports), torch == "True", faiss == "True"))
     return rows
