@@ -3,7 +3,6 @@ model of each SAM kind."""
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 from collections.abc import Callable
@@ -51,15 +50,15 @@ def data_root() -> Path:
     return Path(value).resolve()
 
 
-def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> tuple[Path, object]:
-    """``(folder, build(folder))`` with ``build`` run once per pytest run, however many
+def built_once(tmp_path_factory, name: str, build: Callable[[Path], None]) -> Path:
+    """A folder ``name`` filled by ``build(folder)`` once per pytest run, however many
     pytest-xdist workers ask: the first builds it under a file lock while the others
-    wait, then read its result (JSON) from the folder. A build that raised leaves no
-    result, so the next worker to ask builds again (and reports its own failure)."""
+    wait. A build that raised leaves no mark of being done, so the next worker to ask
+    builds again (and reports its own failure)."""
     root = tmp_path_factory.getbasetemp()
     if os.environ.get("PYTEST_XDIST_WORKER"):
         root = root.parent  # the run's folder, above each worker's own
-    folder, done = root / name, root / f"{name}.json"
+    folder, done = root / name, root / f"{name}.done"
     with FileLock(root / f"{name}.lock"):
         if not done.exists():
             shutil.rmtree(folder, ignore_errors=True)
@@ -68,33 +67,27 @@ def built_once(tmp_path_factory, name: str, build: Callable[[Path], object]) -> 
             with pytest.MonkeyPatch.context() as patch:
                 for variable, value in NO_CLUSTER.items():
                     patch.setenv(variable, value)
-                result = build(folder)
-            done.write_text(json.dumps(result))
-    return folder, json.loads(done.read_text())
+                build(folder)
+            done.touch()
+    return folder
 
 
-def shipped_run(tmp_path_factory, data_root: Path, dataset: str, *extra: list[str]) -> Path:
-    """The shipped config's default run (`snakemake` with no target: the dataset's tables
-    and figures) with ``targets: [dataset]``, then each of ``extra``'s Snakemake
-    arguments; built once for all pytest-xdist workers. Returns the working directory."""
+@pytest.fixture(scope="session")
+def corridor_run(tmp_path_factory, data_root):
+    """The shipped config's default run (`snakemake` with no target: corridor's tables and
+    figures), then `snakemake --report report.html`; built once for all pytest-xdist
+    workers and shared by the tests that read them. Returns ``(workdir, report path)``."""
     from workflow_helpers import repo_config, snakemake, write_config
 
     def build(workdir: Path) -> None:
         config = repo_config()
         config["data_root"] = str(data_root)
-        config["targets"] = [dataset]
+        config["targets"] = ["corridor"]
         config_path = write_config(workdir, config)
-        for arguments in ([], *extra):
-            snakemake(workdir, config_path, *arguments)
+        snakemake(workdir, config_path)
+        snakemake(workdir, config_path, "--report", "report.html")
 
-    return built_once(tmp_path_factory, dataset, build)[0]
-
-
-@pytest.fixture(scope="session")
-def corridor_run(tmp_path_factory, data_root):
-    """The shipped corridor run, then `snakemake --report report.html`, shared by the
-    tests that read them. Returns ``(workdir, report path)``."""
-    workdir = shipped_run(tmp_path_factory, data_root, "corridor", ["--report", "report.html"])
+    workdir = built_once(tmp_path_factory, "corridor", build)
     return workdir, workdir / "report.html"
 
 
@@ -113,7 +106,7 @@ def roadscene_run(tmp_path_factory, data_root) -> Path:
         config["targets"] = ["roadscene"]
         table_in_process(config, workdir, "roadscene")
 
-    return built_once(tmp_path_factory, "roadscene", build)[0]
+    return built_once(tmp_path_factory, "roadscene", build)
 
 
 @pytest.fixture(scope="module", params=("sam", "sam_hq", "sam2"))

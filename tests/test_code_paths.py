@@ -39,11 +39,16 @@ WHOLE_TABLES = {
     "machine_kernels": merged("openblas_unset", "two_threads", "aten_avx512", "mkl_avx")
 }
 OWN_STEPS = {
-    "corridor": {name: SINGLE[name] for name in ("openblas_haswell", "openblas_sandybridge")},
-    "roadscene": {"openblas_sandybridge": SINGLE["openblas_sandybridge"]},
+    "corridor": {
+        "openblas_haswell": SINGLE["openblas_haswell"],
+        "openblas_sandybridge": SINGLE["openblas_sandybridge"],
+        "scalar_one_thread": SCALAR,
+    },
+    "roadscene": {
+        "openblas_sandybridge": SINGLE["openblas_sandybridge"],
+        "scalar_one_thread": SCALAR,
+    },
 }
-for steps in OWN_STEPS.values():
-    steps["scalar_one_thread"] = SCALAR
 DATASETS = ("corridor", "roadscene")
 OWN = ("features", "segments", "vocabulary")
 

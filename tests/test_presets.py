@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 from preset_miniatures import MINIATURES, write_image
 from script_helpers import load_script
-from workflow_helpers import repo_config, run_stage, snakemake, write_config
+from workflow_helpers import repo_config, scheduled_files, write_config, write_table
 
 from vprflow.core.errors import ConfigError, DatasetError, PlanError
 from vprflow.core.paths import CACHE, RECALL_CSV, store_path
@@ -30,7 +30,6 @@ from vprflow.data.presets import (
 from vprflow.models.kinds import TRAINED_KINDS
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
-from vprflow.stages.report import write_recall_csv
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
@@ -414,22 +413,13 @@ def test_every_presets_table_comes_from_its_data_alone(tmp_path, caplog):
         }
     path = write_config(tmp_path, config)
     targets = [RECALL_CSV.format(dataset=name) for name in MINIATURES]
-    dry_run = snakemake(tmp_path, path, "-n", *targets).stdout
-    outputs = re.findall(r"^\s+output: (.+)$", dry_run, flags=re.MULTILINE)
     store = re.compile(rf"{CACHE}/[a-z_]+/[0-9a-f]{{16}}\.zarr")  # not a shard
-    scheduled = {o for line in outputs for o in line.split(", ") if store.fullmatch(o)}
+    scheduled = {o for o in scheduled_files(tmp_path, path, *targets) if store.fullmatch(o)}
     plan = build_plan(validate_config(config, SCHEMA))
     done: dict = {}
     caplog.set_level(logging.INFO, logger="vprflow")
     for name in MINIATURES:
-        runs = plan.runs[name]
-        recalls = [run_stage(plan, "recall", run.recall_key, data, tmp_path, done) for run in runs]
-        write_recall_csv(
-            name,
-            [{"method": run.method, "params": run.row_params} for run in runs],
-            recalls,
-            str(tmp_path / RECALL_CSV.format(dataset=name)),
-        )
+        write_table(plan, name, data, tmp_path, done)
     # What ran here is what the Snakefile schedules: every store, no other.
     assert {store_path(stage, key) for stage, key in done} == scheduled
     for name in MINIATURES:

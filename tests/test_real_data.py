@@ -7,7 +7,7 @@ import csv
 from pathlib import Path
 
 import pytest
-from workflow_helpers import expected_rows, repo_config, scheduled_outputs, write_config
+from workflow_helpers import expected_rows, repo_config, scheduled_files, write_config
 
 pytestmark = [pytest.mark.workflow, pytest.mark.data]
 
@@ -59,9 +59,8 @@ def test_roadscene_rgb_thermal_methods_beat_chance(roadscene_run, data_root, tmp
     rows = table(roadscene_run, "roadscene")
     # Its table is computed in-process (conftest.py); `snakemake` plans its figures too.
     config = repo_config() | {"data_root": str(data_root), "targets": ["roadscene"]}
-    scheduled = scheduled_outputs(tmp_path, write_config(tmp_path, config), "all")
-    outputs = {output for line in scheduled for output in line.split(", ")}
-    assert set(figures("roadscene", rows)) <= outputs
+    scheduled = scheduled_files(tmp_path, write_config(tmp_path, config), "all")
+    assert set(figures("roadscene", rows)) <= scheduled
     # 50 pairs, one positive each: chance Recall@1 is 0.02, Recall@10 0.2.
     for method, row in rows.items():
         assert row["n_queries"] == "50" and row["ground_truth"] == "pairs"

@@ -114,23 +114,29 @@ def snakemake(
     return result
 
 
-def scheduled_outputs(workdir: Path, config_path: Path, target: str) -> list[str]:
-    """Outputs a dry run would (re)build for ``target``."""
-    result = snakemake(workdir, config_path, "-n", target)
+def scheduled_outputs(workdir: Path, config_path: Path, *targets: str) -> list[str]:
+    """The ``output:`` lines of a dry run for ``targets``: each job's outputs, joined by
+    ", "."""
+    result = snakemake(workdir, config_path, "-n", *targets)
     text = result.stdout + result.stderr
     if "Nothing to be done" in text:
         return []
     return re.findall(r"^\s+output: (.+)$", text, flags=re.MULTILINE)
 
 
+def scheduled_files(workdir: Path, config_path: Path, *targets: str) -> set[str]:
+    """Every output a dry run for ``targets`` would (re)build."""
+    lines = scheduled_outputs(workdir, config_path, *targets)
+    return {output.strip() for line in lines for output in line.split(", ")}
+
+
 def scheduled_stages(workdir: Path, config_path: Path, target: str) -> set[str]:
     """Stage names (``results/cache/<stage>/...``), and ``recall_csv`` for the table, that
     a dry run schedules."""
     stages = set()
-    for line in scheduled_outputs(workdir, config_path, target):
-        for output in line.split(", "):
-            match = re.match(r"results/cache/([a-z]+)/", output.strip())
-            stages.add(match.group(1) if match else "recall_csv")
+    for output in scheduled_files(workdir, config_path, target):
+        match = re.match(r"results/cache/([a-z]+)/", output)
+        stages.add(match.group(1) if match else "recall_csv")
     return stages
 
 
@@ -196,15 +202,20 @@ def table_in_process(config: dict, workdir: Path, dataset: str) -> Path:
     of ``config``, planned as the Snakefile plans it and computed through the rules' own
     runners in this process (stores under ``workdir/results/cache``): for tests of what a
     table holds, where a Snakemake run's job starts would cost more than the work."""
-    from vprflow.core.paths import CACHE, RECALL_CSV
     from vprflow.planning.config import validate_config
     from vprflow.planning.plan import build_plan
-    from vprflow.stages.report import write_recall_csv
 
     plan = build_plan(validate_config(copy.deepcopy(config), SCHEMA))
-    runs, done = plan.runs[dataset], {}
-    data_root = Path(config["data_root"])
-    cache = workdir / CACHE
+    return write_table(plan, dataset, Path(config["data_root"]), workdir, {})
+
+
+def write_table(plan, dataset: str, data_root: Path, workdir: Path, done: dict) -> Path:
+    """:func:`table_in_process` of a ``plan`` already made; ``done`` as :func:`run_stage`'s,
+    with every store run for the table added."""
+    from vprflow.core.paths import CACHE, RECALL_CSV
+    from vprflow.stages.report import write_recall_csv
+
+    runs, cache = plan.runs[dataset], workdir / CACHE
     recalls = [run_stage(plan, "recall", run.recall_key, data_root, cache, done) for run in runs]
     table = workdir / RECALL_CSV.format(dataset=dataset)
     table.parent.mkdir(parents=True, exist_ok=True)
