@@ -30,8 +30,8 @@ log = logging.getLogger("vprflow")
 
 
 def compute_descriptors(job: Job) -> None:
-    """Per-image descriptors of one method over the job's images, as its registry entry
-    computes them.
+    """Per-image descriptors of one method over the job's images, as its aggregator's
+    entry (:data:`vprflow.aggregation.aggregators.AGGREGATORS`) computes them.
 
     Aggregators with ``output="segments"`` write a ragged ``descriptors`` array (one
     row per segment, offsets per image), projected by the ``pca`` input when there is
