@@ -194,14 +194,14 @@ def test_the_recall_store_and_table_count_queries_without_positive_and_the_log_n
     from vprflow.core import stores
     from vprflow.planning.plan import RECALL_DEPTH
     from vprflow.stages.jobs import Job
-    from vprflow.stages.recall import evaluate
+    from vprflow.stages.recall import compute_recall
     from vprflow.stages.report import write_recall_csv
 
     dataset, descriptors = toy_stores(tmp_path, [[0], [], [2], [], [1]])
     record = {"params": {"denominator": denominator, RECALL_DEPTH: 3, "recall_at": [1, 2]}}
     out = tmp_path / "recall.zarr"
     with caplog.at_level("WARNING", logger="vprflow"):
-        evaluate(Job(record, {"dataset": dataset, "descriptors": descriptors}, str(out)))
+        compute_recall(Job(record, {"dataset": dataset, "descriptors": descriptors}, str(out)))
     attrs = stores.open_store(out).attrs
     assert attrs["n_queries"] == counted
     assert attrs["n_queries_without_positive"] == 2

@@ -39,10 +39,10 @@ from vprflow.stages.readers import (
     read_pca,
     read_search,
 )
-from vprflow.stages.recall import evaluate
+from vprflow.stages.recall import compute_recall
 from vprflow.stages.report import write_predictions, write_recall_csv
 from vprflow.stages.retrieval import retrieve
-from vprflow.stages.search import search_shard
+from vprflow.stages.search import compute_search
 
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
@@ -675,7 +675,7 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     inputs = {name: runner.path(*ref) for name, ref in search.inputs.items()}
     spec = {**search.record["params"], "index": index, "params": options}
     out = str(tmp_path / "search.zarr")
-    search_shard(Job({**search.record, "params": spec}, inputs, out))
+    compute_search(Job({**search.record, "params": spec}, inputs, out))
     distances, indices = read_search(out)
     flat_distances, flat_indices = read_search(stage_path(pipeline, "search"))
     np.testing.assert_array_equal(indices, flat_indices)
@@ -688,7 +688,7 @@ def test_other_indexes_search_the_same_descriptors(pipeline, tmp_path, index, op
     result = str(tmp_path / "recall.zarr")
     dataset = stage_path(pipeline, "dataset")
     both = {"search": out, "exact_search": out}
-    evaluate(
+    compute_recall(
         Job(
             recall.record,
             {"dataset": dataset, "descriptors": inputs["descriptors"], **both},

@@ -1,7 +1,9 @@
 """The workflow's stages, one module per Snakemake rule, named after it.
 
-Each stage's function takes one :class:`~vprflow.stages.base.Job` (its record, input
-stores by name, output, image range and how to run) and writes its output store.
+Each stage's function, named ``<verb>_<stage>`` (``build_images``, ``compute_features``,
+``fit_pca``, ``compute_recall``, ...), takes one :class:`~vprflow.stages.base.Job` (its
+record, input stores by name, output, image range and how to run) and writes its output
+store.
 Later stages read a store through :mod:`.readers` (every store's arrays and their
 names) and a method's ranking through :mod:`.retrieval`; no stage imports another.
 :mod:`.jobs` binds each row of :data:`vprflow.planning.plan.STAGES` to its function and

@@ -95,7 +95,7 @@ def build_images(job: Job) -> None:
     )
 
 
-def build_truth(job: Job) -> None:
+def build_dataset(job: Job) -> None:
     """The ``dataset`` rule: the ground truth of the images in the ``images`` input (the
     images store), stored with that store's arrays and counts, so recall, the report and
     the figures read one store. The ground-truth files as read here must hold what the

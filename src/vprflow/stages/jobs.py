@@ -35,10 +35,10 @@ def _build_images(job: Job) -> None:
     build_images(job)
 
 
-def _build_truth(job: Job) -> None:
-    from vprflow.stages.dataset import build_truth
+def _build_dataset(job: Job) -> None:
+    from vprflow.stages.dataset import build_dataset
 
-    build_truth(job)
+    build_dataset(job)
 
 
 def _compute_features(job: Job) -> None:
@@ -60,9 +60,9 @@ def _fit_vocabulary(job: Job) -> None:
 
 
 def _fit_pca(job: Job) -> None:
-    from vprflow.stages.pca import fit_pca_stage
+    from vprflow.stages.pca import fit_pca
 
-    fit_pca_stage(job)
+    fit_pca(job)
 
 
 def _compute_descriptors(job: Job) -> None:
@@ -71,10 +71,10 @@ def _compute_descriptors(job: Job) -> None:
     compute_descriptors(job)
 
 
-def _search_shard(job: Job) -> None:
-    from vprflow.stages.search import search_shard
+def _compute_search(job: Job) -> None:
+    from vprflow.stages.search import compute_search
 
-    search_shard(job)
+    compute_search(job)
 
 
 def _compute_matches(job: Job) -> None:
@@ -83,30 +83,30 @@ def _compute_matches(job: Job) -> None:
     compute_matches(job)
 
 
-def _rerank(job: Job) -> None:
-    from vprflow.stages.rerank import rerank_stage
+def _compute_rerank(job: Job) -> None:
+    from vprflow.stages.rerank import compute_rerank
 
-    rerank_stage(job)
+    compute_rerank(job)
 
 
-def _evaluate(job: Job) -> None:
-    from vprflow.stages.recall import evaluate
+def _compute_recall(job: Job) -> None:
+    from vprflow.stages.recall import compute_recall
 
-    evaluate(job)
+    compute_recall(job)
 
 
 RUNNERS: dict[str, Callable[[Job], None]] = {
     "images": _build_images,
-    "dataset": _build_truth,
+    "dataset": _build_dataset,
     "features": _compute_features,
     "segments": _compute_segments,
     "vocabulary": _fit_vocabulary,
     "pca": _fit_pca,
     "descriptors": _compute_descriptors,
-    "search": _search_shard,
+    "search": _compute_search,
     "matches": _compute_matches,
-    "rerank": _rerank,
-    "recall": _evaluate,
+    "rerank": _compute_rerank,
+    "recall": _compute_recall,
 }
 
 

@@ -13,11 +13,11 @@ from vprflow.stages.image_descriptors import image_descriptor
 from vprflow.stages.readers import Dataset
 
 
-def fit_pca_stage(job: Job) -> None:
+def fit_pca(job: Job) -> None:
     """PCA fitted on a random sample of the reference images' segment descriptors,
     computed by the method's aggregator with the options ``fit_on`` (SegVLAD: at
     ``pca.fit_order``, docs/methods.md §5)."""
-    from vprflow.aggregation.pca import fit_pca
+    from vprflow.aggregation import pca
 
     inputs, record, params = job.inputs, job.record, job.params
     dataset = Dataset(inputs["images"])
@@ -43,7 +43,7 @@ def fit_pca_stage(job: Job) -> None:
                 filled += len(rows)
     if sample is None:
         raise ValueError(f"{segments_path}: the reference images have no segments to fit PCA on")
-    fitted = fit_pca(
+    fitted = pca.fit_pca(
         sample, params["dim"], params["whiten"], params["seed"], solver=params["solver"]
     )
     with stores.atomic_store(job.out, {"stage": "pca", "record": record}) as group:

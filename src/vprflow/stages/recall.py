@@ -46,7 +46,7 @@ def log_without_positive(dataset: Dataset, queries: np.ndarray, denominator: str
     )
 
 
-def evaluate(job: Job) -> None:
+def compute_recall(job: Job) -> None:
     """Rank the references for every query (:func:`retrieve`, over the ``search`` input
     for per-segment descriptors, or the re-ranked lists of a ``rerank`` input) and
     compute Recall@N, mAP@N and the precision-recall summary of the top-1 matches, by the

@@ -26,7 +26,7 @@ from vprflow.stages.readers import Matches
 log = logging.getLogger("vprflow")
 
 
-def rerank_stage(job: Job) -> None:
+def compute_rerank(job: Job) -> None:
     """Store ``ranking [Nq, D]`` (reference indices, -1 = none; the top ``K = top_k``
     re-ordered, then the rest of the retrieval), ``scores [Nq, D]`` (the re-ranker's,
     higher is better; see :func:`vprflow.evaluation.rerank.rerank` for the entries not

@@ -30,7 +30,7 @@ log = logging.getLogger("vprflow")
 QUERY_BLOCK = 1 << 16
 
 
-def search_shard(job: Job) -> None:
+def compute_search(job: Job) -> None:
     """Top-``top_segments`` reference segments of the job's reference images
     (``start..stop``) for every query segment: ``distances [Sq, k']`` float32,
     ``indices [Sq, k']`` int64 (global reference segment rows), k' = min(top_segments,
