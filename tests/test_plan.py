@@ -11,7 +11,7 @@ from workflow_helpers import REPO
 from vprflow.aggregation.aggregators import AGGREGATORS
 from vprflow.core.errors import ConfigError, PlanError
 from vprflow.planning.config import validate_config
-from vprflow.planning.plan import RECALL_DEPTH, build_plan, content_key
+from vprflow.planning.plan import build_plan, content_key
 from vprflow.search.indexes import SEARCH_INDEXES
 
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
@@ -629,7 +629,7 @@ def test_the_rerank_stage_retrieves_as_deep_as_the_recall_reads(config):
     recall = plan.get("recall", run.recall_key)
     rerank = plan.get("rerank", recall.inputs["rerank"][1])
     matches = plan.get(*rerank.inputs["matches"])
-    assert matches.record["params"]["depth"] == recall.record["params"][RECALL_DEPTH] == 20
+    assert matches.record["params"]["depth"] == recall.record["params"]["depth"] == 20
 
 
 def test_the_rerankers_of_a_method_on_the_same_features_and_top_k_share_one_matches_store():

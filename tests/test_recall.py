@@ -192,13 +192,12 @@ def test_the_recall_store_and_table_count_queries_without_positive_and_the_log_n
     import csv
 
     from vprflow.core import stores
-    from vprflow.planning.plan import RECALL_DEPTH
     from vprflow.stages.jobs import Job
     from vprflow.stages.recall import compute_recall
     from vprflow.stages.report import write_recall_csv
 
     dataset, descriptors = toy_stores(tmp_path, [[0], [], [2], [], [1]])
-    record = {"params": {"denominator": denominator, RECALL_DEPTH: 3, "recall_at": [1, 2]}}
+    record = {"params": {"denominator": denominator, "depth": 3, "recall_at": [1, 2]}}
     out = tmp_path / "recall.zarr"
     with caplog.at_level("WARNING", logger="vprflow"):
         compute_recall(Job(record, {"dataset": dataset, "descriptors": descriptors}, str(out)))

@@ -634,12 +634,6 @@ def _plan_pca(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef | Non
     return m.add("pca", params, dict(inputs)), _prefixed("pca", pca)
 
 
-# How deep the recall's ranking goes (its deepest Recall@N, at least 20): named "top_k"
-# in the recall record because that name is hashed into every recall store's key. In
-# the code it is the depth; `top_k` names only a re-ranker's K, the candidates it scores.
-RECALL_DEPTH = "top_k"
-
-
 def _plan_retrieval(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _StoreRef], dict, dict]:
     """What ranks the references for each query, for recall and re-ranking alike: the
     inputs (descriptors; and the segment search a per-segment method votes over), the
@@ -649,7 +643,8 @@ def _plan_retrieval(m: _Method, descriptors: _StoreRef) -> tuple[dict[str, _Stor
     params = {
         "recall_at": m.dataset["recall_at"],
         "denominator": m.dataset["denominator"],
-        RECALL_DEPTH: max(max(m.dataset["recall_at"]), 20),
+        # How deep the ranking goes: its deepest Recall@N, at least 20.
+        "depth": max(max(m.dataset["recall_at"]), 20),
     }
     columns: dict = {}
     if m.aggregator.output == "segments":
@@ -700,7 +695,7 @@ def _plan_matches(
         "top_k": entry["top_k"],
         # As deep as the recall's ranking: the rest of the retrieval follows the
         # re-ranked top K, so Recall@N beyond top_k is the retrieval's, not truncated.
-        "depth": recall_params[RECALL_DEPTH],
+        "depth": recall_params["depth"],
     }
     if "vote_ranking" in recall_params:
         params["vote_ranking"] = recall_params["vote_ranking"]
@@ -847,8 +842,9 @@ STAGES: dict[str, StageSpec] = {
     # The ranking (the published vote ranking for segments), its scores (a global
     # method's: each ranked pair's distance in float64, the same on every machine),
     # Recall@N, mAP, the precision-recall summary, the cost per query and the queries
-    # without a positive.
-    "recall": StageSpec(7),
+    # without a positive; its record names the ranking's depth `depth` (it was `top_k`,
+    # which names only a re-ranker's K).
+    "recall": StageSpec(8),
 }
 
 # The table by column: what the keys hash, and the stages run in shards.

@@ -9,7 +9,6 @@ import numpy as np
 
 from vprflow.core import stores
 from vprflow.evaluation.recall import COST_COLUMNS
-from vprflow.planning.plan import RECALL_DEPTH
 from vprflow.stages.base import Job
 from vprflow.stages.readers import Dataset
 from vprflow.stages.retrieval import retrieve, timed_retrieve, top1_matches
@@ -78,7 +77,7 @@ def compute_recall(job: Job) -> None:
     recall_exact = None
     vote_ranking = params.get("vote_ranking")
     rerank_ms = None
-    depth = params[RECALL_DEPTH]
+    depth = params["depth"]
     if rerank_path is None:
         (ranking, scores, score_kind), search_ms = timed_retrieve(
             dataset, descriptors_path, depth, search_path, vote_ranking
