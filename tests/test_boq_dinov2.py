@@ -15,14 +15,12 @@ from torch.nn import functional as F
 from trained_references import prefixed, randomise, tiny_config, vit_reference
 
 from vprflow.models.checkpoints import CheckpointError
+from vprflow.models.kinds import trained_model
 from vprflow.models.trained.boq import BoQAggregator
-from vprflow.models.trained.boq_dinov2 import (
-    BOQ_DINOV2_URL,
-    PROJ_CHANNELS,
-    BoQDinoV2,
-    load_boq_dinov2,
-)
-from vprflow.models.trained.salad import dinov2_hub_state_dict
+from vprflow.models.trained.boq_dinov2 import PROJ_CHANNELS, BoQDinoV2, load_boq_dinov2
+from vprflow.models.trunks.dinov2 import dinov2_hub_state_dict
+
+BOQ_DINOV2_URL = trained_model("boq_dinov2").published().url
 
 # proj_channels 128 -> 2 heads (BoQ uses proj_channels // 64).
 SIZES = {"proj_channels": 128, "num_queries": 4, "num_layers": 2, "row_dim": 3}

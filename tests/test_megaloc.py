@@ -14,8 +14,11 @@ from torch.nn import functional as F
 from trained_references import prefixed, randomise, salad_reference, tiny_config, vit_reference
 
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.trained.megaloc import MEGALOC_URL, MegaLoc, MegaLocHead, load_megaloc
-from vprflow.models.trained.salad import dinov2_hub_state_dict
+from vprflow.models.kinds import trained_model
+from vprflow.models.trained.megaloc import MegaLoc, MegaLocHead, load_megaloc
+from vprflow.models.trunks.dinov2 import dinov2_hub_state_dict
+
+MEGALOC_URL = trained_model("megaloc").published().url
 
 SIZES = {"feat_dim": 24, "num_clusters": 4, "cluster_dim": 8, "token_dim": 16, "mlp_dim": 20}
 

@@ -96,7 +96,7 @@ def test_pooling_matches_float64_formula():
 )
 def test_loaded_checkpoint_matches_float64_reference(tmp_path, variant, whiten):
     source = _model(PCS if variant.startswith("patch") else None)
-    path = tmp_path / VARIANTS[variant].filename
+    path = tmp_path / VARIANTS[variant].published.file
     # Nanne's training script stores numpy scalars beside the weights.
     _save(path, source, best_score=np.float64(0.84), recalls={1: np.float64(0.8)})
     model = load_netvlad(str(path), variant, encoder=_encoder())
@@ -143,7 +143,7 @@ def test_missing_file_names_variant_file_and_url(tmp_path):
         load_netvlad(str(path))
     message = str(error.value)
     assert DEFAULT_VARIANT in message and str(path) in message
-    assert VARIANTS[DEFAULT_VARIANT].url in message
+    assert VARIANTS[DEFAULT_VARIANT].published.url in message
 
 
 def test_unknown_variant_is_refused():

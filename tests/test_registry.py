@@ -172,66 +172,43 @@ def test_one_loader_serves_the_vit_kinds_and_one_the_sam_kinds_each_kind_named_o
         assert set(spec.adapter_options) <= set(kinds.SEGMENTERS[name].defaults), name
 
 
-def test_each_trained_kind_states_what_its_model_module_states():
-    """A trained kind's entry restates, torch-free, what the plan needs of its model
-    module (its published checkpoints' files and URLs, its input size, its map's
-    stride): each must be the module's, and the loader must take each variant's options."""
-    import inspect
+def _own_loader(wrapper):
+    """The model module's loader that a models/loaders.py wrapper of TRAINED_MODELS calls
+    (the wrapper imports it when it runs)."""
+    own = re.search(r"from (\S+) import (\w+)", inspect.getsource(wrapper))
+    return getattr(importlib.import_module(own[1]), own[2])
 
+
+def test_each_trained_kind_has_a_loader_that_takes_its_variants_options():
+    """What a trained kind's entry says of its files and input size its model module
+    reads from it (nothing here lists the models: a new one edits no test); its loader
+    must take each variant's options, and its defaults come from its entry."""
+    assert set(loaders.TRAINED_MODELS) == set(kinds.TRAINED_KINDS)
+    for name in kinds.TRAINED_KINDS:
+        kind = kinds.BACKBONES[name]
+        spec = kind.spec
+        assert spec is kinds.trained_model(name), name
+        assert loaders.LOADERS["features"][name] is loaders._load_trained, name
+        loader = _own_loader(loaders.TRAINED_MODELS[name])
+        assert loader.__module__.startswith("vprflow.models."), name
+        for variant in spec.variants.values():
+            assert set(variant.loader_options) <= set(inspect.signature(loader).parameters), name
+        if spec.input_size is None:  # `own`, or the dataset's
+            own = {"resolution": kinds.OWN_SIZE} if spec.own_size else {}
+            assert {k: v for k, v in kind.defaults.items() if k == "resolution"} == own, name
+        else:
+            assert kind.defaults["resolution"] == list(spec.input_size), name
+        assert kind.defaults["variant"] == spec.default_variant, name
+
+
+def test_each_trained_kind_states_the_map_stride_and_input_size_of_its_architecture():
+    """The entries' map strides and input sizes against the architectures themselves."""
     import torch
 
-    from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad
-
-    modules = {
-        "netvlad": (netvlad, {v: (s.filename, s.url) for v, s in netvlad.VARIANTS.items()}),
-        "salad": (salad, {"dino_salad": (salad.SALAD_FILE, salad.SALAD_URL)}),
-        "boq_dinov2": (
-            boq_dinov2,
-            {"dinov2_12288": (boq_dinov2.BOQ_DINOV2_FILE, boq_dinov2.BOQ_DINOV2_URL)},
-        ),
-        "megaloc": (megaloc, {"megaloc": (megaloc.MEGALOC_FILE, megaloc.MEGALOC_URL)}),
-    }
-    from vprflow.models.trained import boq, convap, cosplace, mixvpr, vlad_buff
-    from vprflow.models.trunks import resnet
+    from vprflow.models.trained import boq, convap, cosplace, mixvpr, netvlad
+    from vprflow.models.trunks.dinov2 import VITB14
     from vprflow.models.trunks.resnet import LAYER_STRIDES
 
-    def cosplace_files(name: str, dims: dict) -> dict:
-        urls = {f"{b}_{d}": cosplace._URLS[name].format(b, d) for b, ds in dims.items() for d in ds}
-        return {v: (url.rpartition("/")[2], url) for v, url in urls.items()}
-
-    modules.update(
-        mixvpr=(mixvpr, {"resnet50_4096": (mixvpr.MIXVPR_FILE, mixvpr.MIXVPR_URL)}),
-        convap=(
-            convap,
-            {f"resnet50_{convap.DEFAULT_DIM}": (convap.CONVAP_FILE, convap.CONVAP_URL)},
-        ),
-        boq_resnet50=(
-            boq,
-            {"resnet50_16384": (boq.BOQ_RESNET50_FILE, boq.BOQ_RESNET50_URL)},
-        ),
-        cosplace=(cosplace, cosplace_files("CosPlace", cosplace.COSPLACE_DIMS)),
-        eigenplaces=(cosplace, cosplace_files("EigenPlaces", cosplace.EIGENPLACES_DIMS)),
-        resnet50=(
-            resnet,
-            {"imagenet1k_v1": ("resnet50-0676ba61.pth", resnet.TORCHVISION_RESNET_URLS[50])},
-        ),
-        vlad_buff=(
-            vlad_buff,
-            {
-                v: (
-                    vlad_buff.vlad_buff_file(p),
-                    vlad_buff.VLAD_BUFF_RELEASE + vlad_buff.vlad_buff_file(p),
-                )
-                for v, (p, _) in vlad_buff.VARIANTS.items()
-            },
-        ),
-    )
-    # VLAD-BuFF's variants: each file whitened or its VLAD before the whitening.
-    assert {
-        v: (p.loader_options["nv_pca"], p.loader_options["num_pcs"])
-        for v, p in kinds.BACKBONES["vlad_buff"].spec.variants.items()
-    } == vlad_buff.VARIANTS
-    assert set(kinds.TRAINED_KINDS) == set(modules)
     # The ResNet models' maps: the default layer of their feature_map, at its stride.
     for name, model_class in (
         ("mixvpr", mixvpr.MixVPR),
@@ -242,38 +219,19 @@ def test_each_trained_kind_states_what_its_model_module_states():
     ):
         layer = inspect.signature(model_class.feature_map).parameters["layer"].default
         assert kinds.BACKBONES[name].spec.patch_size == LAYER_STRIDES[layer], name
+    # MixVPR's mixers fix its input size: 400 positions of layer3, 320 x 320.
+    assert mixvpr.MixVPR().input_size == kinds.trained_model("mixvpr").height_width
     assert kinds.BACKBONES["cosplace"].spec.default_variant == "ResNet50_2048"
     # The ImageNet ResNet-50 trunk: its layers' strides, layer3 by default (SNSM's).
     trunk = kinds.BACKBONES["resnet50"]
     assert {f"layer{k}": v for k, v in trunk.spec.layer_strides.items()} == LAYER_STRIDES
     assert trunk.defaults["layer"] == 3 and trunk.defaults["output"] == "features"
     assert not trunk.spec.descriptor
-    for name, (module, published) in modules.items():
-        kind = kinds.BACKBONES[name]
-        spec = kind.spec
-        assert loaders.LOADERS["features"][name] is loaders._load_trained, name
-        if getattr(module, "INPUT_SIZE", None) is None:  # `own`, or the dataset's
-            assert spec.input_size is None, name
-            own = {"resolution": kinds.OWN_SIZE} if spec.own_size else {}
-            assert {k: v for k, v in kind.defaults.items() if k == "resolution"} == own, name
-        else:
-            assert tuple(reversed(spec.input_size)) == module.INPUT_SIZE, name
-            assert kind.defaults["resolution"] == list(spec.input_size), name
-        assert kind.defaults["variant"] == spec.default_variant, name
-        # The module's own loader (models/loaders.py's wrapper imports it when it runs).
-        wrapper = inspect.getsource(loaders.TRAINED_MODELS[name])
-        own = re.search(r"from (\S+) import (\w+)", wrapper)
-        loader = getattr(importlib.import_module(own[1]), own[2])
-        assert own[1] == module.__name__, name
-        for variant in spec.variants.values():
-            assert set(variant.loader_options) <= set(inspect.signature(loader).parameters), name
-        assert {v: (p.file, p.url) for v, p in spec.variants.items()} == published, name
-    assert kinds.BACKBONES["netvlad"].defaults["variant"] == netvlad.DEFAULT_VARIANT
     # The maps' strides: VGG16 conv5_3 halves four times, DINOv2-B/14's patches are 14.
     trunk = netvlad.NetVLADModel(4, None).encoder
     assert trunk(torch.zeros(1, 3, 64, 48)).shape[-2:] == (64 // 16, 48 // 16)
     assert kinds.BACKBONES["netvlad"].spec.patch_size == 16
-    assert salad.VITB14["patch_size"] == 14
+    assert VITB14["patch_size"] == 14
     for name in ("salad", "boq_dinov2", "megaloc", "vlad_buff"):
         assert kinds.BACKBONES[name].spec.patch_size == 14, name
     # The kinds whose evaluations read every image unresized; the schema offers their value.

@@ -17,14 +17,11 @@ from trained_references import (
 )
 
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.trained.salad import (
-    SALAD,
-    SALAD_URL,
-    SaladAggregator,
-    dinov2_hub_state_dict,
-    load_salad,
-    sinkhorn_log,
-)
+from vprflow.models.kinds import trained_model
+from vprflow.models.trained.salad import SALAD, SaladAggregator, load_salad, sinkhorn_log
+from vprflow.models.trunks.dinov2 import dinov2_hub_state_dict
+
+SALAD_URL = trained_model("salad").published().url
 
 SIZES = {"num_clusters": 4, "cluster_dim": 8}
 # Float32 model against a float64 formula: descriptor entries are O(0.1).

@@ -18,23 +18,22 @@ import torch
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.trained.boq import (
-    BOQ_RESNET50_URL,
-    BoQAggregator,
-    BoQResNet,
-    load_boq_resnet50,
-)
-from vprflow.models.trained.convap import CONVAP_URL, ConvAP, ConvAPAggregator, load_convap
+from vprflow.models.kinds import trained_model
+from vprflow.models.trained.boq import BoQAggregator, BoQResNet, load_boq_resnet50
+from vprflow.models.trained.convap import ConvAP, ConvAPAggregator, load_convap
 from vprflow.models.trained.cosplace import (
     GeM,
     GeoLocalizationNet,
     load_cosplace,
     load_eigenplaces,
 )
-from vprflow.models.trained.mixvpr import MIXVPR_URL, MixVPR, load_mixvpr
+from vprflow.models.trained.mixvpr import MixVPR, load_mixvpr
 from vprflow.models.trunks.resnet import STAGES, ResNet
 
 IMAGENET = ((0.485, 0.456, 0.406), (0.229, 0.224, 0.225))
+MIXVPR_URL, CONVAP_URL, BOQ_RESNET50_URL = (
+    trained_model(kind).published().url for kind in ("mixvpr", "convap", "boq_resnet50")
+)
 
 
 def _randomise(model: torch.nn.Module, seed: int) -> torch.nn.Module:

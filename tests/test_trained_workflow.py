@@ -27,6 +27,7 @@ from vprflow.data.images import read_image, resize_image
 from vprflow.models import kinds
 from vprflow.models.checkpoints import CheckpointError
 from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad, vlad_buff
+from vprflow.models.trunks.dinov2 import dinov2_hub_state_dict
 from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
@@ -62,7 +63,7 @@ TINY = {
         lambda: salad.SALAD(tiny_config(), num_clusters=4, cluster_dim=8),
         "dino_salad.ckpt",
         lambda model: {
-            **prefixed(salad.dinov2_hub_state_dict(model.backbone), "backbone.model."),
+            **prefixed(dinov2_hub_state_dict(model.backbone), "backbone.model."),
             **prefixed(model.aggregator.state_dict(), "aggregator."),
         },
     ),
@@ -73,7 +74,7 @@ TINY = {
         lambda: boq_dinov2.BoQDinoV2(tiny_config(), **BOQ_SIZES),
         "dinov2_12288.pth",
         lambda model: {
-            **prefixed(salad.dinov2_hub_state_dict(model.backbone), "backbone.dino."),
+            **prefixed(dinov2_hub_state_dict(model.backbone), "backbone.dino."),
             **prefixed(model.aggregator.state_dict(), "aggregator."),
         },
     ),
@@ -87,7 +88,7 @@ TINY = {
         lambda model: {
             "num_pcs": 8192,
             "state_dict": {
-                **prefixed(salad.dinov2_hub_state_dict(model.backbone), "backbone.model."),
+                **prefixed(dinov2_hub_state_dict(model.backbone), "backbone.model."),
                 **prefixed(model.aggregator.state_dict(), "aggregator."),
                 **prefixed(model.WPCA.state_dict(), "WPCA_8192."),
             },
@@ -103,7 +104,7 @@ TINY = {
             **prefixed(
                 {
                     k: v
-                    for k, v in salad.dinov2_hub_state_dict(model.backbone).items()
+                    for k, v in dinov2_hub_state_dict(model.backbone).items()
                     if k != "mask_token"  # MegaLoc's file has none
                 },
                 "backbone.",
@@ -440,7 +441,7 @@ def test_a_missing_checkpoint_is_named_at_plan_time_with_where_to_get_it(tmp_pat
     message = str(error.value)
     assert "backbones.nv.checkpoint" in message
     assert "pitts_WPCA512.pth.tar" in message and "QVPR/Patch-NetVLAD" in message
-    assert netvlad.VARIANTS["patchnetvlad-pitts30k-512"].url in message
+    assert netvlad.VARIANTS["patchnetvlad-pitts30k-512"].published.url in message
     if given:
         assert given in message
 
@@ -469,7 +470,7 @@ def test_a_models_own_loader_error_reaches_the_features_stage(tmp_path):
 
     wrong = tmp_path / "dino_salad.ckpt"
     torch.save({"something": torch.zeros(1)}, wrong)
-    with pytest.raises(CheckpointError, match=salad.SALAD_URL):
+    with pytest.raises(CheckpointError, match=kinds.trained_model("salad").published().url):
         load_model("features", {"backbone": "salad", "checkpoint": str(wrong)}, "cpu")
 
 

@@ -18,14 +18,9 @@ from trained_references import (
 )
 
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.trained.salad import dinov2_hub_state_dict
-from vprflow.models.trained.vlad_buff import (
-    VLAD_BUFF_RELEASE,
-    VladBuff,
-    VladBuffAggregator,
-    load_vlad_buff,
-    vlad_buff_file,
-)
+from vprflow.models.kinds import VLAD_BUFF_RELEASE, vlad_buff_file
+from vprflow.models.trained.vlad_buff import VladBuff, VladBuffAggregator, load_vlad_buff
+from vprflow.models.trunks.dinov2 import dinov2_hub_state_dict
 
 SIZES = {"nv_pca": 6, "num_pcs": 10, "num_clusters": 4}
 # Float32 model against a float64 formula: descriptor entries are O(0.1).

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from vprflow.models.trained.salad import dinov2_config
+from vprflow.models.trunks.dinov2 import dinov2_config
 
 TINY_VIT = {"hidden_size": 32, "num_hidden_layers": 2, "num_attention_heads": 2, "image_size": 56}
 

@@ -102,6 +102,11 @@ class TrainedVariant:
     direct: bool = True
     sha256: str | None = None
 
+    @property
+    def hint(self) -> str:
+        """What a model's loader adds to an error about a file of another layout."""
+        return f"expected {self.file} from {self.url}"
+
 
 @dataclass(frozen=True)
 class TrainedModel:
@@ -115,8 +120,8 @@ class TrainedModel:
     w]`` (``dense`` says which), with ``mean`` / ``std`` attributes. ``variants``: the
     published checkpoints by name (the first is the default). ``input_size``: the
     published input ``(width, height)``, the default of the entry's ``resolution`` (the
-    model modules' ``INPUT_SIZE`` is ``(height, width)``; test_registry compares them);
-    ``None``: the dataset's (``resolution: dataset``), or each image's own where
+    model module's ``INPUT_SIZE`` reads it, :attr:`height_width`); ``None``: the
+    dataset's (``resolution: dataset``), or each image's own where
     ``own_size``: the published evaluation feeds every image at its own size, so the
     entry's default ``resolution`` is :data:`OWN_SIZE`. ``patch_size``: the stride of
     ``feature_map``. ``crop``: centre-crop an input to whole patches first, as
@@ -143,6 +148,15 @@ class TrainedModel:
     @property
     def default_variant(self) -> str:
         return next(iter(self.variants))
+
+    @property
+    def height_width(self) -> tuple[int, int] | None:
+        """:attr:`input_size` as ``(height, width)``, the order of torch's maps."""
+        return None if self.input_size is None else (self.input_size[1], self.input_size[0])
+
+    def published(self, variant: str | None = None) -> TrainedVariant:
+        """The published checkpoint of ``variant`` (the default one when None)."""
+        return self.variants[variant or self.default_variant]
 
 
 # A backbone entry's `resolution` that resizes nothing: each image at its own size (after
@@ -183,8 +197,7 @@ _SAM_GENERATOR = {
 # AnyLoc-VLAD, SegVLAD, SNSM, pooling and re-ranking).
 TRAINED_OUTPUTS = ("descriptor", "features")
 
-# The published CosPlace and EigenPlaces models: ResNet backbone -> descriptor lengths
-# (vprflow.models.trained.cosplace's, restated torch-free; test_registry compares).
+# The published CosPlace and EigenPlaces models: ResNet backbone -> descriptor lengths.
 _COSPLACE_DIMS = {
     "ResNet18": (32, 64, 128, 256, 512),
     **{b: (32, 64, 128, 256, 512, 1024, 2048) for b in ("ResNet50", "ResNet101", "ResNet152")},
@@ -202,22 +215,55 @@ def _netvlad(name: str, file: str) -> tuple[str, TrainedVariant]:
     )
 
 
-_VLAD_BUFF = "https://github.com/ahmedest61/VLAD-BuFF/releases/download/v1.0.0/"
+VLAD_BUFF_RELEASE = "https://github.com/ahmedest61/VLAD-BuFF/releases/download/v1.0.0/"
+# VLAD-BuFF's published checkpoints: pre-pool PCA dims (None: none) -> whitened dims, the
+# pairs hubconf.vlad_buff accepts.
+VLAD_BUFF_PCS = {None: 8192, 192: 4096}
+
+
+def vlad_buff_file(nv_pca: int | None, num_pcs: int | None = None) -> str:
+    """A VLAD-BuFF checkpoint's file name as ``hubconf.vlad_buff`` builds it; ``num_pcs``
+    None: the whitening published with ``nv_pca`` (the file holds the VLAD's weights too)."""
+    pcs = num_pcs if num_pcs is not None else VLAD_BUFF_PCS.get(nv_pca, "<n>")
+    pca = "" if nv_pca is None else f"{nv_pca}PCA_"
+    return f"dnv2_NV_{pca}AB_wpca{pcs}_last.ckpt"
 
 
 def _vlad_buff(name: str, nv_pca: int | None, num_pcs: int | None) -> tuple[str, TrainedVariant]:
-    # hubconf.vlad_buff's files: without pre-pool PCA whitened to 8192, with 192 to 4096.
-    file = f"dnv2_NV_{'192PCA_' if nv_pca else ''}AB_wpca{8192 if nv_pca is None else 4096}"
+    file = vlad_buff_file(nv_pca)
     return name, TrainedVariant(
-        f"{file}_last.ckpt",
-        f"{_VLAD_BUFF}{file}_last.ckpt",
+        file,
+        VLAD_BUFF_RELEASE + file,
         "Ahmedest61/VLAD-BuFF",
         {"nv_pca": nv_pca, "num_pcs": num_pcs},
     )
 
 
-# The trained VPR models (docs/methods.md, "Trained models"); each module's own
-# constants (URL, file, input size) are compared with these by tests/test_registry.py.
+# torchvision's IMAGENET1K_V1 ResNet weights, each named after the first 8 hex digits of
+# its SHA-256: what ``pretrained=True`` gave the VPR models (MixVPR / BoQ ask for
+# "IMAGENET1K_V1" by name) and what SNSM uses.
+TORCHVISION_RESNET_URLS = {
+    18: "https://download.pytorch.org/models/resnet18-f37072fd.pth",
+    34: "https://download.pytorch.org/models/resnet34-b627a593.pth",
+    50: "https://download.pytorch.org/models/resnet50-0676ba61.pth",
+    101: "https://download.pytorch.org/models/resnet101-63fe2227.pth",
+    152: "https://download.pytorch.org/models/resnet152-394f9c45.pth",
+}
+
+
+def _torchvision_resnet(depth: int) -> TrainedVariant:
+    file = TORCHVISION_RESNET_URLS[depth].rpartition("/")[2]
+    return TrainedVariant(
+        file,
+        TORCHVISION_RESNET_URLS[depth],
+        "pytorch/vision",
+        {"depth": depth},
+        sha256=file.split("-")[1].split(".")[0],
+    )
+
+
+# The trained VPR models (docs/methods.md, "Trained models"): each model module reads its
+# entry here (trained_model) for its files, URLs and input size.
 _TRAINED_MODELS: dict[str, TrainedModel] = {
     # VGG16 conv5_3 + NetVLAD (+ whitening), Pittsburgh 30k; Patch-NetVLAD reads images
     # with PIL and resizes them to 640 x 480 with torchvision's Resize (antialiased).
@@ -385,16 +431,7 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
     # (SNSM's All-Backbones-VLAD baseline reads layer1-4, layer3 by default), at the
     # dataset's resolution as SNSM reads it.
     "resnet50": TrainedModel(
-        {
-            "imagenet1k_v1": TrainedVariant(
-                "resnet50-0676ba61.pth",
-                "https://download.pytorch.org/models/resnet50-0676ba61.pth",
-                "pytorch/vision",
-                {"depth": 50},
-                # torchvision names its files after their SHA-256's first 8 hex digits.
-                sha256="0676ba61",
-            )
-        },
+        {"imagenet1k_v1": _torchvision_resnet(50)},
         None,
         16,
         "the ImageNet ResNet-50's `layer` map (layer1-4: 256-2048-d, stride 4-32)",
@@ -403,6 +440,11 @@ _TRAINED_MODELS: dict[str, TrainedModel] = {
         descriptor=False,
     ),
 }
+
+
+def trained_model(name: str) -> TrainedModel:
+    """Trained kind ``name``'s entry, which its model module reads."""
+    return _TRAINED_MODELS[name]
 
 
 def _trained(name: str, spec: TrainedModel) -> ModelKind:

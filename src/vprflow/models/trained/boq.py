@@ -37,23 +37,20 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from vprflow.models.kinds import trained_model
 from vprflow.models.trunks.resnet import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     ResNet,
-    load_matching,
-    read_state,
     resnet_channels,
     stage_maps,
 )
+from vprflow.models.trunks.state_dicts import load_matching, read_state
 
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
-INPUT_SIZE = (384, 384)
-BOQ_RESNET50_FILE = "resnet50_16384.pth"
-BOQ_RESNET50_URL = (
-    "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/resnet50_16384.pth"
-)
-BOQ_RESNET50_DIM = 16384
+# The published file and input size (models/kinds.py's entry).
+ENTRY = trained_model("boq_resnet50")
+INPUT_SIZE = ENTRY.height_width
 
 
 class QueryBlock(nn.Module):
@@ -153,8 +150,8 @@ def load_boq_resnet50(path: str, **aggregator) -> BoQResNet:
     """BoQ-ResNet-50 with the weights of ``path`` (``resnet50_16384.pth`` layout, module
     docstring); ``aggregator`` replaces the published head sizes (tests). Raises
     :class:`~vprflow.models.checkpoints.CheckpointError` naming the file, the key at
-    fault and :data:`BOQ_RESNET50_URL`."""
-    name, hint = "BoQ-ResNet50", f"expected {BOQ_RESNET50_FILE} from {BOQ_RESNET50_URL}"
+    fault and where to get the published file."""
+    name, hint = "BoQ-ResNet50", ENTRY.published().hint
     model = BoQResNet(**aggregator)
     load_matching(model, read_state(path, name, hint), path, name, hint)
     return model.eval()

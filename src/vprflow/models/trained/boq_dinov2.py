@@ -37,22 +37,17 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from vprflow.models.kinds import trained_model
 from vprflow.models.trained.boq import BoQAggregator
-from vprflow.models.trained.salad import (
-    MEAN,
-    STD,
-    DinoV2Tokens,
-    load_backbone_and_head,
-    read_state_dict,
-)
+from vprflow.models.trunks.dinov2 import DinoV2Tokens, load_backbone_and_head
+from vprflow.models.trunks.state_dicts import read_state_dict
+from vprflow.models.vit import IMAGENET_MEAN, IMAGENET_STD
 
-INPUT_SIZE = (322, 322)
+MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
+# The published file and input size (models/kinds.py's entry).
+ENTRY = trained_model("boq_dinov2")
+INPUT_SIZE = ENTRY.height_width
 PROJ_CHANNELS = 384  # 6 heads; the ResNet-50 variant projects to 512
-BOQ_DINOV2_URL = (
-    "https://github.com/amaralibey/Bag-of-Queries/releases/download/v1.0/dinov2_12288.pth"
-)
-BOQ_DINOV2_FILE = "dinov2_12288.pth"
-BOQ_DINOV2_DIM = 12288
 
 
 class BoQDinoV2(nn.Module):
@@ -79,9 +74,10 @@ def load_boq_dinov2(path: str, config=None, **aggregator) -> BoQDinoV2:
     """BoQ-DINOv2 with the weights of ``path`` (``dinov2_12288.pth`` layout, module
     docstring). ``config`` / ``aggregator`` replace the published sizes (tests). Raises
     :class:`~vprflow.models.checkpoints.CheckpointError` naming the file, the key at
-    fault and :data:`BOQ_DINOV2_URL`."""
+    fault and where to get the published file."""
     model = BoQDinoV2(config, **aggregator)
-    state = read_state_dict(path, "BoQ-DINOv2", BOQ_DINOV2_URL, BOQ_DINOV2_FILE)
+    published = ENTRY.published()
+    state = read_state_dict(path, "BoQ-DINOv2", published.url, published.file)
     load_backbone_and_head(
         model.backbone,
         model.aggregator,
@@ -90,6 +86,6 @@ def load_boq_dinov2(path: str, config=None, **aggregator) -> BoQDinoV2:
         model_name="BoQ-DINOv2",
         backbone_prefixes=("backbone.dino.",),
         head_prefix="aggregator.",
-        hint=f"expected {BOQ_DINOV2_FILE} from {BOQ_DINOV2_URL}",
+        hint=published.hint,
     )
     return model.eval()

@@ -37,16 +37,17 @@ from torch import nn
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.trained.mixvpr import TRAINING_PREFIXES, TorchvisionBackbone
-from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD, load_matching, read_state
+from vprflow.models.kinds import trained_model
+from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD, TorchvisionBackbone
+from vprflow.models.trunks.state_dicts import TRAINING_PREFIXES, load_matching, read_state
 
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
-INPUT_SIZE = (320, 320)
-CONVAP_FILE = "resnet50_ConvAP_1024_2x2.ckpt"
-CONVAP_URL = "https://drive.google.com/drive/folders/1VYPw9uGD11NgiGFgfWueLt3noJYOIuhL"
+# The published file and input size (models/kinds.py's entry).
+ENTRY = trained_model("convap")
+INPUT_SIZE = ENTRY.height_width
 # descriptor length -> channel_pool output channels (2 x 2 cells each)
 CONVAP_DIMS = {8192: 2048, 4096: 1024, 2048: 512, 512: 128}
-DEFAULT_DIM = 4096
+DEFAULT_DIM = ENTRY.published().loader_options["dim"]
 
 
 class ConvAPAggregator(nn.Module):
@@ -90,13 +91,14 @@ def load_convap(path: str, dim: int | None = None) -> ConvAP:
     """Conv-AP with the weights of ``path`` (module docstring's layout); its length is
     read from ``aggregator.channel_pool.weight``, and must equal ``dim`` when given
     (:data:`CONVAP_DIMS`). Raises :class:`~vprflow.models.checkpoints.CheckpointError`
-    naming the file, the key at fault and :data:`CONVAP_URL`."""
+    naming the file, the key at fault and where to get the published file."""
     if dim is not None and dim not in CONVAP_DIMS:
         raise ValueError(f"Conv-AP publishes no {dim}-d model; published: {sorted(CONVAP_DIMS)}")
     wanted = dim or DEFAULT_DIM
     # Only the 4096-d file's name is documented (the README's example).
-    filename = CONVAP_FILE if wanted == DEFAULT_DIM else f"the {wanted}-d Conv-AP checkpoint"
-    name, hint = f"Conv-AP {wanted}", f"expected {filename} from {CONVAP_URL}"
+    published = ENTRY.published()
+    filename = published.file if wanted == DEFAULT_DIM else f"the {wanted}-d Conv-AP checkpoint"
+    name, hint = f"Conv-AP {wanted}", f"expected {filename} from {published.url}"
     state = read_state(path, name, hint, containers=("state_dict",))
     weight = state.get("aggregator.channel_pool.weight")
     if not isinstance(weight, torch.Tensor) or weight.ndim != 4:

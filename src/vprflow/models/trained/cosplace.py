@@ -33,37 +33,36 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
+from vprflow.models.kinds import trained_model
 from vprflow.models.trunks.resnet import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     ResNet,
-    load_matching,
-    read_state,
     resnet_channels,
     stage_maps,
 )
+from vprflow.models.trunks.state_dicts import load_matching, read_state
 
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
-INPUT_SIZE = None  # the images' own size
+INPUT_SIZE = trained_model("cosplace").height_width  # None: the images' own size
 BACKBONES = {"ResNet18": 18, "ResNet50": 50, "ResNet101": 101, "ResNet152": 152}
-COSPLACE_DIMS = {
-    "ResNet18": (32, 64, 128, 256, 512),
-    "ResNet50": (32, 64, 128, 256, 512, 1024, 2048),
-    "ResNet101": (32, 64, 128, 256, 512, 1024, 2048),
-    "ResNet152": (32, 64, 128, 256, 512, 1024, 2048),
-}
-EIGENPLACES_DIMS = {
-    "ResNet18": (256, 512),
-    "ResNet50": (128, 256, 512, 1024, 2048),
-    "ResNet101": (128, 256, 512, 1024, 2048),
-}
-_URLS = {
-    "CosPlace": "https://github.com/gmberton/CosPlace/releases/download/v1.0/{}_{}_cosplace.pth",
-    "EigenPlaces": (
-        "https://github.com/gmberton/EigenPlaces/releases/download/v1.0/{}_{}_eigenplaces.pth"
-    ),
-}
-DEFAULT_BACKBONE, DEFAULT_DIM = "ResNet50", 2048
+
+
+def _published(kind: str) -> dict[str, tuple[int, ...]]:
+    """ResNet backbone -> the published descriptor lengths: the variants of ``kind``'s
+    entry in models/kinds.py, which names each file and where it is."""
+    options = [v.loader_options for v in trained_model(kind).variants.values()]
+    return {
+        backbone: tuple(sorted(o["dim"] for o in options if o["backbone"] == backbone))
+        for backbone in BACKBONES
+        if any(o["backbone"] == backbone for o in options)
+    }
+
+
+COSPLACE_DIMS = _published("cosplace")
+EIGENPLACES_DIMS = _published("eigenplaces")
+_DEFAULT = trained_model("cosplace").published().loader_options
+DEFAULT_BACKBONE, DEFAULT_DIM = _DEFAULT["backbone"], _DEFAULT["dim"]
 
 
 class ChannelL2(nn.Module):
@@ -124,9 +123,8 @@ def _load(method: str, dims: dict, path: str, backbone: str, dim: int) -> GeoLoc
         raise ValueError(
             f"{method} publishes no {backbone} model of dimension {dim}; published: {published}"
         )
-    filename = f"{backbone}_{dim}_{method.lower()}.pth"
     name = f"{method} {backbone}-{dim}"
-    hint = f"expected {filename} from {_URLS[method].format(backbone, dim)}"
+    hint = trained_model(method.lower()).published(f"{backbone}_{dim}").hint
     model = GeoLocalizationNet(backbone, dim)
     load_matching(model, read_state(path, name, hint), path, name, hint)
     return model.eval()

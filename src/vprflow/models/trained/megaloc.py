@@ -8,7 +8,7 @@ Architecture (``megaloc_model.MegaLoc``, plain torch here):
    ``resize``), as MegaLoc's ``forward`` does;
 2. backbone: DINOv2 ViT-B/14, 12 blocks and the final LayerNorm, position embeddings
    interpolated as the original DINOv2 code does (the same
-   :class:`vprflow.models.trained.salad.DinoV2Tokens` as SALAD): CLS token
+   :class:`vprflow.models.trunks.dinov2.DinoV2Tokens` as SALAD): CLS token
    ``[B, 768]`` and patch map ``[B, 768, H/14, W/14]``;
 3. :class:`~vprflow.models.trained.salad.SaladAggregator` with ``m = 64`` clusters of
    ``l = 256`` dims (SALAD: 128), a 256-d scene token and 512-wide MLPs:
@@ -34,19 +34,17 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vprflow.models.trained.salad import (
-    MEAN,
-    STD,
-    DinoV2Tokens,
-    SaladAggregator,
-    load_backbone_and_head,
-    read_state_dict,
-)
+from vprflow.models.kinds import trained_model
+from vprflow.models.trained.salad import SaladAggregator
+from vprflow.models.trunks.dinov2 import DinoV2Tokens, load_backbone_and_head
+from vprflow.models.trunks.state_dicts import read_state_dict
+from vprflow.models.vit import IMAGENET_MEAN, IMAGENET_STD
 
-# None: the images' own size, rounded to multiples of 14 by the model (step 1).
-INPUT_SIZE = None
-MEGALOC_URL = "https://huggingface.co/gberton/MegaLoc/resolve/main/model.safetensors"
-MEGALOC_FILE = "model.safetensors"
+MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
+# The published file and input size (models/kinds.py's entry): None, the images' own
+# size, rounded to multiples of 14 by the model (step 1).
+ENTRY = trained_model("megaloc")
+INPUT_SIZE = ENTRY.height_width
 MEGALOC_DIM = 8448
 
 
@@ -115,9 +113,10 @@ def load_megaloc(path: str, config=None, **sizes) -> MegaLoc:
     """MegaLoc with the weights of ``path`` (``model.safetensors`` or ``megaloc.torch``,
     module docstring). ``config`` / ``sizes`` replace the published sizes (tests).
     Raises :class:`~vprflow.models.checkpoints.CheckpointError` naming the file, the
-    key at fault and :data:`MEGALOC_URL`."""
+    key at fault and where to get the published file."""
     model = MegaLoc(config, **sizes)
-    state = read_state_dict(path, "MegaLoc", MEGALOC_URL, MEGALOC_FILE)
+    published = ENTRY.published()
+    state = read_state_dict(path, "MegaLoc", published.url, published.file)
     load_backbone_and_head(
         model.backbone,
         model.aggregator,
@@ -126,6 +125,6 @@ def load_megaloc(path: str, config=None, **sizes) -> MegaLoc:
         model_name="MegaLoc",
         backbone_prefixes=("backbone.", "backbone.model."),
         head_prefix="aggregator.",
-        hint=f"expected {MEGALOC_FILE} from {MEGALOC_URL}",
+        hint=published.hint,
     )
     return model.eval()

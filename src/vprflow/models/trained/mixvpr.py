@@ -40,35 +40,18 @@ from torch import nn
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError
+from vprflow.models.kinds import trained_model
 from vprflow.models.trunks.resnet import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     LAYER_STRIDES,
-    ResNet,
-    load_matching,
-    read_state,
+    TorchvisionBackbone,
 )
+from vprflow.models.trunks.state_dicts import TRAINING_PREFIXES, load_matching, read_state
 
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
-INPUT_SIZE = (320, 320)
-MIXVPR_FILE = "resnet50_MixVPR_4096_channels(1024)_rows(4).ckpt"
-MIXVPR_URL = "https://drive.google.com/file/d/1vuz3PvnR7vxnDDLQrdHJaOA04SQrtk5L/view"
-MIXVPR_DIM = 4096
-# Lightning-module attributes that may sit beside the model in a training checkpoint.
-TRAINING_PREFIXES = ("loss_fn.", "miner.")
-
-
-class TorchvisionBackbone(nn.Module):
-    """amaralibey's ``ResNet`` backbone wrapper: the trunk under ``model``, so its keys
-    read ``backbone.model.<torchvision name>``. ``[B, 3, H, W]`` -> ``end`` map."""
-
-    def __init__(self, depth: int = 50, end: str = "layer3"):
-        super().__init__()
-        self.model = ResNet(depth, end)
-        self.dim = self.model.dim
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return self.model(images)
+# The published file (models/kinds.py's entry); the loader reads the sizes from the file.
+PUBLISHED = trained_model("mixvpr").published()
 
 
 class FeatureMixer(nn.Module):
@@ -151,8 +134,8 @@ def load_mixvpr(path: str) -> MixVPR:
     ``positions``, ``out_channels`` and ``out_rows`` are read from the file's shapes, so
     the 4096-, 512- and 128-d releases all load. Raises
     :class:`~vprflow.models.checkpoints.CheckpointError` naming the file, the key at
-    fault and :data:`MIXVPR_URL`."""
-    name, hint = "MixVPR", f"expected {MIXVPR_FILE} from {MIXVPR_URL}"
+    fault and where to get the published file."""
+    name, hint = "MixVPR", PUBLISHED.hint
     state = read_state(path, name, hint, containers=("state_dict",))
     shapes = {}
     for key in ("aggregator.row_proj.weight", "aggregator.channel_proj.weight"):

@@ -51,62 +51,42 @@ from torch import nn
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError, read_checkpoint
-from vprflow.models.trunks.resnet import load_matching
+from vprflow.models.kinds import TrainedVariant, trained_model
+from vprflow.models.trunks.state_dicts import load_matching
 from vprflow.models.trunks.vgg import IMAGENET_MEAN, IMAGENET_STD, VGG16_DIM, vgg16_features
 
 NUM_CLUSTERS = 64
-INPUT_SIZE = (480, 640)  # (height, width)
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
-_PATCH_NETVLAD_URL = "https://huggingface.co/TobiasRobotics/Patch-NetVLAD/resolve/main/{}"
-_NANNE_URL = "https://drive.google.com/open?id=17luTjZFCX639guSVy00OUtzfTQo4AMF2"
+# The published files (models/kinds.py's entry), with what each variant reads of its file.
+ENTRY = trained_model("netvlad")
+INPUT_SIZE = ENTRY.height_width
 
 
 @dataclass(frozen=True)
 class NetVLADVariant:
-    """A published checkpoint: its file name, where to get it, whether its whitening is
-    applied and the descriptor length that results."""
+    """A published variant: its file (name, where to get it, its repository), whether its
+    whitening is applied, and the descriptor length that results."""
 
-    filename: str
-    url: str
+    published: TrainedVariant
     whitening: bool
     dim: int
-    source: str
 
 
-VARIANTS = {
-    "patchnetvlad-pitts30k-4096": NetVLADVariant(
-        "pitts_WPCA4096.pth.tar",
-        _PATCH_NETVLAD_URL.format("pitts_WPCA4096.pth.tar"),
-        True,
-        4096,
-        "QVPR/Patch-NetVLAD",
-    ),
-    "patchnetvlad-pitts30k-32768": NetVLADVariant(
-        "pitts_WPCA4096.pth.tar",
-        _PATCH_NETVLAD_URL.format("pitts_WPCA4096.pth.tar"),
-        False,
-        NUM_CLUSTERS * VGG16_DIM,
-        "QVPR/Patch-NetVLAD",
-    ),
-    "patchnetvlad-pitts30k-512": NetVLADVariant(
-        "pitts_WPCA512.pth.tar",
-        _PATCH_NETVLAD_URL.format("pitts_WPCA512.pth.tar"),
-        True,
-        512,
-        "QVPR/Patch-NetVLAD",
-    ),
-    "patchnetvlad-pitts30k-128": NetVLADVariant(
-        "pitts_WPCA128.pth.tar",
-        _PATCH_NETVLAD_URL.format("pitts_WPCA128.pth.tar"),
-        True,
-        128,
-        "QVPR/Patch-NetVLAD",
-    ),
-    "nanne-pitts30k": NetVLADVariant(
-        "checkpoint.pth.tar", _NANNE_URL, False, NUM_CLUSTERS * VGG16_DIM, "Nanne/pytorch-NetVlad"
-    ),
+# Variant -> the whitened length, or None for the VLAD before the whitening.
+_WHITENED = {
+    "patchnetvlad-pitts30k-4096": 4096,
+    "patchnetvlad-pitts30k-32768": None,
+    "patchnetvlad-pitts30k-512": 512,
+    "patchnetvlad-pitts30k-128": 128,
+    "nanne-pitts30k": None,
 }
-DEFAULT_VARIANT = "patchnetvlad-pitts30k-4096"
+VARIANTS = {
+    name: NetVLADVariant(
+        published, _WHITENED[name] is not None, _WHITENED[name] or NUM_CLUSTERS * VGG16_DIM
+    )
+    for name, published in ENTRY.variants.items()
+}
+DEFAULT_VARIANT = ENTRY.default_variant
 
 # Nanne's training script stores numpy scalars (recalls, best score) beside the state
 # dict; these globals rebuild such scalars and nothing else.
@@ -186,7 +166,8 @@ def _strip_parallel(key: str) -> str:
 
 
 def _read(path: str, name: str, variant: NetVLADVariant) -> dict[str, torch.Tensor]:
-    hint = f"download {variant.filename} ({variant.source}) from {variant.url}"
+    published = variant.published
+    hint = f"download {published.file} ({published.repository}) from {published.url}"
     try:
         with torch.serialization.safe_globals(_NUMPY_GLOBALS):
             checkpoint = read_checkpoint(path)
@@ -216,7 +197,7 @@ def load_netvlad(
         raise ValueError(f"unknown NetVLAD variant {variant!r}; expected one of {sorted(VARIANTS)}")
     spec = VARIANTS[variant]
     state = _read(path, variant, spec)
-    hint = f"expected {spec.filename} from {spec.url}"
+    hint = spec.published.hint
     clusters, encoder_dim = state["pool.centroids"].shape
     if spec.whitening and "WPCA.0.weight" not in state:
         raise CheckpointError(

@@ -28,220 +28,31 @@ in the torch-hub DINOv2 layout (:mod:`vprflow.models.checkpoints`) and ``aggrega
 keys under ``loss_fn.`` / ``miner.`` (the training module's loss, no descriptor
 weights) are ignored, any other key is an error.
 
-This module also holds the DINOv2 pieces that MegaLoc and BoQ-DINOv2 share:
-:func:`dinov2_config`, :class:`DinoV2Tokens`, :func:`dinov2_hub_state_dict` (the inverse
-of the checkpoint mapping, for writing test checkpoints), :func:`read_state_dict` and
-:func:`load_backbone_and_head`.
+The DINOv2 it shares with BoQ-DINOv2, VLAD-BuFF and MegaLoc is
+:mod:`vprflow.models.trunks.dinov2`'s; MegaLoc also reads :class:`SaladAggregator`.
 """
 
 from __future__ import annotations
 
 import math
-from pathlib import Path
 
 import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vprflow.models.checkpoints import (
-    CheckpointError,
-    backbone_state_dict,
-    hub_to_transformers,
-    read_checkpoint,
-)
-from vprflow.models.vit import IMAGENET_MEAN, IMAGENET_STD, _set_pos_embed_interpolation
+from vprflow.models.kinds import trained_model
+from vprflow.models.trunks.dinov2 import DinoV2Tokens, load_backbone_and_head
 
-INPUT_SIZE = (322, 322)
+# The benchmarks build a shallower SALAD from the DINOv2 config, imported from here.
+from vprflow.models.trunks.dinov2 import dinov2_config as dinov2_config
+from vprflow.models.trunks.state_dicts import TRAINING_PREFIXES, read_state_dict
+from vprflow.models.vit import IMAGENET_MEAN, IMAGENET_STD
+
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
-SALAD_URL = "https://github.com/serizba/salad/releases/download/v1.0.0/dino_salad.ckpt"
-SALAD_FILE = "dino_salad.ckpt"
+# The published file and input size (models/kinds.py's entry).
+ENTRY = trained_model("salad")
+INPUT_SIZE = ENTRY.height_width
 SINKHORN_ITERATIONS = 3
-# The torch-hub ViT-B/14 (dinov2_vitb14): 518-pixel pretraining grid of 37 x 37.
-VITB14 = {
-    "hidden_size": 768,
-    "num_hidden_layers": 12,
-    "num_attention_heads": 12,
-    "mlp_ratio": 4,
-    "patch_size": 14,
-    "image_size": 518,
-    "layerscale_value": 1.0,
-    "layer_norm_eps": 1e-6,
-    "use_swiglu_ffn": False,
-    "qkv_bias": True,
-    "hidden_act": "gelu",
-}
-
-
-def dinov2_config(**overrides):
-    """A transformers ``Dinov2Config`` of the torch-hub ViT-B/14, ``overrides`` applied
-    (tests: ``hidden_size=32, num_hidden_layers=2, num_attention_heads=2``...)."""
-    from transformers import Dinov2Config
-
-    return Dinov2Config(**{**VITB14, **overrides})
-
-
-class DinoV2Tokens(nn.Module):
-    """DINOv2 as the VPR models call it: ``[B, 3, H, W]`` (H, W multiples of the patch)
-    -> ``(patches [B, C, H/p, W/p], cls [B, C])``, after the final LayerNorm when
-    ``final_norm`` (SALAD, MegaLoc) and straight from the last block otherwise (BoQ).
-    """
-
-    def __init__(self, config=None, final_norm: bool = True):
-        super().__init__()
-        from transformers import Dinov2Model
-
-        self.model = Dinov2Model(config or dinov2_config()).eval()
-        _set_pos_embed_interpolation(self.model, "original")
-        self.final_norm = final_norm
-        self.patch_size = int(self.model.config.patch_size)
-        self.dim = int(self.model.config.hidden_size)
-
-    def forward(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        batch, _, height, width = images.shape
-        if height % self.patch_size or width % self.patch_size:
-            raise ValueError(
-                f"DINOv2 input {height} x {width} is not a multiple of the patch "
-                f"{self.patch_size}; resize it first"
-            )
-        tokens = self.model.embeddings(images)
-        for block in self.model.encoder.layer:
-            tokens = block(tokens)
-        if self.final_norm:
-            tokens = self.model.layernorm(tokens)
-        rows, cols = height // self.patch_size, width // self.patch_size
-        patches = tokens[:, 1:].reshape(batch, rows, cols, self.dim).permute(0, 3, 1, 2)
-        return patches, tokens[:, 0]
-
-
-def dinov2_hub_state_dict(tokens: DinoV2Tokens) -> dict[str, torch.Tensor]:
-    """``tokens``' weights under the torch-hub DINOv2 names (fused ``attn.qkv``,
-    ``ls1.gamma``, ``norm``...): the layout the published checkpoints store."""
-    top = {
-        "embeddings.cls_token": "cls_token",
-        "embeddings.position_embeddings": "pos_embed",
-        "embeddings.mask_token": "mask_token",
-        "embeddings.patch_embeddings.projection.weight": "patch_embed.proj.weight",
-        "embeddings.patch_embeddings.projection.bias": "patch_embed.proj.bias",
-        "layernorm.weight": "norm.weight",
-        "layernorm.bias": "norm.bias",
-    }
-    renames = {"layer_scale1.lambda1": "ls1.gamma", "layer_scale2.lambda1": "ls2.gamma"}
-    hub: dict[str, torch.Tensor] = {}
-    qkv: dict[tuple[int, str], dict[str, torch.Tensor]] = {}
-    for name, tensor in tokens.model.state_dict().items():
-        if name in top:
-            hub[top[name]] = tensor.clone()
-            continue
-        _, _, index, rest = name.split(".", 3)
-        block = f"blocks.{index}."
-        module, _, kind = rest.rpartition(".")
-        leaf = module.rpartition(".")[2]
-        if rest in renames:
-            hub[block + renames[rest]] = tensor.clone()
-        elif leaf in ("q_proj", "k_proj", "v_proj", "query", "key", "value"):
-            qkv.setdefault((int(index), kind), {})[leaf[0]] = tensor
-        elif leaf in ("o_proj", "dense"):
-            hub[f"{block}attn.proj.{kind}"] = tensor.clone()
-        else:  # norm1, norm2, mlp.fc1, mlp.fc2 keep their names
-            hub[block + rest] = tensor.clone()
-    for (index, kind), parts in qkv.items():
-        hub[f"blocks.{index}.attn.qkv.{kind}"] = torch.cat([parts[c] for c in "qkv"], dim=0)
-    return hub
-
-
-def read_state_dict(path: str, model_name: str, url: str, filename: str) -> dict:
-    """The state dict in ``path``: ``safetensors`` files by name, anything else with
-    ``torch.load(weights_only=True)`` (a Lightning ``state_dict`` is unwrapped)."""
-    hint = f"download {filename} from {url}"
-    if not Path(path).is_file():
-        raise CheckpointError(f"{model_name}: checkpoint {path!r} does not exist; {hint}")
-    if str(path).endswith(".safetensors"):
-        from safetensors.torch import load_file
-
-        try:
-            return load_file(str(path))
-        except Exception as error:  # safetensors raises its own error types
-            raise CheckpointError(
-                f"{model_name}: checkpoint {path!r}: cannot read it as safetensors "
-                f"({type(error).__name__}: {error}); {hint}"
-            ) from error
-    try:
-        checkpoint = read_checkpoint(str(path))
-    except CheckpointError as error:
-        raise CheckpointError(f"{model_name}: {error}; {hint}") from error
-    if isinstance(checkpoint, dict) and isinstance(checkpoint.get("state_dict"), dict):
-        checkpoint = checkpoint["state_dict"]
-    if not isinstance(checkpoint, dict):
-        raise CheckpointError(
-            f"{model_name}: checkpoint {path!r} holds a {type(checkpoint).__name__}, "
-            f"not a state dict; {hint}"
-        )
-    return checkpoint
-
-
-def load_backbone_and_head(
-    backbone: DinoV2Tokens,
-    head: nn.Module,
-    state: dict,
-    path: str,
-    *,
-    model_name: str,
-    backbone_prefixes: tuple[str, ...],
-    head_prefix: str,
-    hint: str,
-    ignored_prefixes: tuple[str, ...] = (),
-) -> None:
-    """Load the torch-hub-named DINOv2 under one of ``backbone_prefixes`` into
-    ``backbone`` and the ``head_prefix`` keys into ``head``; every weight of both must
-    be present with its shape, and no other key may be in ``state`` (but those under
-    ``ignored_prefixes``)."""
-    try:
-        hub, prefix = backbone_state_dict(state, path)
-    except CheckpointError as error:
-        raise CheckpointError(f"{model_name}: {error}; {hint}") from error
-    if prefix not in backbone_prefixes:
-        raise CheckpointError(
-            f"{model_name}: checkpoint {path!r} keeps its DINOv2 under {prefix!r}, "
-            f"expected {' or '.join(repr(p) for p in backbone_prefixes)}; {hint}"
-        )
-    own_backbone = backbone.model.state_dict()
-    mapped, unplaced = hub_to_transformers(hub, set(own_backbone))
-    head_state = {k[len(head_prefix) :]: v for k, v in state.items() if k.startswith(head_prefix)}
-    own_head = head.state_dict()
-    unexpected = [prefix + n for n in unplaced] + [n for n in mapped if n not in own_backbone]
-    unexpected += [k for k in state if not k.startswith((prefix, head_prefix, *ignored_prefixes))]
-    unexpected += [head_prefix + k for k in head_state if k not in own_head]
-    # Missing weights are named as the file would name them (torch-hub names); the mask
-    # token only serves masked-image pretraining, and MegaLoc's file has none.
-    missing = [
-        prefix + n for n in dinov2_hub_state_dict(backbone) if n not in hub and n != "mask_token"
-    ]
-    if not missing:
-        missing = [n for n in own_backbone if n not in mapped and not n.endswith("mask_token")]
-    missing += [head_prefix + k for k in own_head if k not in head_state]
-    if missing or unexpected:
-        raise CheckpointError(
-            f"{model_name}: checkpoint {path!r} does not fit: missing keys {sorted(missing)[:6]}"
-            f" ({len(missing)}), unexpected keys {sorted(unexpected)[:6]} ({len(unexpected)}); "
-            + hint
-        )
-    shapes = [
-        (prefix + n, tuple(t.shape), tuple(own_backbone[n].shape))
-        for n, t in mapped.items()
-        if tuple(t.shape) != tuple(own_backbone[n].shape)
-    ] + [
-        (head_prefix + n, tuple(t.shape), tuple(own_head[n].shape))
-        for n, t in head_state.items()
-        if tuple(t.shape) != tuple(own_head[n].shape)
-    ]
-    if shapes:
-        key, found, expected = shapes[0]
-        raise CheckpointError(
-            f"{model_name}: checkpoint {path!r} key {key!r} has shape {found}, expected "
-            f"{expected} ({len(shapes)} shapes differ); {hint}"
-        )
-    backbone.model.load_state_dict({k: v.float() for k, v in mapped.items()}, strict=False)
-    head.load_state_dict({k: v.float() for k, v in head_state.items()})
 
 
 def sinkhorn_log(scores: torch.Tensor, dust_bin: torch.Tensor, iterations: int) -> torch.Tensor:
@@ -334,9 +145,10 @@ class SALAD(nn.Module):
 def load_salad(path: str, config=None, *, num_clusters: int = 64, cluster_dim: int = 128) -> SALAD:
     """SALAD with the weights of ``path`` (``dino_salad.ckpt`` layout, module docstring).
     ``config`` replaces ViT-B/14 (tests). Raises :class:`CheckpointError` naming the
-    file, the key at fault and :data:`SALAD_URL`."""
+    file, the key at fault and where to get the published file."""
     model = SALAD(config, num_clusters=num_clusters, cluster_dim=cluster_dim)
-    state = read_state_dict(path, "SALAD", SALAD_URL, SALAD_FILE)
+    published = ENTRY.published()
+    state = read_state_dict(path, "SALAD", published.url, published.file)
     load_backbone_and_head(
         model.backbone,
         model.aggregator,
@@ -345,9 +157,7 @@ def load_salad(path: str, config=None, *, num_clusters: int = 64, cluster_dim: i
         model_name="SALAD",
         backbone_prefixes=("backbone.model.",),
         head_prefix="aggregator.",
-        hint=f"expected {SALAD_FILE} from {SALAD_URL}",
-        # SALAD's Lightning module also holds its training loss and miner, which carry
-        # no weights of the descriptor.
-        ignored_prefixes=("loss_fn.", "miner."),
+        hint=published.hint,
+        ignored_prefixes=TRAINING_PREFIXES,
     )
     return model.eval()

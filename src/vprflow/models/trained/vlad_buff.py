@@ -54,28 +54,15 @@ from torch import nn
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.trained.salad import (
-    MEAN,
-    STD,
-    DinoV2Tokens,
-    load_backbone_and_head,
-    read_state_dict,
-)
-from vprflow.models.trunks.resnet import load_matching
 
-INPUT_SIZE = (322, 322)
-VLAD_BUFF_RELEASE = "https://github.com/ahmedest61/VLAD-BuFF/releases/download/v1.0.0/"
-# The published checkpoints: pre-pool PCA dims (None: none) -> whitened dims, the pairs
-# hubconf.vlad_buff accepts.
-PUBLISHED_PCS = {None: 8192, 192: 4096}
-# vprflow's variants: each file whitened (the published descriptor) or its VLAD before
-# the whitening, as (nv_pca, num_pcs).
-VARIANTS = {
-    "dnv2_NV_AB_wpca8192": (None, 8192),
-    "dnv2_NV_AB_vlad49152": (None, None),
-    "dnv2_NV_192PCA_AB_wpca4096": (192, 4096),
-    "dnv2_NV_192PCA_AB_vlad12288": (192, None),
-}
+# The published files' names and where they are (models/kinds.py, with the variants).
+from vprflow.models.kinds import VLAD_BUFF_RELEASE, trained_model, vlad_buff_file
+from vprflow.models.trunks.dinov2 import DinoV2Tokens, load_backbone_and_head
+from vprflow.models.trunks.state_dicts import TRAINING_PREFIXES, load_matching, read_state_dict
+from vprflow.models.vit import IMAGENET_MEAN, IMAGENET_STD
+
+MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
+INPUT_SIZE = trained_model("vlad_buff").height_width
 NUM_CLUSTERS = 64
 # AntiBurst's (alpha, beta, p) before training (the authors' --ab_w, --ab_b, --ab_p).
 AB_PARAMS = (8.0, 7.0, 1.0)
@@ -161,14 +148,6 @@ class VladBuff(nn.Module):
         return vlad if self.WPCA is None else self.WPCA(vlad)
 
 
-def vlad_buff_file(nv_pca: int | None, num_pcs: int | None = None) -> str:
-    """The checkpoint's file name as ``hubconf.vlad_buff`` builds it; ``num_pcs`` None:
-    the whitening published with ``nv_pca`` (the file holds the VLAD's weights too)."""
-    pcs = num_pcs if num_pcs is not None else PUBLISHED_PCS.get(nv_pca, "<n>")
-    pca = "" if nv_pca is None else f"{nv_pca}PCA_"
-    return f"dnv2_NV_{pca}AB_wpca{pcs}_last.ckpt"
-
-
 def _load_whitening(model: VladBuff, state: dict, path: str, hint: str) -> None:
     """``WPCA_<num_pcs>.0.*`` (or hubconf's renamed ``WPCA.0.*``) into ``model.WPCA``."""
     names = [p for p in (f"WPCA_{model.num_pcs}.", "WPCA.") if any(k.startswith(p) for k in state)]
@@ -221,7 +200,7 @@ def load_vlad_buff(
         hint=hint,
         # The training module's loss and miner hold no weights of the descriptor; the
         # whitenings are read below (add_pca.py may leave several in one file).
-        ignored_prefixes=("loss_fn.", "miner.", "WPCA.", "WPCA_"),
+        ignored_prefixes=(*TRAINING_PREFIXES, "WPCA.", "WPCA_"),
     )
     if model.WPCA is not None:
         _load_whitening(model, state, path, hint)

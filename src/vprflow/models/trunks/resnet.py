@@ -27,7 +27,8 @@ from collections.abc import Iterable, Sequence
 import torch
 from torch import nn
 
-from vprflow.models.checkpoints import CheckpointError, read_checkpoint
+from vprflow.models.kinds import TORCHVISION_RESNET_URLS
+from vprflow.models.trunks.state_dicts import load_matching, read_state
 
 # depth -> (block kind, blocks per stage), torchvision's configurations.
 RESNET_DEPTHS = {
@@ -44,15 +45,6 @@ STAGES = ("conv1", "bn1", "relu", "maxpool", *LAYERS)
 LAYER_STRIDES = {"layer1": 4, "layer2": 8, "layer3": 16, "layer4": 32}
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
-# torchvision's IMAGENET1K_V1 weights: what ``pretrained=True`` gave the VPR models
-# (MixVPR / BoQ ask for "IMAGENET1K_V1" by name) and what SNSM uses.
-TORCHVISION_RESNET_URLS = {
-    18: "https://download.pytorch.org/models/resnet18-f37072fd.pth",
-    34: "https://download.pytorch.org/models/resnet34-b627a593.pth",
-    50: "https://download.pytorch.org/models/resnet50-0676ba61.pth",
-    101: "https://download.pytorch.org/models/resnet101-63fe2227.pth",
-    152: "https://download.pytorch.org/models/resnet152-394f9c45.pth",
-}
 
 
 def _check_depth(depth: int) -> None:
@@ -215,68 +207,18 @@ class ResNet(nn.Module):
         return self.fc(torch.flatten(self.avgpool(x), 1))
 
 
-def load_matching(
-    module: nn.Module,
-    state: dict,
-    path: str,
-    model_name: str,
-    hint: str,
-    *,
-    ignore: Iterable[str] = (),
-) -> None:
-    """Load ``state`` into ``module`` after checking that its keys are exactly the
-    module's (keys under an ``ignore`` prefix dropped first) with the same shapes;
-    otherwise a :class:`CheckpointError` naming ``model_name``, ``path``, the keys at
-    fault and ``hint`` (where to get the right file)."""
-    prefixes = tuple(ignore)
-    state = {
-        k: v
-        for k, v in state.items()
-        if not (isinstance(k, str) and prefixes and k.startswith(prefixes))
-    }
-    own = module.state_dict()
-    missing = sorted(set(own) - set(state))
-    unexpected = sorted(str(k) for k in set(state) - set(own))
-    if missing or unexpected:
-        raise CheckpointError(
-            f"{model_name}: checkpoint {path!r} does not fit: {len(missing)} missing keys "
-            f"{missing[:4]}, {len(unexpected)} unexpected keys {unexpected[:4]}; {hint}"
-        )
-    for key, tensor in state.items():
-        if not isinstance(tensor, torch.Tensor) or tuple(tensor.shape) != tuple(own[key].shape):
-            shape = (
-                tuple(tensor.shape) if isinstance(tensor, torch.Tensor) else type(tensor).__name__
-            )
-            raise CheckpointError(
-                f"{model_name}: checkpoint {path!r} key {key!r} has shape {shape}, expected "
-                f"{tuple(own[key].shape)}; {hint}"
-            )
-    # float32 throughout: a half-precision file must not make the model half precision.
-    module.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()})
+class TorchvisionBackbone(nn.Module):
+    """amaralibey's ``ResNet`` backbone wrapper (MixVPR, Conv-AP): the trunk under
+    ``model``, so its keys read ``backbone.model.<torchvision name>``. ``[B, 3, H, W]``
+    -> ``end`` map."""
 
+    def __init__(self, depth: int = 50, end: str = "layer3"):
+        super().__init__()
+        self.model = ResNet(depth, end)
+        self.dim = self.model.dim
 
-def read_state(path: str, model_name: str, hint: str, containers: Sequence[str] = ()) -> dict:
-    """The state dict in ``path`` (``torch.load(weights_only=True)``), taken from the
-    first of ``containers`` (e.g. Lightning's ``"state_dict"``) the file has, else the
-    file itself; a :class:`CheckpointError` naming ``model_name``, ``path`` and ``hint``
-    when it cannot be read or is not a dict of tensors."""
-    try:
-        checkpoint = read_checkpoint(path)
-    except CheckpointError as error:
-        raise CheckpointError(f"{model_name}: {error}; {hint}") from error
-    if isinstance(checkpoint, dict):
-        for name in containers:
-            if isinstance(checkpoint.get(name), dict):
-                checkpoint = checkpoint[name]
-                break
-    if not isinstance(checkpoint, dict) or not any(
-        isinstance(v, torch.Tensor) for v in checkpoint.values()
-    ):
-        raise CheckpointError(
-            f"{model_name}: checkpoint {path!r} holds {type(checkpoint).__name__} without "
-            f"tensors, not a state dict; {hint}"
-        )
-    return checkpoint
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return self.model(images)
 
 
 def load_resnet(
