@@ -126,6 +126,33 @@ def test_each_kinds_keys_come_from_the_schemas_x_kinds():
     assert "radius_m" in keys["coordinates"] and "radius" not in keys["coordinates"]
 
 
+def _kind_descriptions(schema: dict) -> list[tuple[dict, str]]:
+    """Each registry with the description of the schema key that names its entries."""
+    from vprflow.data.ground_truth import KINDS
+    from vprflow.evaluation.rerank import RERANKERS
+    from vprflow.search.indexes import SEARCH_INDEXES
+
+    definitions = schema["definitions"]
+    truth = definitions["dataset"]["properties"]["ground_truth"]["properties"]
+    return [
+        (KINDS, truth["kind"]["description"]),
+        (RERANKERS, definitions["reranker"]["properties"]["kind"]["description"]),
+        (SEARCH_INDEXES, definitions["retrieval"]["properties"]["index"]["description"]),
+    ]
+
+
+def test_each_kinds_meaning_is_its_entrys_and_the_schema_file_states_none():
+    # The schema file lists no kind in prose, which a new kind would leave stale; the
+    # loaded schema (and config/README.md, made from it) states every entry's own line.
+    written = _kind_descriptions(yaml.safe_load(SCHEMA_PATH.read_text()))
+    loaded = _kind_descriptions(load_schema(SCHEMA_PATH))
+    for (entries, raw_text), (_, text) in zip(written, loaded, strict=True):
+        for name, entry in entries.items():
+            assert entry.description, name
+            assert f"{name} = " not in raw_text, name
+            assert f"{name} = {entry.description}" in text, name
+
+
 # ------------------------------------------------------------ names that become paths
 
 

@@ -29,14 +29,14 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from vprflow.data.datasets import DatasetFiles, role_folders
 from vprflow.core.errors import DatasetError, short_repr
 from vprflow.core.paths import dataset_folder
+from vprflow.data.datasets import DatasetFiles, role_folders
 from vprflow.data.positions import (
     Positions,
     check_one_system,
@@ -46,9 +46,8 @@ from vprflow.data.positions import (
     utm_ground_truth,
 )
 from vprflow.data.published_truth import (
-    as_index,
-    reference_indices,
     MSLS_FILES,
+    as_index,
     camera_centres,
     in_published_order,
     load_object_npy,
@@ -56,6 +55,7 @@ from vprflow.data.published_truth import (
     msls_ground_truth,
     radius_ground_truth,
     read_position_array,
+    reference_indices,
 )
 
 log = logging.getLogger("vprflow")
@@ -405,44 +405,69 @@ class Kind:
     ``rule(entry)``: the short name of the rule in results tables (the ``ground_truth``
     column); ``files(entry)``: the files it reads, relative to the dataset folder (inputs
     of the dataset stage, hashed into its key); ``judged``: whether it says which
-    references are correct at all (``none`` does not: its empty lists are no error).
+    references are correct at all (``none`` does not: its empty lists are no error);
+    ``description``: what it means, in the config's words (the schema's ``kind``
+    description lists every kind's, so a new kind is described there).
     """
 
     truth: Callable[[DatasetFiles, dict, Path], list[np.ndarray]]
     rule: Callable[[dict], str]
     files: Callable[[dict], list[str]] = _no_files
     judged: bool = True
+    description: str = field(kw_only=True)
 
 
 # In the order of the schema's enum (``ground_truth.kind``), which a test compares.
 KINDS: dict[str, Kind] = {
     "vprbench": Kind(
-        _vprbench_truth, lambda entry: f"vprbench:{entry['file']}", lambda entry: [entry["file"]]
+        _vprbench_truth,
+        lambda entry: f"vprbench:{entry['file']}",
+        lambda entry: [entry["file"]],
+        description="VPR-Bench .npy (query, positives) rows",
     ),
     "frame_window": Kind(
-        _frame_window_truth, lambda entry: f"frame_window:+-{_frame_radius(entry)}"
+        _frame_window_truth,
+        lambda entry: f"frame_window:+-{_frame_radius(entry)}",
+        description="paired sequences, positives within `radius` frames",
     ),
-    "utm": Kind(_utm_truth, lambda entry: f"utm:{_number_text(entry['radius'])}m"),
-    "pairs": Kind(_pairs_truth, lambda entry: "pairs"),
+    "utm": Kind(
+        _utm_truth,
+        lambda entry: f"utm:{_number_text(entry['radius'])}m",
+        description="positives within `radius` metres of `@easting@northing@` file names",
+    ),
+    "pairs": Kind(_pairs_truth, lambda entry: "pairs", description="query i matches reference i"),
     "coordinates": Kind(
         _coordinates_truth,
         _coordinates_rule,
         lambda entry: [entry["file"]] if entry["source"] == "file" else [],
+        description="positives within `radius_m` metres, positions from a CSV `file` or EXIF GPS",
     ),
     "positions": Kind(
         _positions_truth,
         lambda entry: f"positions:{entry['reference_positions']}:{_number_text(entry['radius'])}",
         lambda entry: [entry["reference_positions"], entry["query_positions"]],
+        description="positives within `radius` of per-image positions (Baidu Mall camera "
+        "files, InsideOut position pickles)",
     ),
     "matches_csv": Kind(
         _matches_csv_truth,
         lambda entry: f"matches_csv:{entry['file']}",
         lambda entry: [entry["file"]],
+        description="row i of a CSV `file` lists query i's positives in its "
+        "top_<k>_ref_ind columns (AnyLoc's Nardo-Air)",
     ),
     "msls": Kind(
-        _msls_truth, lambda entry: f"msls:{entry['city']}", lambda entry: list(MSLS_FILES.values())
+        _msls_truth,
+        lambda entry: f"msls:{entry['city']}",
+        lambda entry: list(MSLS_FILES.values()),
+        description="the published MSLS validation lists of one `city`",
     ),
-    "none": Kind(_none_truth, lambda entry: "none", judged=False),
+    "none": Kind(
+        _none_truth,
+        lambda entry: "none",
+        judged=False,
+        description="no ground truth (predictions and figures, no recall)",
+    ),
 }
 
 

@@ -15,8 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
-from vprflow.data.datasets import by_composed_name, folder_counts, nfc
 from vprflow.core.errors import DatasetError
+from vprflow.data.datasets import by_composed_name, folder_counts, nfc
 
 
 def utm_from_name(path: str | Path) -> tuple[float, float]:

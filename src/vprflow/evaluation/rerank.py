@@ -659,7 +659,9 @@ class Reranker:
     the rest of the entry, ``features`` and ``top_k``, reach the key through the plan.
     ``fixed``: the function's further settings, which the config leaves at these values
     (not in the key: only a code change moves them). ``score``: the kind of score stored
-    (a :data:`vprflow.evaluation.precision_recall.SCORE_KINDS` name).
+    (a :data:`vprflow.evaluation.precision_recall.SCORE_KINDS` name). ``description``:
+    what it scores, in the config's words (the schema's ``kind`` description lists every
+    kind's).
     """
 
     name: str
@@ -667,6 +669,7 @@ class Reranker:
     defaults: dict
     fixed: dict = field(default_factory=dict)
     score: str = "matches"
+    description: str = field(kw_only=True)
 
     @property
     def options(self) -> tuple[str, ...]:
@@ -693,6 +696,8 @@ RERANKERS: dict[str, Reranker] = {
             "mnn",
             mnn_pair_scores,
             {"weighting": "count", "min_similarity": None},
+            description="count mutual nearest neighbours between the query's and each "
+            "candidate's patch features",
         ),
         # Patch-NetVLAD's RANSAC score; threshold in patches (1.5, as published). The
         # estimator's budget stays fixed: the config never set it.
@@ -701,6 +706,7 @@ RERANKERS: dict[str, Reranker] = {
             ransac_pair_scores,
             {"min_similarity": None, "threshold": 1.5, "seed": 0},
             fixed={"model": "homography", "max_iters": 2000, "confidence": 0.999},
+            description="inliers of a homography fitted to those mutual nearest neighbour matches",
         ),
     )
 }

@@ -439,7 +439,9 @@ def load_schema(path: str | Path) -> dict:
     of ground-truth kinds (:data:`vprflow.data.ground_truth.KINDS`) and of published
     vocabularies (:data:`vprflow.aggregation.vocabularies.PUBLISHED`) as enums, every
     other enum from the constant its ``x-enum`` names (:func:`enum_values`), the kinds
-    an ``x-kinds`` item ``"module:CONSTANT"`` names (the trained models'), each
+    an ``x-kinds`` item ``"module:CONSTANT"`` names (the trained models'), the ground
+    truth's, re-ranker's and search index's ``kind``/``index`` descriptions completed
+    with each entry's ``description``, each
     re-ranker option's default and the kinds that read it from the
     :class:`~vprflow.evaluation.rerank.Reranker` entries, and each method section of
     :data:`METHOD_DEFAULT_SECTIONS` as a top-level key, a method key and a dataset
@@ -460,6 +462,14 @@ def load_schema(path: str | Path) -> dict:
         (PUBLISHED_VOCABULARIES, definitions["vocabulary"], "name"),
     ):
         definition["properties"][key]["enum"] = list(names)
+    # Each kind's line comes from its entry, so a kind added to the code is described.
+    for entries, prop in (
+        (KINDS, definitions["dataset"]["properties"]["ground_truth"]["properties"]["kind"]),
+        (RERANKERS, definitions["reranker"]["properties"]["kind"]),
+        (SEARCH_INDEXES, definitions["retrieval"]["properties"]["index"]),
+    ):
+        lines = "; ".join(f"{name} = {entry.description}" for name, entry in entries.items())
+        prop["description"] = f"{prop['description']}: {lines}"
     _reranker_options(definitions["reranker"]["properties"])
     method = definitions["method"]["properties"]
     dataset_defaults = definitions["dataset"]["properties"]["defaults"]["properties"]

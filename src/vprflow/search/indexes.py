@@ -28,7 +28,8 @@ class SearchIndex:
     ``knn`` has the signature ``(database [Nd, D], queries [Nq, D], k, **params) ->
     (distances [Nq, k'] float32, indices [Nq, k'] int64)`` (see :mod:`vprflow.search`),
     plus ``device`` when ``uses_gpu``; :meth:`search` calls it. ``defaults`` are those of
-    :mod:`vprflow.search.defaults`, which the functions also read.
+    :mod:`vprflow.search.defaults`, which the functions also read. ``description``: what
+    it is, in the config's words (the schema's ``index`` description lists every index's).
     """
 
     name: str
@@ -36,6 +37,7 @@ class SearchIndex:
     knn: Callable[..., Any]
     uses_gpu: bool = False
     defaults: dict = field(default_factory=dict)
+    description: str = field(kw_only=True)
 
     def search(self, database, queries, k: int, params: dict | None = None, device="auto"):
         """Squared-L2 ``k`` nearest ``database`` rows of every query with this index and
@@ -60,13 +62,42 @@ SEARCH_INDEXES: dict[str, SearchIndex] = {
     index.name: index
     for index in (
         # faiss IndexFlatL2, published.
-        SearchIndex("flat", exact=True, knn=flat_knn),
         SearchIndex(
-            "exact_fast", exact=True, knn=_exact_knn, uses_gpu=True, defaults=defaults.EXACT
+            "flat",
+            exact=True,
+            knn=flat_knn,
+            description="exact squared L2 (faiss IndexFlatL2, published)",
         ),
-        SearchIndex("ivf_flat", exact=False, knn=ivf_flat_knn, defaults=defaults.IVF_FLAT),
-        SearchIndex("ivf_pq", exact=False, knn=ivf_pq_knn, defaults=defaults.IVF_PQ),
-        SearchIndex("hnsw", exact=False, knn=hnsw_knn, defaults=defaults.HNSW),
+        SearchIndex(
+            "exact_fast",
+            exact=True,
+            knn=_exact_knn,
+            uses_gpu=True,
+            defaults=defaults.EXACT,
+            description="the same top-k from blocked torch products (bf16 candidates, "
+            "float32 re-score; GPU with device auto)",
+        ),
+        SearchIndex(
+            "ivf_flat",
+            exact=False,
+            knn=ivf_flat_knn,
+            defaults=defaults.IVF_FLAT,
+            description="approximate: faiss inverted lists of full vectors",
+        ),
+        SearchIndex(
+            "ivf_pq",
+            exact=False,
+            knn=ivf_pq_knn,
+            defaults=defaults.IVF_PQ,
+            description="approximate: faiss inverted lists of product-quantised vectors",
+        ),
+        SearchIndex(
+            "hnsw",
+            exact=False,
+            knn=hnsw_knn,
+            defaults=defaults.HNSW,
+            description="approximate: faiss HNSW graph",
+        ),
     )
 }
 
