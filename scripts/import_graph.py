@@ -7,7 +7,8 @@ imports below it inside that part; 0 imports none of it), the number of arrows, 
 arrows that run back up a wing, the modules that take part in an import cycle, and the
 string ties: string literals in the package of the form ``"vprflow.x.y:name"`` that
 name a vprflow module (code reached by ``importlib``, which the graph does not show).
-Imports inside functions count as arrows: they tie two files as firmly as any other.
+Imports inside functions count as arrows: they tie two files as firmly as any other;
+so does ``lazy_import("vprflow.x.y")`` (:mod:`vprflow.core.lazy`).
 ``tests/test_wings.py`` reads the graph with :func:`imports`.
 """
 
@@ -42,6 +43,15 @@ def modules(package: Path) -> dict[str, Path]:
     return {module_name(p, package): p for p in sorted(package.rglob("*.py"))}
 
 
+def lazy_import_target(node: ast.AST) -> str | None:
+    """The module a ``lazy_import("name")`` call (:mod:`vprflow.core.lazy`) names."""
+    if not (isinstance(node, ast.Call) and node.args and isinstance(node.args[0], ast.Constant)):
+        return None
+    f = node.func
+    called = f.id if isinstance(f, ast.Name) else f.attr if isinstance(f, ast.Attribute) else ""
+    return node.args[0].value if called == "lazy_import" else None
+
+
 def imports(package: Path) -> dict[str, set[str]]:
     """Every module of ``package`` -> the modules of it that it imports anywhere (lazy
     imports in functions included: a cycle through one still ties the two files)."""
@@ -57,6 +67,8 @@ def imports(package: Path) -> dict[str, set[str]]:
             elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
                 # `from vprflow.core import stores` imports the module core.stores
                 targets = [f"{node.module}.{a.name}" for a in node.names] + [node.module]
+            elif (lazy := lazy_import_target(node)) is not None:
+                targets = [lazy]  # `x = lazy_import("vprflow.x")`, imported when first used
             found |= {t for t in targets if t in found_modules and t != name}
         graph[name] = {t for t in found if not name.startswith(t + ".") and t != top}
     return graph
