@@ -1,9 +1,12 @@
 """Which function loads each model kind of :mod:`vprflow.models.kinds`.
 
-Each loader imports its model module when it runs, so that importing this module (as
-planning and the stages do) imports no torch; the model modules read their kinds'
-data from :mod:`vprflow.models.kinds`, never from here, so no import runs in a circle.
-``tests/test_registry.py`` checks that every kind that loads a model has a loader here.
+The model modules that import torch or transformers are named with
+:func:`vprflow.core.lazy.lazy_import`: each is imported when its loader first runs, so
+importing this module (as planning and the stages do) imports no torch. DAISY and the
+superpixel segmenters import scikit-image the same way. The model modules read their
+kinds' data from :mod:`vprflow.models.kinds`, never from here, so no import runs in a
+circle. ``tests/test_registry.py`` checks that every kind that loads a model has a
+loader here.
 """
 
 from __future__ import annotations
@@ -11,37 +14,31 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
+from vprflow.core.lazy import lazy_import
+from vprflow.models import backbones, segmenters
 from vprflow.models.kinds import model_kind
 
-
-def _load_daisy(params: dict, device: str = "auto"):
-    from vprflow.models.backbones import load_daisy
-
-    return load_daisy(params, device)
+vit = lazy_import("vprflow.models.vit")
+sam = lazy_import("vprflow.models.sam.adapters")
+trained = lazy_import("vprflow.models.trained.backbone")
+netvlad = lazy_import("vprflow.models.trained.netvlad")
+salad = lazy_import("vprflow.models.trained.salad")
+boq_dinov2 = lazy_import("vprflow.models.trained.boq_dinov2")
+vlad_buff = lazy_import("vprflow.models.trained.vlad_buff")
+megaloc = lazy_import("vprflow.models.trained.megaloc")
+mixvpr = lazy_import("vprflow.models.trained.mixvpr")
+convap = lazy_import("vprflow.models.trained.convap")
+boq = lazy_import("vprflow.models.trained.boq")
+cosplace = lazy_import("vprflow.models.trained.cosplace")
+resnet = lazy_import("vprflow.models.trunks.resnet")
 
 
 def _load_vit(params: dict, device: str = "auto"):
-    from vprflow.models.vit import load_vit
-
-    return load_vit(params, device)
-
-
-def _load_slic(params: dict, device: str = "auto"):
-    from vprflow.models.segmenters import load_slic
-
-    return load_slic(params, device)
-
-
-def _load_felzenszwalb(params: dict, device: str = "auto"):
-    from vprflow.models.segmenters import load_felzenszwalb
-
-    return load_felzenszwalb(params, device)
+    return vit.load_vit(params, device)
 
 
 def _load_sam(params: dict, device: str = "auto"):
-    from vprflow.models.sam.adapters import load_sam
-
-    return load_sam(params, device)
+    return sam.load_sam(params, device)
 
 
 # The trained models' own loaders, ``(checkpoint path, **variant loader_options) ->
@@ -49,69 +46,47 @@ def _load_sam(params: dict, device: str = "auto"):
 
 
 def _netvlad(checkpoint: str, **options):
-    from vprflow.models.trained.netvlad import load_netvlad
-
-    return load_netvlad(checkpoint, **options)
+    return netvlad.load_netvlad(checkpoint, **options)
 
 
 def _salad(checkpoint: str, **options):
-    from vprflow.models.trained.salad import load_salad
-
-    return load_salad(checkpoint, **options)
+    return salad.load_salad(checkpoint, **options)
 
 
 def _boq_dinov2(checkpoint: str, **options):
-    from vprflow.models.trained.boq_dinov2 import load_boq_dinov2
-
-    return load_boq_dinov2(checkpoint, **options)
+    return boq_dinov2.load_boq_dinov2(checkpoint, **options)
 
 
 def _vlad_buff(checkpoint: str, **options):
-    from vprflow.models.trained.vlad_buff import load_vlad_buff
-
-    return load_vlad_buff(checkpoint, **options)
+    return vlad_buff.load_vlad_buff(checkpoint, **options)
 
 
 def _megaloc(checkpoint: str, **options):
-    from vprflow.models.trained.megaloc import load_megaloc
-
-    return load_megaloc(checkpoint, **options)
+    return megaloc.load_megaloc(checkpoint, **options)
 
 
 def _mixvpr(checkpoint: str, **options):
-    from vprflow.models.trained.mixvpr import load_mixvpr
-
-    return load_mixvpr(checkpoint, **options)
+    return mixvpr.load_mixvpr(checkpoint, **options)
 
 
 def _convap(checkpoint: str, **options):
-    from vprflow.models.trained.convap import load_convap
-
-    return load_convap(checkpoint, **options)
+    return convap.load_convap(checkpoint, **options)
 
 
 def _boq_resnet50(checkpoint: str, **options):
-    from vprflow.models.trained.boq import load_boq_resnet50
-
-    return load_boq_resnet50(checkpoint, **options)
+    return boq.load_boq_resnet50(checkpoint, **options)
 
 
 def _cosplace(checkpoint: str, **options):
-    from vprflow.models.trained.cosplace import load_cosplace
-
-    return load_cosplace(checkpoint, **options)
+    return cosplace.load_cosplace(checkpoint, **options)
 
 
 def _eigenplaces(checkpoint: str, **options):
-    from vprflow.models.trained.cosplace import load_eigenplaces
-
-    return load_eigenplaces(checkpoint, **options)
+    return cosplace.load_eigenplaces(checkpoint, **options)
 
 
 def _resnet50(checkpoint: str, **options):
-    from vprflow.models.trunks.resnet import load_resnet
-
-    return load_resnet(checkpoint, **options)
+    return resnet.load_resnet(checkpoint, **options)
 
 
 # Trained kind -> its model's loader, which load_trained wraps into a backbone.
@@ -131,24 +106,22 @@ TRAINED_MODELS: dict[str, Callable[..., Any]] = {
 
 
 def _load_trained(params: dict, device: str = "auto"):
-    from vprflow.models.trained.backbone import load_trained
-
-    return load_trained(params, TRAINED_MODELS[params["backbone"]], device)
+    return trained.load_trained(params, TRAINED_MODELS[params["backbone"]], device)
 
 
 # Kind -> loader, ``(params, device) -> model``, per stage; ``import`` kinds read a file
 # and load nothing.
 LOADERS: dict[str, dict[str, Callable[..., Any]]] = {
     "features": {
-        "daisy": _load_daisy,
+        "daisy": backbones.load_daisy,
         "dinov2": _load_vit,
         "dinov3": _load_vit,
         "dino": _load_vit,
         **dict.fromkeys(TRAINED_MODELS, _load_trained),
     },
     "segments": {
-        "slic": _load_slic,
-        "felzenszwalb": _load_felzenszwalb,
+        "slic": segmenters.load_slic,
+        "felzenszwalb": segmenters.load_felzenszwalb,
         "sam": _load_sam,
         "sam_hq": _load_sam,
         "sam2": _load_sam,

@@ -60,6 +60,7 @@ from torch import nn
 
 from vprflow.core.arrays import center_crop_box
 from vprflow.core.devices import resolve_device, resolve_dtype
+from vprflow.models.checkpoints import load_hub_checkpoint
 from vprflow.models.hub import load_pretrained, resolve_model_source
 from vprflow.models.kinds import (
     BACKBONES,
@@ -393,8 +394,6 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
             "match this transformers version or model type"
         )
     if checkpoint is not None:
-        from vprflow.models.checkpoints import load_hub_checkpoint
-
         load_hub_checkpoint(model, str(checkpoint))
     model = model.to(torch_device)
     _, _, blocks = _find_blocks(model)

@@ -23,6 +23,8 @@ import numpy as np
 import torch
 from PIL import Image
 
+from vprflow.core.devices import resolve_device, resolve_dtype
+from vprflow.models.hub import load_pretrained, resolve_model_source
 from vprflow.models.kinds import SEGMENTERS, SamKind, with_defaults
 from vprflow.models.sam import decoder as sam_decoder
 from vprflow.models.sam.generator import SamSegmenter
@@ -301,9 +303,6 @@ def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmente
     local directory nor obtainable from the hub.
     """
     import transformers
-
-    from vprflow.core.devices import resolve_device, resolve_dtype
-    from vprflow.models.hub import load_pretrained, resolve_model_source
 
     merged = sam_params(params, kind)
     spec = SEGMENTERS[kind].spec
