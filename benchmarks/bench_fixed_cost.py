@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import argparse
 import csv
-import inspect
 import json
 import os
 import shutil
@@ -51,6 +50,7 @@ import time
 from pathlib import Path
 
 from vprflow.planning.plan import STAGES
+from vprflow.stages import jobs
 from vprflow.stages.jobs import RUNNERS
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -105,10 +105,11 @@ print("vprflow.models.loaders" in sys.modules)
 
 
 def stage_module(stage: str) -> str:
-    """The module a stage's runner imports (its first line); the gather's own."""
+    """The module of the function a stage's runner calls; the gather's own."""
     if stage == "gather":
         return "vprflow.stages.gather"
-    return inspect.getsource(RUNNERS[stage]).split("from ", 2)[1].split()[0]
+    # The runner calls `<module>.<function>(job)`, the module one of jobs.py's lazy imports.
+    return getattr(jobs, RUNNERS[stage].__code__.co_names[0]).__name__
 
 
 def fastest(code: str, repeats: int) -> tuple[float, str]:

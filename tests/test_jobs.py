@@ -23,12 +23,14 @@ SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 
 def _runner_function(stage: str):
-    """The stage function a runner of ``jobs.RUNNERS`` imports and calls."""
+    """The stage function a runner of ``jobs.RUNNERS`` calls: ``<module>.<function>(job)``,
+    the module one of jobs.py's lazy imports."""
     source = inspect.getsource(jobs.RUNNERS[stage])
-    found = ast.parse(textwrap.dedent(source)).body[0].body[0]
-    assert isinstance(found, ast.ImportFrom), source
-    module = importlib.import_module(found.module)
-    return module, getattr(module, found.names[0].name)
+    (found,) = ast.parse(textwrap.dedent(source)).body[0].body
+    call = found.value
+    assert isinstance(call, ast.Call) and isinstance(call.func, ast.Attribute), source
+    module = importlib.import_module(getattr(jobs, call.func.value.id).__name__)
+    return module, getattr(module, call.func.attr)
 
 
 def test_every_stage_of_the_plan_has_a_runner():

@@ -7,6 +7,8 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from vprflow.models.hub import is_local_model
+
 log = logging.getLogger("vprflow")
 
 
@@ -58,7 +60,6 @@ def resolved_sources(params: dict) -> dict[str, str]:
     """The model directory or file a stage reads, as absolute paths (hub ids as they
     are), for its log and attributes: a ``..`` or absolute path outside ``data_root``
     is allowed, but never invisible."""
-    from vprflow.models.hub import is_local_model
 
     sources = {}
     for name in ("model", "file"):

@@ -17,7 +17,13 @@ from vprflow.core.paths import dataset_folder
 from vprflow.data import datasets
 from vprflow.data.ground_truth import ground_truth, ground_truth_rule
 from vprflow.data.images import dataset_orientation, decode_image
-from vprflow.planning.fingerprints import file_digest, images_digest, truth_digest
+from vprflow.planning.fingerprints import (
+    file_digest,
+    images_digest,
+    load_fingerprints,
+    memo_key,
+    truth_digest,
+)
 from vprflow.stages.base import Job
 from vprflow.stages.readers import IMAGE_ARRAYS, read_image_bytes
 
@@ -167,7 +173,6 @@ def _changed_since_planning(
 ) -> str:
     """The message for files that differ from what the plan hashed: those whose stamp
     (size, mtime, ctime) or hash is not in the plan's memo."""
-    from vprflow.planning.fingerprints import load_fingerprints, memo_key
 
     memo = load_fingerprints(fingerprints) if fingerprints else {}
     changed = [p for p in paths if memo.get(memo_key(p)) != digests[p]] if memo else []

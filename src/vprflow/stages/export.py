@@ -22,6 +22,7 @@ import numpy as np
 from vprflow.core import stores
 from vprflow.core.files import atomic_path
 from vprflow.stages.readers import Dataset
+from vprflow.stages.retrieval import retrieve
 
 
 def export_descriptors(
@@ -71,7 +72,6 @@ def ranking_at_depth(
     re-ranked row score as its lowest score (0 when none), as the re-ranking scores the
     retrieval's entries past its top K. A per-segment method ranks only images that got a
     vote (``vote_ranking: published``): its rows may end before ``depth``."""
-    from vprflow.stages.retrieval import retrieve
 
     result = stores.open_store(recall_path)
     ranking = np.asarray(result["ranking"][...])

@@ -12,7 +12,9 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
+from vprflow.core.arrays import l2_normalize
 from vprflow.data.images import image_size, resize_image
+from vprflow.data.published import read_features_h5
 from vprflow.models.kinds import OWN_SIZE, model_kind
 from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
@@ -237,8 +239,6 @@ def _feature_extractor(params: dict, device: str, size: tuple[int, int] | None, 
     """
     kind = model_kind("features", params)
     if kind.reads_file:
-        from vprflow.core.arrays import l2_normalize
-        from vprflow.data.published import read_features_h5
 
         def read_grid(index):
             return read_features_h5(params["file"], Path(dataset.paths[index]).name)

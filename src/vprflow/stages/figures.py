@@ -12,10 +12,14 @@ import logging
 
 import numpy as np
 
+from vprflow.aggregation.snsm import snsm_descriptor, snsm_grid_shape
 from vprflow.core import stores
 from vprflow.core.files import write_text_atomic
 from vprflow.evaluation import figures
-from vprflow.stages.readers import Dataset
+from vprflow.evaluation.precision_recall import precision_recall_curve
+from vprflow.evaluation.recall import counted_queries
+from vprflow.stages.readers import Dataset, FeatureReader, MaskReader
+from vprflow.stages.retrieval import top1_matches
 
 log = logging.getLogger("vprflow")
 
@@ -33,9 +37,6 @@ def plot_recall(
 ) -> None:
     """All methods' Recall@N for N = 1 .. the largest configured N, and beside them the
     precision-recall curves of their top-1 matches (the table's counting), on one figure."""
-    from vprflow.evaluation.precision_recall import precision_recall_curve
-    from vprflow.evaluation.recall import counted_queries
-    from vprflow.stages.retrieval import top1_matches
 
     dataset = Dataset(dataset_path)
     truth = dataset.truth()
@@ -178,7 +179,6 @@ def draw_segment_matches(
     ``inputs``: the ``dataset``, ``recall``, ``search``, ``descriptors`` and ``segments``
     stores of the method.
     """
-    from vprflow.stages.readers import MaskReader
 
     dataset = Dataset(inputs["dataset"], data_root)
     result = stores.open_store(inputs["recall"])
@@ -230,8 +230,6 @@ def draw_support_maps(
     support maps, computed with the method's own settings from the ``features`` store;
     ``inputs`` also has ``dataset``, ``recall`` and ``descriptors`` (whose attributes
     hold those settings)."""
-    from vprflow.aggregation.snsm import snsm_descriptor, snsm_grid_shape
-    from vprflow.stages.readers import FeatureReader
 
     dataset = Dataset(inputs["dataset"], data_root)
     result = stores.open_store(inputs["recall"])

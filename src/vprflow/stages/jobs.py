@@ -14,7 +14,24 @@ import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
 
+from vprflow.core.lazy import lazy_import
 from vprflow.stages.base import Job
+
+# Every stage's module, imported when a job of it runs: a job imports only its own
+# stage's dependencies (torch or faiss cost seconds), and the planner's (~50 ms a job)
+# only where it needs them.
+dataset = lazy_import("vprflow.stages.dataset")
+features = lazy_import("vprflow.stages.features")
+segments = lazy_import("vprflow.stages.segments")
+vocabulary = lazy_import("vprflow.stages.vocabulary")
+pca = lazy_import("vprflow.stages.pca")
+descriptors = lazy_import("vprflow.stages.descriptors")
+search = lazy_import("vprflow.stages.search")
+matches = lazy_import("vprflow.stages.matches")
+rerank = lazy_import("vprflow.stages.rerank")
+recall = lazy_import("vprflow.stages.recall")
+gather = lazy_import("vprflow.stages.gather")
+plan = lazy_import("vprflow.planning.plan")
 
 __all__ = [
     "RUNNERS",
@@ -25,74 +42,51 @@ __all__ = [
     "shard_ranges",
 ]
 
-# Every stage's runner, ``(job) -> None``. Each imports its stage's module when a job
-# runs: a job imports only its own stage's dependencies (torch or faiss cost seconds).
+# Every stage's runner, ``(job) -> None``: one function of its stage's module.
 
 
 def _build_images(job: Job) -> None:
-    from vprflow.stages.dataset import build_images
-
-    build_images(job)
+    dataset.build_images(job)
 
 
 def _build_dataset(job: Job) -> None:
-    from vprflow.stages.dataset import build_dataset
-
-    build_dataset(job)
+    dataset.build_dataset(job)
 
 
 def _compute_features(job: Job) -> None:
-    from vprflow.stages.features import compute_features
-
-    compute_features(job)
+    features.compute_features(job)
 
 
 def _compute_segments(job: Job) -> None:
-    from vprflow.stages.segments import compute_segments
-
-    compute_segments(job)
+    segments.compute_segments(job)
 
 
 def _fit_vocabulary(job: Job) -> None:
-    from vprflow.stages.vocabulary import fit_vocabulary
-
-    fit_vocabulary(job)
+    vocabulary.fit_vocabulary(job)
 
 
 def _fit_pca(job: Job) -> None:
-    from vprflow.stages.pca import fit_pca
-
-    fit_pca(job)
+    pca.fit_pca(job)
 
 
 def _compute_descriptors(job: Job) -> None:
-    from vprflow.stages.descriptors import compute_descriptors
-
-    compute_descriptors(job)
+    descriptors.compute_descriptors(job)
 
 
 def _compute_search(job: Job) -> None:
-    from vprflow.stages.search import compute_search
-
-    compute_search(job)
+    search.compute_search(job)
 
 
 def _compute_matches(job: Job) -> None:
-    from vprflow.stages.matches import compute_matches
-
-    compute_matches(job)
+    matches.compute_matches(job)
 
 
 def _compute_rerank(job: Job) -> None:
-    from vprflow.stages.rerank import compute_rerank
-
-    compute_rerank(job)
+    rerank.compute_rerank(job)
 
 
 def _compute_recall(job: Job) -> None:
-    from vprflow.stages.recall import compute_recall
-
-    compute_recall(job)
+    recall.compute_recall(job)
 
 
 RUNNERS: dict[str, Callable[[Job], None]] = {
@@ -123,13 +117,9 @@ def shard_ranges(
     one sharded over references, ``sizes[STAGES[stage].shard_size]`` a job (``sizes``:
     the validated config, or any mapping of its shard-size keys); a size of 0 is one
     job."""
-    # Here, not at the top: a job's process (the rules' scripts) needs the runners only,
-    # and the planner's imports cost ~50 ms a job.
-    from vprflow.planning.plan import SHARDED, STAGES
-
-    if stage not in SHARDED:
-        raise ValueError(f"stage {stage!r} is not sharded; sharded stages: {SHARDED}")
-    spec = STAGES[stage]
+    if stage not in plan.SHARDED:
+        raise ValueError(f"stage {stage!r} is not sharded; sharded stages: {plan.SHARDED}")
+    spec = plan.STAGES[stage]
     n_images = n_reference if spec.shards == "references" else n_reference + n_query
     size = sizes[spec.shard_size] or n_images
     return [(start, min(start + size, n_images)) for start in range(0, n_images, size)]
@@ -155,10 +145,6 @@ def combine_shards(shard_paths: list[str], record: dict, out: str) -> None:
     """One store from a sharded stage's shards (in order): search shards hold per-shard
     top-k lists and are merged; the others' rows are concatenated."""
     if record["stage"] == "search":
-        from vprflow.stages.search import merge_search
-
-        merge_search(shard_paths, record, out)
+        search.merge_search(shard_paths, record, out)
     else:
-        from vprflow.stages.gather import gather
-
-        gather(shard_paths, record, out)
+        gather.gather(shard_paths, record, out)

@@ -19,6 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
+from vprflow.evaluation.rerank import candidate_pairs
 from vprflow.stages.base import Job
 from vprflow.stages.readers import PAIR_ARRAYS, Dataset
 from vprflow.stages.retrieval import timed_retrieve
@@ -60,7 +61,6 @@ def compute_matches(job: Job) -> None:
     import torch
 
     from vprflow.core.devices import resolve_device
-    from vprflow.evaluation.rerank import candidate_pairs
 
     inputs, params = job.inputs, job.params
     dataset = Dataset(inputs["images"])

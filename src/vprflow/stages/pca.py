@@ -6,6 +6,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 from tqdm import tqdm
 
+from vprflow.aggregation import pca
 from vprflow.aggregation.aggregators import aggregator
 from vprflow.core import stores
 from vprflow.stages.base import Job
@@ -17,7 +18,6 @@ def fit_pca(job: Job) -> None:
     """PCA fitted on a random sample of the reference images' segment descriptors,
     computed by the method's aggregator with the options ``fit_on`` (SegVLAD: at
     ``pca.fit_order``, docs/methods.md §5)."""
-    from vprflow.aggregation import pca
 
     inputs, record, params = job.inputs, job.record, job.params
     dataset = Dataset(inputs["images"])

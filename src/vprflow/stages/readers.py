@@ -10,6 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
+from vprflow.aggregation.pca import Pca
 from vprflow.core import stores
 from vprflow.core.errors import DatasetError
 from vprflow.data.images import ImageReadError, decode_image
@@ -145,7 +146,6 @@ def read_centres(path: str) -> np.ndarray:
 
 
 def read_pca(path: str):
-    from vprflow.aggregation.pca import Pca
 
     group = stores.open_store(path)
     return Pca(

@@ -8,7 +8,15 @@ import logging
 import numpy as np
 
 from vprflow.core import stores
-from vprflow.evaluation.recall import COST_COLUMNS
+from vprflow.evaluation.precision_recall import summary
+from vprflow.evaluation.recall import (
+    COST_COLUMNS,
+    correct_at,
+    counted_queries,
+    map_at,
+    queries_without_positive,
+    recall_at,
+)
 from vprflow.stages.base import Job
 from vprflow.stages.readers import Dataset
 from vprflow.stages.retrieval import retrieve, timed_retrieve, top1_matches
@@ -55,14 +63,6 @@ def compute_recall(job: Job) -> None:
     the same descriptors: its Recall@N is stored too (``recall_exact``), so the table
     can say what the approximation cost.
     """
-    from vprflow.evaluation.precision_recall import summary
-    from vprflow.evaluation.recall import (
-        correct_at,
-        counted_queries,
-        map_at,
-        queries_without_positive,
-        recall_at,
-    )
 
     record, params = job.record, job.params
     descriptors_path = job.inputs["descriptors"]

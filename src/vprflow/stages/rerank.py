@@ -19,7 +19,7 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
-from vprflow.evaluation.rerank import reranker
+from vprflow.evaluation.rerank import pair_scorer, rerank, reranker
 from vprflow.stages.base import Job
 from vprflow.stages.readers import Matches
 
@@ -34,7 +34,6 @@ def compute_rerank(job: Job) -> None:
     deep as the matches store's retrieval. ``ms_per_query`` is the re-ranking's cost: the
     matches store's matching plus this scoring; ``search_ms_per_query`` the retrieval's
     (the matches store's)."""
-    from vprflow.evaluation.rerank import pair_scorer, rerank
 
     params = job.params
     matches = Matches(job.inputs["matches"])

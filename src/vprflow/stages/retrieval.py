@@ -10,6 +10,10 @@ import time
 import numpy as np
 
 from vprflow.core import stores
+from vprflow.evaluation.precision_recall import top1_confidence
+from vprflow.evaluation.recall import correct_at, counted_queries
+from vprflow.search.flat import flat_knn, ranked_distances
+from vprflow.search.voting import image_of_segment, scored_vote_ranking
 from vprflow.stages.readers import Dataset, read_search
 
 
@@ -27,8 +31,6 @@ def retrieve(
     search (the published one, whose float32 order decides the ranking); scores are each
     ranked pair's squared L2 distance in float64 (lower is better), the same on every
     machine for the same ranking."""
-    from vprflow.search.flat import flat_knn, ranked_distances
-    from vprflow.search.voting import image_of_segment, scored_vote_ranking
 
     group = stores.open_store(descriptors_path)
     n_ref, n_query = dataset.n_reference, dataset.n_query
@@ -80,8 +82,6 @@ def top1_matches(
     ``(confidence, correct, has_positive)``, each ``[n counted]``, of every query's
     top-1 match (:mod:`vprflow.evaluation.precision_recall`); None when no counted query has a
     correct top-1 match, where VPR-Bench's recall is 0 / 0."""
-    from vprflow.evaluation.precision_recall import top1_confidence
-    from vprflow.evaluation.recall import correct_at, counted_queries
 
     counted = np.asarray(counted, dtype=bool)
     correct = (correct_at(ranking, truth) == 0)[counted]

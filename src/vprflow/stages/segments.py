@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from vprflow.core import stores
 from vprflow.data.images import resize_image
+from vprflow.data.published import read_masks_h5
 from vprflow.models.kinds import model_kind
 from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
@@ -92,7 +93,6 @@ def _mask_source(params: dict, device: str, dataset):
     """
     kind = model_kind("segments", params)
     if kind.reads_file:
-        from vprflow.data.published import read_masks_h5
 
         def published(indices):
             return [read_masks_h5(params["file"], Path(dataset.paths[i]).name) for i in indices]

@@ -6,7 +6,9 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.aggregation.snsm import normalize_tokens
+from vprflow.aggregation.vlad import fit_spherical_kmeans
 from vprflow.core import stores
+from vprflow.data.published import load_c_centers
 from vprflow.planning.fingerprints import file_digest
 from vprflow.stages.base import Job, resolved_sources
 from vprflow.stages.readers import Dataset, read_features
@@ -29,7 +31,6 @@ def load_centres_file(path: str) -> np.ndarray:
                 f"{centres.dtype} {centres.shape}"
             )
         return centres.astype(np.float32)
-    from vprflow.data.published import load_c_centers
 
     return load_c_centers(path)
 
@@ -37,7 +38,6 @@ def load_centres_file(path: str) -> np.ndarray:
 def fit_vocabulary(job: Job) -> None:
     """VLAD centres ``[K, D]``: spherical k-means on sampled patch descriptors, a file, or
     a published vocabulary (the ``centres`` input, fetched by its rule)."""
-    from vprflow.aggregation.vlad import fit_spherical_kmeans
 
     record, params = job.record, job.params
     features_path = job.inputs["features"]
