@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from vprflow.core.files import atomic_path
+from vprflow.data.download import fetch, verify_sha256
 
 COMMIT = "89cade5529a590c4ed2999b396dcd3cab86e275b"
 # An offline mirror of the repository's raw files may stand in (tests, clusters).
@@ -83,7 +84,6 @@ def vocabulary_url(name: str) -> str:
 def fetch_vocabulary(url: str, sha256: str, out: str | Path) -> None:
     """Fetch ``url`` to ``out`` if its SHA-256 is ``sha256``; otherwise fail naming both
     hashes and leave nothing at ``out`` (the file is renamed into place when checked)."""
-    from vprflow.data.download import fetch, verify_sha256
 
     # A temporary of this writer's own: two runs fetching one vocabulary (--nolock) used
     # to share `<out>.tmp`, and the second's rename found it gone.

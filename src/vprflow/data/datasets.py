@@ -20,6 +20,8 @@ from vprflow.core.errors import DatasetError
 from vprflow.core.files import link_loop
 from vprflow.core.paths import dataset_folder, download_hint
 from vprflow.data.images import IMAGE_SUFFIXES, ImageScan, natural_key, scan_images
+from vprflow.data.presets import layout_hint, presets
+from vprflow.data.published_truth import msls_listed_images
 
 
 def nfc(name: str) -> str:
@@ -105,7 +107,6 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
     if not root.is_dir():
         if dataset.get("download"):
             hint = f" Download it with `{download_hint(name)}` (then run again).{hint}"
-        from vprflow.data.presets import presets
 
         if name in presets():
             hint += f"\nThe preset's published layout (docs/datasets.md):\n{presets()[name].layout}"
@@ -119,8 +120,6 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
         entry = root / dataset[role]
         listed = entry.suffix.lower() == ".txt"
         if not (entry.is_file() if listed else entry.is_dir()):
-            from vprflow.data.presets import layout_hint  # a preset's layout, as found
-
             raise DatasetError(
                 f"dataset '{name}': {role} {'list' if listed else 'folder'} {entry} does not "
                 f"exist.{hint}{layout_hint(name, root, dataset)}"
@@ -134,8 +133,6 @@ def list_dataset(data_root: str | Path, name: str, dataset: dict) -> DatasetFile
     reference, query = scans["reference"].paths, scans["query"].paths
     truth = listing_truth(dataset.get("ground_truth") or {})
     if truth:  # MSLS: the published lists name the images
-        from vprflow.data.published_truth import msls_listed_images
-
         reference, query = msls_listed_images(root, truth["city"], reference, query)
     real = {}
     for scan in scans.values():

@@ -32,6 +32,8 @@ from pathlib import Path
 
 import yaml
 
+from vprflow.core.errors import ConfigError, PlanError
+
 PRESETS_FILE = Path(__file__).with_name("presets.yaml")
 # Dataset keys that do not change what is evaluated or how it is counted: a config that
 # changes only these still runs the preset's protocol.
@@ -170,8 +172,6 @@ def with_trained_baselines(
         ):
             continue
         if method not in defined:
-            from vprflow.core.errors import ConfigError
-
             raise ConfigError(
                 f"config key 'trained_baselines': datasets.{name} (preset {name!r}) runs "
                 f"the trained method {method!r} of its published row {row['method']!r}, "
@@ -219,7 +219,6 @@ def with_presets(config: dict, components: Components) -> dict:
     for name in sorted(RENAMED.keys() & (datasets.keys() | targets)):
         if (datasets.get(name) or {}).get("preset") is False:
             continue  # a dataset of the user's own that happens to bear the old name
-        from vprflow.core.errors import ConfigError
 
         where = f"datasets.{name}" if name in datasets else "targets"
         raise ConfigError(f"config key '{where}': {RENAMED[name]}")
@@ -405,7 +404,6 @@ def _check_method_features(
             or "source" in (settings.get("vocabulary") or {})
         ):
             continue
-        from vprflow.core.errors import PlanError
 
         raise PlanError(
             f"datasets.{name} (preset {name!r}) runs method {method!r} on features "

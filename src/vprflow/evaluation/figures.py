@@ -18,6 +18,8 @@ import numpy as np
 
 from vprflow.core.files import atomic_path
 from vprflow.data.images import resize_image
+from vprflow.evaluation.precision_recall import SUMMARY
+from vprflow.evaluation.recall import COST_COLUMNS
 
 CORRECT = (0.0, 0.75, 0.0)  # frame of a retrieved reference that is a true positive
 WRONG = (0.9, 0.0, 0.0)  # frame of one that is not
@@ -118,8 +120,6 @@ def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[st
     from html import escape
 
     # The results table's own column names (vprflow.stages.report).
-    from vprflow.evaluation.precision_recall import SUMMARY
-    from vprflow.evaluation.recall import COST_COLUMNS
 
     columns = list(rows[0]) if rows else []
     scored = [c for c in columns if c.startswith(("recall@", "map@", "exact_recall@"))]

@@ -16,6 +16,7 @@ import io
 from collections.abc import Mapping, Sequence
 
 from vprflow.core.files import write_text_atomic
+from vprflow.data.presets import presets
 
 COLUMNS = (
     "method",
@@ -75,7 +76,6 @@ def write_published_table(
     """``results/published_<dataset>.csv`` of the preset ``dataset`` from its recall
     table ``recall_csv`` (``changes``: :func:`published_rows`'); a dataset that is no
     preset has no published rows: an error that names it."""
-    from vprflow.data.presets import presets
 
     preset = presets().get(dataset)
     if preset is None:

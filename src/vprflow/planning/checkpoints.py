@@ -22,6 +22,8 @@ import shlex
 from dataclasses import dataclass
 from pathlib import Path
 
+from vprflow.core.files import atomic_path
+from vprflow.data.download import DownloadError, fetch
 from vprflow.models.kinds import TrainedVariant
 
 log = logging.getLogger("vprflow")
@@ -172,9 +174,6 @@ def output_pattern(paths: list[str]) -> str:
 def fetch_checkpoint(url: str, sha256: str | None, out: str | Path) -> None:
     """Fetch ``url`` to ``out``, checking its SHA-256 (or the published first digits of
     it) when ``sha256`` is given; a mismatch leaves nothing at ``out`` and names both."""
-    from vprflow.core.files import atomic_path
-    from vprflow.data.download import DownloadError, fetch
-
     with atomic_path(out) as partial:
         actual = fetch(url, partial)
         size = partial.stat().st_size

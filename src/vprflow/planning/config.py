@@ -22,9 +22,13 @@ from pathlib import Path
 import yaml
 
 from vprflow.aggregation.aggregators import AGGREGATORS
+from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 from vprflow.core.errors import ConfigError, short_repr
+from vprflow.data.ground_truth import KINDS
+from vprflow.data.presets import Components, presets, protocol, with_presets
 from vprflow.evaluation.rerank import RERANKERS
 from vprflow.models.kinds import BACKBONES, SEGMENTERS, TRAINED_KINDS, with_defaults
+from vprflow.planning.merges import dataset_merges, say_merges, without_foreign_downloads
 from vprflow.search.indexes import SEARCH_INDEXES
 
 # The modules whose constants a schema `x-enum` may name: the config is validated
@@ -91,9 +95,6 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     (:func:`integral_floats`), so ``n_clusters: 8.0`` runs, and is keyed, as ``8``.
     """
     import jsonschema
-
-    from vprflow.data.presets import Components, presets, protocol, with_presets
-    from vprflow.planning.merges import dataset_merges, say_merges, without_foreign_downloads
 
     check_config_files(files)
     merges = dataset_merges(files)
@@ -446,8 +447,6 @@ def load_schema(path: str | Path) -> dict:
     :class:`~vprflow.evaluation.rerank.Reranker` entries, and each method section of
     :data:`METHOD_DEFAULT_SECTIONS` as a top-level key, a method key and a dataset
     ``defaults`` key (each a reference to the section's definition)."""
-    from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
-    from vprflow.data.ground_truth import KINDS
 
     schema = yaml.safe_load(Path(path).read_text())
     _fill_enums(schema, "#")

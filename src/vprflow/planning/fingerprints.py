@@ -14,15 +14,15 @@ import json
 import os
 import stat
 from pathlib import Path, PurePath
-from typing import TYPE_CHECKING
 
-from vprflow.core.errors import PlanError
+from vprflow.core.errors import DatasetError, PlanError
 from vprflow.core.files import link_loop, write_text_atomic
-from vprflow.core.paths import FINGERPRINTS
+from vprflow.core.paths import FINGERPRINTS, dataset_folder
+from vprflow.data.datasets import DatasetFiles, list_dataset
+from vprflow.data.ground_truth import ground_truth_files
+from vprflow.data.images import ImageReadError
+from vprflow.models.hub import is_local_model, model_not_found, weights_fingerprint
 from vprflow.models.kinds import model_kind
-
-if TYPE_CHECKING:
-    from vprflow.data.datasets import DatasetFiles
 
 
 def file_digest(path: str | Path) -> str:
@@ -133,9 +133,6 @@ def dataset_contents(
     image twice; ctime changes whenever a file is rewritten, even by ``cp -p``,
     ``rsync -a`` or ``tar`` (which restore an older mtime).
     """
-    from vprflow.core.errors import DatasetError
-    from vprflow.data.datasets import list_dataset
-    from vprflow.data.images import ImageReadError
 
     def file_hash(path, where):
         return memoised(path, memo, file_digest, f"datasets.{name}.{where}")
@@ -152,7 +149,6 @@ def images_digest(files: DatasetFiles, data_root: str | Path, dataset: dict, fil
     """SHA-256 over every image's name (relative to its role's folder) and content hash,
     in order: what the images stage's key covers. ``file_hash(path, where) -> hex
     sha256``, ``where`` a config key (``reference``, ``query``) to name in errors."""
-    from vprflow.core.paths import dataset_folder
 
     digest = hashlib.sha256()
     root = dataset_folder(data_root, dataset)
@@ -171,7 +167,6 @@ def truth_digest(data_root: str | Path, dataset: dict, file_hash) -> str:
     """SHA-256 over the ground-truth files' names and content hashes: what the truth
     (``dataset``) stage's key covers besides the images key. ``file_hash`` as in
     :func:`images_digest` (``where`` is ``ground_truth.file``)."""
-    from vprflow.data.ground_truth import ground_truth_files
 
     digest = hashlib.sha256()
     for path in ground_truth_files(data_root, dataset):
@@ -199,8 +194,6 @@ def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> 
     if kind.weights == "file":
         return {"file_sha256": memoised(entry["file"], memo, file_digest, f"{where}.file")}
     if kind.weights == "model":
-        from vprflow.models.hub import is_local_model, weights_fingerprint
-
         model = entry["model"]
         if not is_local_model(model):
             return {
@@ -209,8 +202,6 @@ def source_fingerprint(stage: str, entry: dict, memo: dict, where: str = "") -> 
                 **_checkpoint_fingerprint(entry, memo, where),
             }
         if not Path(model).expanduser().exists():
-            from vprflow.models.hub import model_not_found
-
             raise PlanError(
                 f"config key {where}.model: "
                 + str(model_not_found(model, f"local directory {model!r} does not exist", None))

@@ -21,6 +21,7 @@ from pathlib import Path
 import yaml
 
 from vprflow.core.errors import PlanError
+from vprflow.planning.config import validate_config
 from vprflow.planning.plan import Plan, build_plan, method_run
 
 # Sections of named entries: the shipped config's entries win, the run's others join.
@@ -54,7 +55,6 @@ def published_plan(
 ) -> Plan:
     """The plan of ``preset`` alone in its published setting (:func:`reference_config`;
     ``shipped_path``: the workflow's config/config.yaml, if it exists)."""
-    from vprflow.planning.config import validate_config
 
     shipped_path = Path(shipped_path)
     shipped = yaml.safe_load(shipped_path.read_text()) if shipped_path.is_file() else None

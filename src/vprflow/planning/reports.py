@@ -17,6 +17,7 @@ from vprflow.core.paths import (
     TABLES_MARK,
     store_path,
 )
+from vprflow.data.datasets import list_dataset
 from vprflow.planning.plan import Plan, method_run, method_stores
 
 
@@ -190,7 +191,6 @@ def report_gaps(plan: Plan, config: dict, datasets: list[str], root: str = "") -
     one line per dataset whose images cannot be listed under ``data_root`` (every key
     then differs from the run's, so none of its results is found), or whose tables,
     figures or recall stores of this config are not on disk."""
-    from vprflow.data.datasets import list_dataset
 
     gaps = []
     for name in datasets:
