@@ -2,8 +2,10 @@
 # results/downloads/<dataset>.json` fetches the dataset's `download` archive, verifies
 # it and lays out its folder under data_root when the folder is missing, then writes
 # this record. Nothing here lists images, so the target works while the data is absent.
-# A checkpoint: a run that needs a sample dataset whose folder is missing plans its stores
-# once this job laid it out (`downloaded` in common.smk).
+# `download` is a Snakemake checkpoint (the only one: everywhere else in vprflow a
+# checkpoint is a trained model's weights file): a run that needs a sample dataset
+# whose folder is missing plans its stores once this job laid it out (`downloaded` in
+# common.smk).
 from vprflow.core.paths import (
     DOWNLOAD_LOG,
     DOWNLOAD_RECORD,
