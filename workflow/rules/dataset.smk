@@ -1,3 +1,6 @@
+from vprflow.core.paths import FINGERPRINTS
+
+
 # A dataset's two stores: `images` (what the images are: list, order, content, reader)
 # and `dataset` (the whole dataset as recall and the figures read it: the images store's
 # lists and what is true about them, the ground truth), so a ground-truth change reruns

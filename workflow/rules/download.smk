@@ -19,15 +19,15 @@ from vprflow.aggregation.vocabularies import (
 from vprflow.data.download import download_entry, manifest_inputs
 from vprflow.planning.checkpoints import (
     ABSOLUTE_OUTPUT,
-    by_hand,
     checkpoint_url,
     fetchable_paths,
-    fetching_checkpoints,
     output_pattern,
 )
 
 # Shipped manifests are named relative to workflow/ (found while this file is parsed).
 WORKFLOW_DIR = Path(workflow.current_basedir).parent
+# The trained checkpoints the plan reads (a re-plan after a download changes none).
+CHECKPOINTS = INVOCATION.plan.checkpoints
 
 
 # Network access happens where Snakemake runs, not in a cluster job.
@@ -41,7 +41,7 @@ localrules:
 checkpoint download:
     input:
         manifest=lambda wildcards: manifest_inputs(
-            CONFIG, wildcards.dataset, WORKFLOW_DIR
+            started().config, wildcards.dataset, WORKFLOW_DIR
         ),
     output:
         DOWNLOAD_RECORD,
@@ -78,14 +78,10 @@ rule published_vocabulary:
 
 # Every trained model's checkpoint the plan reads that can be downloaded
 # (vprflow.planning.checkpoints): `snakemake trained_checkpoints` fetches the missing ones.
+# Those to fetch by hand are named once the command is known (Invocation.begin).
 rule trained_checkpoints:
     input:
-        fetchable_paths(PLAN.checkpoints),
-
-
-if workflow.is_main_process and fetching_checkpoints(COMMAND.targets):
-    for _line in by_hand(PLAN.checkpoints):
-        print(f"vprflow: {_line}", file=sys.stderr)
+        lambda wildcards: fetchable_paths(started().plan.checkpoints),
 
 
 # One published checkpoint, at the path its backbone entry names; kept only when its SHA-256
@@ -96,15 +92,13 @@ rule trained_checkpoint:
     log:
         "logs/trained_checkpoint/{checkpoint}.log",
     wildcard_constraints:
-        checkpoint=output_pattern(fetchable_paths(PLAN.checkpoints, absolute=False)),
+        checkpoint=output_pattern(fetchable_paths(CHECKPOINTS, absolute=False)),
     conda:
         "../envs/vprflow.yaml"
     params:
         # They take `output`, so no rerun trigger: the plan hashes the file itself.
-        url=lambda wildcards, output: checkpoint_url(
-            PLAN.checkpoints[output[0]].published
-        ),
-        sha256=lambda wildcards, output: PLAN.checkpoints[output[0]].published.sha256,
+        url=lambda wildcards, output: checkpoint_url(published_checkpoint(output)),
+        sha256=lambda wildcards, output: published_checkpoint(output).sha256,
     message:
         "vprflow: fetching {output} from {params.url} (log: {log})"
     script:
@@ -119,5 +113,5 @@ use rule trained_checkpoint as trained_checkpoint_absolute with:
         "logs/trained_checkpoint/absolute/{checkpoint}.log",
     wildcard_constraints:
         checkpoint=output_pattern(
-            [p[1:] for p in fetchable_paths(PLAN.checkpoints, absolute=True)]
+            [p[1:] for p in fetchable_paths(CHECKPOINTS, absolute=True)]
         ),

@@ -3,11 +3,13 @@
 # query, on request:
 #   snakemake --cores 1 results/export/<dataset>/<method>.npz
 #   snakemake --cores 1 results/pairs/<dataset>/<method>/pairs.txt
+from vprflow.core.paths import EXPORT, KAPTURE_PAIRS, PAIRS
 
 
+# The export reads no ground truth: a ground-truth change leaves it as it is.
 rule export:
     input:
-        unpack(export_stores),
+        unpack(method_stores_of("images", "descriptors")),
     output:
         EXPORT,
     log:
@@ -18,9 +20,10 @@ rule export:
         "../scripts/export.py"
 
 
+# The descriptors (and segment search) rank past the recall's depth.
 rule pairs:
     input:
-        unpack(pairs_stores),
+        unpack(method_stores_of("dataset", "recall", "descriptors", "search")),
     output:
         pairs=PAIRS,
         kapture=KAPTURE_PAIRS,

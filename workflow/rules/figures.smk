@@ -1,16 +1,10 @@
 # The report's figures: rules of their own, outside the content-addressed cache. Their
 # settings (`figures:`) are params, so changing one reruns only figures. Each names its
 # figure in `params`: a host workflow's `use rule * from vprflow as vpr_*` renames rules.
-from vprflow.planning.reports import report_error, report_gaps
-
-# A report made without the run's options (its data_root, say) would look for other
-# keys' stores and leave items out without an error: it fails instead, naming each gap.
-if workflow.is_main_process and COMMAND.makes_report:
-    _gaps = report_gaps(
-        PLAN, CONFIG, requested_datasets(CONFIG, COMMAND.targets), PREFIX
-    )
-    if _gaps:
-        raise PlanError(report_error(_gaps))
+# A report made without the run's options (its data_root, say) fails naming each gap
+# (Invocation.begin).
+from vprflow.core.paths import FIGURE, RECALL_CSV, RECALL_PLOT, RECALL_TABLE
+from vprflow.planning.reports import FIGURES
 
 
 rule recall_table:
@@ -48,7 +42,7 @@ rule recall_plot:
     conda:
         "../envs/vprflow.yaml"
     params:
-        methods=lambda wildcards: [run.method for run in PLAN.runs[wildcards.dataset]],
+        methods=lambda wildcards: [run["method"] for run in report_runs(wildcards)],
     script:
         "../scripts/recall_plot.py"
 
@@ -63,7 +57,7 @@ for _figure, _entry in FIGURES.items():
             unpack(figure_stores(_figure)),
         output:
             report(
-                figure_pattern(_figure),
+                FIGURE.replace("{figure}", _figure),
                 caption=f"../report/{_figure}.rst",
                 category="{dataset}",
                 subcategory=_entry.heading,

@@ -1,3 +1,6 @@
+from vprflow.core.paths import PREDICTIONS_CSV, PUBLISHED_CSV, RECALL_CSV
+
+
 rule recall:
     input:
         unpack(stage_inputs("recall")),
@@ -84,24 +87,11 @@ localrules:
 
 
 # A failed run must not leave a results table that looks current (e.g. one method of
-# several failed): the tables of the datasets it asked for that are older than their
-# recall stores are renamed to *.stale. Other datasets' tables are no business of this run.
+# several failed); a good run supersedes the tables an earlier failure withdrew
+# (Invocation.failed, Invocation.succeeded).
 onerror:
-    if RUNS_JOBS:
-        # Another run of this folder deletes this one's stores: say so beside the failure.
-        _others = other_runs(RUN_MARKER.parent, RUN_MARKER) or OTHER_RUNS
-        if _others:
-            print(f"vprflow: {collision_message(_others)}")
-        asked = requested_datasets(CONFIG, workflow.dag_settings.targets)
-        for table in withdraw_stale_reports(PLAN, PREFIX, asked):
-            print(f"vprflow: {table} is out of date after the failure (renamed)")
+    INVOCATION.failed()
 
 
-# A good run supersedes the tables an earlier failure withdrew, and names the tables of
-# the datasets it was asked for.
 onsuccess:
-    if RUNS_JOBS:
-        for stale in clear_superseded(PREFIX):
-            print(f"vprflow: removed {stale}: the table beside it is current")
-        asked = requested_datasets(CONFIG, workflow.dag_settings.targets)
-        print("\n".join(closing_lines(PLAN, PREFIX, asked)))
+    INVOCATION.succeeded()

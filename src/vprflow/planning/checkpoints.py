@@ -60,7 +60,7 @@ def checkpoint_url(published: TrainedVariant) -> str | None:
 
 
 def fetching_checkpoints(targets) -> bool:
-    """Whether a ``snakemake`` command's targets (:mod:`vprflow.planning.command`) hold
+    """Whether a ``snakemake`` command's targets (:func:`vprflow.planning.invocation.asked`) hold
     the fetch target, so that the plan may be built while checkpoints are missing."""
     return FETCH_TARGET in targets
 
