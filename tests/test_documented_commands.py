@@ -27,7 +27,6 @@ import functools
 import glob
 import importlib.util
 import io
-import json
 import os
 import re
 import shlex
@@ -40,6 +39,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
+from workflow_helpers import dry_run
 
 REPO = Path(__file__).resolve().parents[1]
 # Where documented commands live. benchmarks/README.md is left out: it records the
@@ -473,35 +473,6 @@ def scratch_repository(root: Path, data_root: Path, preset_names: set[str]) -> P
     return repo
 
 
-# Runs Snakemake's command line once per argument list in one process: argv JSON in,
-# one JSON line per command out (exit status, the end of what it printed).
-RUNNER = r"""
-import json, os, sys, tempfile
-from snakemake.cli import main
-for argv in json.loads(sys.stdin.read()):
-    with tempfile.TemporaryFile() as log:
-        saved = [os.dup(1), os.dup(2)]
-        sys.stdout.flush(); sys.stderr.flush()
-        os.dup2(log.fileno(), 1); os.dup2(log.fileno(), 2)
-        try:
-            main(argv)
-            code = 0
-        except SystemExit as exit:
-            code = exit.code if isinstance(exit.code, int) else 1
-        except BaseException as error:
-            print(repr(error), file=sys.stderr)
-            code = 1
-        finally:
-            sys.stdout.flush(); sys.stderr.flush()
-            os.dup2(saved[0], 1); os.dup2(saved[1], 2)
-            for fd in saved:
-                os.close(fd)
-        log.seek(0)
-        output = log.read().decode(errors="replace")
-    print(json.dumps({"code": code, "output": output[-6000:]}), flush=True)
-"""
-
-
 @pytest.fixture(scope="module")
 def dry_runs(tmp_path_factory, data_root) -> dict[tuple[str, ...], dict]:
     """argv -> {"code", "output"} of its dry run in the scratch repository, for every
@@ -513,20 +484,13 @@ def dry_runs(tmp_path_factory, data_root) -> dict[tuple[str, ...], dict]:
         args, _ = _parse(list(argv))
         if reason is None and args is not None and _needs(args) is None:
             wanted.append(argv)
-    commands = [["-n", *Command("", "", a).args(repo)] for a in wanted]
     environment = {**os.environ, "SLURM_CONF": os.devnull, "PWD": str(repo)}
-    proc = subprocess.run(
-        [sys.executable, "-c", RUNNER],
-        input=json.dumps(commands),
-        cwd=repo,
-        env=environment,
-        capture_output=True,
-        text=True,
-        timeout=900,
-        check=False,
-    )
-    results = [json.loads(line) for line in proc.stdout.splitlines() if line.startswith("{")]
-    assert len(results) == len(wanted), proc.stderr[-3000:]
+    results = []
+    for argv in wanted:
+        command = [sys.executable, "-m", "snakemake", "-n", *Command("", "", argv).args(repo)]
+        done = dry_run(command, repo, environment)
+        output = done.stdout + done.stderr
+        results.append({"code": done.returncode, "output": output})
     return dict(zip(wanted, results, strict=True))
 
 

@@ -3,12 +3,11 @@
 from __future__ import annotations
 
 import re
-import subprocess
 
 import pytest
 import yaml
 from synthetic import make_dataset
-from workflow_helpers import REPO, snakemake_command, toy_config, write_config
+from workflow_helpers import REPO, dry_run, snakemake_command, toy_config, write_config
 
 from vprflow.core.errors import DatasetError
 from vprflow.data.download import awaiting_download
@@ -120,7 +119,7 @@ def test_a_run_with_ones_own_dataset_under_a_shipped_name_says_so_and_downloads_
     command = snakemake_command(tmp_path, shipped, "-n", "results/recall_toy.csv")
     at = command.index(str(shipped))
     command[at + 1 : at + 1] = [str(mine)]  # `--configfile shipped mine`
-    result = subprocess.run(command, capture_output=True, text=True, cwd=tmp_path)
+    result = dry_run(command, tmp_path)
     text = result.stdout + result.stderr
     assert result.returncode != 0
     assert not re.search(r"^download +1$", text, re.M)

@@ -5,7 +5,6 @@ from __future__ import annotations
 import copy
 import csv
 import shutil
-import subprocess
 from pathlib import Path
 
 import numpy as np
@@ -15,6 +14,7 @@ from synthetic import make_dataset
 from workflow_helpers import (
     REPO,
     SNAKEFILE,
+    dry_run,
     expected_rows,
     read_rows,
     scheduled_outputs,
@@ -258,7 +258,7 @@ def test_a_fresh_checkout_of_the_workflow_reruns_nothing(toy_run, tmp_path):
                for a in snakemake_command(workdir, path, "-n", TARGET)]  # fmt: skip
     for triggers, expected in (([], "Nothing to be done"), (["code", "mtime"], "rule images")):
         extra = ["--rerun-triggers", *triggers] if triggers else []
-        result = subprocess.run(command + extra, capture_output=True, text=True, cwd=workdir)
+        result = dry_run(command + extra, workdir)
         assert result.returncode == 0, result.stderr[-3000:]
         assert expected in result.stdout + result.stderr, triggers
 
@@ -285,8 +285,7 @@ def test_changing_any_execution_setting_after_a_finished_run_plans_nothing(toy_r
     `device: auto` run and a CPU cluster run (`device=cpu`) once reran 58 of 60 jobs."""
     workdir, config = toy_run
     path = write_config(workdir, with_execution_settings_flipped(config, device), "run.yaml")
-    command = snakemake_command(workdir, path, "-n", TARGET, cores=1)
-    result = subprocess.run(command, capture_output=True, text=True, cwd=workdir)
+    result = dry_run(snakemake_command(workdir, path, "-n", TARGET, cores=1), workdir)
     assert result.returncode == 0, result.stderr[-3000:]
     assert "Nothing to be done" in result.stdout + result.stderr, result.stdout[-3000:]
 
@@ -304,19 +303,13 @@ def test_a_table_copied_without_snakemakes_records_is_rebuilt_when_its_stores_ch
     changed = copy.deepcopy(config)
     changed["datasets"]["toy"]["recall_at"] = [1, 2]
     path = write_config(workdir, changed, "recall_at.yaml")
-    result = subprocess.run(
-        snakemake_command(workdir, path, "-n", TARGET), capture_output=True, text=True,
-        cwd=workdir,
-    )  # fmt: skip
+    result = dry_run(snakemake_command(workdir, path, "-n", TARGET), workdir)
     output = result.stdout + result.stderr
     assert result.returncode == 0, output[-3000:]
     assert f"vprflow: {TARGET}: built from other stores than this plan's" in output
     assert "rule recall_csv:" in output and "Nothing to be done" not in output
     path = write_config(workdir, config, "as_built.yaml")
-    result = subprocess.run(
-        snakemake_command(workdir, path, "-n", TARGET), capture_output=True, text=True,
-        cwd=workdir,
-    )  # fmt: skip
+    result = dry_run(snakemake_command(workdir, path, "-n", TARGET), workdir)
     assert "Nothing to be done" in result.stdout + result.stderr, result.stdout[-3000:]
 
 
