@@ -147,7 +147,6 @@ def test_the_vlad_aggregators_vocabulary_is_fitted_on_channel_normalised_tokens(
     """SNSM's `--vlad` baseline (aggregator ``vlad``) fits its centres on the tokens it
     aggregates: each channel divided by its L2 norm over the image's tokens (+ 1e-10);
     AnyLoc-VLAD's vocabulary key and sample stay the stored patches."""
-    import vprflow.aggregation.vlad as vlad_module
     import vprflow.stages.vocabulary as vocabulary_module
 
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
@@ -176,7 +175,7 @@ def test_the_vlad_aggregators_vocabulary_is_fitted_on_channel_normalised_tokens(
     seen = []
     monkeypatch.setattr(vocabulary_module, "Dataset", TwoReferences)
     monkeypatch.setattr(
-        vlad_module, "fit_spherical_kmeans", lambda x, k, *a, **o: seen.append(x) or x[:k]
+        vocabulary_module, "fit_spherical_kmeans", lambda x, k, *a, **o: seen.append(x) or x[:k]
     )
     for params in (snsm, anyloc):
         record = {"params": {**params, "n_clusters": 2, "max_descriptors": 12}}
