@@ -23,12 +23,12 @@ import types
 
 class LazyModule(types.ModuleType):
     """Stands for module ``__name__`` until one of its attributes is read; then imports
-    it, takes in its namespace (later reads are plain attribute reads) and answers."""
+    it and answers every read from the module itself. Nothing is copied, so a name the
+    module rebinds later (a test's monkeypatch, a module-level cache) reads as it is
+    there now."""
 
     def __getattr__(self, attribute: str):
-        module = importlib.import_module(self.__name__)
-        self.__dict__.update(module.__dict__)
-        return getattr(module, attribute)
+        return getattr(importlib.import_module(self.__name__), attribute)
 
 
 def lazy_import(name: str) -> types.ModuleType:
