@@ -13,12 +13,16 @@ from tqdm import tqdm
 
 from vprflow.core import stores
 from vprflow.core.arrays import l2_normalize
+from vprflow.core.lazy import lazy_import
 from vprflow.data.images import image_size, resize_image
 from vprflow.data.published import read_features_h5
 from vprflow.models.kinds import OWN_SIZE, model_kind
 from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
 from vprflow.stages.readers import open_shard
+
+devices = lazy_import("vprflow.core.devices")
+torch = lazy_import("torch")
 
 log = logging.getLogger("vprflow")
 
@@ -129,10 +133,6 @@ class _BatchSizes:
         return (grids[0] if len(grids) == 1 else np.concatenate(grids)), len(images)
 
     def _probe(self, pixels: np.ndarray) -> np.ndarray:
-        import torch
-
-        from vprflow.core.devices import batch_for_memory, free_memory
-
         # The peak since here is this image's: the stage's reported peak CUDA memory
         # (the runner's resources line) counts from here on, the weights included.
         torch.cuda.synchronize(self.device)
@@ -140,7 +140,7 @@ class _BatchSizes:
         before = torch.cuda.memory_allocated(self.device)
         grids = self.extract(pixels)
         per_image = torch.cuda.max_memory_allocated(self.device) - before
-        self.size = batch_for_memory(free_memory(self.device), per_image)
+        self.size = devices.batch_for_memory(devices.free_memory(self.device), per_image)
         log.info(
             "batch_size auto: %d images a batch (%.0f MiB of activations an image)",
             self.size,
@@ -151,8 +151,6 @@ class _BatchSizes:
     def _extract(self, pixels: np.ndarray) -> np.ndarray:
         if self.device is None:
             return self.extract(pixels)
-        import torch
-
         try:
             return self.extract(pixels)
         except torch.cuda.OutOfMemoryError:

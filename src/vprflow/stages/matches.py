@@ -19,10 +19,14 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import stores
+from vprflow.core.lazy import lazy_import
 from vprflow.evaluation.rerank import candidate_pairs
 from vprflow.stages.base import Job
 from vprflow.stages.readers import PAIR_ARRAYS, Dataset
 from vprflow.stages.retrieval import timed_retrieve
+
+devices = lazy_import("vprflow.core.devices")
+torch = lazy_import("torch")
 
 log = logging.getLogger("vprflow")
 
@@ -36,8 +40,6 @@ def _references_on(device, references: np.ndarray | None):
     (CUDA) they take at most half its free memory: a query's candidates are then gathered
     there instead of crossing the bus per query (the G/14 grid of a 640 x 480 image: about
     1 GB for K = 100). None otherwise."""
-    import torch
-
     if references is None or device.type == "cpu":
         return None
     if device.type == "cuda":
@@ -58,10 +60,6 @@ def compute_matches(job: Job) -> None:
     it), ordered by increasing query patch. Attributes: the features' ``grid`` and
     ``patch_size``, ``top_k``, ``depth``, ``ms_per_query`` (the matching) and
     ``search_ms_per_query`` (the retrieval)."""
-    import torch
-
-    from vprflow.core.devices import resolve_device
-
     inputs, params = job.inputs, job.params
     dataset = Dataset(inputs["images"])
     n_ref, n_query = dataset.n_reference, dataset.n_query
@@ -83,7 +81,7 @@ def compute_matches(job: Job) -> None:
         if per_image * n_ref <= _IN_MEMORY_BYTES
         else None
     )
-    device = resolve_device(job.device)
+    device = devices.resolve_device(job.device)
     on_device = _references_on(device, references)
     top_k = min(params["top_k"], retrieved.shape[1])
     counts = np.zeros((n_query, top_k), dtype=np.int64)
