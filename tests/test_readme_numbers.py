@@ -6,11 +6,13 @@ no test may); this reads the test suite's own corridor run."""
 from __future__ import annotations
 
 import importlib.util
-import shutil
 from pathlib import Path
 
 import pytest
-from workflow_helpers import repo_config, snakemake, write_config
+from workflow_helpers import SCHEMA, built_stores, repo_config, write_table
+
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import build_plan
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -32,15 +34,13 @@ def test_the_readmes_segvlad_recall_at_1_values_are_the_corridor_runs(
     quoted = bench.readme_quotes((REPO / "README.md").read_text())
     source, _ = corridor_run
     shipped = bench.recall_at_1(source / "results" / "recall_corridor.csv", "segvlad")
-    # A copy, mtimes kept: only SegVLAD's PCA and what follows it run again.
-    workdir = tmp_path / "run"
-    shutil.copytree(source, workdir, symlinks=True)
+    # Only SegVLAD's PCA and what follows it are new: computed in this process beside the
+    # shared run's stores, which it reads and leaves as they are.
     config = repo_config()
     config["data_root"] = str(data_root)
-    published_config = bench.published_pca_config(config)
-    path = write_config(workdir, published_config, "published_pca.yaml")
-    snakemake(workdir, path, "--", "results/recall_corridor.csv")
-    published = bench.recall_at_1(workdir / "results" / "recall_corridor.csv", "segvlad")
+    plan = build_plan(validate_config(bench.published_pca_config(config), SCHEMA))
+    table = write_table(plan, "corridor", data_root, tmp_path, built_stores(plan, source))
+    published = bench.recall_at_1(table, "segvlad")
     measured = {"segvlad_r1_shipped_pca": shipped, "segvlad_r1_published_pca": published}
     for name, value in measured.items():
         assert quoted[name] == (round(value, 2),), f"README.md: {name} {quoted[name]}, run {value}"

@@ -278,6 +278,20 @@ def table_in_process(config: dict, workdir: Path, dataset: str) -> Path:
     return write_table(plan, dataset, Path(config["data_root"]), workdir, {})
 
 
+def built_stores(plan, workdir: Path) -> dict[tuple[str, str], str]:
+    """``(stage, key) -> path`` of every store of ``plan`` that a run in ``workdir`` has
+    finished: :func:`run_stage`'s ``done``, to compute only what that run lacks."""
+    from vprflow.core.paths import store_path
+
+    built = {}
+    for stage, keys in plan.stages.items():
+        for key in keys:
+            path = workdir / store_path(stage, key)
+            if path.is_dir():
+                built[stage, key] = str(path)
+    return built
+
+
 def write_table(plan, dataset: str, data_root: Path, workdir: Path, done: dict) -> Path:
     """:func:`table_in_process` of a ``plan`` already made; ``done`` as :func:`run_stage`'s,
     with every store run for the table added."""
