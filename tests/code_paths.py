@@ -38,7 +38,9 @@ def _cpu_flags() -> set[str]:
 
 
 def code_paths() -> dict[str, dict[str, str | None]]:
-    """Environment changes that force each kernel family this CPU can run."""
+    """Environment changes that force each kernel family this CPU can run; a path whose
+    changes this environment already has (``OPENBLAS_CORETYPE=Haswell`` set here) is
+    the default one, and left out."""
     threads = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
     flags = _cpu_flags()
     paths: dict[str, dict[str, str | None]] = {
@@ -64,7 +66,11 @@ def code_paths() -> dict[str, dict[str, str | None]]:
         paths["aten_avx512"] = {"ATEN_CPU_CAPABILITY": "avx512"}
         # numpy's own loops as on a CPU without AVX-512.
         paths["numpy_avx2"] = {"NPY_DISABLE_CPU_FEATURES": "AVX512F AVX512CD AVX512_SKX"}
-    return paths
+    return {
+        name: changes
+        for name, changes in paths.items()
+        if name == "default" or any(os.environ.get(k) != v for k, v in changes.items())
+    }
 
 
 def path_environment(changes: dict[str, str | None]) -> dict[str, str]:

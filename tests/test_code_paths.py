@@ -40,8 +40,11 @@ WHOLE_TABLES = {
 }
 OWN_STEPS = {
     "corridor": {
-        "openblas_haswell": SINGLE["openblas_haswell"],
-        "openblas_sandybridge": SINGLE["openblas_sandybridge"],
+        **{
+            name: SINGLE[name]
+            for name in ("openblas_haswell", "openblas_sandybridge")
+            if name in SINGLE
+        },
         "scalar_one_thread": SCALAR,
     },
     "roadscene": {
