@@ -957,6 +957,16 @@ class RowWriter:
         if self.buffered >= self.write_rows:
             self._flush(whole_chunks=True)
 
+    def skip(self, count: int) -> None:
+        """Leave the next ``count`` rows to the caller, who puts their chunk files in
+        place itself (:func:`vprflow.core.reuse.link_chunk`): the rows appended so far
+        are written, and appending goes on after the gap. Whole chunks only."""
+        if count and (self.buffered % self.chunk_rows or count % self.chunk_rows):
+            raise ValueError(f"RowWriter.skip: {count} rows after {self.buffered} buffered")
+        if count:
+            self._flush()
+            self.written += count
+
     def _flush(self, whole_chunks: bool = False) -> None:
         """Write the buffered rows; with ``whole_chunks``, only as many as fill whole
         chunks (the rest stay buffered)."""

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from vprflow.core import stores
+from vprflow.core import reuse, stores
 from vprflow.core.arrays import l2_normalize
 from vprflow.core.lazy import lazy_import
 from vprflow.data.images import image_size, resize_image
@@ -40,50 +40,125 @@ def compute_features(job: Job) -> None:
 
     Host threads keep the model busy: ``job.threads`` of them read and resize the
     images of the next batches while it computes, and the store's writer thread
-    (:class:`~vprflow.core.stores.RowWriter`) writes the features of the last."""
+    (:class:`~vprflow.core.stores.RowWriter`) writes the features of the last.
+
+    An image whose features a finished features store of the same settings holds
+    (:mod:`vprflow.core.reuse`: the same image bytes, under any name, in any dataset) is
+    not computed: its chunk file, one image's features, is hard-linked from there, so
+    the store is the same file for file and the bytes are stored once; the model is
+    loaded only if an image is left to compute. The log says how many of each."""
     params = job.params
     dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
     own = params["resolution"] == OWN_SIZE
     size = None if own else tuple(params["resolution"])
     image_hw = _own_size(params, dataset) if own else [size[1], size[0]]
     store_dtype = np.dtype(params["store_dtype"])
+    attrs = {**stage_attrs("features", job.record, images), "sources": _sources(params)}
+    sources = _reusable(job, params, dataset, images)
+    with stores.atomic_store(job.out, attrs) as group:
+        writer, reused = None, set()
+        if sources:
+            source = next(iter(sources.values())).group
+            writer = _writer(
+                group,
+                source["features"].shape[1:],
+                store_dtype,
+                image_hw,
+                source.attrs["patch_size"],
+            )
+            reused = _link(writer.array, sources, images.start)
+        left = [index for index in images if index not in reused]
+        if left:
+            writer = _compute(job, dataset, size, left, (group, writer, image_hw, images.start))
+        if writer is not None:
+            writer.skip(len(images) - writer.written - writer.buffered)  # the last reused
+            writer.close()
+    log.info(reuse.IMAGES_LINE, len(left), len(reused))
+
+
+def _reusable(job: Job, params: dict, dataset, images: range) -> dict[int, reuse.Source]:
+    """Where finished stores hold the features of the job's images (none for a
+    published file's, read by image name: they depend on more than the image)."""
+    if model_kind("features", params).reads_file:
+        return {}
+    digests = stores.read_strings(dataset.group, "sha256")
+    return reuse.find_sources(job.inputs["images"], job.record, digests, images)
+
+
+def _writer(group, grid_shape, store_dtype, image_hw, patch_size) -> stores.RowWriter:
+    """The store's ``features`` array, one image a chunk, and its grid attributes."""
+    h, w, dim = (int(n) for n in grid_shape)
+    writer = stores.RowWriter(group, "features", (h, w, dim), store_dtype, 1, stores.CHECKSUM_ONLY)
+    stores.set_attrs(group, grid=[h, w], dim=dim, patch_size=patch_size, image_size=image_hw)
+    return writer
+
+
+def _link(array, sources: dict[int, reuse.Source], first: int) -> set[int]:
+    """Link each source's chunk file in as image ``index``'s (row ``index - first``);
+    the indices linked (a source of another shape or dtype, or that fails its checks,
+    is left to compute)."""
+    chunk_bytes = array.dtype.itemsize * int(np.prod(array.shape[1:]))
+    linked = set()
+    for index, source in sources.items():
+        theirs = source.group["features"]
+        if theirs.shape[1:] != array.shape[1:] or theirs.dtype != array.dtype:
+            continue
+        if (
+            theirs.chunks != (1, *theirs.shape[1:])
+            or theirs.raw.compressors != stores.CHECKSUM_ONLY
+        ):
+            continue
+        mine = reuse.chunk_file(array, index - first)
+        if reuse.link_chunk(reuse.chunk_file(theirs.raw, source.index), mine, chunk_bytes):
+            linked.add(index)
+    return linked
+
+
+def _compute(job: Job, dataset, size, left: list[int], into: tuple) -> stores.RowWriter:
+    """Compute the features of images ``left`` (in order) into the store: ``into`` is
+    ``(group, writer or None, image_hw, the job's first image)``; the writer."""
+    group, writer, image_hw, first = into
+    params = job.params
+    store_dtype = np.dtype(params["store_dtype"])
     read, extract, patch_size, device = _feature_extractor(params, job.device, size, dataset)
     sizes = _batch_sizes(job.batch_size, device, extract)
-    attrs = {**stage_attrs("features", job.record, images), "sources": _sources(params)}
     with (
-        stores.atomic_store(job.out, attrs) as group,
         ThreadPoolExecutor(max(1, job.threads), thread_name_prefix="read") as pool,
-        tqdm(total=len(images), desc="features", unit="image") as progress,
+        tqdm(total=len(left), desc="features", unit="image") as progress,
     ):
-        ahead = _ReadAhead(pool, read, images)
-        writer, first = None, images.start
+        ahead = _ReadAhead(pool, read, left)
+        done = 0
         try:
-            while first < images.stop:
-                grids, count = sizes.run(ahead, images.stop - first)
+            while done < len(left):
+                grids, count = sizes.run(ahead, len(left) - done)
                 if writer is None:
-                    h, w, dim = grids.shape[1:]
-                    writer = stores.RowWriter(
-                        group, "features", (h, w, dim), store_dtype, 1, stores.CHECKSUM_ONLY
-                    )
-                    stores.set_attrs(
-                        group,
-                        grid=[h, w],
-                        dim=dim,
-                        patch_size=patch_size,
-                        image_size=image_hw,
-                    )
+                    writer = _writer(group, grids.shape[1:], store_dtype, image_hw, patch_size)
                 elif grids.shape[1:] != writer.array.shape[1:]:
                     raise ValueError(
-                        f"{dataset.paths[first]}: feature grid {grids.shape[1:]} differs "
+                        f"{dataset.paths[left[done]]}: feature grid {grids.shape[1:]} differs "
                         f"from the first image's {writer.array.shape[1:]}"
                     )
-                writer.append(grids, f"features of {dataset.paths[first]}")
-                first += count
+                for low, high in _runs(left, done, done + count):
+                    # Rows of images reused lie between runs: their files are in place.
+                    writer.skip(left[low] - first - writer.written - writer.buffered)
+                    writer.append(
+                        grids[low - done : high - done], f"features of {dataset.paths[left[low]]}"
+                    )
+                done += count
                 progress.update(count)
         finally:
             ahead.cancel()
-        if writer is not None:
-            writer.close()
+    return writer
+
+
+def _runs(indices: list[int], start: int, stop: int) -> list[tuple[int, int]]:
+    """``indices[start:stop]`` cut into runs of consecutive values, as position ranges."""
+    runs, low = [], start
+    for at in range(start + 1, stop):
+        if indices[at] != indices[at - 1] + 1:
+            runs.append((low, at))
+            low = at
+    return [*runs, (low, stop)] if stop > start else runs
 
 
 class _ReadAhead:
@@ -91,7 +166,7 @@ class _ReadAhead:
     of the batch the model computes: :meth:`take` waits for the next ``count`` (stacked
     ``[count, H, W, 3]``) and keeps ``ahead`` more reading."""
 
-    def __init__(self, pool: ThreadPoolExecutor, read, images: range):
+    def __init__(self, pool: ThreadPoolExecutor, read, images: list[int]):
         self.pool, self.read = pool, read
         self.queue: deque[Future] = deque()
         self.next = iter(images)

@@ -6,7 +6,7 @@ import numpy as np
 import zarr
 from tqdm import tqdm
 
-from vprflow.core import stores
+from vprflow.core import reuse, stores
 from vprflow.core.paths import shard_layout
 
 
@@ -36,6 +36,9 @@ def gather(shard_paths: list[str], record: dict, out: str) -> None:
                 continue
             source = first[name]
             chunks = source.chunks
+            if chunks == (1, *source.shape[1:]) and source.raw.compressors == stores.CHECKSUM_ONLY:
+                _link_rows(shards, name, group)
+                continue
             target = group.create_array(
                 name,
                 shape=(0, *source.shape[1:]),
@@ -55,3 +58,29 @@ def gather(shard_paths: list[str], record: dict, out: str) -> None:
                     offsets.append(local[1:] + base)
                     base += int(local[-1])
                 stores.write_array(group, f"{name}_offsets", np.concatenate(offsets))
+
+
+def _link_rows(shards: list[stores.CheckedGroup], name: str, group: zarr.Group) -> None:
+    """``name``, one row a chunk stored as is (features), gathered by hard-linking each
+    shard's chunk files at their rows' new places: the same files as appending the
+    rows writes, without reading them, and a row reused from another store
+    (:mod:`vprflow.core.reuse`) stays one file on disk."""
+    first = shards[0][name]
+    target = group.create_array(
+        name,
+        shape=(sum(shard[name].shape[0] for shard in shards), *first.shape[1:]),
+        chunks=first.chunks,
+        dtype=first.dtype,
+        compressors=stores.CHECKSUM_ONLY,
+    )
+    chunk_bytes = first.dtype.itemsize * int(np.prod(first.shape[1:]))
+    base = 0
+    for shard in shards:
+        array = shard[name]
+        for index in range(array.shape[0]):
+            source = reuse.chunk_file(array.raw, index)
+            if source.exists() and not reuse.link_chunk(
+                source, reuse.chunk_file(target, base + index), chunk_bytes
+            ):
+                raise stores.StoreCorruptError(shard.path, f"array '{name}' row {index} is damaged")
+        base += array.shape[0]

@@ -1,0 +1,142 @@
+"""Per-image results reused across stores: an image a per-image stage (features,
+segments) already computed, with the same settings, in any finished store of this
+results folder is not computed again.
+
+A store's key hashes its record, whose ``inputs`` name the images store (the whole
+image list of a dataset); everything else of the record (stage, format versions,
+params: the model, its weights' digest, resolution, EXIF handling) is what shapes one
+image's result. So an image's result is identified by that rest of the record (its
+**settings**) and the image's SHA-256, which the images store holds: a finished store
+of the same stage with equal settings holds the result of each image of its images
+store, row for row. A changed image under an old name has another digest and is
+computed; a renamed or copied one with the same bytes is found.
+
+The results are found in the stores themselves, not in a separate pool: a store is
+finished only once renamed into place (:func:`vprflow.core.stores.atomic_store`), so a
+job killed mid-way leaves nothing here to find; a store deleted (cleanup) takes its
+results with it; and on a cluster the shared results folder is the lookup. A store
+that fails :func:`~vprflow.core.stores.open_store`'s checks is passed over, and every
+result taken is checked again as it is read (:func:`link_chunk`, the stores' checked
+reads), so a corrupted result is computed afresh, never used.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import google_crc32c
+
+from vprflow.core import stores
+
+log = logging.getLogger("vprflow")
+
+# Each per-image job's log line (one), which the run's closing line sums
+# (vprflow.planning.reports.reuse_line).
+IMAGES_LINE = "images: %d computed, %d reused"
+IMAGES_PATTERN = r"images: (\d+) computed, (\d+) reused"
+
+
+def settings(record: dict) -> dict:
+    """What of a per-image stage's ``record`` shapes each image's result: all of it but
+    ``inputs`` (the images store's key, which is the dataset's image list)."""
+    return {name: value for name, value in record.items() if name != "inputs"}
+
+
+@dataclass(frozen=True)
+class Source:
+    """Image ``index`` of the finished store ``group`` holds the result wanted."""
+
+    group: stores.CheckedGroup
+    index: int
+
+
+def find_sources(
+    images_store: str | Path, record: dict, digests: list[str], wanted: range | list[int]
+) -> dict[int, Source]:
+    """For each image of ``wanted`` (indices into ``digests``, the SHA-256 of the job's
+    images in the order of its images store, ``images_store``) whose result a finished
+    store of ``record``'s stage with equal :func:`settings` holds: where. The stores
+    looked at are those beside the job's own (``results/cache/<stage>/*.zarr``, the
+    images stores beside ``images_store``), tried in the order of their keys, so the
+    answer does not depend on the directory's listing order."""
+    wanted_digests = {}
+    for index in wanted:
+        wanted_digests.setdefault(digests[index], []).append(index)
+    found: dict[int, Source] = {}
+    images_store, own = Path(images_store), settings(record)
+    folder = images_store.parent.parent / record["stage"]
+    candidates = sorted(folder.glob("*.zarr")) if folder.is_dir() else []
+    for path in candidates:
+        if not wanted_digests:
+            break
+        other = _record(path)
+        if other is None or settings(other) != own or "images" not in other.get("inputs", {}):
+            continue
+        try:
+            group = stores.open_store(path)
+            images = stores.open_store(images_store.with_name(f"{other['inputs']['images']}.zarr"))
+            theirs = stores.read_strings(images, "sha256")
+        except (stores.StoreCorruptError, FileNotFoundError, KeyError) as error:
+            log.warning("not reusing results of %s: %s", path, error)
+            continue
+        for their_index, digest in enumerate(theirs):
+            for index in wanted_digests.pop(digest, ()):
+                found[index] = Source(group, their_index)
+    return found
+
+
+def _record(path: Path) -> dict | None:
+    """The record a finished store's group attributes hold, or None (unreadable)."""
+    try:
+        attributes = json.loads((path / "zarr.json").read_text()).get("attributes", {})
+    except (OSError, ValueError):
+        return None
+    record = attributes.get("record")
+    return record if isinstance(record, dict) else None
+
+
+def chunk_file(array, index: int) -> Path:
+    """The file of row ``index``'s chunk of ``array`` (a zarr array chunked one row a
+    chunk along its first axis only, as a features store's ``features``)."""
+    key = array.metadata.encode_chunk_key((index,) + (0,) * (array.ndim - 1))
+    return Path(array.store.root) / array.path / key
+
+
+# Why a hard link fails where a copy does: another file system (EXDEV), one without
+# hard links (EPERM, ENOTSUP: some network and FUSE mounts), too many links (EMLINK).
+_NO_LINK = (errno.EXDEV, errno.EPERM, errno.ENOTSUP, errno.EMLINK)
+
+
+def link_chunk(source: Path, target: Path, chunk_bytes: int) -> bool:
+    """Put the chunk file ``source`` (uncompressed: ``chunk_bytes`` and its CRC-32C, as
+    :data:`vprflow.core.stores.CHECKSUM_ONLY` stores it) at ``target`` as a hard link,
+    so the bytes are stored once for every store that holds them (a copy where the file
+    system refuses the link). False where ``source`` is absent (its store deleted
+    meanwhile, or a chunk equal to the fill value, which zarr does not store: rare
+    enough to compute again) or, with a warning, not a whole, intact chunk (a checksum
+    mismatch, a wrong size): the caller computes that image instead."""
+    try:
+        data = source.read_bytes()
+    except FileNotFoundError:
+        return False
+    if len(data) != chunk_bytes + 4 or google_crc32c.value(data[:-4]) != int.from_bytes(
+        data[-4:], "little"
+    ):
+        log.warning("not reusing %s: it fails its checksum or size check", source)
+        return False
+    target.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(source, target)
+    except FileNotFoundError:
+        return False
+    except OSError as error:
+        if error.errno not in _NO_LINK:
+            raise
+        with open(target, "wb") as file:
+            file.write(data)
+    return True

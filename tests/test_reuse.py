@@ -1,0 +1,259 @@
+"""Per-image results reused across datasets (vprflow.core.reuse): a dataset sharing
+images with one already computed computes only the rest, into stores equal file for
+file to a run from scratch, whatever the names, faults or shards."""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+import shutil
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from synthetic import make_dataset
+from workflow_helpers import toy_config
+
+from vprflow.core import reuse, stores
+from vprflow.planning.config import validate_config
+from vprflow.planning.plan import build_plan
+from vprflow.stages.jobs import Job, combine_shards, run_job
+
+REPO = Path(__file__).resolve().parents[1]
+SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
+N_PLACES = 4
+
+
+@pytest.fixture(scope="module")
+def data(tmp_path_factory) -> Path:
+    """``base``: 4 places; ``grown``: base plus two new photos, one of base's images
+    under a new name (the same bytes) and another of its names holding a new image."""
+    root = tmp_path_factory.mktemp("reuse")
+    make_dataset(root / "base", n_places=N_PLACES, width=64, height=48)
+    make_dataset(root / "other", n_places=3, width=64, height=48, seed=7)
+    grown = root / "grown"
+    shutil.copytree(root / "base", grown)
+    for i in range(2):
+        shutil.copy(
+            root / "other" / "ref" / f"{i:04d}.png", grown / "ref" / f"{N_PLACES + i:04d}.png"
+        )
+    shutil.copy(root / "base" / "query" / "0000.jpg", grown / "query" / "0007.jpg")
+    shutil.copy(root / "other" / "query" / "0002.jpg", grown / "query" / "0001.jpg")
+    return root
+
+
+def plan_of(data: Path, *names: str):
+    config = toy_config(data, resolution=[64, 48], methods=["segvlad_o0_nopca"])
+    entry = config["datasets"].pop("toy")
+    config["datasets"] = {
+        name: {**entry, "path": name, "ground_truth": {"kind": "none"}} for name in names
+    }
+    config["targets"] = list(names)
+    config["segmenters"]["slic"].update(n_segments=6, resolution_scale=1.0)
+    return build_plan(validate_config(config, SCHEMA))
+
+
+def run(plan, stage: str, dataset: str, data: Path, cache: Path, shards=None) -> Path:
+    """The ``stage`` store of ``dataset`` built under ``cache`` (its images store too),
+    in ``shards`` (image ranges) when given."""
+    (key,) = [k for k, s in plan.stages[stage].items() if s.dataset == dataset]
+    planned = plan.get(stage, key)
+    (images_key,) = [k for k, s in plan.stages["images"].items() if s.dataset == dataset]
+    images = cache / "images" / f"{images_key}.zarr"
+    if not images.exists():
+        run_job(Job(plan.get("images", images_key).record, {}, str(images), data_root=str(data)))
+    out = cache / stage / f"{key}.zarr"
+    job = Job(planned.record, {"images": str(images)}, str(out), data_root=str(data))
+    job = replace(job, run={"device": "cpu", "batch_size": 2})
+    if shards is None:
+        run_job(job)
+        return out
+    paths = [f"{out}.shards/{start}-{stop}.zarr" for start, stop in shards]
+    for (start, stop), path in zip(shards, paths, strict=True):
+        run_job(replace(job, out=path, start=start, stop=stop))
+    combine_shards(paths, planned.record, str(out))
+    return out
+
+
+def files_of(store: Path) -> dict[str, bytes]:
+    return {
+        str(path.relative_to(store)): path.read_bytes()
+        for path in sorted(store.rglob("*"))
+        if path.is_file() and path.name != ".snakemake_timestamp"
+    }
+
+
+def counts(caplog) -> tuple[int, int]:
+    """``(computed, reused)`` of the last job's log line."""
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("images:")]
+    computed, reused = re.fullmatch(reuse.IMAGES_PATTERN, lines[-1]).groups()
+    return int(computed), int(reused)
+
+
+@pytest.fixture(scope="module")
+def scratch(data, tmp_path_factory):
+    """The grown dataset's features and segments stores, each from scratch alone."""
+    plan = plan_of(data, "base", "grown")
+    cache = tmp_path_factory.mktemp("scratch")
+    return {
+        stage: run(plan, stage, "grown", data, cache / stage) for stage in ("features", "segments")
+    }
+
+
+@pytest.mark.parametrize("stage", ["features"])
+def test_a_grown_dataset_computes_only_its_new_and_changed_images_into_the_same_store(
+    data, scratch, tmp_path, caplog, stage
+):
+    plan = plan_of(data, "base", "grown")
+    caplog.set_level(logging.INFO, logger="vprflow")
+    run(plan, stage, "base", data, tmp_path)
+    assert counts(caplog) == (2 * N_PLACES, 0)
+    grown = run(plan, stage, "grown", data, tmp_path)
+    # Two new references, the changed query 0001; the renamed 0007 is base's query 0000.
+    assert counts(caplog) == (3, 2 * N_PLACES)
+    assert files_of(grown) == files_of(scratch[stage])
+
+
+def test_reused_features_are_one_file_shared_by_both_stores(data, tmp_path):
+    plan = plan_of(data, "base", "grown")
+    base = run(plan, "features", "base", data, tmp_path)
+    grown = run(plan, "features", "grown", data, tmp_path)
+    # Row 6 of grown (its first query) is base's row 4; grown's query 0007 is also it.
+    assert os.path.samefile(base / "features/c/4/0/0/0", grown / "features/c/6/0/0/0")
+    assert os.path.samefile(base / "features/c/4/0/0/0", grown / "features/c/10/0/0/0")
+    assert not os.path.samefile(base / "features/c/5/0/0/0", grown / "features/c/7/0/0/0")
+
+
+@pytest.mark.parametrize("stage", ["features"])
+def test_a_corrupted_result_is_computed_again_not_used(data, scratch, tmp_path, caplog, stage):
+    plan = plan_of(data, "base", "grown")
+    base = run(plan, stage, "base", data, tmp_path)
+    chunk = sorted((base / ("features" if stage == "features" else "masks")).rglob("c/*"))[0]
+    chunk = chunk if chunk.is_file() else sorted(p for p in chunk.rglob("*") if p.is_file())[0]
+    damaged = bytearray(chunk.read_bytes())
+    damaged[len(damaged) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(damaged))
+    caplog.set_level(logging.INFO, logger="vprflow")
+    grown = run(plan, stage, "grown", data, tmp_path)
+    computed, reused = counts(caplog)
+    assert computed > 3 and computed + reused == 2 * N_PLACES + 3
+    assert files_of(grown) == files_of(scratch[stage])
+
+
+def test_a_sharded_run_reuses_per_image_and_gathers_the_same_store(data, scratch, tmp_path, caplog):
+    plan = plan_of(data, "base", "grown")
+    run(plan, "features", "base", data, tmp_path)
+    caplog.set_level(logging.INFO, logger="vprflow")
+    grown = run(plan, "features", "grown", data, tmp_path, shards=[(0, 4), (4, 8), (8, 11)])
+    lines = [r.getMessage() for r in caplog.records if r.getMessage().startswith("images:")]
+    assert lines[-3:] == [
+        "images: 0 computed, 4 reused",
+        "images: 3 computed, 1 reused",
+        "images: 0 computed, 3 reused",
+    ]
+    # The same files as the unsharded store's, but the group's record of its shards.
+    gathered, whole = files_of(grown), files_of(scratch["features"])
+    assert gathered.keys() == whole.keys()
+    assert [k for k in whole if gathered[k] != whole[k]] == ["zarr.json"]
+    attrs = stores.open_store(grown).attrs.asdict()
+    assert attrs.pop("shards") == [[0, 4], [4, 8], [8, 11]]
+    whole_attrs = stores.open_store(scratch["features"]).attrs.asdict()
+    assert attrs == {k: v for k, v in whole_attrs.items() if k not in ("start", "stop")}
+    assert os.path.samefile(grown / "features/c/10/0/0/0", grown / "features/c/6/0/0/0")
+
+
+def test_an_unfinished_store_is_never_reused(data, tmp_path, caplog):
+    plan = plan_of(data, "base", "grown")
+    base = run(plan, "features", "base", data, tmp_path)
+    # What a job killed mid-way leaves: its temporary, never renamed into place.
+    base.rename(stores.temporary_path(base, "node-1-0badc0de"))
+    caplog.set_level(logging.INFO, logger="vprflow")
+    run(plan, "features", "grown", data, tmp_path)
+    assert counts(caplog) == (2 * N_PLACES + 3, 0)
+
+
+def test_other_settings_are_not_reused(data, tmp_path, caplog):
+    plan = plan_of(data, "base", "grown")
+    run(plan, "features", "base", data, tmp_path)
+    config = toy_config(data, resolution=[64, 48], methods=["segvlad_o0_nopca"])
+    config["datasets"] = {
+        "grown": {**config["datasets"]["toy"], "path": "grown", "ground_truth": {"kind": "none"}}
+    }
+    config["targets"] = ["grown"]
+    config["backbones"]["daisy"]["radius"] = 7
+    other = build_plan(validate_config(config, SCHEMA))
+    caplog.set_level(logging.INFO, logger="vprflow")
+    run(other, "features", "grown", data, tmp_path)
+    assert counts(caplog) == (2 * N_PLACES + 3, 0)
+
+
+def test_two_datasets_sharing_images_computed_at_once_each_get_the_scratch_store(
+    data, scratch, tmp_path
+):
+    """Two processes at once: neither finds the other's unfinished store; both stores
+    are whole."""
+    plan = plan_of(data, "base", "grown")
+    script = f"""
+import sys
+sys.path.insert(0, {str(Path(__file__).parent)!r})
+from pathlib import Path
+from test_reuse import plan_of, run
+data = Path({str(data)!r})
+run(plan_of(data, "base", "grown"), "features", sys.argv[1], data, Path(sys.argv[2]))
+"""
+    # Both images stores first, so that neither process builds one the other reads.
+    for name in ("base", "grown"):
+        (key,) = [k for k, s in plan.stages["images"].items() if s.dataset == name]
+        run_job(
+            Job(
+                plan.get("images", key).record,
+                {},
+                str(tmp_path / "images" / f"{key}.zarr"),
+                data_root=str(data),
+            )
+        )
+    children = [
+        subprocess.Popen([sys.executable, "-c", script, name, str(tmp_path)], cwd=REPO)
+        for name in ("grown", "base")
+    ]
+    assert [child.wait(timeout=300) for child in children] == [0, 0]
+    (key,) = [k for k, s in plan.stages["features"].items() if s.dataset == "grown"]
+    assert files_of(tmp_path / "features" / f"{key}.zarr") == files_of(scratch["features"])
+    stores.open_store(tmp_path / "features" / f"{key}.zarr")
+
+
+def test_skipped_rows_of_a_row_writer_leave_their_chunks_to_the_caller(tmp_path):
+    rows = np.arange(5 * 6, dtype=np.float32).reshape(5, 2, 3) + 1
+    with stores.atomic_store(tmp_path / "whole.zarr") as group:
+        writer = stores.RowWriter(group, "x", (2, 3), np.float32, 1, stores.CHECKSUM_ONLY)
+        writer.append(rows)
+        writer.close()
+    with stores.atomic_store(tmp_path / "gaps.zarr") as group:
+        writer = stores.RowWriter(group, "x", (2, 3), np.float32, 1, stores.CHECKSUM_ONLY)
+        writer.append(rows[:1])
+        writer.skip(2)
+        writer.append(rows[3:])
+        for index in (1, 2):
+            target = reuse.chunk_file(writer.array, index)
+            assert reuse.link_chunk(tmp_path / f"whole.zarr/x/c/{index}/0/0", target, 24)
+        writer.close()
+    assert files_of(tmp_path / "gaps.zarr") == files_of(tmp_path / "whole.zarr")
+
+
+def test_a_chunk_that_fails_its_checksum_or_size_is_not_linked(tmp_path):
+    good = np.arange(6, dtype=np.float32).tobytes()
+    import google_crc32c
+
+    source = tmp_path / "chunk"
+    source.write_bytes(good + google_crc32c.value(good).to_bytes(4, "little"))
+    assert reuse.link_chunk(source, tmp_path / "a" / "linked", 24)
+    assert os.path.samefile(source, tmp_path / "a" / "linked")
+    assert not reuse.link_chunk(source, tmp_path / "b" / "linked", 28)
+    source.write_bytes(good[:-1] + b"\x01" + google_crc32c.value(good).to_bytes(4, "little"))
+    assert not reuse.link_chunk(source, tmp_path / "c" / "linked", 24)
+    assert not reuse.link_chunk(tmp_path / "absent", tmp_path / "d" / "linked", 24)
+    assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
