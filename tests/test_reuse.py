@@ -104,7 +104,7 @@ def scratch(data, tmp_path_factory):
     }
 
 
-@pytest.mark.parametrize("stage", ["features"])
+@pytest.mark.parametrize("stage", ["features", "segments"])
 def test_a_grown_dataset_computes_only_its_new_and_changed_images_into_the_same_store(
     data, scratch, tmp_path, caplog, stage
 ):
@@ -128,7 +128,7 @@ def test_reused_features_are_one_file_shared_by_both_stores(data, tmp_path):
     assert not os.path.samefile(base / "features/c/5/0/0/0", grown / "features/c/7/0/0/0")
 
 
-@pytest.mark.parametrize("stage", ["features"])
+@pytest.mark.parametrize("stage", ["features", "segments"])
 def test_a_corrupted_result_is_computed_again_not_used(data, scratch, tmp_path, caplog, stage):
     plan = plan_of(data, "base", "grown")
     base = run(plan, stage, "base", data, tmp_path)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
@@ -9,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-from vprflow.core import stores
+from vprflow.core import reuse, stores
 from vprflow.data.images import resize_image
 from vprflow.data.published import read_masks_h5
 from vprflow.models.kinds import model_kind
@@ -27,33 +28,85 @@ def compute_segments(job: Job) -> None:
     ``batch_size`` images share one image-encoder pass (SAM kinds; others run one by one).
     While a batch is segmented, a host thread reads and resizes the next one and another
     packs and writes the last one's masks, so the segmenter's device never waits on them.
-    """
+
+    An image whose masks a finished segments store of the same settings holds
+    (:mod:`vprflow.core.reuse`: the same bytes, under any name, in any dataset) is not
+    segmented: its packed rows are copied from there (checked as every store read is;
+    one that fails is segmented instead). The store is the same either way; its chunks
+    hold many images' rows, so the rows are stored again, not linked. The segmenter is
+    loaded only if an image is left to segment; the log says how many of each."""
     params = job.params
     dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
-    read, segment = _mask_source(params, job.device, dataset)
     attrs = {**stage_attrs("segments", job.record, images), "sources": resolved_sources(params)}
+    sources = _reusable(job, params, dataset, images)
+    left = [index for index in images if index not in sources]
+    masker = functools.cache(lambda: _mask_source(params, job.device, dataset))
+    computed = _segmented(*masker(), left, job.batch_size) if left else iter(())
+    readers: dict[Path, stores.RaggedReader] = {}
+    reused = 0
     with stores.atomic_store(job.out, attrs) as group, ThreadPoolExecutor(1) as packing:
         writer, shape, written = None, None, None
-        for i, masks in _segmented(read, segment, images, job.batch_size):
+        for i in images:
+            rows = _reused_rows(sources.get(i), readers)
+            if rows is not None:
+                reused += 1
+                packed, size = rows
+            else:
+                if i in sources:  # its stored rows failed their checks
+                    read, segment = masker()
+                    masks = segment(read([i]))[0]
+                else:
+                    index, masks = next(computed)
+                    assert index == i, (index, i)
+                packed, size = None, masks.shape[1:]
+                if len(masks) == 0:
+                    log.warning("%s: the segmenter returned no masks", dataset.paths[i])
             if shape is None:
-                shape = masks.shape[1:]
+                shape = size
                 stores.set_attrs(group, mask_height=shape[0], mask_width=shape[1])
                 writer = stores.RaggedWriter(
                     group, "masks", ((shape[0] * shape[1] + 7) // 8,), np.uint8, chunk_rows=256
                 )
-            elif masks.shape[1:] != shape:
+            elif size != shape:
                 raise ValueError(
-                    f"{dataset.paths[i]}: masks of size {masks.shape[1:]} differ from the "
+                    f"{dataset.paths[i]}: masks of size {size} differ from the "
                     f"first image's {shape}"
                 )
-            if len(masks) == 0:
-                log.warning("%s: the segmenter returned no masks", dataset.paths[i])
             if written is not None:
                 written.result()  # in order, one image ahead at most; re-raises its error
-            written = packing.submit(_append_packed, writer, masks)
+            if packed is None:
+                written = packing.submit(_append_packed, writer, masks)
+            else:
+                written = packing.submit(writer.append, packed)
         if written is not None:
             written.result()
         writer.close()
+    log.info(reuse.IMAGES_LINE, len(images) - reused, reused)
+
+
+def _reusable(job: Job, params: dict, dataset, images: range) -> dict[int, reuse.Source]:
+    """Where finished stores hold the masks of the job's images (none for a published
+    file's, read by image name: they depend on more than the image)."""
+    if model_kind("segments", params).reads_file:
+        return {}
+    digests = stores.read_strings(dataset.group, "sha256")
+    return reuse.find_sources(job.inputs["images"], job.record, digests, images)
+
+
+def _reused_rows(source: reuse.Source | None, readers: dict) -> tuple[np.ndarray, tuple] | None:
+    """``(packed rows, (mask height, width))`` of ``source``'s image, or None: no source,
+    or its rows fail their checks (a warning; the image is segmented instead)."""
+    if source is None:
+        return None
+    group = source.group
+    if group.path not in readers:
+        readers[group.path] = stores.RaggedReader(group, "masks")
+    try:
+        rows = readers[group.path](source.index)
+    except stores.StoreCorruptError as error:
+        log.warning("segmenting again an image whose stored masks fail their checks: %s", error)
+        return None
+    return rows, (int(group.attrs["mask_height"]), int(group.attrs["mask_width"]))
 
 
 def _append_packed(writer: stores.RaggedWriter, masks: np.ndarray) -> None:
@@ -61,9 +114,9 @@ def _append_packed(writer: stores.RaggedWriter, masks: np.ndarray) -> None:
 
 
 def _segmented(read, segment, images, batch_size: int):
-    """``(index, masks)`` of each image in order: ``segment(read(indices))`` on lists of
-    up to ``batch_size`` image indices, the next batch read on a host thread meanwhile,
-    with a progress bar over images."""
+    """``(index, masks)`` of each image of ``images`` (indices, in order):
+    ``segment(read(indices))`` on lists of up to ``batch_size`` of them, the next batch
+    read on a host thread meanwhile, with a progress bar over images."""
     if batch_size < 1:
         raise ValueError(f"batch_size must be >= 1, got {batch_size}")
     batches = [
