@@ -10,6 +10,7 @@ import re
 import shutil
 import subprocess
 import sys
+import time
 from dataclasses import replace
 from pathlib import Path
 
@@ -257,3 +258,25 @@ def test_a_chunk_that_fails_its_checksum_or_size_is_not_linked(tmp_path):
     assert not reuse.link_chunk(source, tmp_path / "c" / "linked", 24)
     assert not reuse.link_chunk(tmp_path / "absent", tmp_path / "d" / "linked", 24)
     assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
+
+
+def test_the_runs_closing_line_sums_the_images_its_jobs_computed_and_reused(data, tmp_path):
+    from vprflow.core.paths import log_pattern
+    from vprflow.planning.reports import reuse_line
+    from vprflow.stages.runner import run_stage
+
+    plan = plan_of(data, "base", "grown")
+    cache = tmp_path / "results" / "cache"
+    assert reuse_line(plan, f"{tmp_path}/") is None
+    for name in ("base", "grown"):
+        (key,) = [k for k, s in plan.stages["features"].items() if s.dataset == name]
+        log = tmp_path / log_pattern("features", "0-20").format(key=key)
+        log.parent.mkdir(parents=True)
+        run_stage(str(log), lambda name=name: run(plan, "features", name, data, cache))
+        if name == "base":  # an earlier run's
+            os.utime(log, (time.time() - 3600,) * 2)
+    started = time.time() - 600
+    grown = "vprflow: features and segments: 3 images computed, 8 reused from stores already there"
+    assert reuse_line(plan, f"{tmp_path}/", started) == f"{grown} (1 jobs)"
+    both = "vprflow: features and segments: 11 images computed, 8 reused from stores already there"
+    assert reuse_line(plan, f"{tmp_path}/") == f"{both} (2 jobs)"

@@ -35,6 +35,9 @@ from vprflow.core import stores
 
 log = logging.getLogger("vprflow")
 
+# The stages whose results are reused per image (their stores' layouts: one row a
+# chunk, linked; ragged rows, copied).
+STAGES = ("features", "segments")
 # Each per-image job's log line (one), which the run's closing line sums
 # (vprflow.planning.reports.reuse_line).
 IMAGES_LINE = "images: %d computed, %d reused"

@@ -49,6 +49,7 @@ from vprflow.planning.reports import (
     mark_stale_tables,
     report_error,
     report_gaps,
+    reuse_line,
     tables_mark,
     withdraw_reports,
     withdraw_stale_reports,
@@ -299,6 +300,9 @@ class Invocation:
             print(f"vprflow: removed {stale}: the table beside it is current")
         asked_for = requested_datasets(self.config, self.command.targets)
         print("\n".join(closing_lines(self.plan, self.root, asked_for)))
+        started = self.marker.stat().st_mtime if self.marker and self.marker.exists() else 0.0
+        if line := reuse_line(self.plan, self.root, started):
+            print(line)
 
     # ------------------------------------------------------------------ datasets
 

@@ -4,6 +4,7 @@ reads, and withdrawing tables that no longer describe the config."""
 from __future__ import annotations
 
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -15,8 +16,10 @@ from vprflow.core.paths import (
     RECALL_PLOT,
     RECALL_TABLE,
     TABLES_MARK,
+    log_pattern,
     store_path,
 )
+from vprflow.core.reuse import IMAGES_PATTERN, STAGES
 from vprflow.data.datasets import list_dataset
 from vprflow.planning.plan import Plan, method_run, method_stores
 
@@ -184,6 +187,31 @@ def closing_lines(plan: Plan, root: str = "", datasets: list[str] | None = None)
             " (with this run's --config and --configfile options)"
         )
     return lines
+
+
+def reuse_line(plan: Plan, root: str = "", since: float = 0.0) -> str | None:
+    """The closing line on the per-image stages (:data:`vprflow.core.reuse.STAGES`): how
+    many images this run's jobs computed and how many they took from stores already
+    there, summed from the logs of the plan's stores written since ``since`` (the run's
+    start); None where no such job ran."""
+    computed = reused = jobs = 0
+    for stage in STAGES:
+        for key in plan.stages.get(stage, {}):
+            folder = Path(root) / Path(log_pattern(stage).format(key=key)).parent
+            for log in folder.glob("*.log") if folder.is_dir() else ():
+                if log.stat().st_mtime < since:
+                    continue
+                match = re.search(IMAGES_PATTERN, log.read_text(errors="replace"))
+                if match:
+                    jobs += 1
+                    computed += int(match[1])
+                    reused += int(match[2])
+    if not jobs:
+        return None
+    return (
+        f"vprflow: features and segments: {computed} images computed, {reused} reused from "
+        f"stores already there ({jobs} jobs)"
+    )
 
 
 def report_gaps(plan: Plan, config: dict, datasets: list[str], root: str = "") -> list[str]:
