@@ -32,6 +32,11 @@ from __future__ import annotations
 import numpy as np
 
 from vprflow.core.arrays import l2_normalize
+from vprflow.core.lazy import lazy_import
+
+devices = lazy_import("vprflow.core.devices")
+faiss = lazy_import("faiss")
+torch = lazy_import("torch")
 
 # Products within this of the best are one tie (far above float64 rounding, ~1e-16 a
 # product of unit rows; far below any gap that float32 data can carry, ~1e-7).
@@ -48,8 +53,6 @@ _BLOCK = 1 << 23
 def initial_indices(n: int, k: int, seed: int) -> np.ndarray:
     """The points faiss takes as its ``k`` initial centroids: the first ``k`` of
     ``rand_perm(n, seed + 1)``, drawn by faiss itself."""
-    import faiss
-
     perm = np.empty(n, dtype=np.int32)
     faiss.rand_perm(faiss.swig_ptr(perm), n, seed + 1)
     return perm[:k].astype(np.int64)
@@ -59,8 +62,6 @@ def split_clusters(counts: np.ndarray, n: int) -> list[tuple[int, int]]:
     """faiss's ``split_clusters``: for each empty cluster ``ci`` in order, the donor
     ``cj`` whose centroid it copies -> ``[(ci, cj), ...]``. ``counts`` float32 ``[K]`` is
     updated in place (each split halves the donor's count, as faiss does)."""
-    import faiss
-
     k = len(counts)
     if n <= k:
         raise ValueError(f"splitting empty clusters needs more than {k} points, got {n}")
@@ -123,12 +124,8 @@ class _Products:
         self.x, self.device = x, None
         if device is None or (isinstance(device, str) and device == "cpu"):
             return
-        import torch
-
-        from vprflow.core.devices import resolve_device
-
         if not isinstance(device, torch.device):
-            device = resolve_device(str(device))
+            device = devices.resolve_device(str(device))
             if device.type == "cpu":
                 return
         self.device = device
@@ -144,8 +141,6 @@ class _Products:
                 rows = np.asarray(self.x[start : start + step], dtype=np.float64)
                 out[start : start + step] = nearest(rows @ centroids.T)
             return out
-        import torch
-
         c = torch.from_numpy(centroids).to(self.device)
         for start in range(0, n, step):
             products = self.resident[start : start + step].to(torch.float64) @ c.T

@@ -25,6 +25,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from vprflow.core.arrays import l2_normalize
+from vprflow.core.lazy import lazy_import
+
+linalg = lazy_import("scipy.linalg")
 
 log = logging.getLogger("vprflow")
 
@@ -138,8 +141,6 @@ def _exact_pca(x: np.ndarray, mean: np.ndarray, dim: int) -> tuple[np.ndarray, n
     float32 blocks (never a float64 copy of ``x``), then only its top ``dim``
     eigenpairs are computed (LAPACK ``syevr``).
     """
-    from scipy.linalg import eigh
-
     n, d = x.shape
     need, free = exact_pca_bytes(n, d, dim), _available_bytes()
     if free is not None and need > free:
@@ -158,7 +159,9 @@ def _exact_pca(x: np.ndarray, mean: np.ndarray, dim: int) -> tuple[np.ndarray, n
         for start in range(0, d, _BLOCK):
             block = x[:, start : start + _BLOCK].astype(np.float64) - mean[start : start + _BLOCK]
             matrix += block @ block.T
-    values, vectors = eigh(matrix, subset_by_index=[m - dim, m - 1], driver="evr", overwrite_a=True)
+    values, vectors = linalg.eigh(
+        matrix, subset_by_index=[m - dim, m - 1], driver="evr", overwrite_a=True
+    )
     del matrix
     values, vectors = np.maximum(values[::-1], 0.0), vectors[:, ::-1]
     if d <= n:

@@ -16,6 +16,11 @@ import numpy as np
 
 from vprflow.aggregation.vlad import vlad_per_region
 from vprflow.core.arrays import center_offset
+from vprflow.core.lazy import lazy_import
+
+# scipy costs a job 120-330 ms to import (benchmarks/README.md, "Descriptors"), and only
+# the Delaunay graph needs it, which order 0 never builds.
+spatial = lazy_import("scipy.spatial")
 
 # How images with 3 or fewer segments are linked (segment_adjacency); the config
 # schema's segvlad.small_graph lists these.
@@ -144,13 +149,9 @@ def segment_adjacency(centroids: np.ndarray, small_graph: str = "published") -> 
             adjacency[:] = True
         return adjacency
     points = np.nan_to_num(np.asarray(centroids, dtype=np.float64), nan=-1.0)
-    # Imported here, the only place that needs it: scipy costs a job 120-330 ms to import
-    # (benchmarks/README.md, "Descriptors"), and order 0 never builds the graph.
-    from scipy.spatial import Delaunay, QhullError
-
     try:
-        indptr, indices = Delaunay(points).vertex_neighbor_vertices
-    except QhullError:
+        indptr, indices = spatial.Delaunay(points).vertex_neighbor_vertices
+    except spatial.QhullError:
         order = np.lexsort((points[:, 1], points[:, 0]))
         adjacency[order[:-1], order[1:]] = True
         adjacency[order[1:], order[:-1]] = True

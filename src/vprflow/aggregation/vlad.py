@@ -10,6 +10,10 @@ import numpy as np
 
 from vprflow.aggregation.kmeans import cluster_sums, spherical_kmeans
 from vprflow.core.arrays import l2_normalize
+from vprflow.core.lazy import lazy_import
+
+torch = lazy_import("torch")
+F = lazy_import("torch.nn.functional")
 
 CENTRES = ("mean", "unit")
 
@@ -75,8 +79,6 @@ def _authors_layout(x: np.ndarray):
     """``x [N, D]`` as the authors hold an image's patches: the ``[N, D]`` view of a
     ``[D, N]`` tensor (``F.normalize(desc [1, D, N], dim=1).permute(0, 2, 1)``). The
     layout, like the product's shape, decides how torch rounds a norm or a product."""
-    import torch
-
     return torch.from_numpy(np.ascontiguousarray(np.asarray(x, dtype=np.float32).T)).T
 
 
@@ -85,8 +87,6 @@ def normalize_patches(x: np.ndarray) -> np.ndarray:
     patches: ``torch.nn.functional.normalize(desc [1, D, N], dim=1)`` (eps 1e-12), in
     float32 -> ``[N, D]`` float32. Its rounding differs from a numpy norm (and from torch
     on a ``[N, D]`` layout) in the last bit, enough to move an exact tie."""
-    import torch.nn.functional as F
-
     if len(x) == 0:
         return np.asarray(x, dtype=np.float32)
     return F.normalize(_authors_layout(x), dim=1).numpy()
@@ -107,9 +107,6 @@ def published_labels(x: np.ndarray, centres: np.ndarray, assignment: str = "anyl
     their code sends it on the same CPU (a numpy product rounds otherwise: OpenBLAS's
     kernels differ per CPU; torch's go through MKL). Equal maxima: the first centre.
     """
-    import torch
-    import torch.nn.functional as F
-
     if assignment not in ASSIGNMENTS:
         raise ValueError(f"unknown VLAD assignment {assignment!r}; expected one of {ASSIGNMENTS}")
     if len(x) == 0:

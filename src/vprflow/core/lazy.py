@@ -3,10 +3,10 @@ deferring an import.
 
 A job imports only the libraries it computes with (torch costs ~1.2 s a process, faiss,
 cv2 and scikit-image a tenth of that each; ``tests/test_job_imports.py``), and planning
-never imports torch. So a module that needs such a module in only some of its paths, or
-that binds names to the code of modules that import one (``models/loaders.py``,
-``stages/jobs.py``), names it at its top as ``name = lazy_import("module")``: the module
-is imported the first time one of its attributes is read. ``scripts/import_graph.py``
+never imports torch. docs/ARCHITECTURE.md's import rule says which modules name a
+library at their top as ``name = lazy_import("module")``: the module is imported the
+first time one of its attributes is read. A name set on the stand-in stays there, so
+code that replaces a module's attribute imports the module itself. ``scripts/import_graph.py``
 reads ``lazy_import("vprflow.x.y")`` as an import of ``vprflow.x.y``, so the graph still
 shows every tie.
 

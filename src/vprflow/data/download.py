@@ -53,7 +53,10 @@ from contextlib import contextmanager
 from pathlib import Path, PurePosixPath, PureWindowsPath
 
 from vprflow.core.files import TAG, is_abandoned, write_text_atomic, writer_tag
+from vprflow.core.lazy import lazy_import
 from vprflow.core.paths import dataset_folder
+
+tqdm = lazy_import("tqdm")
 
 log = logging.getLogger("vprflow")
 
@@ -169,8 +172,6 @@ def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
     naming the URL, as do an announced size larger than the file system can take
     (:func:`space_limit`, checked before any byte is written) and a disk that fills up.
     """
-    from tqdm import tqdm
-
     request = urllib.request.Request(url, headers={"User-Agent": "vprflow"})
     digest = hashlib.sha256()
     received = 0
@@ -189,7 +190,7 @@ def fetch(url: str, dest: str | Path, timeout: float = 60.0) -> str:
                     )
             with (
                 open(dest, "wb") as out,
-                tqdm(
+                tqdm.tqdm(
                     total=total,
                     unit="B",
                     unit_scale=True,

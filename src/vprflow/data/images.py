@@ -45,6 +45,10 @@ import numpy as np
 from PIL import Image, ImageOps, UnidentifiedImageError
 
 from vprflow.core.files import link_loop
+from vprflow.core.lazy import lazy_import
+
+# Only the bicubic antialiased resize needs torch; the module stays importable without.
+torch = lazy_import("torch")
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".ppm", ".pgm", ".webp")
 # apply = rotate/flip the pixels as the EXIF Orientation tag says (cv2.imread, published
@@ -276,8 +280,6 @@ def _resize_antialias(image: np.ndarray, width: int, height: int) -> np.ndarray:
 def _resize_bicubic_antialias(image: np.ndarray, width: int, height: int) -> np.ndarray:
     """torchvision's tensor ``Resize`` (bicubic, antialiased): the same torch call on the
     same contiguous float32 ``[1, C, H, W]`` tensor that ``ToTensor`` gives."""
-    import torch  # only this method needs it; the module stays importable without
-
     pixels = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32))
     resized = torch.nn.functional.interpolate(
         pixels[None], size=(height, width), mode="bicubic", align_corners=False, antialias=True

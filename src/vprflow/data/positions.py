@@ -10,13 +10,20 @@ easting/northing and UTM; optionally within a heading difference) is a positive 
 
 from __future__ import annotations
 
+import codecs
+import csv
+import io
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from vprflow.core.errors import DatasetError
+from vprflow.core.lazy import lazy_import
 from vprflow.data.datasets import by_composed_name, folder_counts, nfc
+
+spatial = lazy_import("scipy.spatial")
 
 
 def utm_from_name(path: str | Path) -> tuple[float, float]:
@@ -39,8 +46,6 @@ def utm_from_name(path: str | Path) -> tuple[float, float]:
 
 def utm_ground_truth(reference: list[Path], query: list[Path], radius: float) -> list[np.ndarray]:
     """References within ``radius`` metres (Euclidean in UTM) of each query."""
-    from scipy.spatial import cKDTree
-
     ref_xy = np.array([utm_from_name(p) for p in reference], dtype=np.float64)
     query_xy = np.array([utm_from_name(p) for p in query], dtype=np.float64)
     both = np.concatenate([ref_xy, query_xy]).reshape(-1, 2)
@@ -52,7 +57,7 @@ def utm_ground_truth(reference: list[Path], query: list[Path], radius: float) ->
         "UTM file names ('@easting@northing@')",
         ("easting", "northing"),
     )
-    tree = cKDTree(ref_xy)
+    tree = spatial.cKDTree(ref_xy)
     return [
         np.array(sorted(hits), dtype=np.int64) for hits in tree.query_ball_point(query_xy, radius)
     ]
@@ -156,10 +161,6 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
     """Positions of ``names`` (image paths relative to the dataset folder) from a CSV
     with an ``image`` column and ``lat``/``lon`` or ``easting``/``northing`` columns
     (and optionally ``heading``). Errors name the file and the line at fault."""
-    import codecs
-    import csv
-    import io
-
     if not csv_path.is_file():
         raise DatasetError(f"coordinates file {csv_path} does not exist")
     data = csv_path.read_bytes()
@@ -257,8 +258,6 @@ def read_positions(csv_path: Path, names: list[str]) -> Positions:
 
 def exif_lat_lon(path: Path) -> tuple[float, float]:
     """Latitude and longitude in degrees from an image's EXIF GPS tags."""
-    from PIL import Image
-
     try:
         with Image.open(path) as image:
             gps = image.getexif().get_ifd(0x8825)

@@ -18,6 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from vprflow.core.lazy import lazy_import
+
+h5py = lazy_import("h5py")
+torch = lazy_import("torch")
+
 FEATURES_KEY = "ift_dino"
 MASKS_KEY = "masks"
 SEGMENTATION_KEY = "segmentation"
@@ -28,8 +33,6 @@ class PublishedDataError(LookupError):
 
 
 def _open(h5_path: str | Path):
-    import h5py
-
     path = Path(h5_path)
     if not path.is_file():
         raise FileNotFoundError(f"HDF5 file not found: {path}")
@@ -93,8 +96,6 @@ def read_masks_h5(h5_path: str | Path, image_name: str) -> np.ndarray:
 
 def load_c_centers(path: str | Path) -> np.ndarray:
     """A torch-saved ``[K, D]`` centre tensor (or a dict holding exactly one) -> float32."""
-    import torch
-
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"cluster-centre file not found: {path}")

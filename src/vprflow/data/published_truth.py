@@ -12,6 +12,7 @@ running arbitrary pickles, each matched to the images by name rather than by pos
 
 from __future__ import annotations
 
+import csv
 import logging
 import pickle
 import re
@@ -21,7 +22,10 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 
 from vprflow.core.errors import DatasetError, short_repr
+from vprflow.core.lazy import lazy_import
 from vprflow.data.images import natural_key
+
+spatial = lazy_import("scipy.spatial")
 
 log = logging.getLogger("vprflow")
 
@@ -318,9 +322,7 @@ def radius_ground_truth(
 ) -> list[np.ndarray]:
     """References within ``radius`` (Euclidean, ``<=``, as sklearn's
     ``radius_neighbors``) of each query: ``reference [R, d]``, ``query [Q, d]``."""
-    from scipy.spatial import cKDTree
-
-    tree = cKDTree(reference)
+    tree = spatial.cKDTree(reference)
     return [np.array(sorted(h), dtype=np.int64) for h in tree.query_ball_point(query, radius)]
 
 
@@ -561,8 +563,6 @@ def matches_csv_ground_truth(path: Path, n_query: int, n_ref: int) -> list[np.nd
     row ``i`` (after the header) holds query ``i``'s positives in its ``top_<k>_ref_ind``
     columns (the authors' ``aerial_dataloader`` reads rows by position; ``query_ind`` is
     not consulted). Indices must be integers within the references."""
-    import csv
-
     if not path.is_file():
         raise DatasetError(f"ground_truth.file {path} does not exist")
     with open(path, newline="", encoding="utf-8-sig") as f:

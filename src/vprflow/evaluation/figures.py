@@ -12,14 +12,22 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from html import escape
 from pathlib import Path
 
 import numpy as np
 
 from vprflow.core.files import atomic_path
+from vprflow.core.lazy import lazy_import
 from vprflow.data.images import resize_image
 from vprflow.evaluation.precision_recall import SUMMARY
 from vprflow.evaluation.recall import COST_COLUMNS
+
+matplotlib = lazy_import("matplotlib")
+pyplot = lazy_import("matplotlib.pyplot")
+ticker = lazy_import("matplotlib.ticker")
+ndimage = lazy_import("scipy.ndimage")
+segmentation = lazy_import("skimage.segmentation")
 
 CORRECT = (0.0, 0.75, 0.0)  # frame of a retrieved reference that is a true positive
 WRONG = (0.9, 0.0, 0.0)  # frame of one that is not
@@ -117,8 +125,6 @@ def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[st
     Recall@N and mAP@N columns and the precision-recall summary (the best of each column
     in bold), then the cost and counting columns, under short headings; every other
     column of the CSV stays in the CSV. ``notes`` are paragraphs under the title."""
-    from html import escape
-
     # The results table's own column names (vprflow.stages.report).
 
     columns = list(rows[0]) if rows else []
@@ -161,12 +167,9 @@ def recall_table_html(rows: list[dict[str, str]], title: str, notes: Sequence[st
 
 
 def _pyplot():
-    import matplotlib
-
+    """pyplot, on the Agg backend (chosen before pyplot is first imported)."""
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return pyplot
 
 
 def save_figure(figure, path: str | Path, dpi: int = 100) -> None:
@@ -205,9 +208,7 @@ def curve_styles(methods: Sequence[str]) -> dict[str, dict]:
     legend order: each method (the part of a row's name before ``+``) in order of first
     appearance, followed by its re-ranked rows. Distinct for up to 70 methods and six
     line styles (a method and five re-rankers)."""
-    from matplotlib import colormaps
-
-    palette = colormaps["tab10"].colors
+    palette = matplotlib.colormaps["tab10"].colors
     families: dict[str, list[str]] = {}
     for method in methods:
         families.setdefault(method.split("+", 1)[0], []).append(method)
@@ -255,9 +256,7 @@ def recall_curve_figure(
         (handles[method],) = axes.plot(
             n, curve, label=method, linewidth=1.5, markevery=at, ms=4, **styles[method]
         )
-    from matplotlib.ticker import MaxNLocator
-
-    axes.xaxis.set_major_locator(MaxNLocator(integer=True))
+    axes.xaxis.set_major_locator(ticker.MaxNLocator(integer=True))
     axes.set_xlabel("N (references retrieved)")
     axes.set_ylabel("Recall@N")
     axes.set_ylim(recall_axis_floor(curves), 1.02)
@@ -369,9 +368,7 @@ MAX_PAIRS = 10
 
 def pair_palette() -> np.ndarray:
     """``[MAX_PAIRS, 3]`` colours of the numbered pairs (matplotlib's tab10)."""
-    from matplotlib import colormaps
-
-    return np.asarray(colormaps["tab10"].colors[:MAX_PAIRS], dtype=np.float64)
+    return np.asarray(matplotlib.colormaps["tab10"].colors[:MAX_PAIRS], dtype=np.float64)
 
 
 def outline_segments(
@@ -380,16 +377,13 @@ def outline_segments(
     """``image [H, W, 3]`` with each segment ``s`` in ``colours`` (``masks [S, Hm, Wm]``,
     any resolution) tinted at ``alpha`` and outlined in its colour (2 pixels wide), so
     the scene stays visible; the other segments are left as they are."""
-    from scipy.ndimage import binary_dilation
-    from skimage.segmentation import find_boundaries
-
     height, width = image.shape[:2]
     out = np.array(image, dtype=np.float32, copy=True)
     for s, colour in colours.items():
         mask = upsample_masks(np.asarray(masks[s : s + 1], dtype=bool), height, width)[0]
         colour = np.asarray(colour, np.float32)
         out[mask] = (1 - alpha) * out[mask] + alpha * colour
-        edge = binary_dilation(find_boundaries(mask, mode="inner")) & mask
+        edge = ndimage.binary_dilation(segmentation.find_boundaries(mask, mode="inner")) & mask
         out[edge] = colour
     return out
 
@@ -397,9 +391,7 @@ def outline_segments(
 def label_point(mask: np.ndarray) -> tuple[float, float]:
     """``(x, y)`` of the pixel of bool ``mask [H, W]`` farthest from its border: where a
     segment's number is written (a centroid can fall outside a concave segment)."""
-    from scipy.ndimage import distance_transform_edt
-
-    distance = distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
+    distance = ndimage.distance_transform_edt(np.pad(mask, 1))[1:-1, 1:-1]
     y, x = np.unravel_index(int(np.argmax(distance)), mask.shape)
     return float(x), float(y)
 

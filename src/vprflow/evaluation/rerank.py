@@ -85,9 +85,9 @@ split-K) may round otherwise than one product per candidate.
 ``benchmarks/bench_rerank.py`` times the batched scores against one product per candidate
 and against the products alone.
 
-Nothing here keeps state between calls; the RANSAC sampler is seeded per call. torch is
-imported where it is used: the config schema lists :data:`WEIGHTINGS` from here, and
-validating a config must not import torch.
+Nothing here keeps state between calls; the RANSAC sampler is seeded per call. torch and
+cv2 are named with ``lazy_import`` and imported when first used: the config schema lists
+:data:`WEIGHTINGS` from here, and validating a config imports neither.
 """
 
 from __future__ import annotations
@@ -95,13 +95,15 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:
-    import torch
+from vprflow.core.lazy import lazy_import
+
+cv2 = lazy_import("cv2")
+torch = lazy_import("torch")
 
 WEIGHTINGS = ("count", "similarity")
 MODELS = ("homography", "affine")
@@ -114,8 +116,6 @@ _MIN_CORRESPONDENCES = 4
 
 def _as_matrix(x, name: str, device: torch.device | str | None = None) -> torch.Tensor:
     """``x`` as a 2-D floating tensor (numpy arrays are wrapped, not copied, on the CPU)."""
-    import torch
-
     t = torch.as_tensor(x)
     if t.ndim != 2:
         raise ValueError(f"{name} must be [N, D] patch descriptors, got shape {tuple(t.shape)}")
@@ -140,8 +140,6 @@ def mutual_nearest_neighbours(
     Returns ``(i [M] int64, j [M] int64, similarity [M] float32)`` as CPU numpy arrays,
     ordered by increasing ``i``; each ``i`` and each ``j`` occurs at most once.
     """
-    import torch
-
     q = _as_matrix(query, "query")
     c = _as_matrix(candidate, "candidate", q.device)
     if c.shape[1] != q.shape[1]:
@@ -304,8 +302,6 @@ def ransac_inliers(
         )
     if len(query_points) < _MIN_CORRESPONDENCES:
         return 0
-    import cv2  # imported here: planning imports this package without it
-
     params = cv2.UsacParams()
     params.threshold = float(threshold)
     params.confidence = float(confidence)
@@ -357,8 +353,6 @@ def _host_argmax(device: torch.device) -> bool:
 
 def _product_elements(device: torch.device) -> int:
     """Similarities a product on ``device`` holds at most (see the constants above)."""
-    import torch
-
     if _host_argmax(device):
         return _PRODUCT_ELEMENTS
     if device.type == "cuda":
@@ -385,8 +379,6 @@ def _direct_pairs(
     layout, where the two ``argmax`` passes cost as much as the product itself. They run
     by blocks of :data:`_ARGMAX_BLOCK` candidates on ``threads`` threads (numpy releases
     the GIL); a candidate's argmax does not depend on the blocks."""
-    from concurrent.futures import ThreadPoolExecutor
-
     n_p, n_k = similarity.shape[:2]
 
     def block(start: int) -> tuple[np.ndarray, np.ndarray]:
@@ -410,8 +402,6 @@ def _device_pairs(similarity: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.
     """:func:`_direct_pairs` of a product ``similarity [P, k, Q]`` on any device, by
     torch's ``argmax`` there (the rule of :func:`mutual_nearest_neighbours`, which takes
     the same ``argmax``): only the ``[k, P]`` results come back to the host."""
-    import torch
-
     n_p = similarity.shape[0]
     forward = similarity.argmax(dim=2)  # [P, k]
     backward = similarity.argmax(dim=0)  # [k, Q]
@@ -462,8 +452,6 @@ def candidate_pairs(query, candidates) -> list[tuple[np.ndarray, np.ndarray, np.
     pairs and similarities that differ). Other dtypes on a CPU take one product per
     candidate.
     """
-    import torch
-
     q = _as_matrix(query, "query")
     stack = torch.as_tensor(candidates)
     if stack.ndim != 3 or not stack.is_floating_point():

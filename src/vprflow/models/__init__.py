@@ -3,12 +3,12 @@ dense-feature backbones (``vit``, ``backbones``) and the segmenters (``segmenter
 the Segment Anything family in ``sam``).
 """
 
+import importlib
+import warnings
+
 
 def __getattr__(name):
     # vprflow.models was the module now called vprflow.models.hub (moved in 0.2).
-    import importlib
-    import warnings
-
     if name.startswith("_") or name in {
         "hub",
         "vit",

@@ -17,7 +17,10 @@ from typing import Protocol
 import numpy as np
 
 from vprflow.core.arrays import center_crop_box, l2_normalize
+from vprflow.core.lazy import lazy_import
 from vprflow.models.kinds import BACKBONES, with_defaults
+
+feature = lazy_import("skimage.feature")
 
 _DAISY = BACKBONES["daisy"].defaults
 
@@ -73,8 +76,6 @@ class DaisyBackbone:
         return (self.rings * self.histograms + 1) * self.orientations
 
     def _one(self, image: np.ndarray) -> np.ndarray:
-        from skimage.feature import daisy
-
         p, r = self.patch_size, self.radius
         top, left, crop_h, crop_w = center_crop_box(image.shape[0], image.shape[1], p)
         h, w = crop_h // p, crop_w // p
@@ -83,7 +84,7 @@ class DaisyBackbone:
         # (i, j) at the centre of patch (i, j). The extra `p` after keeps the last row.
         before = r - p // 2
         padded = np.pad(grey, ((before, before + p), (before, before + p)), mode="reflect")
-        grid = daisy(
+        grid = feature.daisy(
             padded,
             step=p,
             radius=r,

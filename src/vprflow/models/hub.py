@@ -19,6 +19,13 @@ import os
 import re
 from pathlib import Path
 
+from vprflow.core.lazy import lazy_import
+
+# planning/fingerprints.py and stages/base.py read this module: huggingface_hub's
+# download code (~0.1 s to import) only when a model is looked up.
+huggingface_hub = lazy_import("huggingface_hub")
+hub_constants = lazy_import("huggingface_hub.constants")
+
 WEIGHT_PATTERNS = ("*.safetensors", "*.bin")
 # Hub ids are "name" or "owner/name" of letters, digits, "-", "_", "."; anything else
 # (absolute paths, "./x", "~/x", "a/b/c") can only be a local path.
@@ -48,10 +55,8 @@ def model_not_found(model: str, reason: str, cache_dir: str | None) -> ModelNotF
 def _offline() -> bool:
     # huggingface_hub reads HF_HUB_OFFLINE once at import; re-read the environment so a
     # value set later (tests, wrappers) still counts.
-    from huggingface_hub import constants
-
     env = (os.environ.get(name, "") for name in ("HF_HUB_OFFLINE", "TRANSFORMERS_OFFLINE"))
-    return bool(constants.HF_HUB_OFFLINE) or any(v.strip().lower() in _TRUE for v in env)
+    return bool(hub_constants.HF_HUB_OFFLINE) or any(v.strip().lower() in _TRUE for v in env)
 
 
 def _weight_files(directory: Path) -> list[Path]:
@@ -81,12 +86,10 @@ def _check_local(model: str, cache_dir: str | None) -> str:
 
 
 def _download(model: str, cache_dir: str | None, offline: bool, weights: str) -> Path:
-    from huggingface_hub import snapshot_download
-
     # Only config/preprocessor JSON and one weight format: hub repos often also carry
     # TensorFlow / Flax copies that would multiply the download.
     return Path(
-        snapshot_download(
+        huggingface_hub.snapshot_download(
             repo_id=model,
             cache_dir=cache_dir,
             local_files_only=offline,

@@ -12,7 +12,12 @@ from typing import Protocol
 
 import numpy as np
 
+from vprflow.core.lazy import lazy_import
 from vprflow.models.kinds import SEGMENTERS, with_defaults
+
+color = lazy_import("skimage.color")
+colorconv = lazy_import("skimage.color.colorconv")
+segmentation = lazy_import("skimage.segmentation")
 
 _SLIC = SEGMENTERS["slic"].defaults
 _FELZENSZWALB = SEGMENTERS["felzenszwalb"].defaults
@@ -38,14 +43,16 @@ class SlicSegmenter:
         self.n_segments, self.compactness, self.sigma = n_segments, compactness, sigma
 
     def masks(self, image: np.ndarray) -> np.ndarray:
-        from skimage.segmentation import slic, slic_superpixels
+        # The module itself, not a lazy_import stand-in: its rgb2lab is replaced below,
+        # and a name set on a stand-in stays there (slic would not see it).
+        from skimage.segmentation import slic_superpixels
 
         # slic converts to Lab inside, after rescaling the image: its conversion is
         # replaced for the call, there being no argument for it.
         published = slic_superpixels.rgb2lab
         slic_superpixels.rgb2lab = rgb_to_lab
         try:
-            labels = slic(
+            labels = segmentation.slic(
                 image,
                 n_segments=self.n_segments,
                 compactness=self.compactness,
@@ -63,9 +70,6 @@ def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
     but the RGB -> XYZ product taken elementwise in float64 and rounded once: rgb2lab
     takes it as a matrix product in the image's dtype through BLAS, whose rounding moves
     with the kernel (SLIC's segments of roadscene's thermal queries moved with it)."""
-    from skimage.color import xyz2lab
-    from skimage.color.colorconv import xyz_from_rgb
-
     arr = np.array(rgb, dtype=np.result_type(rgb, np.float32))
     # rgb2xyz's sRGB linearisation, in the image's dtype as there.
     bright = arr > 0.04045
@@ -73,8 +77,8 @@ def rgb_to_lab(rgb: np.ndarray) -> np.ndarray:
     arr[~bright] /= 12.92
     linear = arr.astype(np.float64)
     r, g, b = linear[..., 0], linear[..., 1], linear[..., 2]
-    xyz = np.stack([m[0] * r + m[1] * g + m[2] * b for m in xyz_from_rgb], axis=-1)
-    return xyz2lab(xyz.astype(arr.dtype))
+    xyz = np.stack([m[0] * r + m[1] * g + m[2] * b for m in colorconv.xyz_from_rgb], axis=-1)
+    return color.xyz2lab(xyz.astype(arr.dtype))
 
 
 class FelzenszwalbSegmenter:
@@ -87,9 +91,7 @@ class FelzenszwalbSegmenter:
         self.scale, self.sigma, self.min_size = scale, sigma, min_size
 
     def masks(self, image: np.ndarray) -> np.ndarray:
-        from skimage.segmentation import felzenszwalb
-
-        labels = felzenszwalb(
+        labels = segmentation.felzenszwalb(
             image, scale=self.scale, sigma=self.sigma, min_size=self.min_size, channel_axis=-1
         )
         return labels_to_masks(labels)

@@ -57,6 +57,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
+from transformers import AutoConfig, AutoModel
 
 from vprflow.core.arrays import center_crop_box
 from vprflow.core.devices import resolve_device, resolve_dtype
@@ -336,8 +337,6 @@ def load_vit(params: dict, device: str = "auto") -> VitBackbone:
     the model's (:mod:`vprflow.models.checkpoints`, e.g. SegVLAD-FineT).
     Raises :class:`vprflow.models.hub.ModelNotFoundError` when the weights are unavailable.
     """
-    from transformers import AutoConfig, AutoModel
-
     backbone = str(params.get("backbone", "dinov2")).lower()
     if backbone not in VIT_FAMILIES:
         raise ValueError(

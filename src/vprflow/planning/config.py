@@ -24,12 +24,16 @@ import yaml
 from vprflow.aggregation.aggregators import AGGREGATORS
 from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 from vprflow.core.errors import ConfigError, short_repr
+from vprflow.core.lazy import lazy_import
 from vprflow.data.ground_truth import KINDS
 from vprflow.data.presets import Components, presets, protocol, with_presets
 from vprflow.evaluation.rerank import RERANKERS
 from vprflow.models.kinds import BACKBONES, SEGMENTERS, TRAINED_KINDS, with_defaults
 from vprflow.planning.merges import dataset_merges, say_merges, without_foreign_downloads
 from vprflow.search.indexes import SEARCH_INDEXES
+
+# Read when a config is validated (~40 ms to import), not by every reader of its constants.
+jsonschema = lazy_import("jsonschema")
 
 # The modules whose constants a schema `x-enum` may name: the config is validated
 # without importing torch, so each of these must import without it (test_enumerations).
@@ -94,8 +98,6 @@ def validate_config(config: dict, schema_path: str | Path, files=()) -> dict:
     an integral float where the schema expects an integer is read as that integer
     (:func:`integral_floats`), so ``n_clusters: 8.0`` runs, and is keyed, as ``8``.
     """
-    import jsonschema
-
     check_config_files(files)
     merges = dataset_merges(files)
     say_merges(merges)
@@ -178,8 +180,6 @@ def string_hint(error, schema: dict) -> str:
     """:data:`CONFIG_STRING_HINT` when ``error`` refused a string where the schema
     expects a mapping or a list, or a value whose strings, read as YAML, would be valid
     (``'4'`` for an integer, ``['160', '120']`` for a size); else nothing."""
-    import jsonschema
-
     if not isinstance(error.schema, dict):
         return ""
     types = error.schema.get("type", [])
@@ -251,8 +251,6 @@ def integral_floats(config: dict, schema: dict) -> list[tuple]:
     schema to refuse naming the key. Found by validating against a schema whose
     integers exclude floats: each such type error (in a ``oneOf`` branch too) names
     one."""
-    import jsonschema
-
     checker = jsonschema.Draft202012Validator.TYPE_CHECKER.redefine(
         "integer", lambda _, value: isinstance(value, int) and not isinstance(value, bool)
     )
@@ -598,8 +596,6 @@ def fill_defaults(instance: dict, schema: dict, at: str = "#") -> dict:
     ``schema`` at ``at`` (a local reference such as ``"#/definitions/dataset"``) declares
     for it, at any depth; see the module docstring. ``instance`` need not be valid: what
     is missing without a default stays missing."""
-    import jsonschema
-
     validator = jsonschema.Draft202012Validator(schema)
     _fill(instance, {"$ref": at} if at != "#" else schema, validator)
     return instance

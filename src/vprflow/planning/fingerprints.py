@@ -13,6 +13,7 @@ import hashlib
 import json
 import os
 import stat
+import warnings
 from pathlib import Path, PurePath
 
 from vprflow.core.errors import DatasetError, PlanError
@@ -45,8 +46,6 @@ def load_fingerprints(path: str | Path = FINGERPRINTS) -> dict:
             raise ValueError("not a JSON object of strings")
         return memo
     except (OSError, ValueError) as error:
-        import warnings
-
         warnings.warn(
             f"{path} is unreadable ({error}); it only caches content hashes, so it is "
             "ignored and rebuilt (delete it to silence this)",

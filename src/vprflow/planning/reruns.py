@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from PIL import Image
 
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import STAGES, build_plan
@@ -31,8 +32,6 @@ FITTED_STAGES = tuple(s for s in STAGES if s not in ("images", "dataset", "recal
 
 
 def _write_image(path: Path, seed: int) -> None:
-    from PIL import Image
-
     pixels = np.random.default_rng(seed).integers(0, 256, (24, 32, 3), dtype=np.uint8)
     Image.fromarray(pixels).save(path)
 

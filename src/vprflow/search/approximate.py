@@ -17,10 +17,13 @@ import math
 
 import numpy as np
 
+from vprflow.core.lazy import lazy_import
 from vprflow.search.defaults import HNSW as _HNSW
 from vprflow.search.defaults import IVF_FLAT as _IVF_FLAT
 from vprflow.search.defaults import IVF_PQ as _IVF_PQ
 from vprflow.search.inputs import empty_result, faiss_inputs, positive_int
+
+faiss = lazy_import("faiss")
 
 
 def ivf_flat_knn(
@@ -66,8 +69,6 @@ def hnsw_knn(
 ) -> tuple[np.ndarray, np.ndarray]:
     """faiss ``IndexHNSWFlat`` with ``M`` links per node, ``ef_construction`` and
     ``ef_search`` (raised to k when smaller)."""
-    import faiss
-
     database, queries, k_out = faiss_inputs(database, queries, k)
     if k_out == 0 or len(queries) == 0:
         return empty_result(len(queries), k_out)
@@ -90,8 +91,6 @@ def _ivf_knn(
     pq: tuple[int | None, int] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """An IVF index over flat vectors, or over PQ codes when ``pq = (m, nbits)``."""
-    import faiss
-
     database, queries, k_out = faiss_inputs(database, queries, k)
     if k_out == 0 or len(queries) == 0:
         return empty_result(len(queries), k_out)

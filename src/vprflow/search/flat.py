@@ -2,22 +2,25 @@
 method (global descriptors, docs/methods.md §8; SegVLAD's segments, §5) and the
 reference the other searches of :mod:`vprflow.search` are measured against.
 
-Imports no torch: stages that search only this way start without it.
+Imports no torch: stages that search only this way start without it (faiss is named
+with ``lazy_import``: planning reads :data:`vprflow.search.indexes.INDEXES`, which holds
+:func:`flat_knn`).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from vprflow.core.lazy import lazy_import
 from vprflow.search.inputs import as_matrix, empty_result, faiss_inputs
+
+faiss = lazy_import("faiss")
 
 
 def flat_knn(database: np.ndarray, queries: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Exact squared-L2 k-NN: ``database [Nd, D]``, ``queries [Nq, D]`` ->
     ``(distances [Nq, k'] float32, indices [Nq, k'] int64)`` with ``k' = min(k, Nd)``,
     nearest first."""
-    import faiss
-
     database, queries, k_out = faiss_inputs(database, queries, k)
     if k_out == 0 or len(queries) == 0:
         return empty_result(len(queries), k_out)

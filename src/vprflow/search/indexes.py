@@ -1,9 +1,9 @@
 """Every search index vprflow knows (a ``retrieval.index``), one :class:`SearchIndex`
 entry each: the function that runs it and its parameters' defaults.
 
-faiss is imported by the functions when they run, and the exact search's torch module
-by :func:`_exact_knn`, so that planning reads this module (the schema's index names,
-the defaults in every key) without importing either.
+The search modules name faiss, and this one the exact search's torch module, with
+``lazy_import``, so that planning reads this module (the schema's index names, the
+defaults in every key) without importing either.
 """
 
 from __future__ import annotations
@@ -12,9 +12,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
 
+from vprflow.core.lazy import lazy_import
 from vprflow.search import defaults
 from vprflow.search.approximate import hnsw_knn, ivf_flat_knn, ivf_pq_knn
 from vprflow.search.flat import flat_knn
+
+exact = lazy_import("vprflow.search.exact")
 
 
 @dataclass(frozen=True)
@@ -53,9 +56,7 @@ class SearchIndex:
 
 
 def _exact_knn(database, queries, k: int, **params):
-    from vprflow.search.exact import exact_knn
-
-    return exact_knn(database, queries, k, **params)
+    return exact.exact_knn(database, queries, k, **params)
 
 
 SEARCH_INDEXES: dict[str, SearchIndex] = {

@@ -8,7 +8,9 @@ read with the project's reader from ``data_root``.
 
 from __future__ import annotations
 
+import csv
 import logging
+from pathlib import Path
 
 import numpy as np
 
@@ -63,9 +65,6 @@ def plot_recall(
 
 def write_recall_table(dataset_name: str, csv_path: str, out: str) -> None:
     """The results table as an HTML page the report displays (the CSV is a download)."""
-    import csv
-    from pathlib import Path
-
     with open(csv_path, newline="") as f:
         rows = list(csv.DictReader(f))
     rules = sorted({row["ground_truth"] for row in rows})

@@ -19,6 +19,8 @@ import time
 import traceback
 from collections.abc import Callable
 
+from threadpoolctl import threadpool_limits
+
 # Idle OpenMP threads (torch, faiss) sleep instead of spinning: between the many small
 # per-image operations of a stage, spinning threads took the cores that zarr's codec
 # threads and BLAS needed (a per-image stage ran at 1/5 of its arithmetic speed).
@@ -37,8 +39,6 @@ def run_stage(log_path: str, function: Callable[[], None], threads: int = 1) -> 
     is re-raised, traceback and all. Call it as a workflow script's whole work: a
     deliberate error leaves by ``SystemExit``.
     """
-    from threadpoolctl import threadpool_limits
-
     # torch and faiss are imported only by the stages that use them (importing both
     # costs ~2 s a job): one imported later reads these variables when it starts.
     for variable in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import numpy as np
 import torch
+import transformers
 from PIL import Image
 
 from vprflow.core.devices import resolve_device, resolve_dtype
@@ -302,8 +303,6 @@ def load_segmenter(kind: str, params: dict, device: str = "auto") -> SamSegmente
     Raises ``vprflow.models.hub.ModelNotFoundError`` naming the model when it is neither a
     local directory nor obtainable from the hub.
     """
-    import transformers
-
     merged = sam_params(params, kind)
     spec = SEGMENTERS[kind].spec
     class_name, adapter_class = SAM_KINDS[kind]

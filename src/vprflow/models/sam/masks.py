@@ -19,6 +19,11 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from vprflow.core.lazy import lazy_import
+
+# Only the optional small-region clean-up needs scipy.
+ndimage = lazy_import("scipy.ndimage")
+
 # -------------------------------------------------------------------------- upscaling
 
 
@@ -168,8 +173,6 @@ def remove_small_regions(
 
     8-connected components. When every island is small, the largest one is kept.
     """
-    from scipy import ndimage
-
     if mode not in ("holes", "islands"):
         raise ValueError(f"mode must be 'holes' or 'islands', got {mode!r}")
     holes = mode == "holes"

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import torch
 from torch import nn
+from transformers import Dinov2Config, Dinov2Model
 
 from vprflow.models.checkpoints import CheckpointError, backbone_state_dict, hub_to_transformers
 from vprflow.models.vit import _set_pos_embed_interpolation
@@ -37,8 +38,6 @@ VITB14 = {
 def dinov2_config(**overrides):
     """A transformers ``Dinov2Config`` of the torch-hub ViT-B/14, ``overrides`` applied
     (tests: ``hidden_size=32, num_hidden_layers=2, num_attention_heads=2``...)."""
-    from transformers import Dinov2Config
-
     return Dinov2Config(**{**VITB14, **overrides})
 
 
@@ -50,8 +49,6 @@ class DinoV2Tokens(nn.Module):
 
     def __init__(self, config=None, final_norm: bool = True):
         super().__init__()
-        from transformers import Dinov2Model
-
         self.model = Dinov2Model(config or dinov2_config()).eval()
         _set_pos_embed_interpolation(self.model, "original")
         self.final_norm = final_norm

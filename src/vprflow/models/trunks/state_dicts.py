@@ -9,6 +9,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 import torch
+from safetensors.torch import load_file
 from torch import nn
 
 from vprflow.models.checkpoints import CheckpointError, read_checkpoint
@@ -49,8 +50,6 @@ def read_state_dict(path: str, model_name: str, url: str, filename: str) -> dict
     if not Path(path).is_file():
         raise CheckpointError(f"{model_name}: checkpoint {path!r} does not exist; {hint}")
     if str(path).endswith(".safetensors"):
-        from safetensors.torch import load_file
-
         try:
             return load_file(str(path))
         except Exception as error:  # safetensors raises its own error types
