@@ -181,7 +181,7 @@ def _grey_levels(a: torch.Tensor, b: torch.Tensor) -> tuple[float, float]:
 
 
 def check(originals: Path, data: Path, pairs: int, depth: int, batch_size: int) -> list:
-    from vprflow.models.trained.salad import dinov2_config
+    from vprflow.models.trunks.dinov2 import dinov2_config
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

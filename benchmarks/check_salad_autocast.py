@@ -96,7 +96,8 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--vit-depth", type=int, default=12, help="DINOv2 blocks (12)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    from vprflow.models.trained.salad import SALAD, dinov2_config
+    from vprflow.models.trained.salad import SALAD
+    from vprflow.models.trunks.dinov2 import dinov2_config
 
     name = args.device
     if name == "auto":

@@ -43,12 +43,14 @@ import numpy as np
 import torch
 from originals import commit_of, load_module
 
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD
 from vprflow.models.trained.boq_dinov2 import load_boq_dinov2
 from vprflow.models.trained.megaloc import load_megaloc
 from vprflow.models.trained.netvlad import load_netvlad
-from vprflow.models.trained.salad import dinov2_config, load_salad
+from vprflow.models.trained.salad import load_salad
 from vprflow.models.trained.vlad_buff import load_vlad_buff
-from vprflow.models.trunks.vgg import IMAGENET_MEAN, IMAGENET_STD, load_vgg16_trunk
+from vprflow.models.trunks.dinov2 import dinov2_config
+from vprflow.models.trunks.vgg import load_vgg16_trunk
 
 
 def _randomise(model: torch.nn.Module, seed: int) -> torch.nn.Module:

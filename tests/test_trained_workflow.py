@@ -26,9 +26,9 @@ from vprflow.core.errors import PlanError
 from vprflow.data.images import read_image, resize_image
 from vprflow.models import kinds
 from vprflow.models.checkpoints import CheckpointError
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD
 from vprflow.models.trained import boq_dinov2, megaloc, netvlad, salad, vlad_buff
 from vprflow.models.trunks.dinov2 import dinov2_hub_state_dict
-from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages.readers import Dataset

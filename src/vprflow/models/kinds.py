@@ -239,6 +239,11 @@ def _vlad_buff(name: str, nv_pca: int | None, num_pcs: int | None) -> tuple[str,
     )
 
 
+# ImageNet's per-channel mean and standard deviation (RGB, in 0..1 units): how the DINO
+# family, torchvision's ImageNet weights and the trained VPR models normalise an image.
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+
 # torchvision's IMAGENET1K_V1 ResNet weights, each named after the first 8 hex digits of
 # its SHA-256: what ``pretrained=True`` gave the VPR models (MixVPR / BoQ ask for
 # "IMAGENET1K_V1" by name) and what SNSM uses.

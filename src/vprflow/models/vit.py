@@ -66,14 +66,12 @@ from vprflow.models.hub import load_pretrained, resolve_model_source
 from vprflow.models.kinds import (
     BACKBONES,
     FACETS,
+    IMAGENET_MEAN,
+    IMAGENET_STD,
     POS_EMBED_INTERPOLATIONS,
     VitFamily,
     with_defaults,
 )
-
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
-
 
 # Backbone kind -> its VitFamily: the ViT entries of models/kinds.py, each kind named there once.
 VIT_FAMILIES = {

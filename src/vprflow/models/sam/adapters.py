@@ -26,7 +26,7 @@ from PIL import Image
 
 from vprflow.core.devices import resolve_device, resolve_dtype
 from vprflow.models.hub import load_pretrained, resolve_model_source
-from vprflow.models.kinds import SEGMENTERS, SamKind, with_defaults
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD, SEGMENTERS, SamKind, with_defaults
 from vprflow.models.sam import decoder as sam_decoder
 from vprflow.models.sam.generator import SamSegmenter
 from vprflow.models.sam.masks import LogitUpscaler
@@ -66,8 +66,7 @@ def preprocess_image(image: np.ndarray, long_side: int) -> tuple[torch.Tensor, t
 
 
 # SAM 2's normalisation (SAM2Transforms; = transformers' Sam2ImageProcessor), 0..1 units.
-SAM2_MEAN = (0.485, 0.456, 0.406)
-SAM2_STD = (0.229, 0.224, 0.225)
+SAM2_MEAN, SAM2_STD = IMAGENET_MEAN, IMAGENET_STD
 
 
 def preprocess_image_sam2(image: np.ndarray, size: int) -> tuple[torch.Tensor, tuple[int, int]]:

@@ -29,8 +29,14 @@ import torch
 from vprflow.core.arrays import center_crop_box, l2_normalize
 from vprflow.core.devices import resolve_device
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.kinds import TRAINED_OUTPUTS, TrainedModel, model_kind, with_defaults
-from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD
+from vprflow.models.kinds import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    TRAINED_OUTPUTS,
+    TrainedModel,
+    model_kind,
+    with_defaults,
+)
 
 
 class TrainedBackbone:

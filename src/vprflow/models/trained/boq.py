@@ -37,10 +37,8 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vprflow.models.kinds import trained_model
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD, trained_model
 from vprflow.models.trunks.resnet import (
-    IMAGENET_MEAN,
-    IMAGENET_STD,
     ResNet,
     resnet_channels,
     stage_maps,

@@ -37,8 +37,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.kinds import trained_model
-from vprflow.models.trunks.resnet import IMAGENET_MEAN, IMAGENET_STD, TorchvisionBackbone
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD, trained_model
+from vprflow.models.trunks.resnet import TorchvisionBackbone
 from vprflow.models.trunks.state_dicts import TRAINING_PREFIXES, load_matching, read_state
 
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD

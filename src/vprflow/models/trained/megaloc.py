@@ -34,11 +34,10 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vprflow.models.kinds import trained_model
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD, trained_model
 from vprflow.models.trained.salad import SaladAggregator
 from vprflow.models.trunks.dinov2 import DinoV2Tokens, load_backbone_and_head
 from vprflow.models.trunks.state_dicts import read_state_dict
-from vprflow.models.vit import IMAGENET_MEAN, IMAGENET_STD
 
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
 # The published file and input size (models/kinds.py's entry): None, the images' own

@@ -40,10 +40,8 @@ from torch import nn
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError
-from vprflow.models.kinds import trained_model
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD, trained_model
 from vprflow.models.trunks.resnet import (
-    IMAGENET_MEAN,
-    IMAGENET_STD,
     LAYER_STRIDES,
     TorchvisionBackbone,
 )

@@ -51,9 +51,9 @@ from torch import nn
 from torch.nn import functional as F
 
 from vprflow.models.checkpoints import CheckpointError, read_checkpoint
-from vprflow.models.kinds import TrainedVariant, trained_model
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD, TrainedVariant, trained_model
 from vprflow.models.trunks.state_dicts import load_matching
-from vprflow.models.trunks.vgg import IMAGENET_MEAN, IMAGENET_STD, VGG16_DIM, vgg16_features
+from vprflow.models.trunks.vgg import VGG16_DIM, vgg16_features
 
 NUM_CLUSTERS = 64
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD

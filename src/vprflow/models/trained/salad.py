@@ -40,13 +40,9 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from vprflow.models.kinds import trained_model
+from vprflow.models.kinds import IMAGENET_MEAN, IMAGENET_STD, trained_model
 from vprflow.models.trunks.dinov2 import DinoV2Tokens, load_backbone_and_head
-
-# The benchmarks build a shallower SALAD from the DINOv2 config, imported from here.
-from vprflow.models.trunks.dinov2 import dinov2_config as dinov2_config
 from vprflow.models.trunks.state_dicts import TRAINING_PREFIXES, read_state_dict
-from vprflow.models.vit import IMAGENET_MEAN, IMAGENET_STD
 
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
 # The published file and input size (models/kinds.py's entry).

@@ -56,10 +56,15 @@ from torch.nn import functional as F
 from vprflow.models.checkpoints import CheckpointError
 
 # The published files' names and where they are (models/kinds.py, with the variants).
-from vprflow.models.kinds import VLAD_BUFF_RELEASE, trained_model, vlad_buff_file
+from vprflow.models.kinds import (
+    IMAGENET_MEAN,
+    IMAGENET_STD,
+    VLAD_BUFF_RELEASE,
+    trained_model,
+    vlad_buff_file,
+)
 from vprflow.models.trunks.dinov2 import DinoV2Tokens, load_backbone_and_head
 from vprflow.models.trunks.state_dicts import TRAINING_PREFIXES, load_matching, read_state_dict
-from vprflow.models.vit import IMAGENET_MEAN, IMAGENET_STD
 
 MEAN, STD = IMAGENET_MEAN, IMAGENET_STD
 INPUT_SIZE = trained_model("vlad_buff").height_width

@@ -43,8 +43,6 @@ LAYERS = ("layer1", "layer2", "layer3", "layer4")
 # (CosPlace's ``backbone.<i>``, BoQ's ``backbone.net.<i>``) index it this way.
 STAGES = ("conv1", "bn1", "relu", "maxpool", *LAYERS)
 LAYER_STRIDES = {"layer1": 4, "layer2": 8, "layer3": 16, "layer4": 32}
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 
 
 def _check_depth(depth: int) -> None:

@@ -27,8 +27,6 @@ VGG16_STAGES = ((64, 64), (128, 128), (256, 256, 256), (512, 512, 512), (512, 51
 # ``end`` -> how many modules of ``features`` are kept.
 VGG16_ENDS = {"conv5_3": 29, "relu5_3": 30, "pool5": 31}
 VGG16_DIM = 512
-IMAGENET_MEAN = (0.485, 0.456, 0.406)
-IMAGENET_STD = (0.229, 0.224, 0.225)
 TORCHVISION_VGG16_URL = "https://download.pytorch.org/models/vgg16-397923af.pth"
 
 
