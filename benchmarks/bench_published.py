@@ -77,6 +77,10 @@ from bench_workflow import (  # noqa: E402
 from vprflow.stages import runner  # noqa: E402
 
 RESOLUTION = (640, 480)  # width, height
+# --smoke's: corridor's own resolution (11 x 8 patches of 14), and SAM at a 64-pixel input
+# (tests/tiny_models.py's, bench_sam.py's smoke model): the tiny models' cost at 640 x 480
+# and SAM's 1024 side was most of the smoke's.
+SMOKE_RESOLUTION, SMOKE_SAM_SIDE = (160, 120), 64
 METHODS = ["anyloc_vlad", "segvlad"]
 RERANKER = "mnn_dinov2"
 BACKBONE, SEGMENTER = "dinov2_vitg14", "sam_vith"
@@ -111,6 +115,10 @@ def build_model(name: str, size: str):
             return tiny_vit(**bench_backbones.ARCHITECTURES["dinov2-vitg14"], scale=None)
         # ViT-G's depth (so layer 31 as published) at a width of 32.
         return tiny_vit("dinov2", num_layers=40, image_size=518, scale=None)
+    if size == "smoke":
+        from tiny_models import tiny_sam
+
+        return tiny_sam(model_size=SMOKE_SAM_SIDE, scale=None).eval()
     _, config_name, config = bench_sam.LARGE["sam-vit-h"]
     if size == "tiny":
         config_name, config = "SamConfig", bench_sam.MODELS["tiny"]
@@ -223,15 +231,18 @@ class Floor(NamedTuple):
     dtype: str  # whose matmul rate bounds it
 
 
-def floors(config: dict, weights: dict[str, Path], n_ref: int, n_query: int) -> dict:
-    """Per stage with a floor: its :class:`Floor`, and the notes that explain it."""
+def floors(
+    config: dict, weights: dict[str, Path], n_ref: int, n_query: int, resolution: tuple[int, int]
+) -> dict:
+    """Per stage with a floor: its :class:`Floor`, and the notes that explain it, for images
+    at ``resolution`` (width, height)."""
     backbone = config["backbones"][BACKBONE]
     segmenter = config["segmenters"][SEGMENTER]
     from transformers import AutoConfig
 
     vit = AutoConfig.from_pretrained(weights["dinov2"])
     patch, width = vit.patch_size, vit.hidden_size
-    grid = (RESOLUTION[1] // patch, RESOLUTION[0] // patch)
+    grid = (resolution[1] // patch, resolution[0] // patch)
     patches = grid[0] * grid[1]
     images = n_ref + n_query
     per_image = vit_flops(weights["dinov2"], backbone["layer"], grid)
@@ -267,7 +278,7 @@ def dataset(args: argparse.Namespace, data: Path) -> tuple[dict, Path, str, int,
     """The config (written under the workdir), its path, the dataset's name and its
     reference and query counts."""
     changes = {
-        "resolution": list(RESOLUTION),
+        "resolution": list(args.resolution),
         "methods": args.methods,
         "rerank": {method: [RERANKER] for method in args.methods},
         "defaults": {"features": BACKBONE, "segmenter": SEGMENTER, "pca": args.pca},
@@ -447,7 +458,7 @@ def run(args: argparse.Namespace, data: Path) -> int:
         dtype: matmul_rate(device, dtype, args.matmul_side)
         for dtype in dict.fromkeys(["float32", args.dtype])
     }
-    stage_floors, notes = floors(config, weights, n_ref, n_query)
+    stage_floors, notes = floors(config, weights, n_ref, n_query, args.resolution)
     counts = {
         "all": n_ref + n_query,
         "images": n_ref + n_query,
@@ -455,7 +466,7 @@ def run(args: argparse.Namespace, data: Path) -> int:
         "queries": n_query,
     }
     print(
-        f"# {name}: {n_ref} + {n_query} images at {RESOLUTION[0]} x {RESOLUTION[1]}, "
+        f"# {name}: {n_ref} + {n_query} images at {args.resolution[0]} x {args.resolution[1]}, "
         f"--size {args.size}, --dtype {args.dtype}, device {device_line(device)}, "
         f"commit {commit()}"
     )
@@ -565,6 +576,7 @@ def main() -> None:
     )
     args = parser.parse_args()
     args.pca, args.methods = {"dim": 128, "whiten": False}, METHODS
+    args.resolution = RESOLUTION
     if args.wheels:
         wheels(args.image_freeze)
         return
@@ -573,10 +585,11 @@ def main() -> None:
         sys.exit(run(args, data))
     # Every stage at its smallest: 2 references, 2 queries (one reference leaves the PCA
     # too few segments), 16 prompts an image; segvlad alone, whose DAG holds anyloc_vlad's
-    # stages and the segments. An image costs ~1 s of CPU (features and segments).
-    args.size, args.device, args.images, args.cores = "tiny", "cpu", 4, 2
-    args.methods = ["segvlad"]
-    args.points_per_side, args.clusters, args.matmul_side = 4, 8, 512
+    # stages and the segments; the tiny ViT (ViT-G's depth), SAM at a 64-pixel input,
+    # corridor's resolution (SMOKE_RESOLUTION).
+    args.size, args.device, args.images, args.cores = "smoke", "cpu", 4, 2
+    args.methods, args.resolution = ["segvlad"], SMOKE_RESOLUTION
+    args.points_per_side, args.clusters, args.matmul_side = 4, 8, 256
     args.pca = {"dim": 8, "whiten": False}
     with tempfile.TemporaryDirectory(prefix="vprflow-bench-published-smoke-") as folder:
         args.workdir, args.weights = Path(folder) / "run", Path(folder) / "weights"

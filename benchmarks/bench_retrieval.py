@@ -10,13 +10,15 @@ optionally sharded, and SegVLAD image voting, on random unit vectors.
     python benchmarks/bench_retrieval.py --ref-segments 1000000 --query-segments 20000 \\
         --dim 1024 --shard 250000
 
-The inputs are written once as ``.npy`` to a temporary folder. Each method runs in a fresh
-process that loads them and makes a small warm-up call (library start-up, thread pools),
-then times ``--repeat`` searches (default 3): the table shows the fastest, the notes the
-median, since on a shared machine the spread comes from other load. Memory: ``peak`` is
-the process's ``ru_maxrss`` (inputs included); ``search`` is how much the first search
-raised it over the resident size after loading and warm-up, i.e. the method's own working
-memory and outputs. tracemalloc would miss both torch's and faiss's native allocations.
+The inputs are written once as ``.npy`` to a temporary folder. Each method runs in a
+fresh process (``--smoke``: all of them in one, so ``peak`` is theirs together) that
+loads them and makes a small warm-up call (library start-up, thread pools), then times
+``--repeat`` searches (default 3): the table shows the fastest, the notes the median,
+since on a shared machine the spread comes from other load. Memory: ``peak`` is the
+process's ``ru_maxrss`` (inputs included); ``search`` is how much the first search
+raised it over the resident size after loading and warm-up, i.e. the method's own
+working memory and outputs. tracemalloc would miss both torch's and faiss's native
+allocations.
 
 Columns: ``time s`` is wall-clock time, ``cpu s`` the process's CPU time over all its
 threads (both the fastest repeat); ``/ faiss`` is each over faiss flat's. On a machine
@@ -106,8 +108,11 @@ def bf16_floor(database: np.ndarray, queries: np.ndarray, args: argparse.Namespa
 
 
 def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
-    """Run one method in this (fresh) process and save its lists and measurements."""
+    """Run one method in this process and save its lists and measurements."""
     sys.path.insert(0, str(SRC))
+    import faiss
+    import torch
+
     from vprflow.search.exact import exact_knn
     from vprflow.search.flat import flat_knn
     from vprflow.search.topk import merge_knn
@@ -159,11 +164,17 @@ def worker(method: str, folder: Path, args: argparse.Namespace) -> None:
     report = {"seconds": min(times), "median": float(np.median(times)), "search_mib": peak - base}
     report["cpu_seconds"] = min(cpu)
     report["stats"] = stats
+    # The libraries as the methods ran them, for the table's heading: the parent imports
+    # neither.
+    report["torch"] = f"torch {torch.__version__} ({torch.get_num_threads()} threads"
+    report["faiss"] = f"faiss {faiss.__version__} ({faiss.omp_get_max_threads()} threads)"
     (folder / f"{method}.json").write_text(json.dumps(report))
 
 
-def run_method(method: str, folder: Path, args: argparse.Namespace) -> dict:
-    command = [sys.executable, __file__, "--worker", method, "--data", str(folder)]
+def run_methods(methods: list[str], folder: Path, args: argparse.Namespace) -> dict[str, dict]:
+    """``{method: report}`` from one fresh process that runs ``methods`` one after the
+    other; its peak memory is the largest of theirs (one method a process: its own)."""
+    command = [sys.executable, __file__, "--worker", ",".join(methods), "--data", str(folder)]
     command += ["--k", str(args.k), "--block-queries", str(args.block_queries)]
     command += ["--shard", str(args.shard or 0), "--device", args.device]
     command += ["--repeat", str(args.repeat), "--block-database", str(args.block_database)]
@@ -171,13 +182,16 @@ def run_method(method: str, folder: Path, args: argparse.Namespace) -> dict:
     process = subprocess.Popen(command)
     _, status, usage = os.wait4(process.pid, 0)
     if status != 0:
-        raise SystemExit(f"{method} failed (status {status})")
-    report = json.loads((folder / f"{method}.json").read_text())
-    report["peak_mib"] = usage.ru_maxrss / 1024
-    if method != "bf16_floor":
-        report["indices"] = np.load(folder / f"{method}_indices.npy")
-        report["distances"] = np.load(folder / f"{method}_distances.npy")
-    return report
+        raise SystemExit(f"{', '.join(methods)} failed (status {status})")
+    reports = {}
+    for method in methods:
+        report = json.loads((folder / f"{method}.json").read_text())
+        report["peak_mib"] = usage.ru_maxrss / 1024
+        if method != "bf16_floor":
+            report["indices"] = np.load(folder / f"{method}_indices.npy")
+            report["distances"] = np.load(folder / f"{method}_distances.npy")
+        reports[method] = report
+    return reports
 
 
 def voted(report: dict, n_query: int, n_ref: int, args: argparse.Namespace):
@@ -218,17 +232,16 @@ def main() -> None:
     )
     args = parser.parse_args()
     if args.smoke:
-        # Each method's process costs its imports (~1.4 s); the sizes, little.
+        # A process's imports (~1.4 s) cost more than these sizes: every method runs in
+        # one process.
         args.ref_segments, args.query_segments, args.dim, args.k = 340, 170, 32, 10
         args.shard, args.repeat, args.device = 170, 1, "cpu"
     if args.worker:
-        worker(args.worker, Path(args.data), args)
+        for method in args.worker.split(","):
+            worker(method, Path(args.data), args)
         return
 
     sys.path.insert(0, str(SRC))
-    import faiss
-    import torch
-
     from vprflow.search.topk import topk_agreement
 
     with tempfile.TemporaryDirectory(prefix="bench_retrieval_") as tmp:
@@ -240,7 +253,8 @@ def main() -> None:
             methods.insert(2, "exact_old")
         if args.shard:
             methods.append("exact_sharded")
-        reports = {method: run_method(method, folder, args) for method in methods}
+        groups = [methods] if args.smoke else [[method] for method in methods]
+        reports = {m: r for group in groups for m, r in run_methods(group, folder, args).items()}
 
     n_query = -(-args.query_segments // SEGMENTS_PER_IMAGE)
     n_ref = -(-args.ref_segments // SEGMENTS_PER_IMAGE)
@@ -251,9 +265,8 @@ def main() -> None:
     print(
         f"\n{args.ref_segments:,} reference x {args.query_segments:,} query segments, "
         f"d {args.dim}, k {args.k}; {platform.processor() or platform.machine()}, "
-        f"{os.cpu_count()} cpus, torch {torch.__version__} ({torch.get_num_threads()} threads, "
-        f"exact path on {args.device}), faiss {faiss.__version__} "
-        f"({faiss.omp_get_max_threads()} threads)\n"
+        f"{os.cpu_count()} cpus, {reference['torch']}, exact path on {args.device}), "
+        f"{reference['faiss']}\n"
     )
     header = f"{'method':<34}{'time s':>9}{'/ faiss':>9}{'/ floor':>9}{'cpu s':>9}{'/ faiss':>9}"
     header += f"{'agree@k':>10}{'search MiB':>12}{'peak MiB':>10}  notes"

@@ -6,10 +6,11 @@ defaults name, SAM ViT-H (``sam-vit-h``), SAM-HQ ViT-H (``sam-hq-vit-h``) and SA
 Hiera-L (``sam2-large``). ``tiny`` and ``vit-b`` are saved and read back through the
 loader; the large ones are built in memory (saving 2.5 GB of random weights would
 dominate), with the loader's sdpa attention and the same adapters. Each configuration
-runs in a fresh subprocess so its peak RSS is its own. Two filter settings: the library
-thresholds (with random weights almost no candidate survives them, so NMS is trivial)
-and all filters off (every candidate reaches the box NMS: the post-processing worst
-case).
+runs in a fresh subprocess so its peak RSS is its own (``--smoke``: every row of both
+tables in one subprocess, so its RSS columns are not each row's own). Two filter
+settings: the library thresholds (with random weights almost no candidate survives them,
+so NMS is trivial) and all filters off (every candidate reaches the box NMS: the
+post-processing worst case).
 
     python benchmarks/bench_sam.py [--device cpu] [--repeats 2] [--sides 16 32]
     python benchmarks/bench_sam.py --models sam-vit-h sam-hq-vit-h sam2-large \
@@ -304,42 +305,80 @@ def decoder_one(
 def _child(arguments: list[str], label: str) -> dict | None:
     """Run this script with ``arguments`` in a fresh process (its own peak memory) -> the
     JSON row it prints last, or ``None`` after printing ``label`` and its error."""
+    return _children([(arguments, label)])[0]
+
+
+def _children(cases: list[tuple[list[str], str]]) -> list[dict | None]:
+    """Run every case's ``arguments`` in one fresh process, one after the other (so
+    the later rows' peak memory includes the earlier ones': --smoke only) -> their JSON
+    rows, or ``None`` for each after printing the labels and the error."""
+    arguments = ["--cases", json.dumps([case for case, _ in cases])]
     output = subprocess.run([sys.executable, __file__, *arguments], capture_output=True, text=True)
     if output.returncode:
         error = (output.stderr.strip().splitlines() or ["?"])[-1]
-        print(f"{label} failed: {error}")
-        return None
-    return json.loads(output.stdout.strip().splitlines()[-1])
+        for _, label in cases:
+            print(f"{label} failed: {error}")
+        return [None] * len(cases)
+    return [json.loads(line) for line in output.stdout.strip().splitlines()[-len(cases) :]]
 
 
-def decoders_table(args) -> int:
-    """Print the decoding table; returns how many measurements failed."""
-    print(f"SAM prompt decoding on {args.device}, random weights, per 1,024 prompts")
-    header = f"{'kind':7} {'dtype':8} {'decoder':12} {'batch':>5} {'s/1024':>7} {'ms/prompt':>9}"
-    header += f" {'+mem MiB':>8}"
-    print(header)
-    print("-" * len(header))
-    failed = 0
+def decoder_cases(args) -> list[tuple[list[str], str]]:
+    """The decoding table's rows: each one's child arguments and its label."""
+    cases = []
     for kind in args.kinds:
         for dtype in args.dtypes:
             for batch in args.points_per_batch:
                 for decoder in ("transformers", "shared"):
                     arguments = ["--decoder-one", kind, dtype, decoder, str(args.prompts)]
                     arguments += [str(batch), "--device", args.device]
-                    row = _child(arguments, f"{kind:7} {dtype:8} {decoder:12}")
-                    if row is None:
-                        failed += 1
-                        continue
-                    print(
-                        f"{kind:7} {dtype:8} {decoder:12} {batch:>5} {row['s_per_1024']:>7.2f} "
-                        f"{row['ms_per_prompt']:>9.2f} {row['gen_mib']:>8.0f}",
-                        flush=True,
-                    )
+                    cases.append((arguments, f"{kind:7} {dtype:8} {decoder:12}"))
+    return cases
+
+
+def mask_cases(args) -> list[tuple[list[str], str]]:
+    """The automatic-mask table's rows: each one's child arguments and its label."""
+    cases = []
+    for model in args.models:
+        for side in args.sides:
+            for dtype in args.dtypes:
+                for filters in args.filters:
+                    arguments = ["--one", model, str(side), filters, dtype]
+                    arguments += ["--device", args.device, "--repeats", str(args.repeats)]
+                    arguments += ["--image-batches", *map(str, args.image_batches)]
+                    cases.append((arguments, f"{model:12} {side:>4} {filters:8} {dtype:8}"))
+    return cases
+
+
+def one_by_one(cases: list[tuple[list[str], str]]):
+    """Each case's row from a process of its own, as it finishes (the tables print as
+    they go)."""
+    return (_child(arguments, label) for arguments, label in cases)
+
+
+def decoders_table(args, rows) -> int:
+    """Print the decoding table from ``rows`` (one per :func:`decoder_cases` case, ``None``
+    where it failed); returns how many measurements failed."""
+    print(f"SAM prompt decoding on {args.device}, random weights, per 1,024 prompts")
+    header = f"{'kind':7} {'dtype':8} {'decoder':12} {'batch':>5} {'s/1024':>7} {'ms/prompt':>9}"
+    header += f" {'+mem MiB':>8}"
+    print(header)
+    print("-" * len(header))
+    failed = 0
+    for row in rows:
+        if row is None:
+            failed += 1
+            continue
+        print(
+            f"{row['kind']:7} {row['dtype']:8} {row['decoder']:12} {row['batch']:>5} "
+            f"{row['s_per_1024']:>7.2f} {row['ms_per_prompt']:>9.2f} {row['gen_mib']:>8.0f}",
+            flush=True,
+        )
     return failed
 
 
-def masks_table(args) -> int:
-    """Print the automatic-mask table; returns how many measurements failed."""
+def masks_table(args, rows) -> int:
+    """Print the automatic-mask table from ``rows`` (one per :func:`mask_cases` case,
+    ``None`` where it failed); returns how many measurements failed."""
     header = (
         f"{'model':12} {'side':>4} {'filters':8} {'dtype':8} {'device':6} {'masks':>5} "
         f"{'encoder s':>9} {'first s':>8} {'best s':>7} {'img/s':>7} {'RSS MiB':>8} "
@@ -349,41 +388,44 @@ def masks_table(args) -> int:
     print(header)
     print("-" * len(header))
     failed = 0
-    for model in args.models:
-        for side in args.sides:
-            for dtype in args.dtypes:
-                for filters in args.filters:
-                    arguments = ["--one", model, str(side), filters, dtype]
-                    arguments += ["--device", args.device, "--repeats", str(args.repeats)]
-                    arguments += ["--image-batches", *map(str, args.image_batches)]
-                    row = _child(arguments, f"{model:12} {side:>4} {filters:8} {dtype:8}")
-                    if row is None:
-                        failed += 1
-                        continue
-                    print(
-                        f"{row['model']:12} {row['side']:>4} {row['filters']:8} "
-                        f"{row['dtype']:8} {row['device']:6} {row['masks']:>5} "
-                        f"{row['encoder_s']:>9.2f} {row['first_s']:>8.2f} {row['best_s']:>7.2f} "
-                        f"{row['images_per_s']:>7.3f} {row['rss_mib']:>8.0f} "
-                        f"{row['gen_mib']:>8.0f}",
-                        flush=True,
-                    )
-                    decode = row["best_s"] - row["batches"].get("1", {}).get(
-                        "encoder_s", row["encoder_s"]
-                    )
-                    for size, batch in row["batches"].items():
-                        whole = batch["encoder_s"] + decode
-                        print(
-                            f"{'':12}   image batch {size:>2}: "
-                            f"encoder {batch['encoder_s']:.2f} s/img,"
-                            f" decoding {decode:.2f} s/img -> {whole:.2f} s/img"
-                            f" ({1 / whole:.3f} img/s), peak {batch['peak_mib']:.0f} MiB",
-                            flush=True,
-                        )
+    for row in rows:
+        if row is None:
+            failed += 1
+            continue
+        print(
+            f"{row['model']:12} {row['side']:>4} {row['filters']:8} "
+            f"{row['dtype']:8} {row['device']:6} {row['masks']:>5} "
+            f"{row['encoder_s']:>9.2f} {row['first_s']:>8.2f} {row['best_s']:>7.2f} "
+            f"{row['images_per_s']:>7.3f} {row['rss_mib']:>8.0f} "
+            f"{row['gen_mib']:>8.0f}",
+            flush=True,
+        )
+        decode = row["best_s"] - row["batches"].get("1", {}).get("encoder_s", row["encoder_s"])
+        for size, batch in row["batches"].items():
+            whole = batch["encoder_s"] + decode
+            print(
+                f"{'':12}   image batch {size:>2}: "
+                f"encoder {batch['encoder_s']:.2f} s/img,"
+                f" decoding {decode:.2f} s/img -> {whole:.2f} s/img"
+                f" ({1 / whole:.3f} img/s), peak {batch['peak_mib']:.0f} MiB",
+                flush=True,
+            )
     return failed
 
 
-def main() -> None:
+def one_case(args) -> dict:
+    """The row of the one case ``args`` name (``--one`` or ``--decoder-one``), measured in
+    this process."""
+    if args.decoder_one:
+        kind, dtype, decoder, prompts, batch = args.decoder_one
+        return decoder_one(kind, dtype, decoder, int(prompts), int(batch), args.device)
+    model, side, filters, dtype = args.one
+    return run_one(
+        model, int(side), filters, args.device, args.repeats, dtype, tuple(args.image_batches)
+    )
+
+
+def arguments() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     choices = [*MODELS, *LARGE, SMOKE_MODEL]
     parser.add_argument("--device", default="auto")
@@ -405,35 +447,43 @@ def main() -> None:
     parser.add_argument("--prompts", type=int, default=256, help="prompts timed (--decoders)")
     parser.add_argument("--points-per-batch", type=int, nargs="+", default=[64])
     parser.add_argument("--decoder-one", nargs=5, help=argparse.SUPPRESS)
+    # A JSON list of cases' arguments (--one or --decoder-one), measured one after the
+    # other in this process, a JSON row each.
+    parser.add_argument("--cases", help=argparse.SUPPRESS)
     parser.add_argument(
         "--smoke", action="store_true", help="both tables at their smallest, on the CPU"
     )
+    return parser
+
+
+def main() -> None:
+    parser = arguments()
     args = parser.parse_args()
 
-    if args.decoder_one:
-        kind, dtype, decoder, prompts, batch = args.decoder_one
-        row = decoder_one(kind, dtype, decoder, int(prompts), int(batch), args.device)
-        print(json.dumps(row))
+    if args.cases:
+        for case in json.loads(args.cases):
+            print(json.dumps(one_case(parser.parse_args(case))), flush=True)
         return
-    if args.one:
-        model, side, filters, dtype = args.one
-        row = run_one(
-            model, int(side), filters, args.device, args.repeats, dtype, tuple(args.image_batches)
-        )
-        print(json.dumps(row))
+    if args.decoder_one or args.one:
+        print(json.dumps(one_case(args)))
         return
     if args.smoke:
         # Both tables, each at its smallest: the tiniest SAM on 2 x 2 prompts (all filters
-        # off, so the box NMS has candidates; a batch of 2 images), then decoding one batch
-        # of 2 prompts. Each row is a process that imports transformers (~4 s of CPU).
+        # off, so the box NMS has candidates; a batch of 2 images), timed once, then
+        # decoding one batch of 2 prompts. Every row in one process, which imports
+        # transformers (~4 s of CPU) once: its peak memory is not each row's own.
         args.device, args.models, args.sides = "cpu", [SMOKE_MODEL], [2]
-        args.dtypes, args.filters, args.repeats, args.image_batches = ["float32"], ["none"], 1, [2]
+        args.dtypes, args.filters, args.repeats, args.image_batches = ["float32"], ["none"], 0, [2]
         args.kinds, args.prompts, args.points_per_batch = ["sam"], 2, [2]
-        failed = masks_table(args)
+        masks, decoders = mask_cases(args), decoder_cases(args)
+        rows = _children(masks + decoders)
+        failed = masks_table(args, rows[: len(masks)])
         print()
-        failed += decoders_table(args)
+        failed += decoders_table(args, rows[len(masks) :])
+    elif args.decoders:
+        failed = decoders_table(args, one_by_one(decoder_cases(args)))
     else:
-        failed = decoders_table(args) if args.decoders else masks_table(args)
+        failed = masks_table(args, one_by_one(mask_cases(args)))
     if failed:
         sys.exit(f"{failed} measurement(s) failed")
 
