@@ -29,6 +29,11 @@ growth exponent of time and of store bytes (slope of log against log N). Then Se
 segment-descriptor store beside Revisit-Anything's 6.65 GB for Pittsburgh 30k.
 
 ``--data`` defaults to ``$VPRFLOW_DATA``; with neither, ``--smoke`` exits with status 77.
+
+With ``$VPRFLOW_SMOKE_RUN`` set (tests/test_benchmarks.py sets it), ``--smoke`` reads the
+one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
+and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
+one core) instead of making one of its own.
 """
 
 from __future__ import annotations
@@ -67,6 +72,7 @@ from bench_workflow import (  # noqa: E402
     run_snakemake,
     snakemake_command,
 )
+from smoke_run import shared_run  # noqa: E402
 
 from vprflow.data.presets import presets  # noqa: E402
 
@@ -560,6 +566,13 @@ def main() -> None:
     data = data_folder(parser, args)
     if args.smoke:
         args.images, args.methods, args.rerank = [SMOKE_IMAGES], SMOKE_METHODS, SMOKE_RERANK
+        shared = shared_run(data)
+        if shared:  # this script's smoke city, run once for the benchmarks (smoke_run.py)
+            workdir, run = shared
+            summaries = [summarise(workdir, run["images"], run["cores"], run["generate_s"])]
+            print_size(summaries[0])
+            print_segments(summaries)
+            return
         with tempfile.TemporaryDirectory(prefix="vprflow-city-smoke-") as folder:
             args.workdir, args.cache = Path(folder) / "work", Path(folder) / "data"
             summaries = [run_size(args, data, SMOKE_IMAGES)]

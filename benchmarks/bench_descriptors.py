@@ -40,7 +40,13 @@ Each is the best of ``--repeats`` runs, in ms per image; "ratio" = stage / arith
 Start-up (second table): per stage of ``plan.STAGES``, a fresh Python process that
 imports what the stage's job imports before it runs (the rule's script's modules and
 the stage's runner module): its wall time, the imports' share of it, and whether torch
-or faiss came with them; the first row is ``python -c pass``, the floor.
+or faiss came with them; the first row is ``python -c pass``, the floor (a smoke: the
+descriptors stage's row alone).
+
+With ``$VPRFLOW_SMOKE_RUN`` set (tests/test_benchmarks.py sets it), ``--smoke`` reads the
+one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
+and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
+one core) instead of making one of its own.
 """
 
 from __future__ import annotations
@@ -57,12 +63,14 @@ import types
 from pathlib import Path
 
 import numpy as np
+import yaml
 from threadpoolctl import threadpool_limits
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_fixed_cost import fastest, stage_module  # noqa: E402
 from bench_workflow import REPO, cycled_config, data_folder, run_snakemake  # noqa: E402
 from revisions import module_at  # noqa: E402
+from smoke_run import shared_run  # noqa: E402
 
 from vprflow.core import stores  # noqa: E402
 from vprflow.planning.config import validate_config  # noqa: E402
@@ -148,6 +156,21 @@ def prepare(data: Path, workdir: Path, n_images: int, methods: list[str] | None 
             "--directory", str(workdir), "--configfile", str(config_path), "--cores", "2",
             *missing,
         ])  # fmt: skip
+    return plan
+
+
+def shared_plan(workdir: Path, methods: list[str]):
+    """The plan of the finished smoke run the benchmarks share (smoke_run.py) with
+    ``methods`` as its one dataset's: their descriptors stages' inputs are in that run
+    (checked: nothing is run in a folder that others read)."""
+    config = yaml.safe_load((workdir / "config.yaml").read_text())
+    (dataset,) = config["datasets"].values()
+    dataset["methods"] = methods
+    plan = build_plan(validate_config(config, REPO / "workflow" / "schemas" / "config.schema.yaml"))
+    targets = {p for s in plan.stages["descriptors"].values() for p in s.input_paths().values()}
+    missing = sorted(t for t in targets if not (workdir / t).exists())
+    if missing:
+        sys.exit(f"the shared smoke run in {workdir} lacks {', '.join(missing)}")
     return plan
 
 
@@ -302,22 +325,19 @@ print(imports, "torch" in sys.modules, "faiss" in sys.modules)
 """
 
 
-def startup(repeats: int) -> list[tuple]:
-    """``(stage, process s, imports s, torch, faiss)`` per stage of ``plan.STAGES``, each
-    the fastest of ``repeats`` fresh processes; first ``python -c pass``."""
+def startup(repeats: int, stages=STAGES) -> list[tuple]:
+    """``(stage, process s, imports s, torch, faiss)`` per stage of ``stages``, each the
+    fastest of ``repeats`` fresh processes; first ``python -c pass``."""
 
     rows = [("(python -c pass)", fastest("pass", repeats)[0], 0.0, False, False)]
-    for name in STAGES:
+    for name in stages:
         seconds, out = fastest(STARTUP.format(module=stage_module(name)), repeats)
         imports, torch, faiss = out.split()
         rows.append((name, seconds, float(imports), torch == "True", faiss == "True"))
     return rows
 
 
-def run(
-    args: argparse.Namespace, data: Path, workdir: Path, config_methods: list[str] | None = None
-) -> None:
-    plan = prepare(data, workdir, args.images, config_methods)
+def run(args: argparse.Namespace, plan, workdir: Path, images: str = "corridor images") -> None:
     stages = sorted(plan.stages["descriptors"].values(), key=method_name)
     before = load_before(args.before)
     rows = []
@@ -331,7 +351,7 @@ def run(
     run_stage(os.devnull, run_all, args.threads)
     load = os.getloadavg()[0]
     print(
-        f"{args.images} corridor images, {args.threads} threads, best of {args.repeats}, "
+        f"{args.images} {images}, {args.threads} threads, best of {args.repeats}, "
         f"before = {args.before}, load average {load:.1f}"
     )
     header = (
@@ -354,7 +374,9 @@ def run(
     header = f"{'stage':<18} {'process ms':>10} {'imports ms':>10} {'torch':>6} {'faiss':>6}"
     print(header)
     print("-" * len(header))
-    for name, seconds, imports, torch, faiss in startup(args.repeats):
+    # A smoke times the descriptors stage's alone: a process a stage, ~0.4 s of CPU each.
+    stages = ["descriptors"] if args.smoke else STAGES
+    for name, seconds, imports, torch, faiss in startup(args.repeats, stages):
         print(
             f"{name:<18} {seconds * 1e3:>10.0f} {imports * 1e3:>10.0f} "
             f"{'yes' if torch else 'no':>6} {'yes' if faiss else 'no':>6}"
@@ -380,12 +402,20 @@ def main() -> None:
     if not args.smoke:
         workdir = args.workdir.resolve() / str(args.images)
         workdir.mkdir(parents=True, exist_ok=True)
-        run(args, data, workdir)
+        run(args, prepare(data, workdir, args.images), workdir)
         return
-    # A global and a per-segment method: the stage's two kinds of output.
-    args.images, args.repeats = 4, 1
-    with tempfile.TemporaryDirectory(prefix="vprflow-bench-smoke-") as workdir:
-        run(args, data, Path(workdir), ["anyloc_vlad", "segvlad"])
+    # A global and a per-segment method: the stage's two kinds of output. Their inputs
+    # are all in the smoke run the benchmarks share (smoke_run.py), where there is one.
+    args.images, args.repeats, methods = 4, 1, ["anyloc_vlad", "segvlad"]
+    shared = shared_run(data)
+    if shared:
+        workdir, record = shared
+        args.images = record["images"]
+        run(args, shared_plan(workdir, methods), workdir, "smoke-city images (smoke_run.py)")
+        return
+    with tempfile.TemporaryDirectory(prefix="vprflow-bench-smoke-") as folder:
+        workdir = Path(folder)
+        run(args, prepare(data, workdir, args.images, methods), workdir)
 
 
 if __name__ == "__main__":

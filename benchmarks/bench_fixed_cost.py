@@ -32,7 +32,13 @@ rows are the pieces alone: ``python -c pass``, Snakemake's script preamble, and 
 libraries.
 
 ``--data`` defaults to ``$VPRFLOW_DATA``; with neither, ``--smoke`` exits with status 77
-(skipped, as automake and meson count it), anything else with an error.
+(skipped, as automake and meson count it), anything else with an error. A smoke times
+two of the pieces (``pass`` and the preamble), not the three libraries.
+
+With ``$VPRFLOW_SMOKE_RUN`` set (tests/test_benchmarks.py sets it), ``--smoke`` reads the
+one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
+and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
+one core) instead of making one of its own.
 """
 
 from __future__ import annotations
@@ -63,7 +69,9 @@ from bench_workflow import (  # noqa: E402
     run_snakemake,
     snakemake_command,
 )
+from smoke_run import shared_run  # noqa: E402
 
+CORES = 1  # so that no two jobs share the CPU
 GUARD = 0.5  # seconds: the most a job of a stage that loads no model may cost at idle
 LIBRARIES = ("torch", "transformers", "faiss", "cv2", "matplotlib", "skimage", "scipy")
 
@@ -143,21 +151,33 @@ def stage_seconds(log: Path) -> float | None:
     return float(found[-1][0]) if found else None
 
 
-def run_jobs(args: argparse.Namespace, data: Path) -> list[dict]:
-    """The workflow on the tiny set, one core; one entry per stage job (see SITECUSTOMIZE)
-    with its ``job`` and ``stage`` seconds added."""
-    if args.workdir.exists():
-        shutil.rmtree(args.workdir)
-    _, config_path = cycled_config(data, args.workdir, args.images, args.methods, args.rerank)
-    site, jobs_file = args.workdir / "site", args.workdir / "jobs.jsonl"
+def recorded_run(workdir: Path, config_path: Path, target: str) -> None:
+    """Snakemake to ``target`` in ``workdir`` on :data:`CORES` core, each stage job
+    recorded (see SITECUSTOMIZE) to ``workdir/jobs.jsonl``."""
+    site, jobs_file = workdir / "site", workdir / "jobs.jsonl"
     site.mkdir()
     (site / "sitecustomize.py").write_text(
         SITECUSTOMIZE.format(libraries=LIBRARIES, out=str(jobs_file))
     )
     paths = [str(site), *filter(None, os.environ.get("PYTHONPATH", "").split(os.pathsep))]
-    os.environ["PYTHONPATH"] = os.pathsep.join(paths)
-    run_snakemake(snakemake_command(args.workdir, config_path, 1, "results/recall_cycled.csv"))
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(paths)}
+    run_snakemake(snakemake_command(workdir, config_path, CORES, target), env)
+
+
+def run_jobs(args: argparse.Namespace, data: Path) -> list[dict]:
+    """The workflow on the tiny set, one core (or the smoke run the benchmarks share,
+    smoke_run.py); one entry per stage job (see SITECUSTOMIZE) with its ``job`` and
+    ``stage`` seconds added."""
+    shared = shared_run(data) if args.smoke else None
+    if shared:
+        args.workdir, args.images = shared[0], shared[1]["images"]
+    else:
+        if args.workdir.exists():
+            shutil.rmtree(args.workdir)
+        _, config_path = cycled_config(data, args.workdir, args.images, args.methods, args.rerank)
+        recorded_run(args.workdir, config_path, "results/recall_cycled.csv")
     walls = benchmark_seconds(args.workdir)
+    jobs_file = args.workdir / "jobs.jsonl"
     entries = [json.loads(line) for line in jobs_file.read_text().splitlines()]
     jobs = []
     for entry in entries:
@@ -170,7 +190,8 @@ def run_jobs(args: argparse.Namespace, data: Path) -> list[dict]:
 
 
 def report(args: argparse.Namespace, jobs: list[dict]) -> None:
-    pieces = {code: fastest(code, args.repeats)[0] for code in PIECES}
+    # A smoke times the two light pieces: the three libraries cost 2 s of CPU to import.
+    pieces = {code: fastest(code, args.repeats)[0] for code in PIECES[: 2 if args.smoke else None]}
     header = (
         f"| {'stage':<26} | jobs | job s | process s | stage s | import s | model | "
         f"{'> 0.5 s':<7} | libraries |"

@@ -15,6 +15,11 @@ jobs; and the whole run's wall time.
 
 ``--data`` defaults to ``$VPRFLOW_DATA``; with neither, ``--smoke`` exits with status 77
 (skipped, as automake and meson count it), anything else with an error.
+
+With ``$VPRFLOW_SMOKE_RUN`` set (tests/test_benchmarks.py sets it), ``--smoke`` reads the
+one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
+and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
+one core) instead of making one of its own.
 """
 
 from __future__ import annotations
@@ -35,6 +40,9 @@ import numpy as np
 import yaml
 
 from vprflow.stages import runner
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from smoke_run import shared_run  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 SKIPPED = 77  # the exit status test harnesses (automake, meson, tests/test_benchmarks.py) skip
@@ -156,16 +164,22 @@ def data_folder(parser: argparse.ArgumentParser, args: argparse.Namespace) -> Pa
     return Path(value).resolve()
 
 
-def run_snakemake(command: list[str]) -> None:
-    """Run Snakemake quietly; on failure show the end of its output and exit with its
-    status (a CalledProcessError would drop the output that says why)."""
-    result = subprocess.run(command, capture_output=True, text=True)
+def run_snakemake(command: list[str], env: dict | None = None) -> None:
+    """Run Snakemake quietly (in ``env``, default this process's environment); on failure
+    show the end of its output and exit with its status (a CalledProcessError would drop
+    the output that says why)."""
+    result = subprocess.run(command, capture_output=True, text=True, env=env)
     if result.returncode:
         print("\n".join((result.stdout + result.stderr).splitlines()[-40:]), file=sys.stderr)
         sys.exit(f"snakemake failed (status {result.returncode})")
 
 
 def run(args: argparse.Namespace, data: Path) -> None:
+    shared = shared_run(data) if args.smoke else None
+    if shared:  # the smoke run the benchmarks share (smoke_run.py)
+        workdir, record = shared
+        print_table(workdir, record["images"], record["shards"], record["cores"], record["wall"])
+        return
     if args.workdir.exists():
         shutil.rmtree(args.workdir)
     config, config_path = cycled_config(
@@ -182,16 +196,21 @@ def run(args: argparse.Namespace, data: Path) -> None:
     run_snakemake(command)
     wall = time.perf_counter() - start
 
-    stats = benchmark_rows(args.workdir)
     shards = f"shard {args.shard}, descriptors {config['descriptors_shard_size']}"
-    print(f"{args.images} images ({shards}, {args.cores} cores): {wall:.0f} s wall")
+    print_table(args.workdir, args.images, shards, args.cores, wall)
+
+
+def print_table(workdir: Path, images: int, shards: str, cores: int, wall: float) -> None:
+    """Per stage of the finished run in ``workdir``: jobs, seconds, per image, peak."""
+    stats = benchmark_rows(workdir)
+    print(f"{images} images ({shards}, {cores} cores): {wall:.0f} s wall")
     header = f"{'stage':<12} {'jobs':>5} {'seconds':>9} {'s/image':>9} {'peak MiB':>9}"
     print(header)
     print("-" * len(header))
     for stage, rows in sorted(stats.items()):
         total = sum(job.seconds for job in rows)
         peak = max(job.max_rss for job in rows)
-        print(f"{stage:<12} {len(rows):>5} {total:>9.1f} {total / args.images:>9.4f} {peak:>9.0f}")
+        print(f"{stage:<12} {len(rows):>5} {total:>9.1f} {total / images:>9.4f} {peak:>9.0f}")
 
 
 def main() -> None:
