@@ -355,25 +355,36 @@ def one_by_one(cases: list[tuple[list[str], str]]):
     return (_child(arguments, label) for arguments, label in cases)
 
 
-def decoders_table(args, rows) -> int:
-    """Print the decoding table from ``rows`` (one per :func:`decoder_cases` case, ``None``
-    where it failed); returns how many measurements failed."""
-    print(f"SAM prompt decoding on {args.device}, random weights, per 1,024 prompts")
-    header = f"{'kind':7} {'dtype':8} {'decoder':12} {'batch':>5} {'s/1024':>7} {'ms/prompt':>9}"
-    header += f" {'+mem MiB':>8}"
+def print_table(title: str, header: str, rows, print_row) -> int:
+    """``title``, ``header`` and its rule, then ``print_row(row)`` for each row that is not
+    ``None`` (a failed measurement); returns how many failed."""
+    print(title)
     print(header)
     print("-" * len(header))
     failed = 0
     for row in rows:
         if row is None:
             failed += 1
-            continue
+        else:
+            print_row(row)
+    return failed
+
+
+def decoders_table(args, rows) -> int:
+    """Print the decoding table from ``rows`` (one per :func:`decoder_cases` case, ``None``
+    where it failed); returns how many measurements failed."""
+    header = f"{'kind':7} {'dtype':8} {'decoder':12} {'batch':>5} {'s/1024':>7} {'ms/prompt':>9}"
+    header += f" {'+mem MiB':>8}"
+
+    def print_row(row):
         print(
             f"{row['kind']:7} {row['dtype']:8} {row['decoder']:12} {row['batch']:>5} "
             f"{row['s_per_1024']:>7.2f} {row['ms_per_prompt']:>9.2f} {row['gen_mib']:>8.0f}",
             flush=True,
         )
-    return failed
+
+    title = f"SAM prompt decoding on {args.device}, random weights, per 1,024 prompts"
+    return print_table(title, header, rows, print_row)
 
 
 def masks_table(args, rows) -> int:
@@ -384,14 +395,8 @@ def masks_table(args, rows) -> int:
         f"{'encoder s':>9} {'first s':>8} {'best s':>7} {'img/s':>7} {'RSS MiB':>8} "
         f"{'+gen MiB':>8}"
     )
-    print("SAM automatic masks, one 320x240 image, random weights")
-    print(header)
-    print("-" * len(header))
-    failed = 0
-    for row in rows:
-        if row is None:
-            failed += 1
-            continue
+
+    def print_row(row):
         print(
             f"{row['model']:12} {row['side']:>4} {row['filters']:8} "
             f"{row['dtype']:8} {row['device']:6} {row['masks']:>5} "
@@ -410,7 +415,9 @@ def masks_table(args, rows) -> int:
                 f" ({1 / whole:.3f} img/s), peak {batch['peak_mib']:.0f} MiB",
                 flush=True,
             )
-    return failed
+
+    title = "SAM automatic masks, one 320x240 image, random weights"
+    return print_table(title, header, rows, print_row)
 
 
 def one_case(args) -> dict:
