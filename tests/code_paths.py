@@ -3,8 +3,8 @@ a shipped dataset's stages under one of them and prints a digest of every store.
 
 Each path is a set of environment changes (``None``: the variable unset) that picks
 another kernel family or thread count for OpenBLAS (numpy's and faiss's BLAS), MKL and
-ATen (torch's), or numpy's own SIMD loops. tests/test_vlad_ties.py,
-tests/test_code_paths.py and benchmarks/check_ties.py run under them.
+ATen (torch's), or numpy's own SIMD loops. tests/aggregation/test_vlad_ties.py,
+tests/workflow/test_code_paths.py and benchmarks/check_ties.py run under them.
 
 Run as ``python tests/code_paths.py DATA_ROOT OUT DATASET [STAGE,...]``: runs the
 STAGEs of DATASET in the shipped config (``config/config.yaml``; default: every stage,

@@ -151,7 +151,7 @@ def work_unit(nodeid: str) -> str:
 
 # The longest units, first of all: the SLURM tests wait on the scheduler for minutes, the
 # code paths' runs and the corridor run take a worker's CPU for minutes.
-LONGEST = ("slurm", "tests/test_code_paths.py", "tests/test_real_data.py")
+LONGEST = ("slurm", "tests/workflow/test_code_paths.py", "tests/workflow/test_real_data.py")
 
 
 def pytest_collection_modifyitems(items):

@@ -1,4 +1,4 @@
-"""Test vectors and the float64 check shared by the k-NN tests (tests/test_knn_*.py).
+"""Test vectors and the float64 check shared by the k-NN tests (tests/search/).
 
 Tie rule: float32 distances may order two items differently from float64 (or from faiss)
 only when their distances are within float32 rounding. Index sets are therefore compared

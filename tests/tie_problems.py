@@ -1,6 +1,6 @@
 """Random VLAD assignment problems full of exact and near ties, and a child-process entry
 point that compares vprflow's assignment with the authors' operation written as a direct
-torch formula (tests/test_vlad_ties.py runs it under each BLAS code path).
+torch formula (tests/aggregation/test_vlad_ties.py runs it under each BLAS code path).
 
 Run as ``python tests/tie_problems.py SEED...``: prints a JSON list, one object of
 counts per seed.

@@ -18,7 +18,7 @@ from vprflow.stages import jobs
 from vprflow.stages.base import Job as BaseJob
 from vprflow.stages.jobs import Job, combine_shards, run_job, shard_ranges
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 

@@ -30,7 +30,7 @@ IMAGENET_MEAN = np.array([0.485, 0.456, 0.406], np.float32)
 IMAGENET_STD = np.array([0.229, 0.224, 0.225], np.float32)
 SPREAD = {"scale": 0.3, "skip_norms": False, "bias_offset": 0.5}
 # float32 features against float64 hand computations / two float32 runs: see
-# tests/test_vit.py (measured error ~5e-7 of the largest entry; 1e-5 leaves 10x).
+# tests/models/test_vit.py (measured error ~5e-7 of the largest entry; 1e-5 leaves 10x).
 FLOAT32_RTOL = 1e-5
 
 

@@ -28,7 +28,7 @@ from vprflow.planning.checkpoints import (
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan, deep_merge
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 

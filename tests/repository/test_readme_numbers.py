@@ -14,7 +14,7 @@ from workflow_helpers import SCHEMA, built_stores, repo_config, write_table
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 
 def bench_readme():

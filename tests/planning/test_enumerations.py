@@ -15,7 +15,7 @@ import yaml
 from vprflow.core.errors import ConfigError
 from vprflow.planning.config import ENUM_MODULES, enum_values, load_schema, validate_config
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCHEMA_PATH = REPO / "workflow" / "schemas" / "config.schema.yaml"
 PACKAGE = REPO / "src" / "vprflow"
 

@@ -24,7 +24,7 @@ from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages.jobs import Job, combine_shards, run_job
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 N_PLACES = 4
 
@@ -200,7 +200,7 @@ def test_two_datasets_sharing_images_computed_at_once_each_get_the_scratch_store
     plan = plan_of(data, "base", "grown")
     script = f"""
 import sys
-sys.path.insert(0, {str(Path(__file__).parent)!r})
+sys.path[:0] = [{str(Path(__file__).parent)!r}, {str(Path(__file__).parents[1])!r}]
 from pathlib import Path
 from test_reuse import plan_of, run
 data = Path({str(data)!r})

@@ -33,7 +33,7 @@ from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages.readers import Dataset
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 # A float32 forward on the same pixels, in another process order: descriptors are unit
 # vectors of O(0.1) entries.

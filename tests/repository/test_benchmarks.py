@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 from conftest import in_ci
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 BENCHMARKS = sorted((REPO / "benchmarks").glob("bench_*.py"))
 # A benchmark that cannot run here (bench_workflow.py without $VPRFLOW_DATA) says so
 # with the status test harnesses read as "skipped" (automake, meson).

@@ -6,7 +6,7 @@ Tolerances: the centroids within 1e-12 of the formula's (both float64; the sums 
 only in their order: the module adds a cluster's points one after another, numpy's
 ``sum`` pairwise), the labels and iterations equal. Against faiss (float32 sums in
 another order), 1e-6 after one iteration on points whose products are exact.
-tests/test_code_paths.py runs the k-means on the shipped data under every code path.
+tests/workflow/test_code_paths.py runs the k-means on the shipped data under every code path.
 """
 
 from __future__ import annotations

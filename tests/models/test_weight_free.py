@@ -1,6 +1,6 @@
 """The weight-free models' own arithmetic (DAISY's grey image, SLIC's Lab conversion)
 against direct float64 formulas: both are taken elementwise, so that they round alike on
-every CPU (tests/test_code_paths.py runs them under the code paths).
+every CPU (tests/workflow/test_code_paths.py runs them under the code paths).
 
 Tolerances: the grey image equals the formula bit for bit (the same float64 operations
 in the same order); the Lab image is float32, within 2e-4 of skimage's float64 rgb2lab

@@ -31,7 +31,7 @@ from vprflow.models.kinds import TRAINED_KINDS
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 datasets_doc = load_script("write_datasets_doc").datasets_doc

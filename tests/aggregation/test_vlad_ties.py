@@ -21,7 +21,7 @@ from pathlib import Path
 import pytest
 from code_paths import code_paths, path_environment
 
-SCRIPT = Path(__file__).with_name("tie_problems.py")
+SCRIPT = Path(__file__).parents[1] / "tie_problems.py"
 
 
 PATHS = code_paths()

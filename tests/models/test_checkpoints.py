@@ -26,7 +26,7 @@ from vprflow.planning.fingerprints import source_fingerprint
 HIDDEN = 32
 SPREAD = {"scale": 0.3, "skip_norms": False, "bias_offset": 0.5}
 PREFIX = "backbone.model."
-# Two float32 runs of the same weights: see tests/test_vit.py (1e-5 of the largest entry).
+# Two float32 runs of the same weights: see tests/models/test_vit.py (1e-5 of the largest entry).
 FLOAT32_RTOL = 1e-5
 VARIANTS = {
     "mlp": {},

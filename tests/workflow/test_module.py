@@ -14,7 +14,7 @@ import yaml
 
 pytestmark = [pytest.mark.workflow, pytest.mark.data]
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 
 HOST = """\
 configfile: "config.yaml"

@@ -41,7 +41,7 @@ import pytest
 import yaml
 from workflow_helpers import dry_run
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 # Where documented commands live. benchmarks/README.md is left out: it records the
 # commands measurements were taken with (other checkouts, `<worktree>` paths), not
 # commands to type.

@@ -32,7 +32,7 @@ from vprflow.stages.jobs import Job
 from vprflow.stages.readers import read_centres
 from vprflow.stages.vocabulary import fit_vocabulary
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 

@@ -29,7 +29,7 @@ from vprflow.planning.config import (
 from vprflow.planning.plan import FORMAT_VERSIONS, build_plan
 from vprflow.search import indexes
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 SCHEMA_PATH = REPO / "workflow" / "schemas" / "config.schema.yaml"
 SCHEMA = load_schema(SCHEMA_PATH)
 

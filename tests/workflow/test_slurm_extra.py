@@ -12,7 +12,7 @@ from pathlib import Path
 
 from workflow_helpers import SNAKEFILE
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 EXTRA = 'pip install -e ".[slurm]"'
 PROFILE = REPO / "workflow" / "profiles" / "slurm"
 # Every place that gives the SLURM profile's command.

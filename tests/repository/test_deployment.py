@@ -16,7 +16,7 @@ from packaging.specifiers import SpecifierSet
 
 from vprflow.planning.plan import STAGES
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]
 WORKFLOW = REPO / "workflow"
 ENV = WORKFLOW / "envs" / "vprflow.yaml"
 PYPROJECT = tomllib.loads((REPO / "pyproject.toml").read_text())
