@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 from filelock import FileLock
 from slurm_fixtures import slurm_cluster  # noqa: F401  (re-exported fixture)
+from workflow_helpers import in_ci
 
 # Idle OpenMP threads (torch's) sleep instead of spinning, as in the workflow's jobs
 # (vprflow.stages.runner): beside the other xdist workers, spinning threads took a fifth
@@ -32,10 +33,6 @@ def no_cluster_probe(request, monkeypatch):
     if request.node.get_closest_marker("slurm") is None:
         for name, value in NO_CLUSTER.items():
             monkeypatch.setenv(name, value)
-
-
-def in_ci() -> bool:
-    return os.environ.get("CI", "").lower() in {"1", "true", "yes"}
 
 
 @pytest.fixture(scope="session")

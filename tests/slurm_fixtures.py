@@ -31,6 +31,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from workflow_helpers import in_ci
 
 REPO = Path(__file__).resolve().parents[1]
 SLURM_PROFILE = REPO / "workflow" / "profiles" / "slurm"
@@ -41,10 +42,6 @@ import local_slurm  # noqa: E402
 # Snakemake prints one line per submission, e.g.
 # "Job 3 has been submitted with SLURM jobid 17 (log: /.../17.log)."
 SUBMITTED_RE = re.compile(r"submitted with SLURM jobid (\d+)")
-
-
-def _in_ci() -> bool:
-    return os.environ.get("CI", "").lower() in {"1", "true", "yes"}
 
 
 def slurm_unavailable_reason() -> str | None:
@@ -66,7 +63,7 @@ def slurm_cluster(tmp_path_factory):
     """A running single-node SLURM cluster (local_slurm.ClusterHandle); stopped afterwards."""
     reason = slurm_unavailable_reason()
     if reason is not None:
-        if _in_ci():
+        if in_ci():
             pytest.fail(f"CI=true but SLURM tests cannot run: {reason}", pytrace=False)
         pytest.skip(reason)
     handle = local_slurm.start_cluster(tmp_path_factory.mktemp("slurm"))

@@ -19,6 +19,13 @@ SNAKEFILE = REPO / "workflow" / "Snakefile"
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 
 
+def in_ci() -> bool:
+    """Whether this is CI (``CI=true``), where a test that cannot run fails rather than
+    skips. Here, not in conftest.py: ``from conftest import`` takes whichever folder's
+    conftest.py was imported last (tests/stages/ has its own)."""
+    return os.environ.get("CI", "").lower() in {"1", "true", "yes"}
+
+
 def with_schema_defaults(definition: str, **instance) -> dict:
     """``instance`` with every default the schema's ``definition`` declares filled in, as
     the workflow fills a config before a stage sees it: ``"dataset"``, or

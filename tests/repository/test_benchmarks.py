@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import in_ci
+from workflow_helpers import in_ci
 
 REPO = Path(__file__).resolve().parents[2]
 BENCHMARKS = sorted((REPO / "benchmarks").glob("bench_*.py"))

@@ -9,8 +9,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import in_ci
-from workflow_helpers import repo_config
+from workflow_helpers import in_ci, repo_config
 
 pytestmark = [pytest.mark.workflow, pytest.mark.data]
 
