@@ -30,7 +30,7 @@ segment-descriptor store beside Revisit-Anything's 6.65 GB for Pittsburgh 30k.
 
 ``--data`` defaults to ``$VPRFLOW_DATA``; with neither, ``--smoke`` exits with status 77.
 
-With ``$VPRFLOW_SMOKE_RUN`` set (tests/test_benchmarks.py sets it), ``--smoke`` reads the
+With ``$VPRFLOW_SMOKE_RUN`` set (tests/repository/test_benchmarks.py sets it), ``--smoke`` reads the
 one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
 and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
 one core) instead of making one of its own.

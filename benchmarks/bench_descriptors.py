@@ -43,7 +43,7 @@ the stage's runner module): its wall time, the imports' share of it, and whether
 or faiss came with them; the first row is ``python -c pass``, the floor (a smoke: the
 descriptors stage's row alone).
 
-With ``$VPRFLOW_SMOKE_RUN`` set (tests/test_benchmarks.py sets it), ``--smoke`` reads the
+With ``$VPRFLOW_SMOKE_RUN`` set (tests/repository/test_benchmarks.py sets it), ``--smoke`` reads the
 one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
 and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
 one core) instead of making one of its own.

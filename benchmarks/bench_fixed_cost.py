@@ -35,7 +35,7 @@ libraries.
 (skipped, as automake and meson count it), anything else with an error. A smoke times
 two of the pieces (``pass`` and the preamble), not the three libraries.
 
-With ``$VPRFLOW_SMOKE_RUN`` set (tests/test_benchmarks.py sets it), ``--smoke`` reads the
+With ``$VPRFLOW_SMOKE_RUN`` set (tests/repository/test_benchmarks.py sets it), ``--smoke`` reads the
 one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
 and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
 one core) instead of making one of its own.

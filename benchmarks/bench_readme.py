@@ -16,7 +16,7 @@ descriptors, search and recall only. ``--install`` also times the README's insta
 (``pip install "torch==2.13.0" && pip install -e ".[dev]"``) into a fresh virtual
 environment: a download-bound time that depends on the network and pip's cache.
 
-``tests/test_readme_numbers.py`` checks the Recall@1 values against the test suite's
+``tests/repository/test_readme_numbers.py`` checks the Recall@1 values against the test suite's
 own corridor run; the times have no test (they depend on the machine): rerun this script
 when a change moves them.
 """

@@ -16,7 +16,7 @@ jobs; and the whole run's wall time.
 ``--data`` defaults to ``$VPRFLOW_DATA``; with neither, ``--smoke`` exits with status 77
 (skipped, as automake and meson count it), anything else with an error.
 
-With ``$VPRFLOW_SMOKE_RUN`` set (tests/test_benchmarks.py sets it), ``--smoke`` reads the
+With ``$VPRFLOW_SMOKE_RUN`` set (tests/repository/test_benchmarks.py sets it), ``--smoke`` reads the
 one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
 and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
 one core) instead of making one of its own.
@@ -45,7 +45,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from smoke_run import shared_run  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
-SKIPPED = 77  # the exit status test harnesses (automake, meson, tests/test_benchmarks.py) skip
+# The exit status test harnesses (automake, meson, tests/repository/test_benchmarks.py) skip.
+SKIPPED = 77
 # The smoke runs' methods (this script's, bench_fixed_cost.py's, bench_city.py's): one that
 # runs every stage, re-ranked by one re-ranker; each job costs a Python start-up.
 SMOKE_METHODS, SMOKE_RERANK = ["segvlad"], {"segvlad": ["mnn"]}

@@ -10,7 +10,7 @@ Each path runs the dataset's stages of the shipped config in a child process of 
 (``tests/code_paths.py``, every stage in one process, unsharded, on the CPU). Rows: per
 dataset and path, the stages whose stores differ from the ``default`` path's (count of
 stores), the largest difference of a float array there, and whether every table value
-(recall, mAP, precision-recall, counts) is equal. ``tests/test_code_paths.py`` asserts
+(recall, mAP, precision-recall, counts) is equal. ``tests/workflow/test_code_paths.py`` asserts
 what must hold; this prints where the rest moves (docs/methods.md §3, "One table on every
 machine").
 """

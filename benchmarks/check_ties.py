@@ -184,7 +184,7 @@ def main() -> int:
         print(json.dumps(child(args.originals, args.results)))
         return 0
     sys.path.insert(0, str(ROOT / "tests"))
-    from code_paths import code_paths, path_environment  # as tests/test_vlad_ties.py
+    from code_paths import code_paths, path_environment  # as tests/aggregation/test_vlad_ties.py
 
     paths = code_paths()
     chosen = args.paths.split(",") if args.paths else list(paths)

@@ -1,6 +1,6 @@
 """The one Snakemake run that the smoke modes of bench_city.py, bench_workflow.py,
 bench_fixed_cost.py and bench_descriptors.py share where ``$VPRFLOW_SMOKE_RUN`` names a
-folder (tests/test_benchmarks.py sets it): each of them started its own run of the same
+folder (tests/repository/test_benchmarks.py sets it): each of them started its own run of the same
 ~20 jobs, ~12 CPU seconds each. Without the variable, each script makes its own run, as
 documented.
 

@@ -9,7 +9,7 @@ string ties: string literals in the package of the form ``"vprflow.x.y:name"`` t
 name a vprflow module (code reached by ``importlib``, which the graph does not show).
 Imports inside functions count as arrows: they tie two files as firmly as any other;
 so does ``lazy_import("vprflow.x.y")`` (:mod:`vprflow.core.lazy`).
-``tests/test_wings.py`` reads the graph with :func:`imports`.
+``tests/repository/test_wings.py`` reads the graph with :func:`imports`.
 """
 
 from __future__ import annotations

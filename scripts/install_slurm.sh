@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Install a minimal single-node SLURM (controller + compute daemon + client tools) and
-# munge from Debian packages, for scripts/local_slurm.py and tests/test_slurm.py.
+# munge from Debian packages, for scripts/local_slurm.py and tests/workflow/test_slurm.py.
 #
 # Idempotent: does nothing when every tool is already installed. Needs root (apt-get).
 # Debian 12 ships Slurm 22.05: `slurmctld`, `slurmd` and `slurm-client` are the three

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Start and stop a throw-away single-node SLURM cluster on this machine.
 
-Used by ``tests/test_slurm.py`` (through the ``slurm_cluster`` fixture in
+Used by ``tests/workflow/test_slurm.py`` (through the ``slurm_cluster`` fixture in
 ``tests/slurm_fixtures.py``) and runnable by hand to try the SLURM profile locally::
 
     sudo bash scripts/install_slurm.sh        # once: slurmctld, slurmd, slurm-client, munge

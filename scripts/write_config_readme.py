@@ -4,7 +4,7 @@ search-index defaults and the shipped config/config.yaml.
 python scripts/write_config_readme.py
 
 A doc generator, so it lives here rather than in the package: nothing the workflow runs
-needs it. ``tests/test_registry.py`` loads it (tests/script_helpers.py) to check that
+needs it. ``tests/planning/test_registry.py`` loads it (tests/script_helpers.py) to check that
 config/README.md is current.
 """
 
@@ -42,7 +42,7 @@ and by index. A default followed by a condition in brackets applies only then. W
 methods compute is in `docs/methods.md`.
 
 This file is generated from the schema's descriptions and config/config.yaml by
-`python scripts/write_config_readme.py`; `tests/test_registry.py` checks it is current.
+`python scripts/write_config_readme.py`; `tests/planning/test_registry.py` checks it is current.
 """
 
 

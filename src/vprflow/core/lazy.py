@@ -2,7 +2,7 @@
 deferring an import.
 
 A job imports only the libraries it computes with (torch costs ~1.2 s a process, faiss,
-cv2 and scikit-image a tenth of that each; ``tests/test_job_imports.py``), and planning
+cv2 and scikit-image a tenth of that each; ``tests/stages/test_job_imports.py``), and planning
 never imports torch. docs/ARCHITECTURE.md's import rule says which modules name a
 library at their top as ``name = lazy_import("module")``: the module is imported the
 first time one of its attributes is read. A name set on the stand-in stays there, so

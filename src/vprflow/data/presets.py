@@ -114,7 +114,7 @@ def _check_published_row(name: str, row: dict) -> None:
 
 def undefined_rows(methods) -> list[str]:
     """Every published row whose ``row`` names no method of ``methods`` (the method names
-    of config/config.yaml and config/trained.yaml: tests/test_presets.py), each naming
+    of config/config.yaml and config/trained.yaml: tests/data/test_presets.py), each naming
     the preset, the row and the method."""
     return [
         f"preset {name!r}: published row {row['method']!r} ({row['paper']}) names method "

@@ -444,7 +444,7 @@ def candidate_pairs(query, candidates) -> list[tuple[np.ndarray, np.ndarray, np.
     :func:`_product_elements` similarities), in the dtype
     :func:`mutual_nearest_neighbours` takes (float32 for float32 features, never TF32),
     and each pair keeps that product's similarity. On CPUs the batched product's elements
-    are the per-candidate product's bits (``tests/test_rerank.py`` checks it at the
+    are the per-candidate product's bits (``tests/evaluation/test_rerank.py`` checks it at the
     benchmark's grids), and numpy reads the pairs off it (:func:`_direct_pairs`); on other
     devices torch reads them there (:func:`_device_pairs`), by the same ``argmax``, and a
     library such as cuBLAS, which picks its kernel by shape, may round a batched product's

@@ -5,7 +5,7 @@
 Torch-free, so that planning fills the defaults into keys, and the schema lists the
 kinds, without importing a model: :mod:`vprflow.models.loaders` binds each kind to the
 function that loads it, and the model modules read their own entries here
-(:func:`with_defaults`). ``tests/test_registry.py`` checks that
+(:func:`with_defaults`). ``tests/planning/test_registry.py`` checks that
 ``workflow/schemas/config.schema.yaml`` agrees.
 """
 

@@ -5,7 +5,7 @@ The model modules that import torch or transformers are named with
 importing this module (as planning and the stages do) imports no torch. DAISY and the
 superpixel segmenters import scikit-image the same way. The model modules read their
 kinds' data from :mod:`vprflow.models.kinds`, never from here, so no import runs in a
-circle. ``tests/test_registry.py`` checks that every kind that loads a model has a
+circle. ``tests/planning/test_registry.py`` checks that every kind that loads a model has a
 loader here.
 """
 

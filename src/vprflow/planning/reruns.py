@@ -4,7 +4,7 @@ change gives a new value, computed from the plan (no Snakemake, no model).
 A stage reruns exactly when the plan after the change holds a key of it that the plan
 before did not (``results/cache/<stage>/<key>.zarr`` does not exist yet). The table is
 docs/usage.md's "What a change reruns" (``python scripts/write_reruns_doc.py``), and
-``tests/test_reruns.py`` checks both the doc and the expected rows: a ground-truth
+``tests/planning/test_reruns.py`` checks both the doc and the expected rows: a ground-truth
 change reruns the truth store and recall, never a model stage.
 """
 
@@ -207,7 +207,7 @@ CHANGES: tuple[Change, ...] = (
         note="no key; only the pairs files, which take it, are rewritten",
     ),
     # Execution settings: in no key and in no rule's tracked params, so Snakemake reruns
-    # nothing (tests/test_workflow.py flips each after a finished run).
+    # nothing (tests/workflow/test_workflow.py flips each after a finished run).
     Change("device", "auto -> cpu", _set("device", value="cpu"), top=True, note=EXECUTION),
     Change("shard_size", "0 -> 256", _set("shard_size", value=256), top=True, note=EXECUTION),
     Change(

@@ -27,7 +27,7 @@ torch = lazy_import("torch")
 log = logging.getLogger("vprflow")
 
 # ``batch_size: auto`` off a GPU: one image a call, as before. On the CPU a batch gives
-# each image the same features, bit for bit (tests/test_vit.py), and was no faster: one
+# each image the same features, bit for bit (tests/models/test_vit.py), and was no faster: one
 # image's 1,500 tokens already fill the matrix products (DINOv2 ViT-S/14 at 640 x 480 on
 # 2 busy cores, best of 2 rounds: 7.9 s an image alone, 9.0 in pairs, 8.7 in fours).
 CPU_BATCH_SIZE = 1
