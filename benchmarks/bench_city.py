@@ -30,10 +30,11 @@ segment-descriptor store beside Revisit-Anything's 6.65 GB for Pittsburgh 30k.
 
 ``--data`` defaults to ``$VPRFLOW_DATA``; with neither, ``--smoke`` exits with status 77.
 
-With ``$VPRFLOW_SMOKE_RUN`` set (tests/repository/test_benchmarks.py sets it), ``--smoke`` reads the
-one run that the smoke modes of bench_city.py, bench_workflow.py, bench_fixed_cost.py
-and bench_descriptors.py share (smoke_run.py: bench_city.py's 16-image smoke city, on
-one core) instead of making one of its own.
+``--make-smoke-run FOLDER`` makes the one run that the smoke modes of bench_city.py,
+bench_workflow.py, bench_fixed_cost.py and bench_descriptors.py share (smoke_run.py:
+this script's 16-image smoke city, on one core); with ``$VPRFLOW_SMOKE_RUN`` naming that
+folder (tests/repository/test_benchmarks.py sets it), ``--smoke`` reads it instead of
+making a run of its own.
 """
 
 from __future__ import annotations
@@ -62,6 +63,7 @@ import yaml
 from PIL import Image
 
 sys.path.insert(0, str(Path(__file__).parent))
+from bench_fixed_cost import CORES, recorded_run  # noqa: E402
 from bench_workflow import (  # noqa: E402
     REPO,
     SMOKE_METHODS,
@@ -72,7 +74,7 @@ from bench_workflow import (  # noqa: E402
     run_snakemake,
     snakemake_command,
 )
-from smoke_run import shared_run  # noqa: E402
+from smoke_run import RECORD, TARGET, shared_run  # noqa: E402
 
 from vprflow.data.presets import presets  # noqa: E402
 
@@ -543,6 +545,27 @@ def print_segments(summaries: list[dict]) -> None:
         )
 
 
+def make_smoke_run(data: Path, root: Path) -> None:
+    """The smoke run the benchmarks share (smoke_run.py) in ``root``: the smoke city's
+    images in ``root/data``, the run in ``root/run``, ``root/run.json`` written last."""
+    config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
+    size = tuple(config["datasets"]["corridor"]["resolution"])
+    start = time.perf_counter()
+    city = make_city(data, root / "data", SMOKE_IMAGES, size)
+    generate = time.perf_counter() - start
+    folder = root / "run"
+    shutil.rmtree(folder, ignore_errors=True)
+    config_path = city_config(folder, city, SMOKE_METHODS, SMOKE_RERANK)
+    start = time.perf_counter()
+    recorded_run(folder, config_path, TARGET)
+    shards = f"shard {config['shard_size']}, descriptors {config['descriptors_shard_size']}"
+    run = {"images": SMOKE_IMAGES, "cores": CORES, "shards": shards}
+    run |= {"generate_s": generate, "wall": time.perf_counter() - start}
+    partial = root / f"{RECORD}.tmp"
+    partial.write_text(json.dumps(run))
+    os.replace(partial, root / RECORD)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, help="folder holding corridor/ ($VPRFLOW_DATA)")
@@ -561,12 +584,18 @@ def main() -> None:
     parser.add_argument(
         "--smoke", action="store_true", help=f"{SMOKE_IMAGES} images, segvlad + mnn only, temporary"
     )
+    parser.add_argument(
+        "--make-smoke-run", type=Path, metavar="FOLDER", help="the smoke run others share"
+    )
     parser.set_defaults(rerank=None)  # corridor's
     args = parser.parse_args()
     data = data_folder(parser, args)
+    if args.make_smoke_run:
+        make_smoke_run(data, args.make_smoke_run)
+        return
     if args.smoke:
         args.images, args.methods, args.rerank = [SMOKE_IMAGES], SMOKE_METHODS, SMOKE_RERANK
-        shared = shared_run(data)
+        shared = shared_run()
         if shared:  # this script's smoke city, run once for the benchmarks (smoke_run.py)
             workdir, run = shared
             summaries = [summarise(workdir, run["images"], run["cores"], run["generate_s"])]

@@ -407,7 +407,7 @@ def main() -> None:
     # A global and a per-segment method: the stage's two kinds of output. Their inputs
     # are all in the smoke run the benchmarks share (smoke_run.py), where there is one.
     args.images, args.repeats, methods = 4, 1, ["anyloc_vlad", "segvlad"]
-    shared = shared_run(data)
+    shared = shared_run()
     if shared:
         workdir, record = shared
         args.images = record["images"]

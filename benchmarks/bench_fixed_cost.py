@@ -168,7 +168,7 @@ def run_jobs(args: argparse.Namespace, data: Path) -> list[dict]:
     """The workflow on the tiny set, one core (or the smoke run the benchmarks share,
     smoke_run.py); one entry per stage job (see SITECUSTOMIZE) with its ``job`` and
     ``stage`` seconds added."""
-    shared = shared_run(data) if args.smoke else None
+    shared = shared_run() if args.smoke else None
     if shared:
         args.workdir, args.images = shared[0], shared[1]["images"]
     else:

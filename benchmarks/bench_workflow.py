@@ -176,7 +176,7 @@ def run_snakemake(command: list[str], env: dict | None = None) -> None:
 
 
 def run(args: argparse.Namespace, data: Path) -> None:
-    shared = shared_run(data) if args.smoke else None
+    shared = shared_run() if args.smoke else None
     if shared:  # the smoke run the benchmarks share (smoke_run.py)
         workdir, record = shared
         print_table(workdir, record["images"], record["shards"], record["cores"], record["wall"])

@@ -29,16 +29,6 @@ RULE = re.compile(r"^\s*\|?\s*-{3,}[-|: ]*$")
 pytestmark = pytest.mark.benchmark
 
 
-@pytest.fixture(scope="session")
-def smoke_run(tmp_path_factory) -> Path:
-    """The folder of the one Snakemake run that bench_city.py, bench_workflow.py,
-    bench_fixed_cost.py and bench_descriptors.py share in smoke mode (benchmarks/
-    smoke_run.py; the first of them to ask makes it): one for all xdist workers (their
-    base folders' parent), so three runs of ~12 CPU seconds fewer."""
-    root = tmp_path_factory.getbasetemp()
-    return (root.parent if os.environ.get("PYTEST_XDIST_WORKER") else root) / "smoke-run"
-
-
 def printed_a_table(stdout: str) -> bool:
     """A rule line followed by at least one row."""
     lines = stdout.splitlines()
@@ -54,14 +44,17 @@ def test_the_benchmarks_are_found():
 
 
 @pytest.mark.parametrize("script", BENCHMARKS, ids=lambda path: path.stem)
-def test_benchmark_runs_in_smoke_mode(script: Path, smoke_run: Path):
+def test_benchmark_runs_in_smoke_mode(script: Path, request):
+    env = dict(os.environ)
+    if "from smoke_run import" in script.read_text():  # it reads the run they share
+        env["VPRFLOW_SMOKE_RUN"] = str(request.getfixturevalue("benchmarks_smoke_run"))
     start = time.perf_counter()
     result = subprocess.run(
         [sys.executable, str(script), "--smoke"],
         capture_output=True,
         text=True,
         timeout=600,
-        env={**os.environ, "VPRFLOW_SMOKE_RUN": str(smoke_run)},
+        env=env,
     )
     seconds = time.perf_counter() - start
     output = f"--- stdout\n{result.stdout}\n--- stderr\n{result.stderr[-4000:]}"
