@@ -19,7 +19,7 @@ from vprflow.data.published import read_features_h5
 from vprflow.models.kinds import OWN_SIZE, model_kind
 from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
-from vprflow.stages.readers import open_shard
+from vprflow.stages.readers import open_shard, reusable_results
 
 devices = lazy_import("vprflow.core.devices")
 torch = lazy_import("torch")
@@ -54,7 +54,7 @@ def compute_features(job: Job) -> None:
     image_hw = _own_size(params, dataset) if own else [size[1], size[0]]
     store_dtype = np.dtype(params["store_dtype"])
     attrs = {**stage_attrs("features", job.record, images), "sources": _sources(params)}
-    sources = _reusable(job, params, dataset, images)
+    sources = reusable_results(job, dataset, images)
     with stores.atomic_store(job.out, attrs) as group:
         writer, reused = None, set()
         if sources:
@@ -74,15 +74,6 @@ def compute_features(job: Job) -> None:
             writer.skip(len(images) - writer.written - writer.buffered)  # the last reused
             writer.close()
     log.info(reuse.IMAGES_LINE, len(left), len(reused))
-
-
-def _reusable(job: Job, params: dict, dataset, images: range) -> dict[int, reuse.Source]:
-    """Where finished stores hold the features of the job's images (none for a
-    published file's, read by image name: they depend on more than the image)."""
-    if model_kind("features", params).reads_file:
-        return {}
-    digests = stores.read_strings(dataset.group, "sha256")
-    return reuse.find_sources(job.inputs["images"], job.record, digests, images)
 
 
 def _writer(group, grid_shape, store_dtype, image_hw, patch_size) -> stores.RowWriter:

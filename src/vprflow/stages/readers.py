@@ -11,10 +11,11 @@ from pathlib import Path
 import numpy as np
 
 from vprflow.aggregation.pca import Pca
-from vprflow.core import stores
+from vprflow.core import reuse, stores
 from vprflow.core.errors import DatasetError
 from vprflow.data.images import ImageReadError, decode_image
-from vprflow.stages.base import shard_range
+from vprflow.models.kinds import model_kind
+from vprflow.stages.base import Job, shard_range
 
 log = logging.getLogger("vprflow")
 
@@ -215,3 +216,14 @@ class Matches:
             )
             for c in slots
         ]
+
+
+def reusable_results(job: Job, dataset, images: range) -> dict[int, reuse.Source]:
+    """Where finished stores of a per-image stage (features, segments) hold the results
+    of the job's ``images`` (indices into ``dataset``, its images store open), by image
+    (:func:`vprflow.core.reuse.find_sources`); none for a published file's, read by
+    image name: they depend on more than the image."""
+    if model_kind(job.record["stage"], job.params).reads_file:
+        return {}
+    digests = stores.read_strings(dataset.group, "sha256")
+    return reuse.find_sources(job.inputs["images"], job.record, digests, images)

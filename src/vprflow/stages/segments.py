@@ -16,7 +16,7 @@ from vprflow.data.published import read_masks_h5
 from vprflow.models.kinds import model_kind
 from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
-from vprflow.stages.readers import open_shard
+from vprflow.stages.readers import open_shard, reusable_results
 
 log = logging.getLogger("vprflow")
 
@@ -38,7 +38,7 @@ def compute_segments(job: Job) -> None:
     params = job.params
     dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
     attrs = {**stage_attrs("segments", job.record, images), "sources": resolved_sources(params)}
-    sources = _reusable(job, params, dataset, images)
+    sources = reusable_results(job, dataset, images)
     left = [index for index in images if index not in sources]
     masker = functools.cache(lambda: _mask_source(params, job.device, dataset))
     computed = _segmented(*masker(), left, job.batch_size) if left else iter(())
@@ -82,15 +82,6 @@ def compute_segments(job: Job) -> None:
             written.result()
         writer.close()
     log.info(reuse.IMAGES_LINE, len(images) - reused, reused)
-
-
-def _reusable(job: Job, params: dict, dataset, images: range) -> dict[int, reuse.Source]:
-    """Where finished stores hold the masks of the job's images (none for a published
-    file's, read by image name: they depend on more than the image)."""
-    if model_kind("segments", params).reads_file:
-        return {}
-    digests = stores.read_strings(dataset.group, "sha256")
-    return reuse.find_sources(job.inputs["images"], job.record, digests, images)
 
 
 def _reused_rows(source: reuse.Source | None, readers: dict) -> tuple[np.ndarray, tuple] | None:
