@@ -21,6 +21,9 @@ from workflow_helpers import in_ci
 # and test_trunks on three workers, the same wall time). Set before a test imports torch;
 # a user's own value wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+# numpy's OpenBLAS threads likewise (vprflow.stages.runner): the tests' own children
+# (code paths, benchmarks) import numpy before vprflow's runner, or never import it.
+os.environ.setdefault("OPENBLAS_THREAD_TIMEOUT", "4")
 
 # The SLURM executor plugin, where installed (the `slurm` extra), runs `scontrol show
 # config` when Snakemake imports it, at every start: 9 s where a slurm.conf names a

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 import subprocess
 import sys
@@ -151,3 +152,27 @@ def test_the_resources_line_states_peak_cuda_memory_only_where_the_stage_used_cu
     line = log.read_text().splitlines()[-1]
     assert re.search(r"peak RSS \d+ MiB", line), line
     assert ("; peak CUDA 5 MiB allocated" in line) == initialised, line
+
+
+def test_a_jobs_threads_sleep_when_idle_set_before_its_libraries_load():
+    """A stage script's imports (workflow/scripts/stage.py) set OpenMP's and OpenBLAS's
+    idle threads to sleep before numpy, torch or faiss load, which read them once; a
+    user's own value wins."""
+    program = (
+        "import os, sys\n"
+        "from vprflow.stages.jobs import Job, run_job\n"
+        "from vprflow.stages.runner import run_stage\n"
+        "loaded = sorted({'numpy', 'torch', 'faiss'} & set(sys.modules))\n"
+        "print(loaded, os.environ['OMP_WAIT_POLICY'], os.environ['OPENBLAS_THREAD_TIMEOUT'])\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY",)}
+    env["OPENBLAS_THREAD_TIMEOUT"] = "6"
+    result = subprocess.run(
+        [sys.executable, "-c", program], capture_output=True, text=True, env=env, check=True
+    )
+    assert result.stdout.split() == ["[]", "PASSIVE", "6"]
+    env.pop("OPENBLAS_THREAD_TIMEOUT")
+    result = subprocess.run(
+        [sys.executable, "-c", program], capture_output=True, text=True, env=env, check=True
+    )
+    assert result.stdout.split() == ["[]", "PASSIVE", "4"]
