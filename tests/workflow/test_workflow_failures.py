@@ -33,6 +33,26 @@ pytestmark = pytest.mark.workflow
 TARGET = "results/recall_toy.csv"
 
 
+@pytest.fixture(scope="module")
+def finished_run(tmp_path_factory) -> tuple[Path, dict]:
+    """``(workdir, config)``: a finished run of anyloc_vlad's table on a 4-place toy,
+    ``data_root`` relative to the working directory, as Snakemake left it."""
+    workdir = tmp_path_factory.mktemp("finished")
+    make_dataset(workdir / "data" / "toy", n_places=4)
+    config = toy_config("data", methods=["anyloc_vlad"])
+    snakemake(workdir, write_config(workdir, config), TARGET)
+    return workdir, config
+
+
+def copy_of(run: tuple[Path, dict], workdir: Path) -> dict:
+    """:func:`finished_run` copied into ``workdir`` (modification times kept, so that
+    Snakemake finds it finished there too) -> a copy of its config, for the tests that
+    start from a good run and then break something."""
+    source, config = run
+    shutil.copytree(source, workdir, symlinks=True, dirs_exist_ok=True)
+    return copy.deepcopy(config)
+
+
 def test_killed_run_leaves_no_complete_looking_store_and_rerun_finishes(tmp_path):
     make_dataset(tmp_path / "data" / "toy", n_places=40, width=320, height=240)
     # One method: the run to kill is in its features, and the rerun finishes the table.
@@ -162,13 +182,11 @@ def test_unused_dataset_is_not_touched(tmp_path):
     shutil.rmtree(tmp_path / "data")
 
 
-def test_a_failing_method_withdraws_the_previous_table(tmp_path):
+def test_a_failing_method_withdraws_the_previous_table(tmp_path, finished_run):
     """A good run, then a method that fails: the old table must not stay looking current."""
-    make_dataset(tmp_path / "data" / "toy", n_places=4)
-    config = toy_config(tmp_path / "data")
-    config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
-    snakemake(tmp_path, write_config(tmp_path, config), TARGET)
+    config = copy_of(finished_run, tmp_path)
     assert (tmp_path / TARGET).exists()
+    assert scheduled_outputs(tmp_path, write_config(tmp_path, config), TARGET) == []
     # 10,000 clusters from 8 images' patches: the vocabulary stage fails.
     config["methods"]["broken"] = {"aggregator": "anyloc_vlad", "vocabulary": {"n_clusters": 10000}}
     config["datasets"]["toy"]["methods"] = ["anyloc_vlad", "broken"]
@@ -180,11 +198,9 @@ def test_a_failing_method_withdraws_the_previous_table(tmp_path):
     assert (tmp_path / (TARGET + ".stale")).exists()
 
 
-def test_moved_data_reruns_nothing_and_a_replaced_image_reruns_everything(tmp_path):
+def test_moved_data_reruns_nothing_and_a_replaced_image_reruns_everything(tmp_path, finished_run):
     """The images key covers the images' contents, not their location."""
-    make_dataset(tmp_path / "data" / "toy", n_places=4)
-    config = toy_config("data")  # relative to the working directory
-    config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
+    config = copy_of(finished_run, tmp_path)  # data_root relative to the working directory
     relative = write_config(tmp_path, config, "relative.yaml")
     snakemake(tmp_path, relative, TARGET)
     absolute = write_config(tmp_path, config | {"data_root": str(tmp_path / "data")}, "abs.yaml")
@@ -261,14 +277,13 @@ def test_queries_stored_rotated_with_an_exif_tag_give_the_upright_table(tmp_path
     assert tables[0] == tables[1]
 
 
-def test_a_config_that_cannot_be_planned_withdraws_no_table(tmp_path):
+def test_a_config_that_cannot_be_planned_withdraws_no_table(tmp_path, finished_run):
     """A trained model whose checkpoint is not fetched yet (the first run of
     config/trained.yaml, as documented) or a local model that is missing stops the plan
     before any job ran: the tables built before still describe the stores they were
     built from, so none is withdrawn (they were renamed to *.stale), a dry run or not,
     and the config that built them has nothing to do."""
-    make_dataset(tmp_path / "data" / "toy", n_places=4)
-    config = toy_config(tmp_path / "data", methods=["anyloc_vlad"])
+    config = copy_of(finished_run, tmp_path)
     good = write_config(tmp_path, config, "good.yaml")
     snakemake(tmp_path, good, TARGET)
     tables = [tmp_path / t.format(dataset="toy") for t in (RECALL_CSV, PREDICTIONS_CSV)]
@@ -339,13 +354,11 @@ def test_a_failure_withdraws_only_the_tables_of_the_datasets_it_asked_for(tmp_pa
     assert not any("toy" in line for line in closing), closing
 
 
-def test_a_report_without_the_runs_data_root_fails_naming_it(tmp_path):
+def test_a_report_without_the_runs_data_root_fails_naming_it(tmp_path, finished_run):
     """A report that cannot list the dataset finds none of the run's stores: it used to
     exit 0 with a few of its items and "Missing metadata" warnings."""
-    make_dataset(tmp_path / "data" / "toy", n_places=4)
-    config = toy_config("data", methods=["anyloc_vlad"])
-    path = write_config(tmp_path, config)
-    snakemake(tmp_path, path)
+    path = write_config(tmp_path, copy_of(finished_run, tmp_path))
+    snakemake(tmp_path, path)  # the default target: the figures too
     (tmp_path / "data").rename(tmp_path / "moved")
     result = snakemake(tmp_path, path, "--report", "report.html", check=False)
     assert result.returncode != 0 and not (tmp_path / "report.html").exists()
@@ -359,11 +372,9 @@ def test_a_report_without_the_runs_data_root_fails_naming_it(tmp_path):
     assert "recall_toy.csv" in (tmp_path / "report.html").read_text()
 
 
-def test_a_dataset_that_cannot_be_listed_withdraws_its_tables(tmp_path):
-    make_dataset(tmp_path / "data" / "toy", n_places=4)
-    config = toy_config(tmp_path / "data")
-    config["datasets"]["toy"]["methods"] = ["anyloc_vlad"]
-    snakemake(tmp_path, write_config(tmp_path, config), TARGET)
+def test_a_dataset_that_cannot_be_listed_withdraws_its_tables(tmp_path, finished_run):
+    config = copy_of(finished_run, tmp_path)
+    assert scheduled_outputs(tmp_path, write_config(tmp_path, config), TARGET) == []
     # An image in a format that is not read: never skipped (it would shift the queries).
     gif = tmp_path / "data/toy/query/0001b.gif"
     gif.write_bytes(b"GIF89a\x01\x00\x01\x00\x00\x00\x00;")
