@@ -22,6 +22,7 @@ from workflow_helpers import toy_config
 from vprflow.core import reuse, stores
 from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
+from vprflow.stages import segments
 from vprflow.stages.jobs import Job, combine_shards, run_job
 
 REPO = Path(__file__).resolve().parents[2]
@@ -32,7 +33,8 @@ N_PLACES = 4
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> Path:
     """``base``: 4 places; ``grown``: base plus two new photos, one of base's images
-    under a new name (the same bytes) and another of its names holding a new image."""
+    under a new name (the same bytes) and another of its names holding a new image;
+    ``second``: base's references with other queries (a shared database)."""
     root = tmp_path_factory.mktemp("reuse")
     make_dataset(root / "base", n_places=N_PLACES, width=64, height=48)
     make_dataset(root / "other", n_places=3, width=64, height=48, seed=7)
@@ -44,6 +46,8 @@ def data(tmp_path_factory) -> Path:
         )
     shutil.copy(root / "base" / "query" / "0000.jpg", grown / "query" / "0007.jpg")
     shutil.copy(root / "other" / "query" / "0002.jpg", grown / "query" / "0001.jpg")
+    shutil.copytree(root / "base" / "ref", root / "second" / "ref")
+    shutil.copytree(root / "other" / "query", root / "second" / "query")
     return root
 
 
@@ -165,6 +169,30 @@ def test_a_sharded_run_reuses_per_image_and_gathers_the_same_store(data, scratch
     whole_attrs = stores.open_store(scratch["features"]).attrs.asdict()
     assert attrs == {k: v for k, v in whole_attrs.items() if k not in ("start", "stop")}
     assert os.path.samefile(grown / "features/c/10/0/0/0", grown / "features/c/6/0/0/0")
+
+
+@pytest.mark.parametrize("shards", [None, [(0, 3), (3, 7)], [(0, 7)]])
+def test_masks_of_a_shared_database_are_one_file_in_both_stores(
+    data, tmp_path, monkeypatch, shards
+):
+    """A second query set after the same references: each chunk of masks that holds
+    references' rows only is the first store's file, unsharded, gathered from shards
+    or from one shard; the store is the one a run from scratch writes."""
+    monkeypatch.setattr(segments, "CHUNK_ROWS", 4)
+    plan = plan_of(data, "base", "second")
+    scratch = run(plan, "segments", "second", data, tmp_path / "scratch")
+    base = run(plan, "segments", "base", data, tmp_path / "shared")
+    second = run(plan, "segments", "second", data, tmp_path / "shared", shards)
+    ours, theirs = files_of(second), files_of(scratch)
+    assert ours.keys() == theirs.keys()
+    # A gathered group's attributes record its shards; nothing else differs.
+    assert [k for k in ours if ours[k] != theirs[k]] == ([] if shards is None else ["zarr.json"])
+    rows = int(stores.open_store(base)["masks_offsets"][N_PLACES])  # the references'
+    shared = [f"masks/c/{c}/0" for c in range(rows // 4)]
+    assert len(shared) >= 2
+    assert all(os.path.samefile(base / chunk, second / chunk) for chunk in shared)
+    after = f"masks/c/{rows // 4 + 1}/0"
+    assert (second / after).is_file() and not os.path.samefile(base / after, second / after)
 
 
 def test_an_unfinished_store_is_never_reused(data, tmp_path, caplog):

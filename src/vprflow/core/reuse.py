@@ -36,7 +36,7 @@ from vprflow.core import stores
 log = logging.getLogger("vprflow")
 
 # The stages whose results are reused per image (their stores' layouts: one row a
-# chunk, linked; ragged rows, copied).
+# chunk, linked; ragged rows, copied, then whole chunks equal to another store's linked).
 STAGES = ("features", "segments")
 # Each per-image job's log line (one), which the run's closing line sums
 # (vprflow.planning.reports.reuse_line).
@@ -71,14 +71,11 @@ def find_sources(
     for index in wanted:
         wanted_digests.setdefault(digests[index], []).append(index)
     found: dict[int, Source] = {}
-    images_store, own = Path(images_store), settings(record)
-    folder = images_store.parent.parent / record["stage"]
-    candidates = sorted(folder.glob("*.zarr")) if folder.is_dir() else []
-    for path in candidates:
+    images_store = Path(images_store)
+    for path, other in equal_stores(images_store.parent.parent / record["stage"], record):
         if not wanted_digests:
             break
-        other = _record(path)
-        if other is None or settings(other) != own or "images" not in other.get("inputs", {}):
+        if "images" not in other.get("inputs", {}):
             continue
         try:
             group = stores.open_store(path)
@@ -90,6 +87,18 @@ def find_sources(
         for their_index, digest in enumerate(theirs):
             for index in wanted_digests.pop(digest, ()):
                 found[index] = Source(group, their_index)
+    return found
+
+
+def equal_stores(folder: Path, record: dict) -> list[tuple[Path, dict]]:
+    """``(path, record)`` of each finished store in ``folder`` (a stage's folder of
+    ``results/cache``) whose record has ``record``'s :func:`settings`, in key order (so
+    that no answer depends on the directory's listing order)."""
+    found = []
+    for path in sorted(folder.glob("*.zarr")) if folder.is_dir() else []:
+        other = _record(path)
+        if other is not None and settings(other) == settings(record):
+            found.append((path, other))
     return found
 
 
@@ -143,3 +152,55 @@ def link_chunk(source: Path, target: Path, chunk_bytes: int) -> bool:
         with open(target, "wb") as file:
             file.write(data)
     return True
+
+
+def link_equal_chunks(array: Path, record: dict, folder: Path) -> int:
+    """Hard-link each chunk file of ``array`` (the folder of an array of a store being
+    written, not renamed into place yet) that is byte for byte the chunk file of the
+    same index in the same array of a finished store of equal :func:`settings` in
+    ``folder`` (the stage's folder of ``results/cache``), so that the bytes are on disk
+    once -> how many were linked.
+
+    For arrays that pack many images a chunk (a segments store's masks), whose rows
+    cannot be linked one by one: where two stores hold the same images at the same rows
+    (a second query set after the same references; images added after the last one),
+    their chunks are the same bytes. Equal bytes in arrays of equal chunk shape, type and
+    codecs are equal contents, so the store is the one a run from scratch writes; a file
+    system without hard links keeps the copy."""
+    metadata = _array_metadata(array)
+    twins = [
+        path / array.name
+        for path, _ in equal_stores(folder, record)
+        if _array_metadata(path / array.name) == metadata
+    ]
+    linked = 0
+    for chunk in sorted((array / "c").rglob("*")) if twins else []:
+        if not chunk.is_file():
+            continue
+        size = chunk.stat().st_size
+        for twin in twins:
+            theirs, staged = twin / chunk.relative_to(array), chunk.with_name(chunk.name + ".link")
+            try:
+                if theirs.stat().st_size != size or theirs.read_bytes() != chunk.read_bytes():
+                    continue
+                os.link(theirs, staged)
+            except FileNotFoundError:  # their store deleted meanwhile
+                continue
+            except OSError as error:
+                if error.errno not in _NO_LINK:
+                    raise
+                return linked
+            os.replace(staged, chunk)
+            linked += 1
+            break
+    return linked
+
+
+def _array_metadata(array: Path) -> dict | None:
+    """What an array's metadata (``zarr.json``) says of its chunks' bytes (all but its
+    shape and attributes), or None (none there)."""
+    try:
+        metadata = json.loads((array / "zarr.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return {k: v for k, v in metadata.items() if k not in ("shape", "attributes")}

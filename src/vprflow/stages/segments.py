@@ -19,6 +19,8 @@ from vprflow.stages.base import Job, resolved_sources, stage_attrs
 from vprflow.stages.readers import open_shard, reusable_results
 
 log = logging.getLogger("vprflow")
+# Masks a chunk of the ragged ``masks`` array: many images' each.
+CHUNK_ROWS = 256
 
 
 def compute_segments(job: Job) -> None:
@@ -32,9 +34,13 @@ def compute_segments(job: Job) -> None:
     An image whose masks a finished segments store of the same settings holds
     (:mod:`vprflow.core.reuse`: the same bytes, under any name, in any dataset) is not
     segmented: its packed rows are copied from there (checked as every store read is;
-    one that fails is segmented instead). The store is the same either way; its chunks
-    hold many images' rows, so the rows are stored again, not linked. The segmenter is
-    loaded only if an image is left to segment; the log says how many of each."""
+    one that fails is segmented instead). The store is the same either way. Its chunks
+    hold many images' rows, so rows cannot be linked one by one; a chunk whose file is
+    byte for byte one of another store's at the same index (the same images at the same
+    rows: shared references, images added at the end) is hard-linked to it
+    (:func:`vprflow.core.reuse.link_equal_chunks`), so such masks are on disk once. The
+    segmenter is loaded only if an image is left to segment; the log says how many of
+    each."""
     params = job.params
     dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
     attrs = {**stage_attrs("segments", job.record, images), "sources": resolved_sources(params)}
@@ -65,7 +71,7 @@ def compute_segments(job: Job) -> None:
                 shape = size
                 stores.set_attrs(group, mask_height=shape[0], mask_width=shape[1])
                 writer = stores.RaggedWriter(
-                    group, "masks", ((shape[0] * shape[1] + 7) // 8,), np.uint8, chunk_rows=256
+                    group, "masks", ((shape[0] * shape[1] + 7) // 8,), np.uint8, CHUNK_ROWS
                 )
             elif size != shape:
                 raise ValueError(
@@ -81,6 +87,10 @@ def compute_segments(job: Job) -> None:
         if written is not None:
             written.result()
         writer.close()
+        if reused and job.start is None:  # a shard's chunks are linked by its gather
+            array = Path(writer.array.store.root) / writer.array.path
+            linked = reuse.link_equal_chunks(array, job.record, Path(job.out).parent)
+            log.info("masks: %d chunk files shared with other stores", linked)
     log.info(reuse.IMAGES_LINE, len(images) - reused, reused)
 
 
