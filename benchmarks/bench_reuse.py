@@ -16,7 +16,8 @@ segments, 160 x 120), run in this process through the rules' runners
 - ``fixed``: a 2-image dataset from scratch, each stage's fixed cost.
 
 Columns: the job's wall seconds, images computed and reused (its log line), its share of
-the map's job, and whether the grown job is within 2% of the map's plus the fixed cost.
+the map's job, its chunk files that are another store's too (hard links: on disk once),
+and whether the grown job is within 2% of the map's plus the fixed cost.
 ``lookup`` is ``vprflow.core.reuse.find_sources`` over the map's images once its store
 is there (every image found: more than a first run's lookup, which finds none), and its
 share of the map's job.
@@ -122,6 +123,14 @@ def run_stage(plan, stage: str, dataset: str, root: Path, cache: Path, lines: Li
     return wall, int(computed), int(reused), job
 
 
+def shared_files(store: Path) -> str:
+    """``shared / all`` chunk files of ``store``'s per-image array (features, masks):
+    those that are also another store's (hard links)."""
+    (array,) = [store / name for name in ("features", "masks") if (store / name).is_dir()]
+    files = [path for path in (array / "c").rglob("*") if path.is_file()]
+    return f"{sum(path.stat().st_nlink > 1 for path in files)} / {len(files)}"
+
+
 def measure(data: Path, workdir: Path, n_images: int, added: int) -> bool:
     root, cache = workdir / "data", workdir / "results" / "cache"
     make_data(data / "corridor", root, n_images, added)
@@ -131,12 +140,12 @@ def measure(data: Path, workdir: Path, n_images: int, added: int) -> bool:
     logger.addHandler(lines)
     logger.setLevel(logging.INFO)
     ok = True
-    print("| stage | dataset | wall s | computed | reused | share of map | check |")
-    print("|---|---|---|---|---|---|---|")
+    print("| stage | dataset | wall s | computed | reused | share of map | files shared | check |")
+    print("|---|---|---|---|---|---|---|---|")
     for stage in STAGES:
         fixed = run_stage(plan, stage, "fixed", root, cache, lines)[0]
         first, computed, reused, job = run_stage(plan, stage, "map", root, cache, lines)
-        print(f"| {stage} | map | {first:.2f} | {computed} | {reused} | 1.00 | |")
+        print(f"| {stage} | map | {first:.2f} | {computed} | {reused} | 1.00 | | |")
         ok &= computed == n_images // 2 * 2 and reused == 0
         # The lookup alone, where every image is found (a second job over the map's images).
         digests = reuse.stores.read_strings(reuse.stores.open_store(job.inputs["images"]), "sha256")
@@ -144,7 +153,7 @@ def measure(data: Path, workdir: Path, n_images: int, added: int) -> bool:
         reuse.find_sources(job.inputs["images"], job.record, digests, range(len(digests)))
         lookup = time.perf_counter() - started
         for name, new in (("grown", added), ("second", n_images // 2)):
-            wall, computed, reused, _ = run_stage(plan, stage, name, root, cache, lines)
+            wall, computed, reused, grown = run_stage(plan, stage, name, root, cache, lines)
             check = ""
             if name == "grown":
                 within = wall <= 0.02 * first + fixed
@@ -154,11 +163,13 @@ def measure(data: Path, workdir: Path, n_images: int, added: int) -> bool:
                 ok &= reused == n_images // 2
             ok &= computed == new
             share = wall / first
+            files = shared_files(Path(grown.out))
             print(
-                f"| {stage} | {name} | {wall:.2f} | {computed} | {reused} | {share:.3f} | {check} |"
+                f"| {stage} | {name} | {wall:.2f} | {computed} | {reused} | {share:.3f} "
+                f"| {files} | {check} |"
             )
         share = lookup / first
-        print(f"| {stage} | lookup | {lookup:.4f} | | {len(digests)} | {share:.4f} | all found |")
+        print(f"| {stage} | lookup | {lookup:.4f} | | {len(digests)} | {share:.4f} | | all found |")
     logger.removeHandler(lines)
     return ok
 
