@@ -61,10 +61,10 @@ def main() -> int:
         for dataset in args.datasets.split(","):
             runs = {}
             for path in chosen:
-                out = Path(scratch) / dataset / path
+                out = Path(scratch) / path  # the child writes under out/<dataset>
                 start = time.perf_counter()
-                child = start_child(args.data, out, dataset, paths[path], args.stages)
-                runs[path] = child_result(child, f"{dataset} under {path}")
+                child = start_child(args.data, out, [dataset], paths[path], args.stages)
+                runs[path] = child_result(child, f"{dataset} under {path}")[dataset]
                 seconds = time.perf_counter() - start
                 base, run = runs["default"], runs[path]
                 differ = [k for k, v in run["stores"].items() if base["stores"].get(k) != v]
@@ -73,11 +73,11 @@ def main() -> int:
                     (
                         largest_difference(
                             Path(scratch)
-                            / dataset
                             / "default"
+                            / dataset
                             / k.split()[0]
                             / f"{k.split()[1]}.zarr",
-                            out / k.split()[0] / f"{k.split()[1]}.zarr",
+                            out / dataset / k.split()[0] / f"{k.split()[1]}.zarr",
                         )
                         for k in differ
                     ),

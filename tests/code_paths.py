@@ -6,11 +6,13 @@ another kernel family or thread count for OpenBLAS (numpy's and faiss's BLAS), M
 ATen (torch's), or numpy's own SIMD loops. tests/aggregation/test_vlad_ties.py,
 tests/workflow/test_code_paths.py and benchmarks/check_ties.py run under them.
 
-Run as ``python tests/code_paths.py DATA_ROOT OUT DATASET [STAGE,...]``: runs the
-STAGEs of DATASET in the shipped config (``config/config.yaml``; default: every stage,
-the recall stores included) and what they read, in this process, unsharded, into OUT,
-and prints :func:`run_dataset`'s JSON: each store's digest (sha256 of its arrays) and
-each recall store's table values.
+Run as ``python tests/code_paths.py DATA_ROOT OUT DATASET[,DATASET...] [STAGE,...]``:
+runs the STAGEs of each DATASET in the shipped config (``config/config.yaml``; default:
+every stage, the recall stores included) and what they read, in this process,
+unsharded, into ``OUT/<dataset>``, and prints ``{dataset: run_dataset's result}`` as
+JSON: each store's digest (sha256 of its arrays) and each recall store's table values.
+Several datasets share one process: a child's start (its interpreter, numpy, zarr,
+scikit-image, torch) costs 2-3 CPU seconds.
 """
 
 from __future__ import annotations
@@ -85,11 +87,12 @@ def path_environment(changes: dict[str, str | None]) -> dict[str, str]:
 
 
 def start_child(
-    data_root: Path, out: Path, dataset: str, changes: dict, stages: str | None = None
+    data_root: Path, out: Path, datasets: list[str], changes: dict, stages: str | None = None
 ) -> subprocess.Popen:
-    """This file's entry point for ``dataset`` (``stages``: comma-separated, default all)
-    in a process of its own under code path ``changes``; :func:`child_result` reads it."""
-    command = [sys.executable, __file__, str(data_root), str(out), dataset]
+    """This file's entry point for ``datasets`` (``stages``: comma-separated, default
+    all) in a process of its own under code path ``changes``; :func:`child_result` reads
+    it."""
+    command = [sys.executable, __file__, str(data_root), str(out), ",".join(datasets)]
     return subprocess.Popen(
         command + ([stages] if stages else []),
         env=path_environment(changes),
@@ -100,7 +103,7 @@ def start_child(
 
 
 def child_result(process: subprocess.Popen, what: str) -> dict:
-    """What :func:`start_child`'s process printed (:func:`run_dataset`'s result);
+    """What :func:`start_child`'s process printed (by dataset, :func:`run_dataset`'s result);
     ``RuntimeError`` naming ``what`` ran, with the end of its stderr, when it failed."""
     stdout, stderr = process.communicate(timeout=900)
     if process.returncode:
@@ -187,6 +190,6 @@ def workflow_digests(workdir: Path) -> dict:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).parent))
-    root, out, name = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3]
+    root, out, names = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3].split(",")
     stages = sys.argv[4].split(",") if sys.argv[4:] else None
-    print(json.dumps(run_dataset(root, out, name, stages)))
+    print(json.dumps({name: run_dataset(root, out / name, name, stages) for name in names}))

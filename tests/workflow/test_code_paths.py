@@ -59,23 +59,30 @@ OWN = ("features", "segments", "vocabulary")
 @pytest.fixture(scope="module")
 def runs(request, data_root, tmp_path_factory) -> dict[tuple[str, str], dict]:
     """``{(dataset, path): run_dataset's result}``: every stage under WHOLE_TABLES, the
-    own steps of corridor under OWN_STEPS, two processes at a time; the environment's
-    path is the shipped Snakemake runs the other tests read (conftest.py), asked for
-    once the children are done, so that another worker may have built them meanwhile."""
+    own steps under OWN_STEPS, one process a path (the datasets of a path together),
+    two at a time; the environment's path is the shipped Snakemake runs the other tests
+    read (conftest.py), asked for once the children are done, so that another worker
+    may have built them meanwhile."""
     out = tmp_path_factory.mktemp("code_paths")
-    jobs = [(d, p, changes, None) for d in DATASETS for p, changes in WHOLE_TABLES.items()]
+    jobs = [(p, changes, list(DATASETS), None) for p, changes in WHOLE_TABLES.items()]
+    own_paths = {p: changes for d in DATASETS for p, changes in OWN_STEPS[d].items()}
     jobs += [
-        (d, p, changes, ",".join(OWN)) for d in DATASETS for p, changes in OWN_STEPS[d].items()
+        (p, changes, [d for d in DATASETS if p in OWN_STEPS[d]], ",".join(OWN))
+        for p, changes in own_paths.items()
     ]
     results, running = {}, []
-    for dataset, path, changes, stages in jobs:
-        process = start_child(data_root, out / dataset / path, dataset, changes, stages)
-        running.append(((dataset, path), process))
+
+    def collect(path, datasets, process):
+        found = child_result(process, f"{', '.join(datasets)} under {path}")
+        results.update({(dataset, path): found[dataset] for dataset in datasets})
+
+    for path, changes, datasets, stages in jobs:
+        process = start_child(data_root, out / path, datasets, changes, stages)
+        running.append((path, datasets, process))
         if len(running) == 2:  # two processes at a time: this machine's cores
-            key, process = running.pop(0)
-            results[key] = child_result(process, "{} under {}".format(*key))
-    for key, process in running:
-        results[key] = child_result(process, "{} under {}".format(*key))
+            collect(*running.pop(0))
+    for job in running:
+        collect(*job)
     results["corridor", "default"] = workflow_digests(request.getfixturevalue("corridor_run")[0])
     results["roadscene", "default"] = workflow_digests(request.getfixturevalue("roadscene_run"))
     return results
