@@ -181,6 +181,14 @@ def snakemake_slurm_command(
     return cmd + list(extra)
 
 
+def slurm_environment() -> dict[str, str]:
+    """This process's environment for a Snakemake command on the test cluster: no
+    ``SLURM_*`` variable of an enclosing job, no profile of the user's."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("SLURM_")}
+    env.pop("SNAKEMAKE_PROFILE", None)
+    return env
+
+
 def run_snakemake(
     cmd: list[str], cwd: Path, timeout: float = 600, path_prefix: Path | None = None
 ) -> tuple[str, float]:
@@ -188,8 +196,7 @@ def run_snakemake(
 
     ``path_prefix``: a directory put first on PATH (e.g. :func:`gpu_stripping_wrappers`).
     """
-    env = {k: v for k, v in os.environ.items() if not k.startswith("SLURM_")}
-    env.pop("SNAKEMAKE_PROFILE", None)
+    env = slurm_environment()
     if path_prefix is not None:
         env["PATH"] = f"{path_prefix}{os.pathsep}{env.get('PATH', '')}"
     start = time.monotonic()

@@ -27,7 +27,6 @@ import importlib.util
 import os
 import re
 import shlex
-import subprocess
 import sys
 from pathlib import Path
 
@@ -40,12 +39,13 @@ from slurm_fixtures import (
     gpu_stripping_wrappers,
     node_memory_share_mb,
     run_snakemake,
+    slurm_environment,
     slurm_job_info,
     submitted_job_ids,
     wrapped_calls,
 )
 from synthetic import make_dataset
-from workflow_helpers import SNAKEFILE, toy_config, write_config
+from workflow_helpers import SNAKEFILE, dry_run, toy_config, write_config
 
 if importlib.util.find_spec("snakemake_executor_plugin_slurm") is None:
     _reason = 'the SLURM executor is an extra: pip install -e ".[slurm]"'
@@ -181,7 +181,9 @@ def test_docs_list_the_tested_command_lines():
 def test_documented_command_line(label, dry_workdir):
     workdir, config = dry_workdir
     command = documented_commands()[label]
-    output, _ = run_snakemake(as_test_run(command, workdir, config), cwd=workdir)
+    proc = dry_run(as_test_run(command, workdir, config), workdir, slurm_environment())
+    output = proc.stdout + proc.stderr
+    assert proc.returncode == 0, output[-3000:]
     jobs = dry_run_jobs(output)
     rules = {rule for rule, _ in jobs}
     assert {"images", "dataset", "features", "segments", "recall"} <= rules, output[-3000:]
@@ -212,10 +214,7 @@ def test_target_after_a_resource_option_is_read_as_a_resource(option, error, dry
     workdir, config = dry_workdir
     value = {"--default-resources": "slurm_partition=cpu"}.get(option, "features:gpu=0")
     command = f"snakemake --profile workflow/profiles/slurm {option} {value} {TARGET}"
-    proc = subprocess.run(
-        as_test_run(command, workdir, config),
-        cwd=workdir, capture_output=True, text=True, timeout=300, check=False,
-    )  # fmt: skip
+    proc = dry_run(as_test_run(command, workdir, config), workdir, slurm_environment())
     assert proc.returncode != 0
     assert error in proc.stdout + proc.stderr, proc.stderr[-3000:]
 
