@@ -63,7 +63,8 @@ def main() -> int:
             for path in chosen:
                 out = Path(scratch) / path  # the child writes under out/<dataset>
                 start = time.perf_counter()
-                child = start_child(args.data, out, [dataset], paths[path], args.stages)
+                stages = args.stages.split(",") if args.stages else None
+                child = start_child(args.data, out, {dataset: stages}, paths[path])
                 runs[path] = child_result(child, f"{dataset} under {path}")[dataset]
                 seconds = time.perf_counter() - start
                 base, run = runs["default"], runs[path]

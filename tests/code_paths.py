@@ -6,9 +6,9 @@ another kernel family or thread count for OpenBLAS (numpy's and faiss's BLAS), M
 ATen (torch's), or numpy's own SIMD loops. tests/aggregation/test_vlad_ties.py,
 tests/workflow/test_code_paths.py and benchmarks/check_ties.py run under them.
 
-Run as ``python tests/code_paths.py DATA_ROOT OUT DATASET[,DATASET...] [STAGE,...]``:
-runs the STAGEs of each DATASET in the shipped config (``config/config.yaml``; default:
-every stage, the recall stores included) and what they read, in this process,
+Run as ``python tests/code_paths.py DATA_ROOT OUT DATASET[=STAGE+STAGE...],...``: runs
+the STAGEs of each DATASET in the shipped config (``config/config.yaml``; without
+``=``: every stage, the recall stores included) and what they read, in this process,
 unsharded, into ``OUT/<dataset>``, and prints ``{dataset: run_dataset's result}`` as
 JSON: each store's digest (sha256 of its arrays) and each recall store's table values.
 Several datasets share one process: a child's start (its interpreter, numpy, zarr,
@@ -87,14 +87,15 @@ def path_environment(changes: dict[str, str | None]) -> dict[str, str]:
 
 
 def start_child(
-    data_root: Path, out: Path, datasets: list[str], changes: dict, stages: str | None = None
+    data_root: Path, out: Path, datasets: dict[str, list[str] | None], changes: dict
 ) -> subprocess.Popen:
-    """This file's entry point for ``datasets`` (``stages``: comma-separated, default
-    all) in a process of its own under code path ``changes``; :func:`child_result` reads
-    it."""
-    command = [sys.executable, __file__, str(data_root), str(out), ",".join(datasets)]
+    """This file's entry point for ``datasets`` (each one's stages; None: all) in a
+    process of its own under code path ``changes``; :func:`child_result` reads it."""
+    spec = ",".join(
+        d if stages is None else f"{d}={'+'.join(stages)}" for d, stages in datasets.items()
+    )
     return subprocess.Popen(
-        command + ([stages] if stages else []),
+        [sys.executable, __file__, str(data_root), str(out), spec],
         env=path_environment(changes),
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
@@ -190,6 +191,7 @@ def workflow_digests(workdir: Path) -> dict:
 
 if __name__ == "__main__":
     sys.path.insert(0, str(Path(__file__).parent))
-    root, out, names = Path(sys.argv[1]), Path(sys.argv[2]), sys.argv[3].split(",")
-    stages = sys.argv[4].split(",") if sys.argv[4:] else None
-    print(json.dumps({name: run_dataset(root, out / name, name, stages) for name in names}))
+    root, out = Path(sys.argv[1]), Path(sys.argv[2])
+    asked = [item.partition("=") for item in sys.argv[3].split(",")]
+    runs = {name: stages.split("+") if stages else None for name, _, stages in asked}
+    print(json.dumps({name: run_dataset(root, out / name, name, runs[name]) for name in runs}))
