@@ -24,9 +24,13 @@ def rows_of(path):
         return list(csv.DictReader(f))
 
 
-def test_corridor_with_tiny_dinov2_and_tiny_sam(tmp_path, data_root):
+def test_every_model_stage_through_the_dag_with_tiny_dinov2_and_tiny_sam(tmp_path):
+    """The shipped config's model backbones and segmenter, made tiny, on a toy dataset in
+    corridor's layout under its name (its entry's settings: resolution, truth, PCA): what
+    a run proves does not need corridor's 222 photos (16 CPU s of the 45)."""
+    make_dataset(tmp_path / "data" / "corridor")
     config = repo_config()
-    config["data_root"] = str(data_root)
+    config["data_root"] = str(tmp_path / "data")
     config["backbones"]["dinov2_vitg14"].update(
         model=str(save_tiny_dinov2(tmp_path / "dinov2")), layer=1
     )
