@@ -309,14 +309,13 @@ def test_a_config_that_cannot_be_planned_withdraws_no_table(tmp_path, finished_r
     assert scheduled_outputs(tmp_path, good, TARGET) == []
 
 
-def test_a_failure_withdraws_only_the_tables_of_the_datasets_it_asked_for(tmp_path):
+def test_a_failure_withdraws_only_the_tables_of_the_datasets_it_asked_for(tmp_path, finished_run):
     """toy and mine are finished; runs for mine alone then fail (a mistyped target or a
     method that cannot be planned: no table is withdrawn; a ground-truth file that cannot
     be read, with toy's folder gone from data_root: mine's only): toy's tables stay, and
     a good run names only mine's."""
-    make_dataset(tmp_path / "data" / "toy", n_places=4)
+    config = copy_of(finished_run, tmp_path)
     make_dataset(tmp_path / "data" / "mine", n_places=4, seed=1)
-    config = toy_config(tmp_path / "data", methods=["anyloc_vlad"])
     config["datasets"]["mine"] = copy.deepcopy(config["datasets"]["toy"]) | {"path": "mine"}
     config["targets"] = ["toy", "mine"]
     path = write_config(tmp_path, config)
