@@ -343,12 +343,11 @@ def test_changing_a_value_and_back_schedules_at_most_the_csv(toy_run):
     workdir, config = toy_run
     original = write_config(workdir, config, "original.yaml")
     changed = copy.deepcopy(config)
-    changed["segvlad"]["order"] = 1
+    # One method's own value (its descriptors, search and recall rebuild, no PCA).
+    changed["methods"]["segvlad_nopca"]["segvlad"] = {"order": 1}
     snakemake(workdir, write_config(workdir, changed, "order1.yaml"), TARGET)
-    rows = read_rows(workdir / TARGET)
-    assert {r["segvlad.order"] for r in rows if r["method"] in ("segvlad", "segvlad_nopca")} == {
-        "1"
-    }
+    rows = {r["method"]: r for r in read_rows(workdir / TARGET)}
+    assert rows["segvlad_nopca"]["segvlad.order"] == "1" and rows["segvlad"]["segvlad.order"] == "3"
     assert scheduled_stages(workdir, original, TARGET) <= {"recall_csv"}
     snakemake(workdir, original, TARGET)
     assert scheduled_stages(workdir, original, TARGET) == set()
@@ -465,9 +464,9 @@ def test_a_flipped_byte_in_a_descriptors_store_stops_the_recall_naming_the_store
 
 def test_a_dataset_without_ground_truth_gets_predictions_and_figures_not_a_table(tmp_path):
     make_dataset(tmp_path / "data" / "toy", n_places=6)
-    config = toy_config(
-        tmp_path / "data", ground_truth={"kind": "none"}, methods=["anyloc_vlad", "segvlad"]
-    )
+    # A global and a per-segment method (no PCA: not what this shows).
+    methods = ["anyloc_vlad", "segvlad_nopca"]
+    config = toy_config(tmp_path / "data", ground_truth={"kind": "none"}, methods=methods)
     path = write_config(tmp_path, config)
     snakemake(tmp_path, path)  # the default target: predictions and figures
     rows = read_rows(tmp_path / "results" / "predictions_toy.csv")
@@ -475,7 +474,12 @@ def test_a_dataset_without_ground_truth_gets_predictions_and_figures_not_a_table
     assert all(r["positives"] == "" and r["first_correct_rank"] == "" for r in rows)
     assert all(len(r["top_scores"].split()) == len(r["top"].split()) > 0 for r in rows)
     assert {r["score_kind"] for r in rows} == {"squared_l2", "votes"}
-    for figure in ("retrievals/anyloc_vlad", "retrievals/segvlad", "segment_matches/segvlad"):
+    figures = (
+        "retrievals/anyloc_vlad",
+        "retrievals/segvlad_nopca",
+        "segment_matches/segvlad_nopca",
+    )
+    for figure in figures:
         assert (tmp_path / "results" / "figures" / "toy" / f"{figure}.png").exists()
     assert not (tmp_path / "results" / "recall_toy.csv").exists()
     result = snakemake(tmp_path, path, "results/recall_toy.csv", check=False)
@@ -491,7 +495,7 @@ def test_same_inputs_give_a_byte_identical_csv_and_sharding_changes_nothing(toy_
     make_dataset(tmp_path / "data" / "toy")
     sharded = copy.deepcopy(config)
     sharded["data_root"] = str(tmp_path / "data")
-    methods = ["anyloc_vlad", "segvlad"]
+    methods = ["anyloc_vlad", "segvlad_nopca"]  # the PCA is not sharded
     sharded["datasets"]["toy"]["methods"] = methods
     # 20 images in shards of 13 and 7 (a short last one); 10 references: segment search
     # in 2 jobs, merged.
