@@ -4,6 +4,8 @@ file to a run from scratch, whatever the names, faults or shards."""
 
 from __future__ import annotations
 
+import errno
+import json
 import logging
 import os
 import re
@@ -286,6 +288,55 @@ def test_a_chunk_that_fails_its_checksum_or_size_is_not_linked(tmp_path):
     assert not reuse.link_chunk(source, tmp_path / "c" / "linked", 24)
     assert not reuse.link_chunk(tmp_path / "absent", tmp_path / "d" / "linked", 24)
     assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
+
+
+def test_chunks_are_linked_only_to_equal_files_of_equal_arrays_and_copied_without_links(
+    data, tmp_path, monkeypatch
+):
+    """link_equal_chunks over a store being written (a copy of a finished one, outside
+    the folder): every chunk file equal to a finished twin's is linked; one whose twins
+    are gone, an array of another chunk shape or without metadata is no twin; a file
+    system refusing hard links keeps the copies, any other refusal is an error."""
+    monkeypatch.setattr(segments, "CHUNK_ROWS", 4)
+    plan = plan_of(data, "base")
+    base = run(plan, "segments", "base", data, tmp_path / "cache")
+    folder, record = base.parent, stores.open_store(base).attrs["record"]
+    chunks = sorted(p.relative_to(base) for p in (base / "masks" / "c").rglob("*") if p.is_file())
+    (folder / "unfinished.zarr").mkdir()  # no record: not a store
+    shutil.copytree(base, folder / "other.zarr")
+    (folder / "other.zarr" / "masks" / "zarr.json").unlink()  # no metadata: not a twin
+    shutil.copytree(base, folder / "wider.zarr")  # another chunk shape: not a twin
+    wider = folder / "wider.zarr" / "masks" / "zarr.json"
+    metadata = json.loads(wider.read_text())
+    metadata["chunk_grid"]["configuration"]["chunk_shape"][0] = 8
+    wider.write_text(json.dumps(metadata))
+
+    def written() -> Path:
+        target = tmp_path / "written"
+        shutil.rmtree(target, ignore_errors=True)
+        shutil.copytree(base, target)
+        return target
+
+    target = written()
+    (base / chunks[0]).unlink()  # a twin's file deleted meanwhile
+    assert reuse.link_equal_chunks(target / "masks", record, folder) == len(chunks) - 1
+    assert (target / chunks[0]).stat().st_nlink == 1
+    assert all(os.path.samefile(target / c, base / c) for c in chunks[1:])
+    assert all(not os.path.samefile(target / c, folder / "wider.zarr" / c) for c in chunks[1:])
+
+    def refuse(code):
+        def link(source, target):
+            raise OSError(code, os.strerror(code))
+
+        return link
+
+    monkeypatch.setattr(os, "link", refuse(errno.EXDEV))
+    target = written()
+    assert reuse.link_equal_chunks(target / "masks", record, folder) == 0
+    assert all((target / c).stat().st_nlink == 1 for c in chunks[1:])
+    monkeypatch.setattr(os, "link", refuse(errno.EACCES))
+    with pytest.raises(PermissionError):
+        reuse.link_equal_chunks(written() / "masks", record, folder)
 
 
 def test_the_runs_closing_line_sums_the_images_its_jobs_computed_and_reused(data, tmp_path):
