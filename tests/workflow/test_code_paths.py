@@ -92,8 +92,8 @@ def runs(request, data_root, tmp_path_factory) -> dict[tuple[str, str], dict]:
     return results
 
 
-def own_stores(result: dict) -> dict[str, str]:
-    return {k: v for k, v in result["stores"].items() if k.split()[0] in OWN}
+def own_stores(result: dict, stages: tuple[str, ...] = OWN) -> dict[str, str]:
+    return {k: v for k, v in result["stores"].items() if k.split()[0] in stages}
 
 
 @pytest.mark.parametrize(
@@ -105,9 +105,7 @@ def test_vprflows_own_steps_are_the_same_bits_under(path, dataset, runs):
     segments alone under OWN_STEPS' paths (CHECKED)."""
     ours = own_stores(runs[dataset, path])
     checked = OWN if path in WHOLE_TABLES else CHECKED[dataset]
-    default = {
-        k: v for k, v in own_stores(runs[dataset, "default"]).items() if k.split()[0] in checked
-    }
+    default = own_stores(runs[dataset, "default"], checked)
     assert {name.split()[0] for name in ours} == set(checked) and set(ours) == set(default)
     differ = sorted(name for name, digest in ours.items() if default[name] != digest)
     assert not differ, f"{dataset} under {path}: {differ} differ from the environment's"

@@ -94,10 +94,10 @@ def equal_stores(folder: Path, record: dict) -> list[tuple[Path, dict]]:
     """``(path, record)`` of each finished store in ``folder`` (a stage's folder of
     ``results/cache``) whose record has ``record``'s :func:`settings`, in key order (so
     that no answer depends on the directory's listing order)."""
-    found = []
+    found, own = [], settings(record)
     for path in sorted(folder.glob("*.zarr")) if folder.is_dir() else []:
         other = _record(path)
-        if other is not None and settings(other) == settings(record):
+        if other is not None and settings(other) == own:
             found.append((path, other))
     return found
 
@@ -116,7 +116,7 @@ def chunk_file(array, index: int) -> Path:
     """The file of row ``index``'s chunk of ``array`` (a zarr array chunked one row a
     chunk along its first axis only, as a features store's ``features``)."""
     key = array.metadata.encode_chunk_key((index,) + (0,) * (array.ndim - 1))
-    return Path(array.store.root) / array.path / key
+    return stores.array_directory(array) / key
 
 
 # Why a hard link fails where a copy does: another file system (EXDEV), one without
@@ -166,7 +166,7 @@ def link_equal_chunks(array: Path, record: dict, folder: Path) -> int:
     (a second query set after the same references; images added after the last one),
     their chunks are the same bytes. Equal bytes in arrays of equal chunk shape, type and
     codecs are equal contents, so the store is the one a run from scratch writes; a file
-    system without hard links keeps the copy."""
+    system without hard links keeps the copy. The job's log says how many."""
     metadata = _array_metadata(array)
     twins = [
         path / array.name
@@ -175,25 +175,37 @@ def link_equal_chunks(array: Path, record: dict, folder: Path) -> int:
     ]
     linked = 0
     for chunk in sorted((array / "c").rglob("*")) if twins else []:
-        if not chunk.is_file():
-            continue
-        size = chunk.stat().st_size
-        for twin in twins:
-            theirs, staged = twin / chunk.relative_to(array), chunk.with_name(chunk.name + ".link")
-            try:
-                if theirs.stat().st_size != size or theirs.read_bytes() != chunk.read_bytes():
-                    continue
-                os.link(theirs, staged)
-            except FileNotFoundError:  # their store deleted meanwhile
-                continue
-            except OSError as error:
-                if error.errno not in _NO_LINK:
-                    raise
-                return linked
-            os.replace(staged, chunk)
-            linked += 1
-            break
+        if chunk.is_file():
+            outcome = _link_to_twin(chunk, [twin / chunk.relative_to(array) for twin in twins])
+            if outcome is None:  # the file system refuses hard links: keep the copies
+                break
+            linked += outcome
+    log.info("%s: %d chunk files shared with other stores", array.name, linked)
     return linked
+
+
+def _link_to_twin(chunk: Path, twins: list[Path]) -> bool | None:
+    """Replace ``chunk`` by a hard link to the first of ``twins`` (files) with its bytes
+    -> whether one was; None where the file system refuses hard links."""
+    size, ours = chunk.stat().st_size, None
+    staged = chunk.with_name(chunk.name + ".link")
+    for theirs in twins:
+        try:
+            if theirs.stat().st_size != size:
+                continue
+            ours = chunk.read_bytes() if ours is None else ours
+            if theirs.read_bytes() != ours:
+                continue
+            os.link(theirs, staged)
+        except FileNotFoundError:  # their store deleted meanwhile
+            continue
+        except OSError as error:
+            if error.errno not in _NO_LINK:
+                raise
+            return None
+        os.replace(staged, chunk)
+        return True
+    return False
 
 
 def _array_metadata(array: Path) -> dict | None:

@@ -532,7 +532,8 @@ def _plain_chunk_files(array: zarr.Array) -> bool:
     return stored == array.dtype
 
 
-def _array_directory(array: zarr.Array) -> Path:
+def array_directory(array: zarr.Array) -> Path:
+    """The folder of ``array`` (a local store's): its ``zarr.json`` and chunk files."""
     return Path(array.store.root) / array.path
 
 
@@ -553,7 +554,7 @@ def _write_chunk(array: zarr.Array, index: int, rows: np.ndarray) -> None:
         data = np.frombuffer(
             numcodecs.zstd.compress(data, codec.level, codec.checksum), dtype=np.uint8
         )
-    path = _array_directory(array) / array.metadata.encode_chunk_key(
+    path = array_directory(array) / array.metadata.encode_chunk_key(
         (index,) + (0,) * (array.ndim - 1)
     )
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -596,7 +597,7 @@ class _RowReader:
         """The reader of ``array``, or None where zarr must read it."""
         if not _plain_chunk_files(array):
             return None
-        return cls(array, _array_directory(array), store, name)
+        return cls(array, array_directory(array), store, name)
 
     def read(self, start: int, stop: int, squeeze: bool) -> np.ndarray:
         out = np.empty((stop - start, *self.shape[1:]), dtype=self.dtype)

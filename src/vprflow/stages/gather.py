@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import logging
 from pathlib import Path
 
 import numpy as np
@@ -11,8 +10,6 @@ from tqdm import tqdm
 
 from vprflow.core import reuse, stores
 from vprflow.core.paths import shard_layout
-
-log = logging.getLogger("vprflow")
 
 
 def gather(shard_paths: list[str], record: dict, out: str) -> None:
@@ -28,12 +25,13 @@ def gather(shard_paths: list[str], record: dict, out: str) -> None:
     attrs = {k: v for k, v in first.attrs.items() if k not in ("start", "stop")}
     attrs["record"] = record
     attrs["shards"] = shard_layout(shard_paths)
+    packed = _packed(names, record)
     if len(shards) == 1:
         # One shard is the whole store: rename it instead of copying every array. Its
         # attributes are rewritten first, so `out` appears complete or not at all. Only the
         # group's: each array keeps the chunk count atomic_store recorded for open_store.
-        for name in _packed(names, record):
-            _link_equal(Path(shard_paths[0]) / name, record, out)
+        for name in packed:
+            reuse.link_equal_chunks(Path(shard_paths[0]) / name, record, Path(out).parent)
         zarr.open_group(shard_paths[0], mode="r+").attrs.put(attrs)
         stores.replace_store(shard_paths[0], out)
         return
@@ -65,8 +63,8 @@ def gather(shard_paths: list[str], record: dict, out: str) -> None:
                     offsets.append(local[1:] + base)
                     base += int(local[-1])
                 stores.write_array(group, f"{name}_offsets", np.concatenate(offsets))
-            if name in _packed(names, record):
-                _link_equal(Path(target.store.root) / target.path, record, out)
+            if name in packed:
+                reuse.link_equal_chunks(stores.array_directory(target), record, Path(out).parent)
 
 
 def _packed(names: list[str], record: dict) -> list[str]:
@@ -76,11 +74,6 @@ def _packed(names: list[str], record: dict) -> list[str]:
     if record["stage"] not in reuse.STAGES:
         return []
     return [name for name in names if f"{name}_offsets" in names]
-
-
-def _link_equal(array: Path, record: dict, out: str) -> None:
-    linked = reuse.link_equal_chunks(array, record, Path(out).parent)
-    log.info("%s: %d chunk files shared with other stores", array.name, linked)
 
 
 def _link_rows(shards: list[stores.CheckedGroup], name: str, group: zarr.Group) -> None:

@@ -88,9 +88,8 @@ def compute_segments(job: Job) -> None:
             written.result()
         writer.close()
         if reused and job.start is None:  # a shard's chunks are linked by its gather
-            array = Path(writer.array.store.root) / writer.array.path
-            linked = reuse.link_equal_chunks(array, job.record, Path(job.out).parent)
-            log.info("masks: %d chunk files shared with other stores", linked)
+            array = stores.array_directory(writer.array)
+            reuse.link_equal_chunks(array, job.record, Path(job.out).parent)
     log.info(reuse.IMAGES_LINE, len(images) - reused, reused)
 
 
