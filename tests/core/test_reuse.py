@@ -290,6 +290,122 @@ def test_a_chunk_that_fails_its_checksum_or_size_is_not_linked(tmp_path):
     assert not (tmp_path / "b").exists() and not (tmp_path / "c").exists()
 
 
+# A finished ragged array of 7 images, 4 rows a chunk: rows 0-28, 7 chunks.
+LENGTHS = [3, 5, 2, 6, 1, 4, 7]
+
+
+def ragged_store(path: Path, parts: list[np.ndarray]) -> stores.CheckedGroup:
+    """A finished store whose ragged ``masks`` (uint8 rows of 3, 4 rows a chunk) holds
+    one image per array of ``parts``."""
+    with stores.atomic_store(path) as group:
+        writer = stores.RaggedWriter(group, "masks", (3,), np.uint8, 4)
+        for part in parts:
+            writer.append(part)
+        writer.close()
+    return stores.open_store(path)
+
+
+@pytest.mark.parametrize(
+    ("position", "first", "last"),
+    [(0, 0, 7), (0, 2, 7), (7, 1, 6), (1, 1, 6), (5, 1, 7), (2, 2, 3), (4, 0, 1)],
+)
+def test_copied_rows_link_whole_chunks_that_land_on_whole_chunks_and_read_the_rest(
+    tmp_path, position, first, last
+):
+    """Images ``first:last`` of a finished ragged array copied after ``position`` rows of
+    ours and before another image: the store is the one appending their rows writes,
+    and a chunk file of ours is theirs exactly where their rows ``4c:4c + 4`` are ours
+    ``4c':4c' + 4``, which needs the two to start equally far from a chunk boundary."""
+    rng = np.random.default_rng(position * 100 + first * 10 + last)
+    images = [rng.integers(1, 255, (n, 3), dtype=np.uint8) for n in LENGTHS]
+    theirs = ragged_store(tmp_path / "theirs.zarr", images)
+    head = rng.integers(1, 255, (position, 3), dtype=np.uint8)
+    tail = rng.integers(1, 255, (2, 3), dtype=np.uint8)
+    expected = ragged_store(tmp_path / "expected.zarr", [head, *images[first:last], tail])
+    offsets = np.cumsum([0, *LENGTHS])
+    low, high = int(offsets[first]), int(offsets[last])
+    with stores.atomic_store(tmp_path / "ours.zarr") as group:
+        writer = stores.RaggedWriter(group, "masks", (3,), np.uint8, 4)
+        writer.append(head)
+        array = stores.array_directory(writer.array)
+        alike = reuse.same_chunks(array, theirs.path / "masks")
+        pieces = reuse.read_rows(theirs["masks"], low, high, position, alike)
+        reuse.append_rows(writer, pieces)
+        writer.add_images(np.asarray(LENGTHS[first:last]))
+        writer.append(tail)
+        writer.close()
+    ours = tmp_path / "ours.zarr"
+    assert alike and files_of(ours) == files_of(expected.path)
+    # Chunks of theirs within low:high that are whole chunks of ours.
+    linked = {
+        (position + 4 * c - low) // 4: c
+        for c in range(-(-low // 4), high // 4)
+        if (position - low) % 4 == 0
+    }
+    for c in range(-(-(position + high - low + 2) // 4)):
+        mine = ours / f"masks/c/{c}/0"
+        assert mine.stat().st_nlink == (2 if c in linked else 1), c
+        if c in linked:
+            assert os.path.samefile(mine, theirs.path / f"masks/c/{linked[c]}/0")
+
+
+def test_copied_rows_that_fail_their_checks_raise_before_anything_is_appended(tmp_path):
+    """A damaged chunk among those to link, or among those to read: StoreCorruptError
+    from read_rows, which has appended nothing (the caller computes those images)."""
+    images = [np.full((n, 3), n, dtype=np.uint8) for n in LENGTHS]
+    theirs = ragged_store(tmp_path / "theirs.zarr", images)
+    chunk = theirs.path / "masks/c/2/0"
+    damaged = bytearray(chunk.read_bytes())
+    damaged[0] ^= 0xFF
+    chunk.write_bytes(bytes(damaged))
+    for position in (0, 1):  # linked, read
+        with pytest.raises(stores.StoreCorruptError, match="masks"):
+            reuse.read_rows(theirs["masks"], 0, 28, position, link=True)
+    assert reuse.read_rows(theirs["masks"], 0, 4, 0, link=True)[1].path.name == "0"
+
+
+def test_a_grown_maps_reference_masks_are_linked_as_they_are_copied(data, tmp_path, monkeypatch):
+    """References at the same rows as the base store's: each whole chunk of theirs is
+    hard-linked as the rows are copied (not found afterwards by link_equal_chunks,
+    switched off here), and the store is the one from scratch."""
+    monkeypatch.setattr(segments, "CHUNK_ROWS", 4)
+    monkeypatch.setattr(reuse, "link_equal_chunks", lambda *args: 0)
+    plan = plan_of(data, "base", "grown")
+    base = run(plan, "segments", "base", data, tmp_path / "shared")
+    grown = run(plan, "segments", "grown", data, tmp_path / "shared")
+    references = int(stores.open_store(base)["masks_offsets"][N_PLACES])
+    assert references >= 8
+    for c in range(references // 4):
+        assert os.path.samefile(base / f"masks/c/{c}/0", grown / f"masks/c/{c}/0")
+    monkeypatch.undo()
+    monkeypatch.setattr(segments, "CHUNK_ROWS", 4)
+    alone = run(plan, "segments", "grown", data, tmp_path / "scratch")
+    assert files_of(grown) == files_of(alone)
+
+
+def test_damaged_masks_cost_only_the_images_with_rows_in_them(data, tmp_path, caplog, monkeypatch):
+    """A grown map whose base store has a damaged chunk among the references' (linked
+    whole) rows: the images with rows in it are segmented again, every other one is
+    reused, and the store is the one from scratch."""
+    monkeypatch.setattr(segments, "CHUNK_ROWS", 4)
+    plan = plan_of(data, "base", "grown")
+    scratch = run(plan, "segments", "grown", data, tmp_path / "scratch")
+    base = run(plan, "segments", "base", data, tmp_path / "shared")
+    offsets = np.asarray(stores.open_store(base)["masks_offsets"][...])
+    chunk = base / "masks/c/1/0"  # rows 4:8
+    damaged = bytearray(chunk.read_bytes())
+    damaged[len(damaged) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(damaged))
+    caplog.set_level(logging.INFO, logger="vprflow")
+    grown = run(plan, "segments", "grown", data, tmp_path / "shared")
+    # grown's reused images are base's 0-3 (references), 4, 6, 7 and 4 again (queries
+    # 0000, 0002, 0003 and 0007); its 3 others are new.
+    hit = [j for j in (0, 1, 2, 3, 4, 6, 7, 4) if offsets[j] < 8 and offsets[j + 1] > 4]
+    assert 0 < len(hit) < 8
+    assert counts(caplog) == (3 + len(hit), 8 - len(hit))
+    assert files_of(grown) == files_of(scratch)
+
+
 def test_chunks_are_linked_only_to_equal_files_of_equal_arrays_and_copied_without_links(
     data, tmp_path, monkeypatch
 ):

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import google_crc32c
+import numpy as np
 
 from vprflow.core import stores
 
@@ -78,13 +79,15 @@ def find_sources(
         if "images" not in other.get("inputs", {}):
             continue
         try:
-            group = stores.open_store(path)
             images = stores.open_store(images_store.with_name(f"{other['inputs']['images']}.zarr"))
             theirs = stores.read_strings(images, "sha256")
+            matches = [(i, digest) for i, digest in enumerate(theirs) if digest in wanted_digests]
+            # Opened only where it holds a wanted image (a store is ~4 ms to open).
+            group = stores.open_store(path) if matches else None
         except (stores.StoreCorruptError, FileNotFoundError, KeyError) as error:
             log.warning("not reusing results of %s: %s", path, error)
             continue
-        for their_index, digest in enumerate(theirs):
+        for their_index, digest in matches:
             for index in wanted_digests.pop(digest, ()):
                 found[index] = Source(group, their_index)
     return found
@@ -113,8 +116,9 @@ def _record(path: Path) -> dict | None:
 
 
 def chunk_file(array, index: int) -> Path:
-    """The file of row ``index``'s chunk of ``array`` (a zarr array chunked one row a
-    chunk along its first axis only, as a features store's ``features``)."""
+    """The file of chunk ``index`` along the first axis of ``array`` (a zarr array
+    chunked along its first axis only: row ``index``'s where a chunk is one row, as a
+    features store's ``features``)."""
     key = array.metadata.encode_chunk_key((index,) + (0,) * (array.ndim - 1))
     return stores.array_directory(array) / key
 
@@ -124,34 +128,110 @@ def chunk_file(array, index: int) -> Path:
 _NO_LINK = (errno.EXDEV, errno.EPERM, errno.ENOTSUP, errno.EMLINK)
 
 
-def link_chunk(source: Path, target: Path, chunk_bytes: int) -> bool:
-    """Put the chunk file ``source`` (uncompressed: ``chunk_bytes`` and its CRC-32C, as
-    :data:`vprflow.core.stores.CHECKSUM_ONLY` stores it) at ``target`` as a hard link,
-    so the bytes are stored once for every store that holds them (a copy where the file
-    system refuses the link). False where ``source`` is absent (its store deleted
-    meanwhile, or a chunk equal to the fill value, which zarr does not store: rare
-    enough to compute again) or, with a warning, not a whole, intact chunk (a checksum
-    mismatch, a wrong size): the caller computes that image instead."""
+def link_chunk(source: Path, target: Path, chunk_bytes: int | None) -> bool:
+    """Put the chunk file ``source`` at ``target`` as a hard link, so the bytes are
+    stored once for every store that holds them (a copy where the file system refuses
+    the link) -> whether it was: :func:`read_chunk`, then :func:`place_chunk`."""
+    data = read_chunk(source, chunk_bytes)
+    if data is None:
+        return False
+    place_chunk(source, target, data)
+    return True
+
+
+def read_chunk(source: Path, chunk_bytes: int | None) -> bytes | None:
+    """The bytes of the chunk file ``source`` where it is whole and intact: its CRC-32C
+    (the last 4 bytes, as :data:`vprflow.core.stores.COMPRESSORS` and
+    :data:`~vprflow.core.stores.CHECKSUM_ONLY` store it) matches and, given
+    ``chunk_bytes`` (an uncompressed chunk's size), its size is that and the checksum's.
+    None where it is absent (its store deleted meanwhile, or a chunk equal to the fill
+    value, which zarr does not store: rare enough to compute again) or, with a warning,
+    not whole and intact: the caller computes or reads that chunk's rows instead."""
     try:
         data = source.read_bytes()
     except FileNotFoundError:
-        return False
-    if len(data) != chunk_bytes + 4 or google_crc32c.value(data[:-4]) != int.from_bytes(
-        data[-4:], "little"
+        return None
+    whole = chunk_bytes is None or len(data) == chunk_bytes + 4
+    if (
+        not whole
+        or len(data) < 4
+        or google_crc32c.value(data[:-4]) != int.from_bytes(data[-4:], "little")
     ):
         log.warning("not reusing %s: it fails its checksum or size check", source)
-        return False
+        return None
+    return data
+
+
+def place_chunk(source: Path, target: Path, data: bytes) -> None:
+    """Hard-link ``target`` to ``source``, a chunk file whose checked bytes are ``data``
+    (:func:`read_chunk`); where the file system refuses hard links, or ``source`` is gone
+    since it was read, write ``data`` there instead."""
     target.parent.mkdir(parents=True, exist_ok=True)
     try:
         os.link(source, target)
+        return
     except FileNotFoundError:
-        return False
+        pass
     except OSError as error:
         if error.errno not in _NO_LINK:
             raise
-        with open(target, "wb") as file:
-            file.write(data)
-    return True
+    with open(target, "wb") as file:
+        file.write(data)
+
+
+@dataclass(frozen=True)
+class Chunk:
+    """A whole chunk file of a finished store, checked (:func:`read_chunk`), to become a
+    store's next chunk as it is (:func:`append_rows`)."""
+
+    path: Path
+    data: bytes
+
+
+def read_rows(
+    array: stores.CheckedArray, low: int, high: int, position: int, link: bool
+) -> list[np.ndarray | Chunk]:
+    """Rows ``low:high`` of ``array`` (a finished store's, chunked along its first axis
+    only) to append at row ``position`` of an array being written: as whole chunk files
+    where ``link`` (the two arrays' chunk files alike: :func:`same_chunks`) and a chunk
+    of theirs lands on a whole chunk of ours, so that its bytes are stored once; the
+    rest as rows, read and checked. Raises
+    :class:`~vprflow.core.stores.StoreCorruptError` where rows fail their checks, before
+    anything is appended: the caller computes those images instead."""
+    step = array.chunks[0]
+    first, last = -(-low // step), high // step
+    if not link or (position - low) % step or first >= last:
+        return [np.asarray(array[low:high])]
+    pieces: list[np.ndarray | Chunk] = [np.asarray(array[low : first * step])]
+    for index in range(first, last):
+        path = chunk_file(array.raw, index)
+        data = read_chunk(path, None)
+        if data is None:  # absent (the fill value) or damaged (then the read raises)
+            pieces.append(np.asarray(array[index * step : (index + 1) * step]))
+        else:
+            pieces.append(Chunk(path, data))
+    pieces.append(np.asarray(array[last * step : high]))
+    return pieces
+
+
+def append_rows(writer: stores.RowWriter, pieces: list[np.ndarray | Chunk]) -> None:
+    """Append :func:`read_rows`' ``pieces`` to ``writer``: rows as rows, a :class:`Chunk`
+    (which lands on a whole chunk of ours) hard-linked in as the next chunk's file."""
+    for piece in pieces:
+        if isinstance(piece, Chunk):
+            index = (writer.written + writer.buffered) // writer.chunk_rows
+            writer.skip(writer.chunk_rows)
+            place_chunk(piece.path, chunk_file(writer.array, index), piece.data)
+        elif len(piece):
+            writer.append_rows(piece)
+
+
+def same_chunks(array: Path, other: Path) -> bool:
+    """Whether the arrays at ``array`` and ``other`` (folders) store rows in chunk files
+    alike: the same chunk shape, type and codecs (all their metadata but the shape and
+    attributes), so equal rows are equal files."""
+    metadata = _array_metadata(array)
+    return metadata is not None and metadata == _array_metadata(other)
 
 
 def link_equal_chunks(array: Path, record: dict, folder: Path) -> int:
@@ -166,22 +246,28 @@ def link_equal_chunks(array: Path, record: dict, folder: Path) -> int:
     (a second query set after the same references; images added after the last one),
     their chunks are the same bytes. Equal bytes in arrays of equal chunk shape, type and
     codecs are equal contents, so the store is the one a run from scratch writes; a file
-    system without hard links keeps the copy. The job's log says how many."""
-    metadata = _array_metadata(array)
+    system without hard links keeps the copy. The job's log says how many of its chunk
+    files are another store's, linked here or before (:func:`append_rows`)."""
     twins = [
         path / array.name
         for path, _ in equal_stores(folder, record)
-        if _array_metadata(path / array.name) == metadata
+        if same_chunks(array, path / array.name)
     ]
-    linked = 0
-    for chunk in sorted((array / "c").rglob("*")) if twins else []:
-        if chunk.is_file():
+    linked = shared = 0
+    for chunk in _chunk_files(array):
+        if chunk.stat().st_nlink == 1 and twins:  # else another store's already
             outcome = _link_to_twin(chunk, [twin / chunk.relative_to(array) for twin in twins])
             if outcome is None:  # the file system refuses hard links: keep the copies
-                break
-            linked += outcome
-    log.info("%s: %d chunk files shared with other stores", array.name, linked)
+                twins = []
+            linked += bool(outcome)
+        shared += chunk.stat().st_nlink > 1
+    log.info("%s: %d chunk files shared with other stores", array.name, shared)
     return linked
+
+
+def _chunk_files(array: Path) -> list[Path]:
+    """The chunk files of the array at ``array`` (a folder), in order."""
+    return sorted(Path(folder, name) for folder, _, names in os.walk(array / "c") for name in names)
 
 
 def _link_to_twin(chunk: Path, twins: list[Path]) -> bool | None:

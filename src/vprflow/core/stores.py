@@ -1006,8 +1006,19 @@ class RaggedWriter(RowWriter):
         self.offsets = [0]
 
     def append(self, rows: np.ndarray, what: str | None = None) -> None:
+        """One image's rows."""
         super().append(rows, what)
         self.offsets.append(self.offsets[-1] + len(rows))
+
+    def append_rows(self, rows: np.ndarray, what: str | None = None) -> None:
+        """Rows of images :meth:`add_images` records, appended in parts that need not
+        end where an image does (and whole chunks :meth:`skip` leaves to the caller)."""
+        super().append(rows, what)
+
+    def add_images(self, lengths: np.ndarray) -> None:
+        """Record images of ``lengths`` rows each, put in place by :meth:`append_rows`
+        and :meth:`skip`."""
+        self.offsets.extend((self.offsets[-1] + np.cumsum(lengths, dtype=np.int64)).tolist())
 
     def close(self) -> np.ndarray:
         """Flush and write ``<name>_offsets``; returns the offsets ``[n + 1]``."""

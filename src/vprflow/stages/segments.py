@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import functools
 import logging
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +22,10 @@ from vprflow.stages.readers import open_shard, reusable_results
 log = logging.getLogger("vprflow")
 # Masks a chunk of the ragged ``masks`` array: many images' each.
 CHUNK_ROWS = 256
+# Rows copied from another store a block where they are read (not linked): small enough
+# that the writer's thread compresses one while the next is read (grown map of
+# benchmarks/bench_reuse.py), at most about a RowWriter write (WRITE_BYTES).
+COPY_BYTES = 4 << 20
 
 
 def compute_segments(job: Job) -> None:
@@ -33,11 +38,13 @@ def compute_segments(job: Job) -> None:
 
     An image whose masks a finished segments store of the same settings holds
     (:mod:`vprflow.core.reuse`: the same bytes, under any name, in any dataset) is not
-    segmented: its packed rows are copied from there (checked as every store read is;
-    one that fails is segmented instead). The store is the same either way. Its chunks
-    hold many images' rows, so rows cannot be linked one by one; a chunk whose file is
-    byte for byte one of another store's at the same index (the same images at the same
-    rows: shared references, images added at the end) is hard-linked to it
+    segmented: its packed rows come from there, a run of such images at a time, checked
+    as every store read is (images whose rows fail are segmented instead). The store is
+    the same either way. Its chunks hold many images' rows, so rows cannot be linked one
+    by one; where a chunk of theirs lands on a whole chunk of ours (the same images
+    after rows that end on a chunk boundary in both: shared references, images added at
+    the end) its file is hard-linked in without being decompressed, and afterwards a
+    chunk byte for byte one of another store's at the same index is linked to it
     (:func:`vprflow.core.reuse.link_equal_chunks`), so such masks are on disk once. The
     segmenter is loaded only if an image is left to segment; the log says how many of
     each."""
@@ -48,69 +55,189 @@ def compute_segments(job: Job) -> None:
     left = [index for index in images if index not in sources]
     masker = functools.cache(lambda: _mask_source(params, job.device, dataset))
     computed = _segmented(*masker(), left, job.batch_size) if left else iter(())
-    readers: dict[Path, stores.RaggedReader] = {}
-    reused = 0
-    with stores.atomic_store(job.out, attrs) as group, ThreadPoolExecutor(1) as packing:
-        writer, shape, written = None, None, None
-        for i in images:
-            rows = _reused_rows(sources.get(i), readers)
-            if rows is not None:
-                reused += 1
-                packed, size = rows
-            else:
-                if i in sources:  # its stored rows failed their checks
-                    read, segment = masker()
-                    masks = segment(read([i]))[0]
-                else:
-                    index, masks = next(computed)
+    with stores.atomic_store(job.out, attrs) as group, _Masks(group, dataset) as masks:
+        for run in _runs(images, sources):
+            if run.source is None:
+                for i in run.images:
+                    index, segmented = next(computed)
                     assert index == i, (index, i)
-                packed, size = None, masks.shape[1:]
-                if len(masks) == 0:
-                    log.warning("%s: the segmenter returned no masks", dataset.paths[i])
-            if shape is None:
-                shape = size
-                stores.set_attrs(group, mask_height=shape[0], mask_width=shape[1])
-                writer = stores.RaggedWriter(
-                    group, "masks", ((shape[0] * shape[1] + 7) // 8,), np.uint8, CHUNK_ROWS
-                )
-            elif size != shape:
-                raise ValueError(
-                    f"{dataset.paths[i]}: masks of size {size} differ from the "
-                    f"first image's {shape}"
-                )
-            if written is not None:
-                written.result()  # in order, one image ahead at most; re-raises its error
-            if packed is None:
-                written = packing.submit(_append_packed, writer, masks)
-            else:
-                written = packing.submit(writer.append, packed)
-        if written is not None:
-            written.result()
-        writer.close()
-        if reused and job.start is None:  # a shard's chunks are linked by its gather
-            array = stores.array_directory(writer.array)
+                    masks.segmented(i, segmented)
+                continue
+            for i in masks.copied(run):  # their stored rows failed their checks
+                rows = masks.stored(sources[i])
+                if rows is not None:
+                    masks.packed(i, *rows)
+                else:
+                    read, segment = masker()
+                    masks.segmented(i, segment(read([i]))[0])
+        masks.close()
+        if masks.reused and job.start is None:  # a shard's chunks are linked by its gather
+            array = stores.array_directory(masks.writer.array)
             reuse.link_equal_chunks(array, job.record, Path(job.out).parent)
-    log.info(reuse.IMAGES_LINE, len(images) - reused, reused)
+    log.info(reuse.IMAGES_LINE, len(images) - masks.reused, masks.reused)
 
 
-def _reused_rows(source: reuse.Source | None, readers: dict) -> tuple[np.ndarray, tuple] | None:
-    """``(packed rows, (mask height, width))`` of ``source``'s image, or None: no source,
-    or its rows fail their checks (a warning; the image is segmented instead)."""
-    if source is None:
-        return None
-    group = source.group
-    if group.path not in readers:
-        readers[group.path] = stores.RaggedReader(group, "masks")
-    try:
-        rows = readers[group.path](source.index)
-    except stores.StoreCorruptError as error:
-        log.warning("segmenting again an image whose stored masks fail their checks: %s", error)
-        return None
-    return rows, (int(group.attrs["mask_height"]), int(group.attrs["mask_width"]))
+@dataclass(frozen=True)
+class _Run:
+    """Consecutive images of a job (``images``, indices into its dataset): segmented
+    (``source`` None), or reused from consecutive images of one store, the first of
+    them ``source``."""
+
+    images: list[int]
+    source: reuse.Source | None
+
+
+def _runs(images: range, sources: dict[int, reuse.Source]) -> list[_Run]:
+    """``images`` cut into :class:`_Run`\\ s."""
+    runs: list[_Run] = []
+    for i in images:
+        source, last = sources.get(i), runs[-1] if runs else None
+        if last is not None and (
+            (source is None and last.source is None)
+            or (
+                source is not None
+                and last.source is not None
+                and source.group is last.source.group
+                and source.index == last.source.index + len(last.images)
+            )
+        ):
+            last.images.append(i)
+        else:
+            runs.append(_Run([i], source))
+    return runs
+
+
+class _Masks:
+    """The store's ``masks``, appended in image order on one packing thread, one call
+    ahead of the caller at most, the array made at the first image's mask size (each
+    next image's checked against it)."""
+
+    def __init__(self, group, dataset):
+        self.group, self.dataset = group, dataset
+        self.writer: stores.RaggedWriter | None = None
+        self.size: tuple | None = None  # the masks' (height, width)
+        self.rows = 0  # rows appended or queued so far
+        self.reused = 0
+        self._offsets: dict[Path, np.ndarray] = {}  # each source's masks_offsets
+        self._alike: dict[Path, bool] = {}
+        self._packing = ThreadPoolExecutor(1, thread_name_prefix="pack-masks")
+        self._pending: Future | None = None
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *error):
+        self._packing.shutdown()
+
+    def segmented(self, index: int, masks: np.ndarray) -> None:
+        """Append image ``index``'s masks (bool ``[S, Hm, Wm]``), packed on the thread."""
+        self._size(index, masks.shape[1:])
+        if len(masks) == 0:
+            log.warning("%s: the segmenter returned no masks", self.dataset.paths[index])
+        self._queue(len(masks), _append_packed, self.writer, masks)
+
+    def packed(self, index: int, rows: np.ndarray, size: tuple) -> None:
+        """Append image ``index``'s packed masks ``rows`` of masks of ``size``."""
+        self._size(index, size)
+        self.reused += 1
+        self._queue(len(rows), self.writer.append, rows)
+
+    def copied(self, run: _Run) -> list[int]:
+        """Append the stored rows of ``run``'s images (reused) -> the images left to the
+        caller (in order, before any other is appended): from the first whose block of
+        rows fails its checks (a warning) to the run's end.
+
+        Where their chunks land on whole chunks of ours (:func:`reuse.read_rows`), the
+        run is one block: what is read is only the rows before its first whole chunk
+        and after its last. Elsewhere every row is read, :data:`COPY_BYTES` of whole
+        images a block, and written on the writer's thread while the next is read."""
+        group = run.source.group
+        offsets = self._offsets_of(group)
+        self._size(run.images[0], _mask_size(group))
+        if group.path not in self._alike:
+            ours = stores.array_directory(self.writer.array)
+            self._alike[group.path] = reuse.same_chunks(ours, group.path / "masks")
+        done, end = run.source.index, run.source.index + len(run.images)
+        link = self._alike[group.path] and (self.rows - int(offsets[done])) % CHUNK_ROWS == 0
+        row_bytes = self.writer.array.shape[1]  # uint8
+        block = int(offsets[end] - offsets[done]) if link else max(1, COPY_BYTES // row_bytes)
+        while done < end:
+            stop = int(np.searchsorted(offsets, offsets[done] + block, "right")) - 1
+            stop = min(max(stop, done + 1), end)
+            low, high = int(offsets[done]), int(offsets[stop])
+            try:
+                pieces = reuse.read_rows(group["masks"], low, high, self.rows, link)
+            except stores.StoreCorruptError as error:
+                log.warning("segmenting images whose stored masks fail their checks: %s", error)
+                return run.images[done - run.source.index :]
+            lengths = np.diff(offsets[done : stop + 1])
+            self._queue(high - low, _append_images, self.writer, pieces, lengths)
+            self.reused += stop - done
+            done = stop
+        return []
+
+    def stored(self, source: reuse.Source) -> tuple[np.ndarray, tuple] | None:
+        """``(packed rows, (mask height, width))`` of ``source``'s image alone, or None
+        where they fail their checks (a warning; the image is segmented instead). Its
+        rows only, so that a damaged chunk costs only the images with rows in it."""
+        offsets = self._offsets_of(source.group)
+        low, high = int(offsets[source.index]), int(offsets[source.index + 1])
+        try:
+            rows = np.asarray(source.group["masks"][low:high])
+        except stores.StoreCorruptError as error:
+            log.warning("segmenting an image whose stored masks fail their checks: %s", error)
+            return None
+        return rows, _mask_size(source.group)
+
+    def close(self) -> None:
+        """Wait for the last append, then write the offsets."""
+        self._wait()
+        if self.writer is not None:
+            self.writer.close()
+
+    def _offsets_of(self, group: stores.CheckedGroup) -> np.ndarray:
+        if group.path not in self._offsets:
+            self._offsets[group.path] = np.asarray(group["masks_offsets"][...])
+        return self._offsets[group.path]
+
+    def _size(self, index: int, size: tuple) -> None:
+        """Make the array at image ``index``'s mask ``size``, or check it is the same."""
+        if self.writer is None:
+            stores.set_attrs(self.group, mask_height=size[0], mask_width=size[1])
+            row_bytes = (size[0] * size[1] + 7) // 8
+            self.writer = stores.RaggedWriter(
+                self.group, "masks", (row_bytes,), np.uint8, CHUNK_ROWS
+            )
+            self.size = tuple(size)
+        elif tuple(size) != self.size:
+            raise ValueError(
+                f"{self.dataset.paths[index]}: masks of size {tuple(size)} differ from the "
+                f"first image's {self.size}"
+            )
+
+    def _queue(self, rows: int, append, *args) -> None:
+        self._wait()  # in order, one call ahead at most
+        self._pending = self._packing.submit(append, *args)
+        self.rows += rows
+
+    def _wait(self) -> None:
+        """Wait for the last append; re-raise its error."""
+        if self._pending is not None:
+            pending, self._pending = self._pending, None
+            pending.result()
+
+
+def _mask_size(group: stores.CheckedGroup) -> tuple[int, int]:
+    return int(group.attrs["mask_height"]), int(group.attrs["mask_width"])
 
 
 def _append_packed(writer: stores.RaggedWriter, masks: np.ndarray) -> None:
     writer.append(stores.pack_masks(masks))
+
+
+def _append_images(writer: stores.RaggedWriter, pieces: list, lengths: np.ndarray) -> None:
+    reuse.append_rows(writer, pieces)
+    writer.add_images(lengths)
 
 
 def _segmented(read, segment, images, batch_size: int):
