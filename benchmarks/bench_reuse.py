@@ -7,8 +7,9 @@ grown by a few images, and of the same database with a second query set.
 Corridor's images cycled to ``--images`` (half references, half queries), each copy made
 a distinct image by bytes appended after its JPEG data (decoders stop at the end marker:
 the same pixels, another SHA-256), at corridor's shipped settings (DAISY features, SLIC
-segments, 160 x 120), run in this process through the rules' runners
-(``vprflow.stages.jobs.run_job``) into one results folder:
+segments, 160 x 120; segments in each masks layout, ``vprflow.core.masks``), run in this
+process through the rules' runners (``vprflow.stages.jobs.run_job``) into one results
+folder:
 
 - ``map``: the map from scratch;
 - ``grown``: the map plus ``--added`` new references;
@@ -47,7 +48,8 @@ from vprflow.stages.jobs import Job, run_job
 REPO = Path(__file__).resolve().parents[1]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
 SKIPPED = 77
-STAGES = ("features", "segments")
+# Each stage measured, and the segmenter's masks_layout (vprflow.core.masks) for segments.
+STAGES = (("features", None), ("segments", "packed"), ("segments", "per_image"))
 
 
 def distinct_copies(files: list[Path], target: Path, first: int, count: int, tag: str) -> None:
@@ -74,9 +76,12 @@ def make_data(corridor: Path, root: Path, n_images: int, added: int) -> None:
     distinct_copies(queries, root / "fixed" / "query", 0, 1, "fixed-q")
 
 
-def plan_for(root: Path):
+def plan_for(root: Path, masks_layout: str | None = None):
     config = yaml.safe_load((REPO / "config" / "config.yaml").read_text())
     corridor = config["datasets"]["corridor"]
+    if masks_layout is not None:
+        for segmenter in config["segmenters"].values():
+            segmenter["masks_layout"] = masks_layout
     config["data_root"] = str(root)
     config["datasets"] = {
         name: {
@@ -134,7 +139,6 @@ def shared_files(store: Path) -> str:
 def measure(data: Path, workdir: Path, n_images: int, added: int) -> bool:
     root, cache = workdir / "data", workdir / "results" / "cache"
     make_data(data / "corridor", root, n_images, added)
-    plan = plan_for(root)
     lines = Lines()
     logger = logging.getLogger("vprflow")
     logger.addHandler(lines)
@@ -142,10 +146,12 @@ def measure(data: Path, workdir: Path, n_images: int, added: int) -> bool:
     ok = True
     print("| stage | dataset | wall s | computed | reused | share of map | files shared | check |")
     print("|---|---|---|---|---|---|---|---|")
-    for stage in STAGES:
+    for stage, masks_layout in STAGES:
+        plan = plan_for(root, masks_layout)
+        label = stage if masks_layout is None else f"{stage} ({masks_layout})"
         fixed = run_stage(plan, stage, "fixed", root, cache, lines)[0]
         first, computed, reused, job = run_stage(plan, stage, "map", root, cache, lines)
-        print(f"| {stage} | map | {first:.2f} | {computed} | {reused} | 1.00 | | |")
+        print(f"| {label} | map | {first:.2f} | {computed} | {reused} | 1.00 | | |")
         ok &= computed == n_images // 2 * 2 and reused == 0
         # The lookup alone, where every image is found (a second job over the map's images).
         digests = reuse.stores.read_strings(reuse.stores.open_store(job.inputs["images"]), "sha256")
@@ -165,11 +171,11 @@ def measure(data: Path, workdir: Path, n_images: int, added: int) -> bool:
             share = wall / first
             files = shared_files(Path(grown.out))
             print(
-                f"| {stage} | {name} | {wall:.2f} | {computed} | {reused} | {share:.3f} "
+                f"| {label} | {name} | {wall:.2f} | {computed} | {reused} | {share:.3f} "
                 f"| {files} | {check} |"
             )
         share = lookup / first
-        print(f"| {stage} | lookup | {lookup:.4f} | | {len(digests)} | {share:.4f} | | all found |")
+        print(f"| {label} | lookup | {lookup:.4f} | | {len(digests)} | {share:.4f} | | all found |")
     logger.removeHandler(lines)
     return ok
 

@@ -26,6 +26,7 @@ from vprflow.planning.config import validate_config
 from vprflow.planning.plan import build_plan
 from vprflow.stages import segments
 from vprflow.stages.jobs import Job, combine_shards, run_job
+from vprflow.stages.readers import MaskReader, mask_rows, segment_offsets
 
 REPO = Path(__file__).resolve().parents[2]
 SCHEMA = REPO / "workflow" / "schemas" / "config.schema.yaml"
@@ -53,8 +54,10 @@ def data(tmp_path_factory) -> Path:
     return root
 
 
-def plan_of(data: Path, *names: str):
+def plan_of(data: Path, *names: str, masks_layout: str | None = None):
     config = toy_config(data, resolution=[64, 48], methods=["segvlad_o0_nopca"])
+    if masks_layout is not None:
+        config["segmenters"]["slic"]["masks_layout"] = masks_layout
     entry = config["datasets"].pop("toy")
     config["datasets"] = {
         name: {**entry, "path": name, "ground_truth": {"kind": "none"}} for name in names
@@ -195,6 +198,44 @@ def test_masks_of_a_shared_database_are_one_file_in_both_stores(
     assert all(os.path.samefile(base / chunk, second / chunk) for chunk in shared)
     after = f"masks/c/{rows // 4 + 1}/0"
     assert (second / after).is_file() and not os.path.samefile(base / after, second / after)
+
+
+@pytest.mark.parametrize("shards", [None, [(0, 4), (4, 8), (8, 11)]])
+def test_per_image_masks_of_every_reused_image_are_its_files_in_both_stores(
+    data, scratch, tmp_path, monkeypatch, caplog, shards
+):
+    """masks_layout per_image: each reused image's chunk files (2 each at 4 masks a file)
+    are the base store's, wherever its rows are now, unsharded or gathered; the store is
+    the one from scratch, and its masks are the packed store's."""
+    monkeypatch.setattr(segments, "IMAGE_CHUNK_ROWS", 4)
+    plan = plan_of(data, "base", "grown", masks_layout="per_image")
+    alone = run(plan, "segments", "grown", data, tmp_path / "scratch")
+    base = run(plan, "segments", "base", data, tmp_path / "shared")
+    caplog.set_level(logging.INFO, logger="vprflow")
+    grown = run(plan, "segments", "grown", data, tmp_path / "shared", shards)
+    if shards is None:
+        assert counts(caplog) == (3, 2 * N_PLACES)
+    ours, theirs = files_of(grown), files_of(alone)
+    assert ours.keys() == theirs.keys()
+    assert [k for k in ours if ours[k] != theirs[k]] == ([] if shards is None else ["zarr.json"])
+    opened = {store: stores.open_store(store) for store in (base, grown)}
+    offsets = {store: mask_rows(group)[0] for store, group in opened.items()}
+
+    def files(store, image: int) -> list[Path]:
+        first, stop = offsets[store][image] // 4, offsets[store][image + 1] // 4
+        return [reuse.chunk_file(opened[store]["masks"].raw, c) for c in range(first, stop)]
+
+    # grown's references 0-3 are base's 0-3; its queries 0000, 0002, 0003 and 0007 (at
+    # 6, 8, 9, 10) base's 4, 6, 7 and 4. Files named c.<i>.0, no folder a chunk.
+    assert reuse.chunk_file(opened[base]["masks"].raw, 1).parent == base / "masks"
+    for mine, their in [(0, 0), (1, 1), (2, 2), (3, 3), (6, 4), (8, 6), (9, 7), (10, 4)]:
+        assert len(files(base, their)) == len(files(grown, mine)) >= 1
+        assert all(map(os.path.samefile, files(base, their), files(grown, mine)))
+    packed, per_image = stores.open_store(scratch["segments"]), stores.open_store(grown)
+    np.testing.assert_array_equal(segment_offsets(packed), segment_offsets(per_image))
+    read_packed, read_per_image = MaskReader(packed), MaskReader(per_image)
+    for index in range(2 * N_PLACES + 3):
+        np.testing.assert_array_equal(read_per_image(index), read_packed(index))
 
 
 def test_an_unfinished_store_is_never_reused(data, tmp_path, caplog):

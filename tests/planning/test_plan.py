@@ -167,6 +167,18 @@ def test_execution_settings_are_not_in_keys(config):
     assert changed_stages(config, changed) == set()
 
 
+def test_masks_layout_per_image_keys_the_segments_and_after_and_packed_is_its_absence(config):
+    """per_image is another store from the segments on; ``packed`` given is the stores
+    every key before the option hashed, so naming it changes nothing."""
+    segmenter = config["methods"]["segvlad"].get("segmenter", config["segmenter"])
+    packed, per_image = copy.deepcopy(config), copy.deepcopy(config)
+    packed["segmenters"][segmenter]["masks_layout"] = "packed"
+    per_image["segmenters"][segmenter]["masks_layout"] = "per_image"
+    assert changed_stages(config, packed) == set()
+    changed = changed_stages(config, per_image)
+    assert "segments" in changed and not changed & {"images", "features", "vocabulary"}
+
+
 def test_recall_at_reaches_only_recall(config):
     changed = copy.deepcopy(config)
     changed["datasets"]["corridor"]["recall_at"] = [1, 2, 3]

@@ -255,19 +255,23 @@ def link_equal_chunks(array: Path, record: dict, folder: Path) -> int:
     ]
     linked = shared = 0
     for chunk in _chunk_files(array):
-        if chunk.stat().st_nlink == 1 and twins:  # else another store's already
+        links = chunk.stat().st_nlink
+        if links == 1 and twins:  # else another store's already
             outcome = _link_to_twin(chunk, [twin / chunk.relative_to(array) for twin in twins])
             if outcome is None:  # the file system refuses hard links: keep the copies
                 twins = []
             linked += bool(outcome)
-        shared += chunk.stat().st_nlink > 1
+            links += bool(outcome)
+        shared += links > 1
     log.info("%s: %d chunk files shared with other stores", array.name, shared)
     return linked
 
 
 def _chunk_files(array: Path) -> list[Path]:
-    """The chunk files of the array at ``array`` (a folder), in order."""
-    return sorted(Path(folder, name) for folder, _, names in os.walk(array / "c") for name in names)
+    """The chunk files of the array at ``array`` (a folder: its files but ``zarr.json``,
+    under ``c/`` or flat, :data:`vprflow.core.stores.FLAT_CHUNK_KEYS`), in order."""
+    files = (Path(folder, name) for folder, _, names in os.walk(array) for name in names)
+    return sorted(path for path in files if path != array / "zarr.json")
 
 
 def _link_to_twin(chunk: Path, twins: list[Path]) -> bool | None:

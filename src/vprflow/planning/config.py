@@ -39,6 +39,7 @@ jsonschema = lazy_import("jsonschema")
 # without importing torch, so each of these must import without it (test_enumerations).
 ENUM_MODULES = (
     "vprflow.core.dtypes",
+    "vprflow.core.masks",
     "vprflow.data.images",
     "vprflow.models.kinds",
     "vprflow.aggregation.aggregators",

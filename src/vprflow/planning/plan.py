@@ -24,6 +24,7 @@ from typing import TYPE_CHECKING, Literal
 
 from vprflow.aggregation.vocabularies import PUBLISHED as PUBLISHED_VOCABULARIES
 from vprflow.core.errors import PlanError
+from vprflow.core.masks import PACKED
 from vprflow.core.paths import PUBLISHED_VOCABULARY, store_path
 from vprflow.data.datasets import listing_truth
 from vprflow.data.images import ImageReadError, dataset_orientation, image_size
@@ -565,6 +566,8 @@ def _kind_version(kind) -> dict:
 def _plan_segments(m: _Method, inputs: dict[str, _StoreRef]) -> tuple[_StoreRef, dict]:
     name = m.settings["segmenter"]
     segmenter = m.entry("segmenters", name)
+    if segmenter.get("masks_layout") == PACKED:  # the stores before the option: their keys
+        segmenter = {k: v for k, v in segmenter.items() if k != "masks_layout"}
     params = {
         **_hashed(segmenter),
         **source_fingerprint("segments", segmenter, m.memo, f"segmenters.{name}"),

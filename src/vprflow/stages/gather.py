@@ -39,22 +39,25 @@ def gather(shard_paths: list[str], record: dict, out: str) -> None:
         for name in names:
             if name.endswith("_offsets"):
                 continue
-            source = first[name]
-            chunks = source.chunks
-            if chunks == (1, *source.shape[1:]) and source.raw.compressors == stores.CHECKSUM_ONLY:
+            if _whole_chunks(shards, name):
                 _link_rows(shards, name, group)
-                continue
-            target = group.create_array(
-                name,
-                shape=(0, *source.shape[1:]),
-                chunks=chunks,
-                dtype=source.dtype,
-                # The shards' own (features: CHECKSUM_ONLY), which carry the checksum.
-                compressors=source.raw.compressors,
-            )
-            for shard in tqdm(shards, desc=f"gather {name}", unit="shard"):
-                if shard[name].shape[0]:
-                    target.append(np.asarray(shard[name][...]), axis=0)
+            else:
+                source = first[name]
+                target = group.create_array(
+                    name,
+                    shape=(0, *source.shape[1:]),
+                    chunks=source.chunks,
+                    dtype=source.dtype,
+                    # The shards' own (features: CHECKSUM_ONLY), which carry the checksum.
+                    compressors=source.raw.compressors,
+                    chunk_key_encoding=source.raw.metadata.chunk_key_encoding,
+                )
+                for shard in tqdm(shards, desc=f"gather {name}", unit="shard"):
+                    if shard[name].shape[0]:
+                        target.append(np.asarray(shard[name][...]), axis=0)
+                if name in packed:
+                    array = stores.array_directory(target)
+                    reuse.link_equal_chunks(array, record, Path(out).parent)
             if f"{name}_offsets" in names:
                 offsets = [np.zeros(1, dtype=np.int64)]
                 base = 0
@@ -63,8 +66,24 @@ def gather(shard_paths: list[str], record: dict, out: str) -> None:
                     offsets.append(local[1:] + base)
                     base += int(local[-1])
                 stores.write_array(group, f"{name}_offsets", np.concatenate(offsets))
-            if name in packed:
-                reuse.link_equal_chunks(stores.array_directory(target), record, Path(out).parent)
+
+
+def _whole_chunks(shards: list[stores.CheckedGroup], name: str) -> bool:
+    """Whether every shard's ``name`` but the last's ends on a chunk boundary, in chunk
+    files alike (chunked along the first axis only, with a checksum last): then each
+    chunk of the gathered array is one shard's chunk as it is (features, one image a
+    chunk; per_image masks, :mod:`vprflow.core.masks`)."""
+    first = shards[0][name]
+    folder = stores.array_directory(first.raw)
+    return (
+        first.chunks[1:] == first.shape[1:]
+        and first.raw.compressors in (stores.CHECKSUM_ONLY, stores.COMPRESSORS)
+        and all(shard[name].shape[0] % first.chunks[0] == 0 for shard in shards[:-1])
+        and all(
+            reuse.same_chunks(folder, stores.array_directory(shard[name].raw))
+            for shard in shards[1:]
+        )
+    )
 
 
 def _packed(names: list[str], record: dict) -> list[str]:
@@ -77,26 +96,31 @@ def _packed(names: list[str], record: dict) -> list[str]:
 
 
 def _link_rows(shards: list[stores.CheckedGroup], name: str, group: zarr.Group) -> None:
-    """``name``, one row a chunk stored as is (features), gathered by hard-linking each
-    shard's chunk files at their rows' new places: the same files as appending the
-    rows writes, without reading them, and a row reused from another store
-    (:mod:`vprflow.core.reuse`) stays one file on disk."""
+    """``name`` gathered by hard-linking each shard's chunk files at their new places
+    (:func:`_whole_chunks`): the same files as appending the rows writes, without
+    reading them, and rows reused from another store (:mod:`vprflow.core.reuse`) stay
+    one file on disk."""
     first = shards[0][name]
+    step = first.chunks[0]
     target = group.create_array(
         name,
         shape=(sum(shard[name].shape[0] for shard in shards), *first.shape[1:]),
         chunks=first.chunks,
         dtype=first.dtype,
-        compressors=stores.CHECKSUM_ONLY,
+        compressors=first.raw.compressors,
+        chunk_key_encoding=first.raw.metadata.chunk_key_encoding,
     )
-    chunk_bytes = first.dtype.itemsize * int(np.prod(first.shape[1:]))
+    plain = first.raw.compressors == stores.CHECKSUM_ONLY
+    chunk_bytes = first.dtype.itemsize * int(np.prod(first.chunks)) if plain else None
     base = 0
     for shard in shards:
         array = shard[name]
-        for index in range(array.shape[0]):
+        for index in range(-(-array.shape[0] // step)):
             source = reuse.chunk_file(array.raw, index)
             if source.exists() and not reuse.link_chunk(
                 source, reuse.chunk_file(target, base + index), chunk_bytes
             ):
-                raise stores.StoreCorruptError(shard.path, f"array '{name}' row {index} is damaged")
-        base += array.shape[0]
+                raise stores.StoreCorruptError(
+                    shard.path, f"array '{name}' chunk {index} is damaged"
+                )
+        base += array.shape[0] // step

@@ -11,7 +11,7 @@ from vprflow.aggregation.aggregators import aggregator
 from vprflow.core import stores
 from vprflow.stages.base import Job
 from vprflow.stages.image_descriptors import image_descriptor
-from vprflow.stages.readers import Dataset
+from vprflow.stages.readers import Dataset, segment_offsets
 
 
 def fit_pca(job: Job) -> None:
@@ -23,7 +23,7 @@ def fit_pca(job: Job) -> None:
     dataset = Dataset(inputs["images"])
     describe = image_descriptor(aggregator(params["aggregator"]), params["fit_on"], inputs)
     segments_path = inputs["segments"]
-    offsets = np.asarray(stores.open_store(segments_path)["masks_offsets"][...])
+    offsets = segment_offsets(stores.open_store(segments_path))
     total = int(offsets[dataset.n_reference])
     rng = np.random.default_rng(params["seed"])
     chosen = np.sort(rng.choice(total, size=min(total, params["max_samples"]), replace=False))

@@ -134,14 +134,34 @@ def read_masks(group, index: int) -> np.ndarray:
 
 class MaskReader:
     """``reader(index) -> bool [S, Hm, Wm]``, reading the packed masks of many images
-    per store access (see :class:`vprflow.core.stores.RaggedReader`)."""
+    per store access (see :class:`vprflow.core.stores.RaggedReader`), in either layout
+    (:mod:`vprflow.core.masks`)."""
 
     def __init__(self, group):
         self.packed = stores.RaggedReader(group, "masks")
+        self.counts = mask_rows(group)[1]
         self.height, self.width = int(group.attrs["mask_height"]), int(group.attrs["mask_width"])
 
     def __call__(self, index: int) -> np.ndarray:
-        return stores.unpack_masks(self.packed(index), self.height, self.width)
+        rows = self.packed(index)[: self.counts[index]]  # per_image: less the padding
+        return stores.unpack_masks(rows, self.height, self.width)
+
+
+def mask_rows(group) -> tuple[np.ndarray, np.ndarray]:
+    """``(offsets [n + 1], counts [n])`` of a segments store's masks: image ``i``'s are
+    rows ``offsets[i]:offsets[i] + counts[i]`` of ``masks``. Packed, its rows are its
+    masks (``counts`` the offsets' steps); per_image (:mod:`vprflow.core.masks`),
+    ``masks_counts`` says how many of its rows are masks, the rest padding."""
+    offsets = np.asarray(group["masks_offsets"][...])
+    if "masks_counts" in group:
+        return offsets, np.asarray(group["masks_counts"][...])
+    return offsets, np.diff(offsets)
+
+
+def segment_offsets(group) -> np.ndarray:
+    """``[n + 1]``: image ``i``'s segments are ``offsets[i]:offsets[i + 1]`` of all the
+    store's segments counted in image order, in either layout."""
+    return np.concatenate([[0], np.cumsum(mask_rows(group)[1])]).astype(np.int64)
 
 
 def read_centres(path: str) -> np.ndarray:

@@ -12,16 +12,20 @@ import numpy as np
 from tqdm import tqdm
 
 from vprflow.core import reuse, stores
+from vprflow.core.masks import PACKED, PER_IMAGE
 from vprflow.data.images import resize_image
 from vprflow.data.published import read_masks_h5
 from vprflow.models.kinds import model_kind
 from vprflow.models.loaders import load_model
 from vprflow.stages.base import Job, resolved_sources, stage_attrs
-from vprflow.stages.readers import open_shard, reusable_results
+from vprflow.stages.readers import mask_rows, open_shard, reusable_results
 
 log = logging.getLogger("vprflow")
-# Masks a chunk of the ragged ``masks`` array: many images' each.
+# Masks a chunk file of the ragged ``masks`` array, packed: many images' each.
 CHUNK_ROWS = 256
+# Masks a chunk file per_image (vprflow.core.masks): SLIC's ~60 an image in one file,
+# SAM's ~100 in two; an image's last file padded with empty rows, a few bytes in zstd.
+IMAGE_CHUNK_ROWS = 64
 # Rows copied from another store a block where they are read (not linked): small enough
 # that the writer's thread compresses one while the next is read (grown map of
 # benchmarks/bench_reuse.py), at most about a RowWriter write (WRITE_BYTES).
@@ -55,7 +59,8 @@ def compute_segments(job: Job) -> None:
     left = [index for index in images if index not in sources]
     masker = functools.cache(lambda: _mask_source(params, job.device, dataset))
     computed = _segmented(*masker(), left, job.batch_size) if left else iter(())
-    with stores.atomic_store(job.out, attrs) as group, _Masks(group, dataset) as masks:
+    layout = params.get("masks_layout", PACKED)
+    with stores.atomic_store(job.out, attrs) as group, _Masks(group, dataset, layout) as masks:
         for run in _runs(images, sources):
             if run.source is None:
                 for i in run.images:
@@ -108,17 +113,20 @@ def _runs(images: range, sources: dict[int, reuse.Source]) -> list[_Run]:
 
 
 class _Masks:
-    """The store's ``masks``, appended in image order on one packing thread, one call
-    ahead of the caller at most, the array made at the first image's mask size (each
-    next image's checked against it)."""
+    """The store's ``masks`` in ``layout`` (:mod:`vprflow.core.masks`), appended in image
+    order on one packing thread, one call ahead of the caller at most, the array made at
+    the first image's mask size (each next image's checked against it)."""
 
-    def __init__(self, group, dataset):
+    def __init__(self, group, dataset, layout: str):
         self.group, self.dataset = group, dataset
+        self.chunk_rows = IMAGE_CHUNK_ROWS if layout == PER_IMAGE else CHUNK_ROWS
+        # per_image: each image's masks, its rows less their padding (masks_counts).
+        self.counts: list[int] | None = [] if layout == PER_IMAGE else None
         self.writer: stores.RaggedWriter | None = None
         self.size: tuple | None = None  # the masks' (height, width)
         self.rows = 0  # rows appended or queued so far
         self.reused = 0
-        self._offsets: dict[Path, np.ndarray] = {}  # each source's masks_offsets
+        self._rows: dict[Path, tuple[np.ndarray, np.ndarray]] = {}  # sources' mask_rows
         self._alike: dict[Path, bool] = {}
         self._packing = ThreadPoolExecutor(1, thread_name_prefix="pack-masks")
         self._pending: Future | None = None
@@ -134,12 +142,16 @@ class _Masks:
         self._size(index, masks.shape[1:])
         if len(masks) == 0:
             log.warning("%s: the segmenter returned no masks", self.dataset.paths[index])
-        self._queue(len(masks), _append_packed, self.writer, masks)
+        padding = self._record(len(masks))
+        self._queue(len(masks) + padding, _append_packed, self.writer, masks, padding)
 
     def packed(self, index: int, rows: np.ndarray, size: tuple) -> None:
         """Append image ``index``'s packed masks ``rows`` of masks of ``size``."""
         self._size(index, size)
         self.reused += 1
+        padding = self._record(len(rows))
+        if padding:
+            rows = np.concatenate([rows, np.zeros((padding, rows.shape[1]), np.uint8)])
         self._queue(len(rows), self.writer.append, rows)
 
     def copied(self, run: _Run) -> list[int]:
@@ -152,13 +164,14 @@ class _Masks:
         and after its last. Elsewhere every row is read, :data:`COPY_BYTES` of whole
         images a block, and written on the writer's thread while the next is read."""
         group = run.source.group
-        offsets = self._offsets_of(group)
+        offsets, counts = self._rows_of(group)
         self._size(run.images[0], _mask_size(group))
         if group.path not in self._alike:
             ours = stores.array_directory(self.writer.array)
             self._alike[group.path] = reuse.same_chunks(ours, group.path / "masks")
         done, end = run.source.index, run.source.index + len(run.images)
-        link = self._alike[group.path] and (self.rows - int(offsets[done])) % CHUNK_ROWS == 0
+        aligned = (self.rows - int(offsets[done])) % self.chunk_rows == 0  # always per_image
+        link = self._alike[group.path] and aligned
         row_bytes = self.writer.array.shape[1]  # uint8
         block = int(offsets[end] - offsets[done]) if link else max(1, COPY_BYTES // row_bytes)
         while done < end:
@@ -172,6 +185,8 @@ class _Masks:
                 return run.images[done - run.source.index :]
             lengths = np.diff(offsets[done : stop + 1])
             self._queue(high - low, _append_images, self.writer, pieces, lengths)
+            if self.counts is not None:
+                self.counts.extend(counts[done:stop].tolist())
             self.reused += stop - done
             done = stop
         return []
@@ -180,8 +195,9 @@ class _Masks:
         """``(packed rows, (mask height, width))`` of ``source``'s image alone, or None
         where they fail their checks (a warning; the image is segmented instead). Its
         rows only, so that a damaged chunk costs only the images with rows in it."""
-        offsets = self._offsets_of(source.group)
-        low, high = int(offsets[source.index]), int(offsets[source.index + 1])
+        offsets, counts = self._rows_of(source.group)
+        low = int(offsets[source.index])
+        high = low + int(counts[source.index])
         try:
             rows = np.asarray(source.group["masks"][low:high])
         except stores.StoreCorruptError as error:
@@ -190,23 +206,41 @@ class _Masks:
         return rows, _mask_size(source.group)
 
     def close(self) -> None:
-        """Wait for the last append, then write the offsets."""
+        """Wait for the last append, then write the offsets (and per_image counts)."""
         self._wait()
         if self.writer is not None:
             self.writer.close()
+        if self.counts is not None:
+            # Chunks of a fixed length, so that a gathered store's are the same files.
+            counts = np.asarray(self.counts, np.int64)
+            stores.write_array(self.group, "masks_counts", counts, chunks=(1 << 16,))
 
-    def _offsets_of(self, group: stores.CheckedGroup) -> np.ndarray:
-        if group.path not in self._offsets:
-            self._offsets[group.path] = np.asarray(group["masks_offsets"][...])
-        return self._offsets[group.path]
+    def _rows_of(self, group: stores.CheckedGroup) -> tuple[np.ndarray, np.ndarray]:
+        if group.path not in self._rows:
+            self._rows[group.path] = mask_rows(group)
+        return self._rows[group.path]
+
+    def _record(self, count: int) -> int:
+        """Record an image of ``count`` masks -> the empty rows after them: per_image, to
+        the end of its last file; packed, none."""
+        if self.counts is None:
+            return 0
+        self.counts.append(count)
+        return -count % self.chunk_rows
 
     def _size(self, index: int, size: tuple) -> None:
         """Make the array at image ``index``'s mask ``size``, or check it is the same."""
         if self.writer is None:
             stores.set_attrs(self.group, mask_height=size[0], mask_width=size[1])
             row_bytes = (size[0] * size[1] + 7) // 8
+            flat = stores.FLAT_CHUNK_KEYS if self.counts is not None else None  # per_image
             self.writer = stores.RaggedWriter(
-                self.group, "masks", (row_bytes,), np.uint8, CHUNK_ROWS
+                self.group,
+                "masks",
+                (row_bytes,),
+                np.uint8,
+                self.chunk_rows,
+                chunk_key_encoding=flat,
             )
             self.size = tuple(size)
         elif tuple(size) != self.size:
@@ -231,8 +265,11 @@ def _mask_size(group: stores.CheckedGroup) -> tuple[int, int]:
     return int(group.attrs["mask_height"]), int(group.attrs["mask_width"])
 
 
-def _append_packed(writer: stores.RaggedWriter, masks: np.ndarray) -> None:
-    writer.append(stores.pack_masks(masks))
+def _append_packed(writer: stores.RaggedWriter, masks: np.ndarray, padding: int) -> None:
+    rows = stores.pack_masks(masks)
+    if padding:
+        rows = np.concatenate([rows, np.zeros((padding, rows.shape[1]), np.uint8)])
+    writer.append(rows)
 
 
 def _append_images(writer: stores.RaggedWriter, pieces: list, lengths: np.ndarray) -> None:
