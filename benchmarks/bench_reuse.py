@@ -128,11 +128,18 @@ def run_stage(plan, stage: str, dataset: str, root: Path, cache: Path, lines: Li
     return wall, int(computed), int(reused), job
 
 
+def run_fixed(plan, stage: str, root: Path, cache: Path, lines: Lines) -> float:
+    """Wall seconds of the 2-image dataset's ``stage`` job from scratch."""
+    wall, _, _, job = run_stage(plan, stage, "fixed", root, cache, lines)
+    shutil.rmtree(job.out)
+    return wall
+
+
 def shared_files(store: Path) -> str:
     """``shared / all`` chunk files of ``store``'s per-image array (features, masks):
     those that are also another store's (hard links)."""
     (array,) = [store / name for name in ("features", "masks") if (store / name).is_dir()]
-    files = [path for path in (array / "c").rglob("*") if path.is_file()]
+    files = [path for path in array.rglob("*") if path.is_file() and path.name != "zarr.json"]
     return f"{sum(path.stat().st_nlink > 1 for path in files)} / {len(files)}"
 
 
@@ -149,7 +156,8 @@ def measure(data: Path, workdir: Path, n_images: int, added: int) -> bool:
     for stage, masks_layout in STAGES:
         plan = plan_for(root, masks_layout)
         label = stage if masks_layout is None else f"{stage} ({masks_layout})"
-        fixed = run_stage(plan, stage, "fixed", root, cache, lines)[0]
+        # The best of two: the first job of a stage in this process also imports.
+        fixed = min(run_fixed(plan, stage, root, cache, lines) for _ in range(2))
         first, computed, reused, job = run_stage(plan, stage, "map", root, cache, lines)
         print(f"| {label} | map | {first:.2f} | {computed} | {reused} | 1.00 | | |")
         ok &= computed == n_images // 2 * 2 and reused == 0

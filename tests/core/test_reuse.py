@@ -133,17 +133,18 @@ def test_reused_features_are_one_file_shared_by_both_stores(data, tmp_path):
     base = run(plan, "features", "base", data, tmp_path)
     grown = run(plan, "features", "grown", data, tmp_path)
     # Row 6 of grown (its first query) is base's row 4; grown's query 0007 is also it.
-    assert os.path.samefile(base / "features/c/4/0/0/0", grown / "features/c/6/0/0/0")
-    assert os.path.samefile(base / "features/c/4/0/0/0", grown / "features/c/10/0/0/0")
-    assert not os.path.samefile(base / "features/c/5/0/0/0", grown / "features/c/7/0/0/0")
+    # One file an image, flat in the array's folder (stores.FLAT_CHUNK_KEYS).
+    assert os.path.samefile(base / "features/c.4.0.0.0", grown / "features/c.6.0.0.0")
+    assert os.path.samefile(base / "features/c.4.0.0.0", grown / "features/c.10.0.0.0")
+    assert not os.path.samefile(base / "features/c.5.0.0.0", grown / "features/c.7.0.0.0")
 
 
 @pytest.mark.parametrize("stage", ["features", "segments"])
 def test_a_corrupted_result_is_computed_again_not_used(data, scratch, tmp_path, caplog, stage):
     plan = plan_of(data, "base", "grown")
     base = run(plan, stage, "base", data, tmp_path)
-    chunk = sorted((base / ("features" if stage == "features" else "masks")).rglob("c/*"))[0]
-    chunk = chunk if chunk.is_file() else sorted(p for p in chunk.rglob("*") if p.is_file())[0]
+    group = stores.open_store(base)
+    chunk = reuse.chunk_file(group["features" if stage == "features" else "masks"].raw, 0)
     damaged = bytearray(chunk.read_bytes())
     damaged[len(damaged) // 2] ^= 0xFF
     chunk.write_bytes(bytes(damaged))
@@ -173,7 +174,7 @@ def test_a_sharded_run_reuses_per_image_and_gathers_the_same_store(data, scratch
     assert attrs.pop("shards") == [[0, 4], [4, 8], [8, 11]]
     whole_attrs = stores.open_store(scratch["features"]).attrs.asdict()
     assert attrs == {k: v for k, v in whole_attrs.items() if k not in ("start", "stop")}
-    assert os.path.samefile(grown / "features/c/10/0/0/0", grown / "features/c/6/0/0/0")
+    assert os.path.samefile(grown / "features/c.10.0.0.0", grown / "features/c.6.0.0.0")
 
 
 @pytest.mark.parametrize("shards", [None, [(0, 3), (3, 7)], [(0, 7)]])

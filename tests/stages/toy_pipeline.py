@@ -23,6 +23,26 @@ METHODS = ["anyloc_vlad", "segvlad", "gem", "snsm", "segment_gem"]
 N_PLACES = 6
 
 
+def pipeline_config(data_root: Path, **segmenter) -> dict:
+    """The toy pipeline's validated config over ``data_root`` (holding ``toy``), its SLIC
+    entry updated with ``segmenter``."""
+    config = toy_config(
+        data_root,
+        resolution=[64, 48],
+        recall_at=[1, 3],
+        methods=METHODS,
+        defaults={"pca": {"dim": 8, "whiten": False}, "segvlad": {"order": 1}},
+        rerank={"anyloc_vlad": ["mnn"], "segvlad": ["ransac"]},
+    )
+    config["rerankers"] = {
+        "mnn": {"kind": "mnn", "features": "daisy", "top_k": 4},
+        "ransac": {"kind": "ransac", "features": "daisy", "min_similarity": 0.5},
+    }
+    config["vocabulary"].update(n_clusters=3, n_iter=5)
+    config["segmenters"]["slic"].update(n_segments=6, resolution_scale=1.0, **segmenter)
+    return validate_config(config, SCHEMA)
+
+
 class Runner:
     """Runs a plan's stages in dependency order through the rules' own table
     (:mod:`vprflow.stages.jobs`): per-image stages in two shards (references, queries),

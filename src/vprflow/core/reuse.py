@@ -166,12 +166,14 @@ def place_chunk(source: Path, target: Path, data: bytes) -> None:
     """Hard-link ``target`` to ``source``, a chunk file whose checked bytes are ``data``
     (:func:`read_chunk`); where the file system refuses hard links, or ``source`` is gone
     since it was read, write ``data`` there instead."""
-    target.parent.mkdir(parents=True, exist_ok=True)
     try:
         os.link(source, target)
         return
     except FileNotFoundError:
-        pass
+        if not target.parent.is_dir():  # a chunk key's first file in its folder
+            target.parent.mkdir(parents=True, exist_ok=True)
+            place_chunk(source, target, data)
+            return
     except OSError as error:
         if error.errno not in _NO_LINK:
             raise

@@ -71,9 +71,10 @@ FAST_COMPRESSORS = (zarr.codecs.ZstdCodec(level=-3), zarr.codecs.Crc32cCodec())
 # shrink to 20-36% and keep COMPRESSORS.
 CHECKSUM_ONLY = (zarr.codecs.Crc32cCodec(),)
 # Chunk files named c.<i>.<j> in the array's folder instead of zarr's c/<i>/<j>: no
-# folder per chunk, for arrays of many small chunks that other stores' files are linked
-# into (per_image masks, vprflow.core.masks). Creating a folder took 0.22-0.28 ms here
-# (ext4, 2,000 of them), a hard link 0.013 ms.
+# folder per chunk, for arrays of one image a chunk that other stores' files are linked
+# into (features: three folders an image otherwise; per_image masks, vprflow.core.masks).
+# Creating a folder took 0.22-0.28 ms here (ext4, 2,000 of them), a hard link 0.013 ms.
+# zarr.json names the encoding, so a store of either is read alike.
 FLAT_CHUNK_KEYS = {"name": "default", "separator": "."}
 # Array attribute: the number of chunk files the array had when its store was finished.
 # zarr returns the fill value for a missing chunk file, so a lost file is otherwise

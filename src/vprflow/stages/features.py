@@ -79,7 +79,15 @@ def compute_features(job: Job) -> None:
 def _writer(group, grid_shape, store_dtype, image_hw, patch_size) -> stores.RowWriter:
     """The store's ``features`` array, one image a chunk, and its grid attributes."""
     h, w, dim = (int(n) for n in grid_shape)
-    writer = stores.RowWriter(group, "features", (h, w, dim), store_dtype, 1, stores.CHECKSUM_ONLY)
+    writer = stores.RowWriter(
+        group,
+        "features",
+        (h, w, dim),
+        store_dtype,
+        1,
+        stores.CHECKSUM_ONLY,
+        chunk_key_encoding=stores.FLAT_CHUNK_KEYS,
+    )
     stores.set_attrs(group, grid=[h, w], dim=dim, patch_size=patch_size, image_size=image_hw)
     return writer
 

@@ -44,14 +44,14 @@ def compute_segments(job: Job) -> None:
     (:mod:`vprflow.core.reuse`: the same bytes, under any name, in any dataset) is not
     segmented: its packed rows come from there, a run of such images at a time, checked
     as every store read is (images whose rows fail are segmented instead). The store is
-    the same either way. Its chunks hold many images' rows, so rows cannot be linked one
-    by one; where a chunk of theirs lands on a whole chunk of ours (the same images
-    after rows that end on a chunk boundary in both: shared references, images added at
-    the end) its file is hard-linked in without being decompressed, and afterwards a
-    chunk byte for byte one of another store's at the same index is linked to it
-    (:func:`vprflow.core.reuse.link_equal_chunks`), so such masks are on disk once. The
-    segmenter is loaded only if an image is left to segment; the log says how many of
-    each."""
+    the same either way. Where a chunk of theirs lands on a whole chunk of ours its file
+    is hard-linked in without being decompressed, so those masks are on disk once:
+    per_image (:mod:`vprflow.core.masks`) every reused image's files; packed, where
+    many images share a chunk, only where the same images follow rows that end on a
+    chunk boundary in both (shared references, images added at the end), and afterwards
+    a chunk byte for byte one of another store's at the same index is linked to it
+    (:func:`vprflow.core.reuse.link_equal_chunks`). The segmenter is loaded only if an
+    image is left to segment; the log says how many of each."""
     params = job.params
     dataset, images = open_shard(job.inputs["images"], job.data_root, job.start, job.stop)
     attrs = {**stage_attrs("segments", job.record, images), "sources": resolved_sources(params)}
@@ -76,7 +76,8 @@ def compute_segments(job: Job) -> None:
                     read, segment = masker()
                     masks.segmented(i, segment(read([i]))[0])
         masks.close()
-        if masks.reused and job.start is None:  # a shard's chunks are linked by its gather
+        # per_image: each reused image's files were linked as they were copied.
+        if masks.reused and masks.counts is None and job.start is None:
             array = stores.array_directory(masks.writer.array)
             reuse.link_equal_chunks(array, job.record, Path(job.out).parent)
     log.info(reuse.IMAGES_LINE, len(images) - masks.reused, masks.reused)
@@ -159,10 +160,11 @@ class _Masks:
         caller (in order, before any other is appended): from the first whose block of
         rows fails its checks (a warning) to the run's end.
 
-        Where their chunks land on whole chunks of ours (:func:`reuse.read_rows`), the
-        run is one block: what is read is only the rows before its first whole chunk
-        and after its last. Elsewhere every row is read, :data:`COPY_BYTES` of whole
-        images a block, and written on the writer's thread while the next is read."""
+        Blocks of whole images, :data:`COPY_BYTES` of rows, each written (or linked) on
+        the threads while the next is read. Where their chunks land on whole chunks of
+        ours (:func:`reuse.read_rows`; per_image, always) those are linked, and a
+        packed run is one block: what is read is only the rows before its first whole
+        chunk and after its last."""
         group = run.source.group
         offsets, counts = self._rows_of(group)
         self._size(run.images[0], _mask_size(group))
@@ -172,8 +174,9 @@ class _Masks:
         done, end = run.source.index, run.source.index + len(run.images)
         aligned = (self.rows - int(offsets[done])) % self.chunk_rows == 0  # always per_image
         link = self._alike[group.path] and aligned
-        row_bytes = self.writer.array.shape[1]  # uint8
-        block = int(offsets[end] - offsets[done]) if link else max(1, COPY_BYTES // row_bytes)
+        block = max(1, COPY_BYTES // self.writer.array.shape[1])  # rows of uint8
+        if link and self.counts is None:  # packed: a block's end inside a chunk loses its link
+            block = int(offsets[end] - offsets[done])
         while done < end:
             stop = int(np.searchsorted(offsets, offsets[done] + block, "right")) - 1
             stop = min(max(stop, done + 1), end)
