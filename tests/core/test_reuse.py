@@ -425,16 +425,21 @@ def test_a_grown_maps_reference_masks_are_linked_as_they_are_copied(data, tmp_pa
     assert files_of(grown) == files_of(alone)
 
 
-def test_damaged_masks_cost_only_the_images_with_rows_in_them(data, tmp_path, caplog, monkeypatch):
+@pytest.mark.parametrize("masks_layout", ["packed", "per_image"])
+def test_damaged_masks_cost_only_the_images_with_rows_in_them(
+    data, tmp_path, caplog, monkeypatch, masks_layout
+):
     """A grown map whose base store has a damaged chunk among the references' (linked
-    whole) rows: the images with rows in it are segmented again, every other one is
-    reused, and the store is the one from scratch."""
+    whole) rows, in either layout: the images with rows in it are segmented again, every
+    other one is reused, and the store is the one from scratch."""
     monkeypatch.setattr(segments, "CHUNK_ROWS", 4)
-    plan = plan_of(data, "base", "grown")
+    monkeypatch.setattr(segments, "IMAGE_CHUNK_ROWS", 4)
+    plan = plan_of(data, "base", "grown", masks_layout=masks_layout)
     scratch = run(plan, "segments", "grown", data, tmp_path / "scratch")
     base = run(plan, "segments", "base", data, tmp_path / "shared")
-    offsets = np.asarray(stores.open_store(base)["masks_offsets"][...])
-    chunk = base / "masks/c/1/0"  # rows 4:8
+    group = stores.open_store(base)
+    offsets = mask_rows(group)[0]
+    chunk = reuse.chunk_file(group["masks"].raw, 1)  # rows 4:8
     damaged = bytearray(chunk.read_bytes())
     damaged[len(damaged) // 2] ^= 0xFF
     chunk.write_bytes(bytes(damaged))
