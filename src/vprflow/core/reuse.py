@@ -36,8 +36,9 @@ from vprflow.core import stores
 
 log = logging.getLogger("vprflow")
 
-# The stages whose results are reused per image (their stores' layouts: one row a
-# chunk, linked; ragged rows, copied, then whole chunks equal to another store's linked).
+# The stages whose results are reused per image (their stores' layouts: one image a
+# chunk, linked; ragged masks, a chunk of theirs that lands on a whole chunk of ours
+# linked, the other rows copied).
 STAGES = ("features", "segments")
 # Each per-image job's log line (one), which the run's closing line sums
 # (vprflow.planning.reports.reuse_line).

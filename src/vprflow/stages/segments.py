@@ -150,9 +150,7 @@ class _Masks:
         """Append image ``index``'s packed masks ``rows`` of masks of ``size``."""
         self._size(index, size)
         self.reused += 1
-        padding = self._record(len(rows))
-        if padding:
-            rows = np.concatenate([rows, np.zeros((padding, rows.shape[1]), np.uint8)])
+        rows = _padded(rows, self._record(len(rows)))
         self._queue(len(rows), self.writer.append, rows)
 
     def copied(self, run: _Run) -> list[int]:
@@ -269,10 +267,14 @@ def _mask_size(group: stores.CheckedGroup) -> tuple[int, int]:
 
 
 def _append_packed(writer: stores.RaggedWriter, masks: np.ndarray, padding: int) -> None:
-    rows = stores.pack_masks(masks)
-    if padding:
-        rows = np.concatenate([rows, np.zeros((padding, rows.shape[1]), np.uint8)])
-    writer.append(rows)
+    writer.append(_padded(stores.pack_masks(masks), padding))
+
+
+def _padded(rows: np.ndarray, padding: int) -> np.ndarray:
+    """Packed mask ``rows`` followed by ``padding`` empty ones (per_image)."""
+    if not padding:
+        return rows
+    return np.concatenate([rows, np.zeros((padding, rows.shape[1]), np.uint8)])
 
 
 def _append_images(writer: stores.RaggedWriter, pieces: list, lengths: np.ndarray) -> None:
